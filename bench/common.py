@@ -1,0 +1,29 @@
+"""Small helpers shared by the benchmark scripts (they print; they are not tests)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def percentiles_ms(samples_s, qs=(50, 95, 99)) -> dict[str, float]:
+    a = np.asarray(samples_s) * 1e3
+    return {f"p{q}": float(np.percentile(a, q)) for q in qs}
+
+
+def table(title: str, rows: list[tuple], header: tuple) -> None:
+    print(f"\n## {title}\n")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for r in rows:
+        print("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r) + " |")
+
+
+class Timer:
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        self.s = time.perf_counter() - self.t0

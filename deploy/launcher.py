@@ -1,0 +1,202 @@
+"""Local launcher: a zenoh router plus every service as its own OS process.
+
+Used by ``make demo`` and the end-to-end tests. It waits for every service's liveliness token with a
+deadline, restarts a service that crashes (exponential backoff), and stops everything cleanly -
+SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from shared import keys
+from shared.bus.config import ZenohSettings
+from shared.bus.zenoh_bus import ZenohBus
+
+log = logging.getLogger("launcher")
+
+SERVICES = ["robot_io", "mapper", "reconstructor", "renderer", "planner", "gateway"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_tcp(port: int, deadline_s: float) -> None:
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        with socket.socket() as s:
+            s.settimeout(0.2)
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {deadline_s:.0f} s")
+
+
+@dataclass
+class Proc:
+    name: str
+    argv: list[str]
+    env: dict[str, str]
+    log_path: Path
+    popen: subprocess.Popen | None = None
+    restarts: int = 0
+    next_backoff_s: float = 0.5
+    stopping: bool = False
+    history: list[int] = field(default_factory=list)  # exit codes of crashes
+
+    def start(self) -> None:
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        out = open(self.log_path, "ab")
+        # start_new_session: Ctrl-C in the terminal reaches the launcher only, which then stops
+        # the children in order instead of every process dying at once.
+        self.popen = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                      start_new_session=True)
+        out.close()
+
+
+class Launcher:
+    def __init__(self, run_dir: Path, *, replicas: dict[str, int] | None = None,
+                 router_port: int | None = None, gateway_port: int | None = None,
+                 extra_env: dict[str, str] | None = None, restart: bool = True,
+                 services: list[str] | None = None):
+        self.run_dir = Path(run_dir)
+        self.router_port = router_port or free_port()
+        self.gateway_port = gateway_port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.router_port}"
+        self.replicas = replicas or {}
+        self.extra_env = extra_env or {}
+        self.restart = restart
+        self.services = services or SERVICES
+        self.procs: list[Proc] = []
+        self._stop = threading.Event()
+        self._monitor: threading.Thread | None = None
+        self.bus: ZenohBus | None = None
+
+    @property
+    def gateway_url(self) -> str:
+        return f"http://127.0.0.1:{self.gateway_port}"
+
+    def _env(self, instance: str) -> dict[str, str]:
+        env = dict(os.environ)
+        env.update({
+            "ANT_ZENOH__MODE": "peer",
+            "ANT_ZENOH__CONNECT": f'["{self.endpoint}"]',
+            "ANT_ZENOH__MULTICAST_SCOUTING": "false",
+            "ANT_INSTANCE": instance,
+            "PYTHONUNBUFFERED": "1",
+        })
+        env.update(self.extra_env)
+        return env
+
+    def start(self, deadline_s: float = 60.0) -> None:
+        py = sys.executable
+        router = Proc("router", [py, "-m", "deploy.router", "--listen", self.endpoint], self._env("router"),
+                      self.run_dir / "logs" / "router.log")
+        router.start()
+        self.procs.append(router)
+        wait_tcp(self.router_port, 20.0)
+        for name in self.services:
+            for i in range(self.replicas.get(name, 1)):
+                argv = [py, "-m", f"services.{name}"]
+                env = self._env(f"{name.replace('_', '-')}-{i}")
+                if name == "gateway":
+                    env["ANT_PORT"] = str(self.gateway_port)
+                proc = Proc(f"{name}-{i}", argv, env, self.run_dir / "logs" / f"{name}-{i}.log")
+                proc.start()
+                self.procs.append(proc)
+        self.bus = ZenohBus(ZenohSettings(connect=[self.endpoint]))
+        self.wait_alive(deadline_s)
+        if self.restart:
+            self._monitor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
+            self._monitor.start()
+
+    def expected_instances(self) -> dict[str, int]:
+        return {name: self.replicas.get(name, 1) for name in self.services}
+
+    def alive(self) -> dict[str, int]:
+        assert self.bus is not None
+        counts: dict[str, int] = {}
+        for token in self.bus.alive(keys.ALIVE.pattern(), timeout_s=1.0):
+            service = token.split("/")[2]
+            counts[service] = counts.get(service, 0) + 1
+        return counts
+
+    def wait_alive(self, deadline_s: float) -> dict[str, int]:
+        end = time.monotonic() + deadline_s
+        want = self.expected_instances()
+        counts: dict[str, int] = {}
+        while time.monotonic() < end:
+            counts = self.alive()
+            if all(counts.get(s, 0) >= n for s, n in want.items()):
+                return counts
+            for p in self.procs:
+                if p.popen and p.popen.poll() is not None and not self.restart:
+                    raise RuntimeError(f"{p.name} exited with {p.popen.returncode}; see {p.log_path}")
+            time.sleep(0.2)
+        missing = {s: n - counts.get(s, 0) for s, n in want.items() if counts.get(s, 0) < n}
+        raise TimeoutError(f"services not alive after {deadline_s:.0f} s: {missing} (logs in {self.run_dir})")
+
+    def _supervise(self) -> None:
+        while not self._stop.wait(0.2):
+            for p in self.procs:
+                if p.stopping or p.popen is None or p.popen.poll() is None:
+                    continue
+                code = p.popen.returncode
+                p.history.append(code)
+                log.warning("%s exited with %s; restarting in %.1f s", p.name, code, p.next_backoff_s)
+                if self._stop.wait(p.next_backoff_s):
+                    return
+                p.next_backoff_s = min(p.next_backoff_s * 2, 30.0)
+                p.restarts += 1
+                p.start()
+
+    def proc(self, name: str) -> Proc:
+        return next(p for p in self.procs if p.name == name)
+
+    def stop(self, timeout_s: float = 10.0) -> dict[str, int | None]:
+        self._stop.set()
+        if self._monitor:
+            self._monitor.join(2.0)
+        if self.bus:
+            self.bus.close()
+            self.bus = None
+        codes: dict[str, int | None] = {}
+        # Services first, router last, so their goodbyes (liveliness drops) still reach peers.
+        for p in reversed(self.procs):
+            p.stopping = True
+            if p.popen and p.popen.poll() is None:
+                p.popen.send_signal(signal.SIGTERM)
+        end = time.monotonic() + timeout_s
+        for p in reversed(self.procs):
+            if not p.popen:
+                continue
+            try:
+                codes[p.name] = p.popen.wait(max(0.1, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop in time: killing it", p.name)
+                p.popen.kill()
+                codes[p.name] = p.popen.wait()
+        return codes
+
+    def __enter__(self):
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()

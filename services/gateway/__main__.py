@@ -1,0 +1,23 @@
+import signal
+import sys
+
+import uvicorn
+
+from services.gateway.app import create_app
+from services.gateway.settings import GatewaySettings
+from shared.logs import configure_logging
+
+
+def main() -> int:
+    settings = GatewaySettings(_cli_parse_args=True)
+    configure_logging("gateway", settings.instance, settings.log_level, settings.log_json)
+    # uvicorn re-raises the signal that stopped it once it has shut down gracefully; a no-op
+    # handler underneath makes that a clean exit (status 0) instead of death by SIGTERM.
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: None)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_config=None,
+                log_level=settings.log_level.lower())
+    return 0
+
+
+sys.exit(main())

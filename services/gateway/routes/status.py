@@ -1,0 +1,63 @@
+from __future__ import annotations
+
+from collections import defaultdict
+
+from fastapi import APIRouter
+from pydantic import BaseModel, Field
+
+from services.gateway.deps import BusDep, SettingsDep
+from shared import keys
+from shared.bus.typed import RemoteError
+from shared.schemas import Ping, ServiceInfo
+
+router = APIRouter(tags=["status"])
+
+
+class InstanceStatus(BaseModel):
+    instance: str
+    version: str | None = None
+    backends: dict[str, str] = Field(default_factory=dict)
+    uptime_s: float | None = None
+
+
+class ServiceStatus(BaseModel):
+    service: str
+    instances: int
+    details: list[InstanceStatus]
+
+
+class SystemStatus(BaseModel):
+    services: list[ServiceStatus]
+    all_alive: bool
+    expected: list[str]
+
+
+EXPECTED = ["gateway", "mapper", "planner", "reconstructor", "renderer", "robot_io"]
+
+
+@router.get("/status", response_model=SystemStatus)
+def status(bus: BusDep, settings: SettingsDep) -> SystemStatus:
+    """Every service instance seen alive through liveliness, with versions from its info queryable."""
+    import time
+
+    alive = bus.raw.alive(keys.ALIVE.pattern(), timeout_s=settings.status_timeout_s)
+    infos: dict[tuple[str, str], ServiceInfo] = {}
+    for r in bus.request_all(keys.INFO.pattern(), Ping(), ServiceInfo, timeout_s=settings.status_timeout_s):
+        if not isinstance(r, RemoteError):
+            infos[(r.service, r.instance)] = r
+    by_service: dict[str, list[InstanceStatus]] = defaultdict(list)
+    now = time.time()
+    for token in alive:
+        parts = token.split("/")
+        if len(parts) != 4:
+            continue
+        service, instance = parts[2], parts[3]
+        info = infos.get((service, instance))
+        by_service[service].append(InstanceStatus(
+            instance=instance,
+            version=info.version if info else None,
+            backends=info.backends if info else {},
+            uptime_s=round(now - info.started_s, 3) if info else None,
+        ))
+    services = [ServiceStatus(service=s, instances=len(v), details=v) for s, v in sorted(by_service.items())]
+    return SystemStatus(services=services, all_alive=set(EXPECTED) <= by_service.keys(), expected=EXPECTED)

@@ -1,0 +1,18 @@
+"""mapper service: the bus adapter around its core (decode request -> call core -> encode reply)."""
+
+from __future__ import annotations
+
+from shared.runner import Node, Service, ServiceSettings
+
+
+class MapperServiceSettings(ServiceSettings):
+    pass
+
+
+class MapperService(Service):
+    name = "mapper"
+    Settings = MapperServiceSettings
+
+    def start(self, node: Node) -> None:
+        # info and metrics queryables and the liveliness token come from the runner.
+        pass

@@ -1,0 +1,18 @@
+"""planner service: the bus adapter around its core (decode request -> call core -> encode reply)."""
+
+from __future__ import annotations
+
+from shared.runner import Node, Service, ServiceSettings
+
+
+class PlannerServiceSettings(ServiceSettings):
+    pass
+
+
+class PlannerService(Service):
+    name = "planner"
+    Settings = PlannerServiceSettings
+
+    def start(self, node: Node) -> None:
+        # info and metrics queryables and the liveliness token come from the runner.
+        pass

@@ -1,0 +1,18 @@
+"""robot_io service: the bus adapter around its core (decode request -> call core -> encode reply)."""
+
+from __future__ import annotations
+
+from shared.runner import Node, Service, ServiceSettings
+
+
+class RobotIoServiceSettings(ServiceSettings):
+    pass
+
+
+class RobotIoService(Service):
+    name = "robot_io"
+    Settings = RobotIoServiceSettings
+
+    def start(self, node: Node) -> None:
+        # info and metrics queryables and the liveliness token come from the runner.
+        pass

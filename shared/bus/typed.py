@@ -1,0 +1,148 @@
+"""Typed messaging over any :class:`~shared.bus.base.Bus`: encode, decode, typed errors.
+
+* :meth:`TypedBus.serve` decodes the request, calls the handler and encodes its result; *any*
+  exception (bad payload, validation, a bug) becomes an :class:`~shared.schemas.ErrorReply`, so a bad
+  request never kills a service and the asker always learns why.
+* :meth:`TypedBus.request` raises :class:`RemoteError` with that code when the other side failed and
+  :class:`NoReplyError` when nobody answered in time.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import TypeVar
+
+from shared.bus.base import Bus, Closeable, QueryFailed, QueryTarget, Reply
+from shared.codec import CodecError, decode, decode_any, encode
+from shared.schemas import ErrorCode, ErrorReply, Message
+from shared.telemetry import Telemetry
+
+log = logging.getLogger(__name__)
+
+Req = TypeVar("Req", bound=Message)
+Rep = TypeVar("Rep", bound=Message)
+
+
+class RemoteError(RuntimeError):
+    """The replier answered with an error."""
+
+    def __init__(self, code: ErrorCode, message: str, service: str = "", key: str = ""):
+        super().__init__(f"{service or 'remote'} [{code}] {message}" + (f" (on {key})" if key else ""))
+        self.code, self.message, self.service, self.key = code, message, service, key
+
+
+class NoReplyError(RemoteError):
+    """Nobody answered within the timeout (no service, or it is busy or dead)."""
+
+    def __init__(self, key: str, timeout_s: float):
+        super().__init__(ErrorCode.UNAVAILABLE, f"no reply within {timeout_s:.1f} s", "", key)
+
+
+class NotFound(LookupError):
+    """Raise from a handler to answer NOT_FOUND (unknown map, mission, ...)."""
+
+
+def error_for(exc: BaseException) -> tuple[ErrorCode, str]:
+    """Map an exception raised while serving to an error code and a message for the asker."""
+    if isinstance(exc, CodecError):
+        return ErrorCode.BAD_REQUEST, str(exc)
+    if isinstance(exc, NotFound):
+        return ErrorCode.NOT_FOUND, str(exc)
+    if isinstance(exc, (ValueError, TypeError)):
+        return ErrorCode.BAD_REQUEST, f"{type(exc).__name__}: {exc}"
+    if isinstance(exc, TimeoutError):
+        return ErrorCode.TIMEOUT, str(exc) or "timed out"
+    if isinstance(exc, RemoteError):
+        return ErrorCode.UNAVAILABLE if exc.code == ErrorCode.UNAVAILABLE else exc.code, str(exc)
+    return ErrorCode.INTERNAL, f"{type(exc).__name__}: {exc}"
+
+
+class TypedBus:
+    def __init__(self, bus: Bus, service: str = "client", telemetry: Telemetry | None = None,
+                 max_request_bytes: int = 256 * 1024 * 1024):
+        self.raw = bus
+        self.service = service
+        self.telemetry = telemetry
+        self.max_request_bytes = max_request_bytes
+
+    # --- publish / subscribe ---------------------------------------------------------------------
+    def publish(self, key: str, msg: Message) -> None:
+        self.raw.publish(key, encode(msg))
+
+    def subscribe(self, key: str, model: type[Rep], handler: Callable[[str, Rep], None]) -> Closeable:
+        def on_sample(k: str, data: bytes) -> None:
+            try:
+                msg = decode(data, model, self.max_request_bytes)
+            except CodecError as exc:
+                # A bad sample is dropped and counted; the subscriber keeps going.
+                log.warning("dropped bad sample on %s: %s", k, exc)
+                if self.telemetry:
+                    self.telemetry.record(f"sub:{key}", 0.0, ok=False)
+                return
+            t0 = time.perf_counter()
+            ok = True
+            try:
+                handler(k, msg)
+            except Exception:
+                ok = False
+                log.exception("subscriber handler for %s failed", k)
+            if self.telemetry:
+                self.telemetry.record(f"sub:{key}", time.perf_counter() - t0, ok)
+
+        return self.raw.subscribe(key, on_sample)
+
+    # --- queries ---------------------------------------------------------------------------------
+    def serve(self, key: str, model: type[Req], handler: Callable[[Req], Message], *,
+              workers: int = 1, max_queue: int = 64, name: str | None = None) -> Closeable:
+        endpoint = name or key
+
+        def on_query(k: str, payload: bytes | None) -> bytes:
+            t0 = time.perf_counter()
+            try:
+                if payload is None:
+                    raise CodecError("empty", "the query carries no payload")
+                result = handler(decode(payload, model, self.max_request_bytes))
+                out = encode(result)
+            except Exception as exc:
+                code, message = error_for(exc)
+                level = logging.ERROR if code == ErrorCode.INTERNAL else logging.INFO
+                log.log(level, "%s on %s: %s", code, k, message, exc_info=code == ErrorCode.INTERNAL)
+                if self.telemetry:
+                    self.telemetry.record(endpoint, time.perf_counter() - t0, ok=False)
+                raise QueryFailed(encode(ErrorReply(code=code, message=message, service=self.service)))
+            if self.telemetry:
+                self.telemetry.record(endpoint, time.perf_counter() - t0, ok=True)
+            return out
+
+        return self.raw.serve(key, on_query, workers=workers, max_queue=max_queue)
+
+    def _decode_reply(self, key: str, reply: Reply, model: type[Rep]) -> Rep:
+        data = reply.payload if reply.ok else reply.error
+        try:
+            msg = decode_any(data, {model.SCHEMA: model, ErrorReply.SCHEMA: ErrorReply})
+        except CodecError as exc:
+            if not reply.ok:  # a transport-level error (e.g. overloaded) carries plain text
+                raise RemoteError(ErrorCode.UNAVAILABLE, (data or b"").decode(errors="replace"), "", key) from None
+            raise RemoteError(ErrorCode.INTERNAL, f"undecodable reply: {exc}", "", key) from exc
+        if isinstance(msg, ErrorReply):
+            raise RemoteError(msg.code, msg.message, msg.service, key)
+        return msg
+
+    def request(self, key: str, msg: Message, model: type[Rep], *, timeout_s: float = 10.0) -> Rep:
+        replies = self.raw.query(key, encode(msg), timeout_s=timeout_s, target=QueryTarget.BEST)
+        if not replies:
+            raise NoReplyError(key, timeout_s)
+        return self._decode_reply(key, replies[0], model)
+
+    def request_all(self, key: str, msg: Message, model: type[Rep], *,
+                    timeout_s: float = 2.0) -> list[Rep | RemoteError]:
+        """Ask every matching queryable; each answer is a result or the RemoteError it sent."""
+        out: list[Rep | RemoteError] = []
+        for r in self.raw.query(key, encode(msg), timeout_s=timeout_s, target=QueryTarget.ALL):
+            try:
+                out.append(self._decode_reply(key, r, model))
+            except RemoteError as exc:
+                out.append(exc)
+        return out

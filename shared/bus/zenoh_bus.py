@@ -1,0 +1,151 @@
+"""The real bus: one zenoh session behind the :class:`~shared.bus.base.Bus` port."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import zenoh
+
+from shared.bus.base import (
+    Bus, Closeable, Dispatcher, LivelinessHandler, Overloaded, Payload, QueryHandler, QueryTarget,
+    Reply, SampleHandler, run_query_handler,
+)
+from shared.bus.config import ZenohSettings, zenoh_config
+
+log = logging.getLogger(__name__)
+
+_TARGETS = {QueryTarget.BEST: zenoh.QueryTarget.BEST_MATCHING, QueryTarget.ALL: zenoh.QueryTarget.ALL}
+
+
+class _Declared:
+    def __init__(self, *undeclare):
+        self._undeclare = undeclare
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        for fn in self._undeclare:
+            try:
+                fn()
+            except Exception:  # the session may already be closed
+                log.debug("undeclare failed", exc_info=True)
+
+
+class ZenohBus(Bus):
+    def __init__(self, settings: ZenohSettings | None = None, *, session: zenoh.Session | None = None):
+        self.settings = settings or ZenohSettings()
+        self.session = session or zenoh.open(zenoh_config(self.settings))
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._pub_lock = threading.Lock()
+        self._owned: list[Closeable] = []
+
+    def _track(self, d):
+        self._owned.append(d)
+        return d
+
+    def publish(self, key: str, payload: Payload) -> None:
+        # A declared publisher per key skips per-put key resolution on the hot path.
+        pub = self._publishers.get(key)
+        if pub is None:
+            with self._pub_lock:
+                pub = self._publishers.get(key)
+                if pub is None:
+                    # BLOCK, not DROP: a map chunk or a mission event must not vanish under load.
+                    pub = self._publishers[key] = self.session.declare_publisher(
+                        key, congestion_control=zenoh.CongestionControl.BLOCK
+                    )
+        pub.put(bytes(payload) if isinstance(payload, memoryview) else payload)
+
+    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 256) -> Closeable:
+        disp = Dispatcher(f"sub:{key}", 1, max_queue)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            k, data = str(sample.key_expr), sample.payload.to_bytes()
+            try:
+                disp.submit(lambda: handler(k, data))
+            except Overloaded:
+                log.warning("subscriber %s is behind: dropped a sample", key)
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        return self._track(_Declared(sub.undeclare, disp.close))
+
+    def query(self, key, payload=None, *, timeout_s=5.0, target=QueryTarget.BEST) -> list[Reply]:
+        kwargs = {"target": _TARGETS[QueryTarget(target)], "timeout": timeout_s}
+        if payload is not None:
+            kwargs["payload"] = bytes(payload) if isinstance(payload, memoryview) else payload
+        if target == QueryTarget.ALL:
+            kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
+        replies = []
+        for r in self.session.get(key, **kwargs):
+            if r.ok is not None:
+                replies.append(Reply(str(r.ok.key_expr), r.ok.payload.to_bytes(), None))
+            else:
+                replies.append(Reply(key, None, r.err.payload.to_bytes()))
+        return replies
+
+    def serve(self, key: str, handler: QueryHandler, *, workers: int = 1, max_queue: int = 64) -> Closeable:
+        disp = Dispatcher(f"q:{key}", workers, max_queue)
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else None
+
+            def job():
+                try:
+                    ok, out = run_query_handler(handler, str(query.key_expr), payload)
+                    if ok:
+                        query.reply(key, out)
+                    else:
+                        query.reply_err(out)
+                finally:
+                    query.drop()  # finalises the query: the asker stops waiting for us
+
+            try:
+                disp.submit(job)
+            except Overloaded as exc:
+                query.reply_err(str(exc).encode())
+                query.drop()
+
+        qbl = self.session.declare_queryable(key, on_query, complete=True)
+        return self._track(_Declared(qbl.undeclare, disp.close))
+
+    def liveliness_token(self, key: str) -> Closeable:
+        tok = self.session.liveliness().declare_token(key)
+        return self._track(_Declared(tok.undeclare))
+
+    def watch_liveliness(self, key: str, handler: LivelinessHandler) -> Closeable:
+        disp = Dispatcher(f"live:{key}", 1, 1024)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            k, alive = str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+            try:
+                disp.submit(lambda: handler(k, alive))
+            except Overloaded:
+                log.warning("liveliness watcher %s is behind", key)
+
+        sub = self.session.liveliness().declare_subscriber(key, on_sample, history=True)
+        return self._track(_Declared(sub.undeclare, disp.close))
+
+    def alive(self, key: str, *, timeout_s: float = 2.0) -> list[str]:
+        return sorted(
+            {str(r.ok.key_expr) for r in self.session.liveliness().get(key, timeout=timeout_s) if r.ok is not None}
+        )
+
+    def close(self) -> None:
+        for d in reversed(self._owned):
+            d.close()
+        self._owned.clear()
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except Exception:
+                pass
+        self._publishers.clear()
+        try:
+            self.session.close()
+        except Exception:
+            log.debug("session close failed", exc_info=True)

@@ -1,0 +1,180 @@
+"""Frames and camera model shared by every service.
+
+One place for the conventions of ../shared/BRIEF.md, so that the simulator, the renderer, the
+reconstructor and the planner agree to the last pixel:
+
+* World frame: metres, right-handed, **z up**; heading ``theta`` measured from +x towards +y
+  (counter-clockwise seen from above).
+* Agent pose: ``(x, y, z)`` is the point on the floor under the agent, ``heading_rad`` its yaw.
+  The camera sits ``camera_height_m`` (1.25 m by default) above that point.
+* Camera frame: OpenCV (x right, y down, z forward). Pitch is positive when looking up.
+* Pinhole intrinsics from a horizontal field of view: ``fx = fy = (W/2) / tan(hfov/2)``,
+  principal point at the centre of the pixel grid ``((W-1)/2, (H-1)/2)``.
+* Depth images hold **z-depth** (distance along the optical axis) in metres, float32; ``0`` marks
+  "no measurement" (a hole, a miss, a sensor drop-out).
+* Panorama: 12 views, view ``i`` looks at ``heading - i * 30 deg`` (the agent "rotates right", as in the
+  paper), pitch 0.
+* Habitat / R2R-CE data is y-up (x right, y up, z backwards): :func:`habitat_to_world` and
+  :func:`world_to_habitat` are the only conversion, used at the data boundary.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+DEFAULT_CAMERA_HEIGHT_M = 1.25
+PANORAMA_VIEWS = 12
+PANORAMA_STEP_RAD = 2.0 * math.pi / PANORAMA_VIEWS
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """A pinhole camera defined by its image size and horizontal field of view."""
+
+    width_px: int = 256
+    height_px: int = 256
+    hfov_deg: float = 90.0
+
+    def __post_init__(self) -> None:
+        if self.width_px <= 0 or self.height_px <= 0:
+            raise ValueError(f"image size must be positive, got {self.width_px}x{self.height_px}")
+        if not 1.0 <= self.hfov_deg <= 179.0:
+            raise ValueError(f"hfov_deg must be in [1, 179], got {self.hfov_deg}")
+
+    @property
+    def fx(self) -> float:
+        return (self.width_px / 2.0) / math.tan(math.radians(self.hfov_deg) / 2.0)
+
+    @property
+    def fy(self) -> float:
+        # Square pixels: the vertical focal length equals the horizontal one.
+        return self.fx
+
+    @property
+    def cx(self) -> float:
+        return (self.width_px - 1) / 2.0
+
+    @property
+    def cy(self) -> float:
+        return (self.height_px - 1) / 2.0
+
+    @property
+    def vfov_deg(self) -> float:
+        return math.degrees(2.0 * math.atan((self.height_px / 2.0) / self.fy))
+
+    def matrix(self) -> np.ndarray:
+        """The 3x3 intrinsic matrix K."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+
+    def pixel_rays(self) -> np.ndarray:
+        """Unit-z rays through every pixel centre in the camera frame, shape (H, W, 3).
+
+        Multiplying a ray by a z-depth gives the camera-frame point that the pixel sees.
+        """
+        u = np.arange(self.width_px, dtype=np.float64)
+        v = np.arange(self.height_px, dtype=np.float64)
+        uu, vv = np.meshgrid(u, v)
+        rays = np.stack(
+            [(uu - self.cx) / self.fx, (vv - self.cy) / self.fy, np.ones_like(uu)], axis=-1
+        )
+        return rays
+
+
+def camera_rotation(heading_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
+    """Rotation world_from_camera (columns: camera x/right, y/down, z/forward in world axes)."""
+    ch, sh = math.cos(heading_rad), math.sin(heading_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    forward = np.array([cp * ch, cp * sh, sp])
+    right = np.array([sh, -ch, 0.0])
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward], axis=1)
+
+
+def camera_pose(
+    position_m: np.ndarray | tuple[float, float, float],
+    heading_rad: float,
+    pitch_rad: float = 0.0,
+    camera_height_m: float = DEFAULT_CAMERA_HEIGHT_M,
+) -> np.ndarray:
+    """4x4 world_from_camera for an agent standing at ``position_m`` (floor point)."""
+    t = np.eye(4)
+    t[:3, :3] = camera_rotation(heading_rad, pitch_rad)
+    t[:3, 3] = np.asarray(position_m, dtype=np.float64) + np.array([0.0, 0.0, camera_height_m])
+    return t
+
+
+def world_to_camera(points_world: np.ndarray, world_from_camera: np.ndarray) -> np.ndarray:
+    """Transform (N, 3) world points into the camera frame of ``world_from_camera``."""
+    r = world_from_camera[:3, :3]
+    t = world_from_camera[:3, 3]
+    return (points_world - t) @ r
+
+
+def depth_to_points(depth_m: np.ndarray, camera: PinholeCamera, world_from_camera: np.ndarray):
+    """Back-project a z-depth image into world points; returns (points (N,3), valid mask (H,W))."""
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    rays = camera.pixel_rays()[valid]
+    pts_cam = rays * depth_m[valid][:, None]
+    pts_world = pts_cam @ world_from_camera[:3, :3].T + world_from_camera[:3, 3]
+    return pts_world, valid
+
+
+def panorama_headings(heading_rad: float, views: int = PANORAMA_VIEWS) -> np.ndarray:
+    """Headings of the panorama's views: the agent rotates right (clockwise) in equal steps."""
+    return wrap_angle(heading_rad - np.arange(views) * (2.0 * math.pi / views))
+
+
+def wrap_angle(angle_rad):
+    """Wrap an angle (scalar or array) to [-pi, pi)."""
+    return (np.asarray(angle_rad) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def rot_z(theta_rad: float) -> np.ndarray:
+    """3x3 rotation about +z by ``theta_rad`` (counter-clockwise seen from above)."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+# --- Habitat (y up) <-> world (z up) -------------------------------------------------------------
+# Habitat: x right, y up, z backwards. World: x, y horizontal, z up.
+# world = (x_h, -z_h, y_h); this is a proper rotation (det = +1), so handedness is preserved.
+_HAB_TO_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def habitat_to_world(points_h) -> np.ndarray:
+    """Convert Habitat (y-up) positions, shape (3,) or (N, 3), to world (z-up)."""
+    return np.asarray(points_h, dtype=np.float64) @ _HAB_TO_WORLD.T
+
+
+def world_to_habitat(points_w) -> np.ndarray:
+    """Inverse of :func:`habitat_to_world`."""
+    return np.asarray(points_w, dtype=np.float64) @ _HAB_TO_WORLD
+
+
+def habitat_quaternion_to_heading(q_xyzw) -> float:
+    """Heading (world, z up) of a Habitat agent rotation quaternion [x, y, z, w].
+
+    A Habitat agent looks along its local -z axis; we rotate that forward vector by the quaternion,
+    convert it to the world frame and take its yaw.
+    """
+    x, y, z, w = (float(v) for v in q_xyzw)
+    # Rotate v = (0, 0, -1) by q: v' = q v q*, expanded for this v.
+    fx = -(2.0 * (x * z + w * y))
+    fy = -(2.0 * (y * z - w * x))
+    fz = -(1.0 - 2.0 * (x * x + y * y))
+    fw = habitat_to_world(np.array([fx, fy, fz]))
+    return float(math.atan2(fw[1], fw[0]))
+
+
+def heading_to_habitat_quaternion(heading_rad: float) -> list[float]:
+    """Habitat quaternion [x, y, z, w] (a rotation about Habitat's +y) for a world heading.
+
+    Heading 0 (world +x) is Habitat +x, which a Habitat agent faces after turning -90 deg about y.
+    """
+    yaw_h = heading_rad - math.pi / 2.0  # rotation about +y that maps -z onto the heading
+    return [0.0, math.sin(yaw_h / 2.0), 0.0, math.cos(yaw_h / 2.0)]

@@ -1,0 +1,125 @@
+"""Every key expression of the system, in one place (the topology, like dora's dataflow.yml).
+
+Each :class:`Key` names its template, who owns it (serves or publishes on it), how it is used
+(``queryable`` / ``publication`` / ``liveliness``) and the schemas it carries. Services and tests
+build concrete keys with :meth:`Key.format`, which validates the ``{robot}``, ``{map}``, ... parts so
+that a caller can never inject ``*``, ``**``, ``/`` or ``$`` into a key expression.
+
+The README's architecture diagram and the access-control example in ``deploy/`` are derived from
+:data:`CATALOGUE`.
+"""
+
+from __future__ import annotations
+
+import re
+import string
+from dataclasses import dataclass
+from enum import StrEnum
+
+ROOT = "ant"
+# One key segment: what zenoh would otherwise read as a wildcard, separator or verbatim chunk is refused.
+_SEGMENT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+class KeyExprError(ValueError):
+    """A key part is not a valid single segment."""
+
+
+def validate_segment(value: str, what: str = "key part") -> str:
+    if not isinstance(value, str) or not _SEGMENT.match(value):
+        raise KeyExprError(
+            f"invalid {what} {value!r}: 1-64 characters of letters, digits, '_', '-', '.', "
+            "starting with a letter or digit"
+        )
+    return value
+
+
+class Usage(StrEnum):
+    QUERYABLE = "queryable"
+    PUBLICATION = "publication"
+    LIVELINESS = "liveliness"
+
+
+@dataclass(frozen=True)
+class Key:
+    template: str
+    owner: str
+    usage: Usage
+    request: str = ""
+    reply: str = ""
+    doc: str = ""
+
+    @property
+    def parts(self) -> list[str]:
+        return [f for _, f, _, _ in string.Formatter().parse(self.template) if f]
+
+    def format(self, **parts: str) -> str:
+        """The concrete key; every part must be given and valid."""
+        missing = set(self.parts) - parts.keys()
+        if missing:
+            raise KeyExprError(f"{self.template}: missing {sorted(missing)}")
+        return self.template.format(**{k: validate_segment(v, k) for k, v in parts.items()})
+
+    def pattern(self, **parts: str) -> str:
+        """A wildcard expression: given parts fixed, the others ``*``."""
+        values = {p: validate_segment(parts[p], p) if p in parts else "*" for p in self.parts}
+        return self.template.format(**values)
+
+
+_R = ROOT + "/{robot}"
+
+# --- liveliness and per-instance plumbing (every service) -----------------------------------------
+ALIVE = Key(f"{ROOT}/alive/{{service}}/{{instance}}", "*", Usage.LIVELINESS,
+            doc="liveliness token of one running service instance")
+INFO = Key(f"{ROOT}/svc/{{service}}/{{instance}}/info", "*", Usage.QUERYABLE, "Ping", "ServiceInfo",
+           "name, version, instance id and backends of one instance")
+METRICS = Key(f"{ROOT}/svc/{{service}}/{{instance}}/metrics", "*", Usage.QUERYABLE, "Ping", "ServiceMetrics",
+              "request/error counters, latencies and queue depth of one instance")
+
+# --- robot-io ---------------------------------------------------------------------------------------
+IO_OBSERVE = Key(f"{_R}/io/observe", "robot_io", Usage.QUERYABLE, "ObserveRequest", "Panorama",
+                 "a 12-view RGB-D(-semantic) panorama at the current pose")
+IO_MOVE = Key(f"{_R}/io/move_to", "robot_io", Usage.QUERYABLE, "MoveRequest", "MoveResult",
+              "walk to a waypoint (dx, dy) with collision handling")
+IO_TURN = Key(f"{_R}/io/turn", "robot_io", Usage.QUERYABLE, "TurnRequest", "PoseReply", "turn in place")
+IO_LOOK = Key(f"{_R}/io/look_around", "robot_io", Usage.QUERYABLE, "Ping", "PoseReply",
+              "+-60 deg yaw, +-45 deg pitch sweep")
+IO_RESET = Key(f"{_R}/io/reset", "robot_io", Usage.QUERYABLE, "ResetRequest", "PoseReply", "teleport / reset")
+IO_GEODESIC = Key(f"{_R}/io/geodesic", "robot_io", Usage.QUERYABLE, "GeodesicRequest", "GeodesicReply",
+                  "geodesic distance and shortest path (simulator oracle for metrics)")
+IO_POSE = Key(f"{_R}/io/pose", "robot_io", Usage.PUBLICATION, reply="Pose", doc="pose after every motion")
+IO_FRAMES = Key(f"{_R}/io/frames/{{recording}}", "robot_io", Usage.PUBLICATION, reply="Frame",
+                doc="recorded tour frames at a fixed rate")
+
+# --- mapper -----------------------------------------------------------------------------------------
+MAPPER_PREDICT = Key(f"{_R}/mapper/predict", "mapper", Usage.QUERYABLE, "Panorama", "CandidateSet",
+                     "waypoint candidates for a panorama")
+MAPPER_GRAPH = Key(f"{_R}/mapper/graph", "mapper", Usage.PUBLICATION, reply="NavGraph",
+                   doc="the explored navigation graph")
+MAPPER_TOURS = Key(f"{_R}/mapper/tours/{{region}}", "mapper", Usage.PUBLICATION, reply="Tour",
+                   doc="planned recording tour per region")
+
+# --- maps (reconstructor owns the map store) --------------------------------------------------------
+MAP_LIST = Key(f"{ROOT}/maps/list", "reconstructor", Usage.QUERYABLE, "Ping", "MapListReply", "list maps")
+MAP_INFO = Key(f"{ROOT}/maps/{{map}}/info", "reconstructor", Usage.QUERYABLE, "MapRequest", "MapInfo",
+               "metadata of one map")
+MAP_CHUNK = Key(f"{ROOT}/maps/{{map}}/chunk", "reconstructor", Usage.QUERYABLE, "MapChunkRequest", "MapChunk",
+                "the map's points, in chunks")
+MAP_UPDATED = Key(f"{ROOT}/maps/{{map}}/updated", "reconstructor", Usage.PUBLICATION, reply="MapInfo",
+                  doc="a new version of a map was stored")
+
+# --- renderer -----------------------------------------------------------------------------------------
+RENDER_VIEWS = Key(f"{ROOT}/render/views", "renderer", Usage.QUERYABLE, "RenderRequest", "RenderResult",
+                   "anticipated views of one step (batch)")
+RENDER_MAP = Key(f"{ROOT}/render/spatial_map", "renderer", Usage.QUERYABLE, "SpatialMapRequest",
+                 "SpatialMapResult", "top-down spatial map image")
+
+# --- planner / missions ---------------------------------------------------------------------------------
+MISSION_SUBMIT = Key(f"{_R}/planner/missions/submit", "planner", Usage.QUERYABLE, "MissionRequest",
+                     "MissionAccepted", "start a navigation mission")
+MISSION_CANCEL = Key(f"{_R}/planner/missions/cancel", "planner", Usage.QUERYABLE, "CancelRequest",
+                     "MissionAccepted", "cancel a running mission")
+MISSION_EVENTS = Key(f"{_R}/missions/{{mission}}/events", "planner", Usage.PUBLICATION, reply="MissionEvent",
+                     doc="mission events (started, step, finished, error)")
+
+CATALOGUE: tuple[Key, ...] = tuple(v for v in globals().values() if isinstance(v, Key))

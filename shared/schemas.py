@@ -1,0 +1,459 @@
+"""Every message that crosses the bus, as pydantic v2 models.
+
+One module, so a reader finds every payload of the system in one place (the key expressions that
+carry them live in :mod:`shared.keys`). Conventions (frames, units, camera) are those of
+:mod:`shared.geometry`. Images and clouds are numpy arrays (see :mod:`shared.arrays`); the binary
+codec (:mod:`shared.codec`) moves them without copies.
+
+Each model has a ``SCHEMA`` name and a ``VERSION``; the codec writes both into the envelope and
+refuses a payload whose name or version does not match what the receiver expects.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from enum import StrEnum
+from typing import Any, ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from shared.arrays import Array
+from shared.geometry import PinholeCamera
+
+
+class Message(BaseModel):
+    """Base of every bus message."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid", frozen=False)
+    SCHEMA: ClassVar[str] = "message"
+    VERSION: ClassVar[int] = 1
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        # Schema names default to the class name so that no two messages share one by accident.
+        if "SCHEMA" not in cls.__dict__:
+            cls.SCHEMA = cls.__name__
+
+
+def _finite(values: tuple[float, ...] | float, what: str):
+    vals = values if isinstance(values, tuple) else (values,)
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError(f"{what} must be finite, got {values}")
+    return values
+
+
+# --- geometry ------------------------------------------------------------------------------------
+
+
+class Pose(Message):
+    """Agent pose: floor point under the agent (metres, world z-up) and heading."""
+
+    position_m: tuple[float, float, float]
+    heading_rad: float = 0.0
+
+    @field_validator("position_m")
+    @classmethod
+    def _pos_finite(cls, v):
+        return _finite(v, "position_m")
+
+    @field_validator("heading_rad")
+    @classmethod
+    def _heading_finite(cls, v):
+        return _finite(v, "heading_rad")
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return np.asarray(self.position_m, dtype=np.float64)
+
+
+class CameraIntrinsics(Message):
+    width_px: int = Field(256, ge=8, le=4096)
+    height_px: int = Field(256, ge=8, le=4096)
+    hfov_deg: float = Field(90.0, ge=1.0, le=179.0)
+
+    def pinhole(self) -> PinholeCamera:
+        return PinholeCamera(self.width_px, self.height_px, self.hfov_deg)
+
+
+class ViewPose(Message):
+    """A camera to render from: agent floor position, heading and pitch."""
+
+    position_m: tuple[float, float, float]
+    heading_rad: float = 0.0
+    pitch_rad: float = 0.0
+
+    @model_validator(mode="after")
+    def _finite(self):
+        _finite((*self.position_m, self.heading_rad, self.pitch_rad), "view pose")
+        return self
+
+
+# --- robot-io ------------------------------------------------------------------------------------
+
+
+class Panorama(Message):
+    """12 (configurable) RGB-D views around the agent; view i looks at headings_rad[i]."""
+
+    pose: Pose
+    camera: CameraIntrinsics
+    headings_rad: Array("float64", 1)
+    rgb: Array("uint8", 4, 3)  # (V, H, W, 3)
+    depth_m: Array("float32", 3)  # (V, H, W), z-depth, 0 = no measurement
+    semantic: Array("int32", 3) | None = None  # (V, H, W) class ids, -1 = unknown
+    timestamp_s: float = Field(default_factory=time.time)
+
+    @model_validator(mode="after")
+    def _shapes(self):
+        v = self.headings_rad.shape[0]
+        hw = (self.camera.height_px, self.camera.width_px)
+        if self.rgb.shape != (v, *hw, 3) or self.depth_m.shape != (v, *hw):
+            raise ValueError(
+                f"panorama shapes disagree: {v} headings, rgb {self.rgb.shape}, "
+                f"depth {self.depth_m.shape}, camera {hw}"
+            )
+        if self.semantic is not None and self.semantic.shape != (v, *hw):
+            raise ValueError(f"semantic shape {self.semantic.shape} != {(v, *hw)}")
+        return self
+
+
+class Frame(Message):
+    """One recorded video frame of a tour (RGB, optional depth, pose and IMU heading)."""
+
+    index: int = Field(ge=0)
+    timestamp_s: float
+    pose: Pose
+    pitch_rad: float = 0.0
+    imu_heading_rad: float
+    camera: CameraIntrinsics
+    rgb: Array("uint8", 3, 3)
+    depth_m: Array("float32", 2) | None = None
+    semantic: Array("int32", 2) | None = None
+
+
+class MoveStatus(StrEnum):
+    REACHED = "reached"
+    BLOCKED = "blocked"
+
+
+class ObserveRequest(Message):
+    camera: CameraIntrinsics | None = None  # None: the robot's configured camera
+    with_semantic: bool = True
+
+
+class MoveRequest(Message):
+    """Walk to a waypoint given as an offset in world axes (paper: p + (dx, dy))."""
+
+    dx_m: float
+    dy_m: float
+
+    @model_validator(mode="after")
+    def _finite(self):
+        _finite((self.dx_m, self.dy_m), "move offset")
+        if math.hypot(self.dx_m, self.dy_m) > 20.0:
+            raise ValueError("a single move_to is limited to 20 m")
+        return self
+
+
+class MoveResult(Message):
+    status: MoveStatus
+    pose: Pose
+    travelled_m: float
+    steps: int
+
+
+class TurnRequest(Message):
+    angle_rad: float  # positive turns left (counter-clockwise)
+
+
+class ResetRequest(Message):
+    pose: Pose | None = None  # None: the scene's start pose
+
+
+class PoseReply(Message):
+    pose: Pose
+
+
+class GeodesicRequest(Message):
+    start_m: tuple[float, float, float]
+    goal_m: tuple[float, float, float]
+
+
+class GeodesicReply(Message):
+    distance_m: float | None  # None: no path (unreachable goal)
+    path_m: Array("float64", 2) | None = None
+
+
+# --- candidates, graphs, tours -------------------------------------------------------------------
+
+
+class CandidateKind(StrEnum):
+    WAYPOINT = "waypoint"
+    BACKTRACK = "backtrack"
+    STOP = "stop"
+
+
+class Candidate(Message):
+    """A possible action: a waypoint (dx, dy) in world axes, a backtrack, or stop."""
+
+    index: int = Field(ge=0)
+    kind: CandidateKind = CandidateKind.WAYPOINT
+    dx_m: float = 0.0
+    dy_m: float = 0.0
+    angle_rad: float = 0.0  # relative to the agent heading, positive = left
+    distance_m: float = 0.0
+    score: float = 0.0
+
+
+class CandidateSet(Message):
+    pose: Pose
+    candidates: list[Candidate]
+
+
+class NavNode(Message):
+    node_id: str
+    position_m: tuple[float, float, float]
+    visited: bool
+    region: int | None = None
+    floor: int = 0
+
+
+class NavEdge(Message):
+    a: str
+    b: str
+    length_m: float
+
+
+class NavGraph(Message):
+    nodes: list[NavNode]
+    edges: list[NavEdge]
+    stairs: list[str] = Field(default_factory=list)
+
+
+class Tour(Message):
+    region: int
+    start_pose: Pose
+    hubs_m: Array("float64", 2)  # (K, 3) hub positions in visiting order
+    path_m: Array("float64", 2)  # (P, 3) dense refined path
+    coverage: float
+
+
+class TourRecording(Message):
+    """Announces a finished recorded tour; frames travel separately on the frames key."""
+
+    exploration_id: str
+    region: int
+    start_pose: Pose
+    frame_count: int
+
+
+# --- maps ------------------------------------------------------------------------------------------
+
+
+class MapInfo(Message):
+    map_id: str
+    version: int = Field(ge=1)
+    point_count: int = Field(ge=0)
+    bounds_min_m: tuple[float, float, float]
+    bounds_max_m: tuple[float, float, float]
+    source: str = ""
+    has_labels: bool = False
+    label_names: dict[int, str] = Field(default_factory=dict)
+    regions: int = 0
+    scale_factors: list[float] = Field(default_factory=list)
+    timings_s: dict[str, float] = Field(default_factory=dict)
+    created_s: float = Field(default_factory=time.time)
+
+
+class MapListReply(Message):
+    maps: list[MapInfo]
+
+
+class MapRequest(Message):
+    map_id: str
+    version: int | None = None  # None: latest
+
+
+class MapChunkRequest(Message):
+    map_id: str
+    version: int | None = None
+    index: int = Field(0, ge=0)
+    max_points: int = Field(1_000_000, ge=1, le=10_000_000)
+
+
+class MapChunk(Message):
+    """One slice of a map's points; ``count`` chunks together make the whole cloud."""
+
+    map_id: str
+    version: int
+    index: int
+    count: int
+    xyz_m: Array("float32", 2, 3)
+    rgb: Array("uint8", 2, 3)
+    labels: Array("int32", 1) | None = None
+
+
+# --- renderer --------------------------------------------------------------------------------------
+
+
+class RenderRequest(Message):
+    """Anticipated views of one step: every candidate's view in one request."""
+
+    map_id: str
+    version: int | None = None
+    views: list[ViewPose] = Field(min_length=1, max_length=64)
+    camera: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
+    camera_height_m: float = Field(1.25, ge=0.0, le=3.0)
+    with_labels: bool = True
+
+
+class RenderResult(Message):
+    map_id: str
+    version: int
+    rgb: Array("uint8", 4, 3)  # (B, H, W, 3)
+    depth_m: Array("float32", 3)
+    hole_mask: Array("bool", 3)
+    labels: Array("int32", 3) | None = None
+    render_s: float = 0.0
+
+
+class SpatialMapRequest(Message):
+    map_id: str
+    version: int | None = None
+    pose: Pose
+    trajectory_m: Array("float64", 2) | None = None  # (T, 3)
+    candidates: list[Candidate] = Field(default_factory=list)
+    agent_up: bool = False
+    size_px: int = Field(512, ge=64, le=2048)
+    radius_m: float | None = Field(None, gt=0.0)  # None: the whole floor
+
+
+class SpatialMapResult(Message):
+    map_id: str
+    version: int
+    image: Array("uint8", 3, 3)
+    metres_per_px: float
+    render_s: float = 0.0
+
+
+# --- planner / missions ----------------------------------------------------------------------------
+
+
+class Decision(Message):
+    """What the policy chose at one step."""
+
+    candidate_index: int
+    kind: CandidateKind
+    reasoning: str = ""
+    backend: str = ""
+    prompt_tokens: int = 0
+    completion_tokens: int = 0
+    cost_usd: float = 0.0
+    fallback: bool = False
+
+
+class MissionState(StrEnum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"  # the policy stopped (whether at the goal is in the metrics)
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+class MissionOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    policy: str = "heuristic"
+    max_steps: int = Field(40, ge=1, le=500)
+    anticipation: bool = True
+    anticipation_hfov_deg: float = Field(90.0, ge=30.0, le=150.0)
+    spatial_map: bool = True
+    goal_m: tuple[float, float, float] | None = None
+    reference_path_m: list[tuple[float, float, float]] | None = None
+    start_pose: Pose | None = None
+    seed: int = 0
+
+
+class MissionRequest(Message):
+    mission_id: str
+    instruction: str = Field(min_length=1, max_length=4000)
+    map_id: str
+    options: MissionOptions = Field(default_factory=MissionOptions)
+
+
+class MissionAccepted(Message):
+    mission_id: str
+    accepted: bool
+    reason: str = ""
+
+
+class CancelRequest(Message):
+    mission_id: str
+
+
+class MissionEventKind(StrEnum):
+    STARTED = "started"
+    STEP = "step"
+    PROGRESS = "progress"
+    FINISHED = "finished"
+    ERROR = "error"
+
+
+class MissionEvent(Message):
+    """One thing that happened to a mission or exploration; ``seq`` orders them per mission."""
+
+    mission_id: str
+    seq: int = Field(ge=0)
+    kind: MissionEventKind
+    state: MissionState
+    step: int = 0
+    timestamp_s: float = Field(default_factory=time.time)
+    data: dict[str, Any] = Field(default_factory=dict)
+
+
+# --- service plumbing ------------------------------------------------------------------------------
+
+
+class Ping(Message):
+    pass
+
+
+class ServiceInfo(Message):
+    service: str
+    version: str
+    instance: str
+    backends: dict[str, str] = Field(default_factory=dict)
+    started_s: float = 0.0
+
+
+class EndpointStats(Message):
+    requests: int = 0
+    errors: int = 0
+    latency_p50_ms: float = 0.0
+    latency_p99_ms: float = 0.0
+    queue_depth: int = 0
+
+
+class ServiceMetrics(Message):
+    service: str
+    instance: str
+    uptime_s: float
+    endpoints: dict[str, EndpointStats] = Field(default_factory=dict)
+
+
+class ErrorCode(StrEnum):
+    BAD_REQUEST = "bad_request"  # undecodable, wrong schema, invalid fields
+    NOT_FOUND = "not_found"
+    UNAVAILABLE = "unavailable"
+    INTERNAL = "internal"
+    TIMEOUT = "timeout"
+
+
+class ErrorReply(Message):
+    """What a queryable answers instead of its result when something went wrong."""
+
+    code: ErrorCode
+    message: str
+    service: str = ""
+

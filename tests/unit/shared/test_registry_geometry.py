@@ -1,0 +1,64 @@
+import math
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from shared import geometry as g
+from shared.registry import BackendConfig, Registry, UnknownBackendError
+
+
+def test_registry_creates_by_name_with_typed_config():
+    reg: Registry = Registry("thing")
+
+    class Cfg(BackendConfig):
+        radius_m: float = 0.1
+
+    @reg.register("a", Cfg)
+    class A:
+        def __init__(self, cfg):
+            self.cfg = cfg
+
+    assert reg.create("a", {"radius_m": 0.3}).cfg.radius_m == 0.3
+    assert reg.create("a").cfg.radius_m == 0.1
+    with pytest.raises(ValidationError):
+        reg.create("a", {"radius": 0.3})  # unknown fields are an error
+    with pytest.raises(UnknownBackendError, match="known: a"):
+        reg.create("b")
+    with pytest.raises(ValueError):
+        reg.register("a", Cfg)(A)
+
+
+def test_camera_projects_forward_point_to_centre_and_left_point_left():
+    cam = g.PinholeCamera(256, 256, 90.0)
+    assert cam.fx == pytest.approx(128.0)
+    pose = g.camera_pose((0, 0, 0), heading_rad=0.0)
+    pts = g.world_to_camera(np.array([[2.0, 0, 1.25], [2.0, 1.0, 1.25], [2.0, 0, 2.25]]), pose)
+    uv = pts[:, :2] / pts[:, 2:] * cam.fx + [cam.cx, cam.cy]
+    assert uv[0] == pytest.approx([cam.cx, cam.cy])
+    assert uv[1][0] < cam.cx  # +y is to the left when facing +x
+    assert uv[2][1] < cam.cy  # up is towards the top of the image
+
+
+def test_depth_back_projection_inverts_projection():
+    cam = g.PinholeCamera(64, 48, 60.0)
+    pose = g.camera_pose((1, 2, 0), 0.7, 0.2)
+    depth = np.full((48, 64), 3.0, np.float32)
+    pts, valid = g.depth_to_points(depth, cam, pose)
+    back = g.world_to_camera(pts, pose)
+    assert valid.all() and np.allclose(back[:, 2], 3.0)
+
+
+def test_panorama_rotates_right():
+    h = g.panorama_headings(0.0)
+    assert h[1] == pytest.approx(-math.pi / 6) and len(h) == 12
+
+
+@pytest.mark.parametrize("heading", [0.0, 1.0, -2.0, 3.0])
+def test_habitat_conversion_round_trip(heading):
+    q = g.heading_to_habitat_quaternion(heading)
+    assert g.habitat_quaternion_to_heading(q) == pytest.approx(heading)
+    p = np.array([[1.0, 2.0, 3.0]])
+    assert np.allclose(g.world_to_habitat(g.habitat_to_world(p)), p)
+    # Habitat's up (+y) is our +z.
+    assert np.allclose(g.habitat_to_world([0, 1, 0]), [0, 0, 1])
