@@ -1,0 +1,42 @@
+"""Typed errors of the robot-io core; the bus adapter maps them to ``ErrorReply`` codes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class RobotIOError(Exception):
+    """Base of every error raised by the robot-io core."""
+
+
+class SceneError(RobotIOError):
+    """A scene could not be built or loaded."""
+
+
+class SceneNotFoundError(SceneError, FileNotFoundError):
+    """A scene file does not exist; names the file and the configured scenes directory."""
+
+    def __init__(self, path: Path | str, scenes_dir: Path | str | None):
+        self.path = Path(path)
+        self.scenes_dir = Path(scenes_dir) if scenes_dir is not None else None
+        where = f"configured scenes directory: {self.scenes_dir}" if self.scenes_dir else "no scenes directory configured"
+        super().__init__(f"scene file not found: {self.path} ({where})")
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
+class SceneFormatError(SceneError):
+    """A scene file exists but holds no usable triangle mesh, or a scene spec is malformed."""
+
+
+class NavigationError(RobotIOError):
+    """A navigation query cannot be answered (e.g. a point far from any walkable surface)."""
+
+
+class EpisodeFormatError(RobotIOError):
+    """An episode file does not follow the R2R-CE / RxR-CE format."""
+
+
+class EpisodeGenerationError(RobotIOError):
+    """No episode satisfying the requested constraints could be generated."""

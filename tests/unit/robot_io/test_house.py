@@ -1,0 +1,97 @@
+"""Procedural houses: determinism, rooms, objects, labels, connectivity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.robot_io.core.errors import SceneFormatError
+from services.robot_io.core.house import HouseSpec, generate_house
+
+ROOM_TYPES = {"bedroom", "kitchen", "bathroom", "living room", "hallway", "office", "dining room"}
+
+
+def test_generator_is_deterministic_and_seed_dependent():
+    a, b, c = generate_house("generated:5"), generate_house("generated:5"), generate_house("generated:6")
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.triangle_labels, b.triangle_labels)
+    assert [o.description for o in a.objects] == [o.description for o in b.objects]
+    assert a.vertices.shape != c.vertices.shape or not np.array_equal(a.vertices, c.vertices)
+
+
+@pytest.mark.parametrize("spec", ["generated:0", "generated:3", "generated:1:floors=2"])
+def test_house_has_labelled_rooms_objects_and_floor_labels(spec):
+    s = generate_house(spec)
+    types = {r.room_type for r in s.rooms} & ROOM_TYPES
+    assert len(types) >= 4
+    assert len(s.objects) >= 15
+    assert len({o.label for o in s.objects}) >= 8
+    names = set(s.label_names.values())
+    assert {"wall", "door frame", "ceiling"} <= names
+    for t in types:
+        assert f"{t} floor" in names
+    # Every label id used by a triangle is named.
+    assert set(np.unique(s.triangle_labels)) <= set(s.label_names)
+    area = sum(r.area_m2 for r in s.rooms if r.room_type != "staircase")
+    assert 150 <= area <= 250
+
+
+def test_spec_parsing():
+    assert HouseSpec.parse("generated:4:floors=2:area=150") == HouseSpec(4, 2, 150.0)
+    with pytest.raises(SceneFormatError):
+        HouseSpec.parse("generated:x")
+    with pytest.raises(SceneFormatError):
+        HouseSpec.parse("generated:1:floors=3")
+
+
+def _room_floor_nodes(nav, room):
+    n = nav.nodes_m
+    inside = (
+        (n[:, 0] > room.min_xy_m[0]) & (n[:, 0] < room.max_xy_m[0])
+        & (n[:, 1] > room.min_xy_m[1]) & (n[:, 1] < room.max_xy_m[1])
+        & (np.abs(n[:, 2] - room.floor_z_m) < 0.05)
+    )
+    return np.flatnonzero(inside)
+
+
+@pytest.mark.parametrize("fixture", ["house_robot", "two_floor_robot"])
+def test_house_floor_is_one_connected_region(fixture, request):
+    robot = request.getfixturevalue(fixture)
+    nav = robot.nav
+    floor_nodes = np.concatenate([_room_floor_nodes(nav, r) for r in robot.scene.rooms if r.room_type != "staircase"])
+    # Free cells inside a piece of furniture's bounding box (between a toilet's bowl and its tank)
+    # are not floor anyone can walk to; every other floor cell must be in the start's region.
+    xy = nav.nodes_m[floor_nodes, :2]
+    inside_furniture = np.zeros(len(floor_nodes), dtype=bool)
+    for o in robot.scene.objects:
+        half = np.array(o.size_m[:2]) / 2 + 0.15
+        inside_furniture |= np.all(np.abs(xy - np.array(o.position_m[:2])) <= half, axis=1)
+    assert inside_furniture.mean() < 0.5
+    comp = nav.component[floor_nodes[~inside_furniture]]
+    assert np.all(comp == nav.main_component), f"{np.mean(comp != nav.main_component):.3%} of floor cells cut off"
+    for r in robot.scene.rooms:
+        if r.room_type != "staircase":
+            assert len(_room_floor_nodes(nav, r)) > 50, r.name
+
+
+def test_two_floors_joined_by_stairs(two_floor_robot):
+    nav = two_floor_robot.nav
+    main = nav.nodes_m[nav.component == nav.main_component]
+    assert main[:, 2].min() < 0.05 and main[:, 2].max() > 2.7
+    lower = two_floor_robot.scene.start_pose.xyz
+    upper_room = next(r for r in two_floor_robot.scene.rooms if r.floor == 1 and r.room_type != "staircase")
+    goal = nav.nodes_m[_room_floor_nodes(nav, upper_room)[0]]
+    path = nav.shortest_path(lower, goal)
+    assert path is not None
+    d = nav.geodesic_distance(lower, goal)
+    assert d > np.linalg.norm(goal - lower)  # goes round by the stairs
+    assert np.max(np.abs(np.diff(nav.shortest_path(lower, goal, smooth=False)[:, 2]))) <= 0.2 + 1e-6
+
+
+def test_export_ply_roundtrip(tmp_path):
+    import open3d as o3d
+
+    s = generate_house("generated:2:area=80")
+    path = s.export_ply(tmp_path / "house.ply")
+    m = o3d.io.read_triangle_mesh(str(path))
+    assert len(m.triangles) == len(s.triangles)
+    assert np.allclose(np.asarray(m.vertex_colors), s.vertex_colors, atol=1 / 255)
