@@ -1,0 +1,157 @@
+"""Tour execution: drive the robot along each planned tour and record each region's video.
+
+The robot walks to the tour's start over traversed graph edges (known to be passable), turns to
+the start heading, and then, inside ``robot.recording(sink)``, follows the refined path with a
+look-around at every hub. The frames of a region are returned with the pose at which recording
+started (the region's local origin for the reconstructor).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import networkx as nx
+import numpy as np
+
+from shared.geometry import wrap_angle
+from shared.schemas import Frame, MoveResult, MoveStatus, Panorama, Pose
+
+from services.mapper.core.errors import TourExecutionError
+from services.mapper.core.navgraph import NodeStatus
+from services.mapper.core.regions import SceneMap
+from services.mapper.core.tours import PlannedTour
+
+log = logging.getLogger(__name__)
+
+
+@runtime_checkable
+class TourRobot(Protocol):
+    """What tour execution needs from a robot."""
+
+    def observe(self) -> Panorama: ...
+
+    def move_to(self, dx_m: float, dy_m: float) -> MoveResult: ...
+
+    def turn(self, angle_rad: float) -> Any: ...
+
+    def look_around(self) -> list[Frame]: ...
+
+    def recording(self, sink: Callable[[Frame], None], rate_hz: float = ...) -> contextlib.AbstractContextManager: ...
+
+
+@dataclass
+class RegionRecording:
+    region: int
+    start_pose: Pose
+    frames: list[Frame] = field(default_factory=list)
+    hubs_visited: int = 0
+    blocked_moves: int = 0
+    travelled_m: float = 0.0
+
+
+def robot_pose(robot: Any) -> Pose:
+    """The robot's pose whether it exposes ``pose`` as a property or a method."""
+    p = robot.pose
+    return p() if callable(p) else p
+
+
+def execute_tours(
+    robot: TourRobot,
+    tours: list[PlannedTour],
+    scene: SceneMap | None = None,
+    rate_hz: float = 5.0,
+    on_recording: Callable[[RegionRecording], None] | None = None,
+) -> list[RegionRecording]:
+    """Drive every tour in order; returns one recording per tour (skipping none)."""
+    out = []
+    for pt in tours:
+        rec = execute_tour(robot, pt, scene, rate_hz)
+        out.append(rec)
+        if on_recording is not None:
+            on_recording(rec)
+    return out
+
+
+def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = None, rate_hz: float = 5.0) -> RegionRecording:
+    tour = pt.tour
+    start = np.asarray(tour.start_pose.position_m)
+    if scene is not None:
+        _transit(robot, scene, start)
+    here = robot_pose(robot)
+    d = start[:2] - here.xyz[:2]
+    if np.hypot(*d) > 0.05:
+        res = robot.move_to(float(d[0]), float(d[1]))
+        if res.status != MoveStatus.REACHED:
+            raise TourExecutionError(
+                f"region {tour.region}: could not reach the tour start ({res.travelled_m:.2f} m)"
+            )
+    turn = float(wrap_angle(tour.start_pose.heading_rad - robot_pose(robot).heading_rad))
+    if abs(turn) > 1e-3:
+        robot.turn(turn)
+    frames: list[Frame] = []
+    seen: set[int] = set()
+
+    def sink(frame: Frame) -> None:
+        seen.add(frame.index)
+        frames.append(frame)
+
+    rec = RegionRecording(region=tour.region, start_pose=robot_pose(robot))
+    hubs = set(pt.hub_path_index)
+    path = np.asarray(tour.path_m)
+    with robot.recording(sink, rate_hz):
+        for k in range(len(path)):
+            if k > 0:
+                cur = robot_pose(robot).xyz
+                d = path[k, :2] - cur[:2]
+                if np.hypot(*d) > 1e-3:
+                    res = robot.move_to(float(d[0]), float(d[1]))
+                    rec.travelled_m += res.travelled_m
+                    if res.status != MoveStatus.REACHED:
+                        rec.blocked_moves += 1
+            if k in hubs:
+                for f in robot.look_around():
+                    # Some robots also emit look-around frames through the sink: keep one copy.
+                    if f.index not in seen:
+                        sink(f)
+                rec.hubs_visited += 1
+    rec.frames = frames
+    log.info(
+        "region %d: %d frames, %d hubs, %.1f m, %d blocked",
+        tour.region, len(frames), rec.hubs_visited, rec.travelled_m, rec.blocked_moves,
+    )
+    return rec
+
+
+def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray) -> None:
+    """Walk over traversed edges from the node nearest the robot to the node nearest the goal."""
+    g = scene.result.graph
+    visited = g.nodes_with(NodeStatus.VISITED)
+    if not visited:
+        return
+    pos = g.positions(visited)
+
+    def nearest(p):
+        d = np.linalg.norm(pos[:, :2] - p[:2], axis=1) + 3.0 * np.abs(pos[:, 2] - p[2])
+        return visited[int(np.argmin(d))]
+
+    a = nearest(robot_pose(robot).xyz)
+    b = nearest(goal_m)
+    try:
+        route = nx.shortest_path(g.traversed(), a, b, weight="length")
+    except nx.NetworkXNoPath:
+        log.warning("no traversed route to the tour start; trying straight")
+        return
+    for n in route:
+        cur = robot_pose(robot).xyz
+        d = g.pos(n)[:2] - cur[:2]
+        if math.hypot(*d) < 0.05:
+            continue
+        res = robot.move_to(float(d[0]), float(d[1]))
+        if res.status != MoveStatus.REACHED:
+            log.warning("transit blocked towards node %s", n)
+            return

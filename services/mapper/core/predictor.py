@@ -1,0 +1,287 @@
+"""Waypoint predictor port and the default ``geometric`` backend.
+
+The output contract is the one of the CWP waypoint predictor (Hong et al. 2022): a heatmap of
+120 angle bins (3 deg) x 12 distance bins (0.25 - 3.0 m) around the agent, reduced by non-maximum
+suppression to at most 5 candidate waypoints. A learned CWP backend can register beside
+``geometric`` and the mapper and planner will not notice.
+
+Angles here are relative to the agent heading, positive to the left (counter-clockwise), bin ``k``
+centred on ``k * 3 deg``. Candidates carry their offset in **world** axes (``dx_m``, ``dy_m``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, wrap_angle
+from shared.registry import BackendConfig, Registry
+from shared.schemas import Candidate, CandidateKind, Panorama
+
+from services.mapper.core.errors import PredictorError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Everything a predictor computed for one panorama (candidates plus its evidence)."""
+
+    candidates: list[Candidate]
+    heatmap: np.ndarray  # (angle_bins, distance_bins), scores in [0, 1]
+    free_distance_m: np.ndarray  # (angle_bins,) obstacle-free travel distance per angle bin
+    angles_rad: np.ndarray  # (angle_bins,) bin centres relative to the heading, positive left
+    distances_m: np.ndarray  # (distance_bins,) bin centres
+
+
+@runtime_checkable
+class WaypointPredictor(Protocol):
+    """Port: candidate waypoints around the agent from its 12-view panorama."""
+
+    def predict(self, panorama: Panorama) -> list[Candidate]:
+        """At most ``max_candidates`` waypoints, best first, indices 0..k-1."""
+        ...
+
+
+PREDICTORS: Registry[WaypointPredictor] = Registry("waypoint predictor")
+DEFAULT_PREDICTOR = "geometric"
+
+
+class GeometricPredictorConfig(BackendConfig):
+    """Free-space waypoint prediction from the panorama's depth.
+
+    A pixel is an obstacle when it rises more than ``max_step_m`` above the ground the agent would
+    walk on to reach it (tracked outward along each image column, so stairs and ramps whose treads
+    rise by less than a step stay walkable) and lies within ``body_height_m`` above that ground.
+    """
+
+    angle_bins: int = Field(120, ge=12, le=720)
+    distance_bins: int = Field(12, ge=2, le=64)
+    min_distance_m: float = Field(0.25, gt=0.0)
+    max_distance_m: float = Field(3.0, gt=0.0)
+    max_candidates: int = Field(5, ge=1, le=32)
+    camera_height_m: float = Field(DEFAULT_CAMERA_HEIGHT_M, gt=0.0, le=3.0)
+    body_radius_m: float = Field(0.2, ge=0.0, le=1.0)
+    clearance_margin_m: float = Field(0.05, ge=0.0, le=1.0)
+    body_height_m: float = Field(1.5, gt=0.1, le=3.0)
+    max_step_m: float = Field(0.22, gt=0.0, le=1.0)
+    max_slope_deg: float = Field(38.0, ge=0.0, le=60.0)
+    profile_bin_m: float = Field(0.1, gt=0.01, le=0.5)
+    sensor_range_m: float = Field(5.0, gt=0.0)
+    pixel_stride: int = Field(2, ge=1, le=16)
+    smoothing_deg: float = Field(9.0, ge=0.0, le=90.0)
+    nms_angle_deg: float = Field(30.0, gt=0.0, le=180.0)
+    min_score: float = Field(0.15, ge=0.0, le=1.0)
+    distance_sigma_m: float = Field(0.4, gt=0.0)
+
+    @model_validator(mode="after")
+    def _ranges(self):
+        if self.max_distance_m <= self.min_distance_m:
+            raise ValueError("max_distance_m must exceed min_distance_m")
+        if self.sensor_range_m < self.max_distance_m:
+            raise ValueError("sensor_range_m must be at least max_distance_m")
+        return self
+
+    @property
+    def clearance_m(self) -> float:
+        return self.body_radius_m + self.clearance_margin_m
+
+
+@PREDICTORS.register("geometric", GeometricPredictorConfig)
+class GeometricPredictor:
+    """CWP-contract predictor computed from depth geometry alone (no learning, a few ms)."""
+
+    def __init__(self, config: GeometricPredictorConfig | None = None):
+        self.config = config or GeometricPredictorConfig()
+        c = self.config
+        self.angles_rad = np.arange(c.angle_bins) * (2.0 * math.pi / c.angle_bins)
+        self.angles_rad = wrap_angle(self.angles_rad)
+        self.distances_m = np.linspace(c.min_distance_m, c.max_distance_m, c.distance_bins)
+        self._profile_edges = np.arange(0.0, c.sensor_range_m + c.profile_bin_m, c.profile_bin_m)
+        # Pairwise angular offsets between travel directions and obstacle bins, for the body sweep.
+        d = wrap_angle(self.angles_rad[:, None] - self.angles_rad[None, :])
+        self._cos = np.cos(d)
+        self._sin = np.abs(np.sin(d))
+        self._column_cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    # --- public ---------------------------------------------------------------------------------
+
+    def predict(self, panorama: Panorama) -> list[Candidate]:
+        return self.predict_full(panorama).candidates
+
+    def predict_full(self, panorama: Panorama) -> Prediction:
+        """Candidates plus the heatmap and free-space profile they came from."""
+        free = self.free_distance(panorama)
+        heatmap = self.heatmap(free)
+        candidates = self._nms(heatmap, panorama.pose.heading_rad)
+        return Prediction(candidates, heatmap, free, self.angles_rad, self.distances_m)
+
+    def obstacle_distance(self, panorama: Panorama) -> np.ndarray:
+        """Horizontal distance to the nearest obstacle per angle bin (``inf``: none in range)."""
+        c = self.config
+        depth = np.asarray(panorama.depth_m)
+        if depth.ndim != 3:
+            raise PredictorError(f"panorama depth must be (V, H, W), got {depth.shape}")
+        s = c.pixel_stride
+        depth = depth[:, ::s, ::s]
+        cam = panorama.camera
+        xn, yn, col_angle = self._columns(cam.width_px, cam.height_px, cam.hfov_deg, s)
+        views, rows, cols = depth.shape
+
+        valid = np.isfinite(depth) & (depth > 0.0)
+        rng = np.where(valid, depth * np.sqrt(1.0 + xn * xn)[None, None, :], np.inf)
+        height = c.camera_height_m - yn[None, :, None] * depth  # above the agent's floor
+
+        # Profile of each image column binned by range: the highest surface point per range bin.
+        nb = len(self._profile_edges) - 1
+        rbin = np.floor(rng / c.profile_bin_m)
+        inband = valid & (rbin < nb) & (height < c.body_height_m + c.max_step_m)
+        col_id = (np.arange(views)[:, None, None] * cols + np.arange(cols)[None, None, :])
+        col_id = np.broadcast_to(col_id, depth.shape)
+        flat = (col_id[inband] * nb + rbin[inband].astype(np.int64))
+        top = np.full(views * cols * nb, -np.inf)
+        np.maximum.at(top, flat, height[inband])
+        top = top.reshape(views * cols, nb)
+
+        # Walk outward along each column: the ground may rise by less than a step per profile bin
+        # (stairs, ramps); the first bin whose highest point rises more than that is the obstacle.
+        # Points above the body band were dropped above, so ceilings and lamps never block.
+        # The camera cannot see the floor right in front of the feet (and far rows are sparse), so
+        # the first surface after a blind stretch may already be a few treads up a staircase: it is
+        # accepted when it lies under the steepest walkable slope, tentatively - if the surface
+        # then drops away, it was furniture.
+        n_col = views * cols
+        ground = np.zeros(n_col)
+        hit = np.full(n_col, np.inf)
+        open_ = np.ones(n_col, dtype=bool)
+        last_r = np.zeros(n_col)  # range of the last surface seen (the feet at first)
+        tentative = np.full(n_col, np.inf)
+        tan_slope = math.tan(math.radians(c.max_slope_deg))
+        for b in range(nb):
+            t = top[:, b]
+            seen = np.isfinite(t) & open_
+            if not seen.any():
+                continue
+            r_b = b * c.profile_bin_m  # near edge of the bin: conservative
+            rise = t - ground
+            # Over a stretch nobody saw (pixel rows are sparse far away), the ground may have
+            # climbed as much as the steepest walkable slope allows.
+            slope_ok = rise <= c.max_step_m + tan_slope * np.maximum(r_b - last_r - c.profile_bin_m, 0.0)
+            blocked = seen & (rise > c.max_step_m) & ~slope_ok
+            dropped = seen & (rise < -c.max_step_m) & np.isfinite(tentative)
+            hit[blocked] = r_b
+            hit[dropped] = tentative[dropped]
+            open_ &= ~(blocked | dropped)
+            tentative[seen & slope_ok & (rise > c.max_step_m)] = r_b
+            walk = seen & open_ & (rise > -4.0 * c.max_step_m)
+            ground[walk] = t[walk]
+            last_r[seen] = r_b
+        hit = hit.reshape(views, cols)
+
+        # Column azimuth relative to the agent heading; views look at headings_rad[i].
+        heads = np.asarray(panorama.headings_rad, dtype=np.float64) - panorama.pose.heading_rad
+        az = wrap_angle(heads[:, None] - col_angle[None, :])
+        step = 2.0 * math.pi / c.angle_bins
+        abin = np.round(az / step).astype(np.int64) % c.angle_bins
+        out = np.full(c.angle_bins, np.inf)
+        np.minimum.at(out, abin.ravel(), hit.ravel())
+        covered = np.zeros(c.angle_bins, dtype=bool)
+        covered[abin.ravel()] = True
+        # A direction no pixel looked at is unknown, not free: NaN lets free_distance close it.
+        out[~covered] = np.nan
+        return out
+
+    def free_distance(self, panorama: Panorama) -> np.ndarray:
+        """How far the agent's body (radius + margin) can travel along each angle bin."""
+        c = self.config
+        obst = self.obstacle_distance(panorama)
+        unseen = np.isnan(obst)
+        free = self.sweep(np.where(unseen, np.inf, obst), c.clearance_m, c.sensor_range_m)
+        free[unseen] = 0.0
+        return free
+
+    def sweep(self, obstacle_m: np.ndarray, radius_m: float, cap_m: float) -> np.ndarray:
+        """Travel distance of a disc of ``radius_m`` per direction before touching an obstacle."""
+        finite = np.isfinite(obstacle_m)[None, :]
+        d = np.where(finite, obstacle_m[None, :], 0.0)
+        lateral = d * self._sin
+        along = d * self._cos
+        touches = finite & (lateral < radius_m) & (along > -radius_m)
+        stop = along - np.sqrt(np.maximum(radius_m**2 - lateral**2, 0.0))
+        stop = np.where(touches, stop, np.inf)
+        free = np.min(stop, axis=1)
+        return np.clip(free, 0.0, cap_m)
+
+    def heatmap(self, free_m: np.ndarray) -> np.ndarray:
+        """Angle x distance scores in [0, 1]; zero wherever the body would not fit."""
+        c = self.config
+        # Openness of a direction: its free distance, smoothed over neighbouring angles so that
+        # a single noisy column does not open a corridor and doorways stand out as peaks.
+        open_frac = np.clip(free_m / c.max_distance_m, 0.0, 1.0)
+        if c.smoothing_deg > 0:
+            half = max(1, int(round(c.smoothing_deg / (360.0 / c.angle_bins))))
+            kernel = np.hanning(2 * half + 3)[1:-1]
+            kernel /= kernel.sum()
+            padded = np.concatenate([open_frac[-half:], open_frac, open_frac[:half]])
+            smooth = np.convolve(padded, kernel, mode="valid")
+            # A direction is never more open than its own free distance allows.
+            open_frac = np.minimum(smooth, open_frac)
+        target = np.clip(free_m, c.min_distance_m, c.max_distance_m)
+        dist = self.distances_m[None, :]
+        reach = dist <= free_m[:, None] + 1e-9
+        pref = np.exp(-0.5 * ((dist - target[:, None]) / c.distance_sigma_m) ** 2)
+        return np.where(reach, open_frac[:, None] * pref, 0.0)
+
+    # --- internals ------------------------------------------------------------------------------
+
+    def _columns(self, width: int, height: int, hfov_deg: float, stride: int):
+        key = (width, height, hfov_deg, stride)
+        if key not in self._column_cache:
+            f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+            u = np.arange(0, width, stride, dtype=np.float64)
+            v = np.arange(0, height, stride, dtype=np.float64)
+            xn = (u - (width - 1) / 2.0) / f
+            yn = (v - (height - 1) / 2.0) / f
+            # Camera x points right, so a column right of centre looks clockwise of the view.
+            self._column_cache[key] = (xn, yn, np.arctan(xn))
+        return self._column_cache[key]
+
+    def _nms(self, heatmap: np.ndarray, heading_rad: float) -> list[Candidate]:
+        c = self.config
+        h = heatmap.copy()
+        na = c.angle_bins
+        half = int(round(c.nms_angle_deg / (360.0 / na)))
+        out: list[Candidate] = []
+        while len(out) < c.max_candidates:
+            k = int(np.argmax(h))
+            ai, di = divmod(k, h.shape[1])
+            score = float(h[ai, di])
+            if score < c.min_score or score <= 0.0:
+                break
+            angle = float(self.angles_rad[ai])
+            dist = float(self.distances_m[di])
+            world = heading_rad + angle
+            out.append(
+                Candidate(
+                    index=len(out),
+                    kind=CandidateKind.WAYPOINT,
+                    dx_m=dist * math.cos(world),
+                    dy_m=dist * math.sin(world),
+                    angle_rad=angle,
+                    distance_m=dist,
+                    score=score,
+                )
+            )
+            rows = (np.arange(ai - half, ai + half + 1)) % na
+            h[rows, :] = 0.0
+        return out
+
+
+def create_predictor(name: str = DEFAULT_PREDICTOR, config=None) -> WaypointPredictor:
+    """The named predictor backend (``geometric`` unless told otherwise)."""
+    return PREDICTORS.create(name, config)

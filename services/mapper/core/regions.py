@@ -1,0 +1,226 @@
+"""From an exploration to a scene map: floors, stairs, occupancy per floor, Louvain regions.
+
+Stairs are found the way the paper says: runs of consecutive vertical moves along the robot's
+trajectory. Floors are the heights where visited nodes pile up. Each floor's nodes are partitioned
+into regions by Louvain community detection (networkx, seeded). The traversed edges of a DFS form
+(almost) a tree, on which modularity has little to grip, so the partition graph also joins visited
+nodes that see each other (line of sight on the explored occupancy, within ``link_radius_m``):
+rooms become dense clusters and doorways the sparse cuts between them.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import networkx as nx
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.mapper.core.explorer import ExplorationResult
+from services.mapper.core.navgraph import NodeStatus
+from services.mapper.core.occupancy import OccupancyGrid, build_occupancy, line_of_sight
+
+log = logging.getLogger(__name__)
+
+
+class RegionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    floor_gap_m: float = Field(0.3, gt=0.0)  # heights closer than this are one level
+    floor_min_nodes: int = Field(3, ge=1)
+    stair_min_rise_m: float = Field(0.1, gt=0.0)  # a move rising this much is vertical
+    stair_min_total_m: float = Field(0.5, gt=0.0)  # a run of vertical moves this tall is stairs
+    occupancy_cell_m: float = Field(0.1, gt=0.0)
+    sensor_range_m: float = Field(5.0, gt=0.0)
+    link_radius_m: float = Field(3.0, gt=0.0)
+    louvain_resolution: float = Field(1.0, gt=0.0)
+    min_region_nodes: int = Field(3, ge=1)
+    seed: int = 0
+
+
+@dataclass
+class Floor:
+    index: int
+    z_m: float
+    occupancy: OccupancyGrid
+    nodes: list[str]  # visited, non-stair nodes on this floor
+
+
+@dataclass
+class SceneMap:
+    """What the tour planner works on."""
+
+    result: ExplorationResult
+    floors: list[Floor]
+    stairs: set[str]
+    regions: dict[int, list[str]]  # region id -> visited node ids
+    region_floor: dict[int, int]
+    node_region: dict[str, int] = field(default_factory=dict)
+
+
+def detect_floors(z_m: np.ndarray, gap_m: float, min_nodes: int) -> list[float]:
+    """Levels where heights pile up: single-linkage clusters of sorted z, big enough ones kept."""
+    z = np.sort(np.asarray(z_m, dtype=np.float64))
+    if len(z) == 0:
+        return []
+    splits = np.nonzero(np.diff(z) > gap_m)[0] + 1
+    levels = [float(np.median(c)) for c in np.split(z, splits) if len(c) >= min_nodes]
+    if not levels:
+        levels = [float(np.median(z))]
+    return levels
+
+
+def detect_stair_positions(trajectory_m: np.ndarray, min_rise_m: float, min_total_m: float) -> np.ndarray:
+    """Positions (N, 3) on runs of consecutive vertical moves whose total rise is stair-like."""
+    traj = np.asarray(trajectory_m, dtype=np.float64)
+    if len(traj) < 2:
+        return np.zeros((0, 3))
+    dz = np.diff(traj[:, 2])
+    sign = np.where(dz >= min_rise_m, 1, np.where(dz <= -min_rise_m, -1, 0))
+    out = []
+    k = 0
+    while k < len(sign):
+        if sign[k] == 0:
+            k += 1
+            continue
+        j = k
+        while j + 1 < len(sign) and sign[j + 1] == sign[k]:
+            j += 1
+        if abs(traj[j + 1, 2] - traj[k, 2]) >= min_total_m:
+            out.append(traj[k : j + 2])
+        k = j + 1
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def analyse(result: ExplorationResult, config: RegionConfig | None = None) -> SceneMap:
+    """Floors, stairs, occupancy and regions of an exploration; annotates the graph's nodes."""
+    cfg = config or RegionConfig()
+    gg = result.graph
+    g = gg.g
+    visited = gg.nodes_with(NodeStatus.VISITED)
+    vpos = gg.positions(visited)
+    levels = detect_floors(vpos[:, 2], cfg.floor_gap_m, cfg.floor_min_nodes)
+
+    stairs: set[str] = set()
+    if len(vpos):
+        dist = np.abs(vpos[:, 2:3] - np.array(levels)[None, :])
+        nearest = dist.argmin(axis=1)
+        off_floor = dist.min(axis=1) > cfg.floor_gap_m
+        stair_pts = detect_stair_positions(
+            result.trajectory_m, cfg.stair_min_rise_m, cfg.stair_min_total_m
+        )
+        on_run = np.zeros(len(visited), dtype=bool)
+        if len(stair_pts):
+            d = np.linalg.norm(vpos[:, None, :] - stair_pts[None, :, :], axis=2)
+            on_run = d.min(axis=1) < gg.dxy_m
+        lv = np.array(levels)
+        for k, nid in enumerate(visited):
+            f = int(nearest[k])
+            g.nodes[nid]["floor"] = f
+            # A node on a stair run that still stands at a floor's height is a landing, not stairs.
+            at_level = abs(vpos[k, 2] - lv[f]) <= cfg.floor_gap_m / 2
+            is_stair = bool(off_floor[k] or (on_run[k] and not at_level))
+            g.nodes[nid]["stairs"] = is_stair
+            if is_stair:
+                stairs.add(nid)
+
+    angles = result.scan_angles_rad
+    floors: list[Floor] = []
+    for fi, z in enumerate(levels):
+        scans = [s for s in result.scans if abs(s.position_m[2] - z) <= cfg.floor_gap_m]
+        if scans:
+            occ = build_occupancy(
+                np.stack([s.position_m for s in scans]),
+                np.stack([s.obstacle_m for s in scans]),
+                angles,
+                np.array([s.heading_rad for s in scans]),
+                floor_z_m=z,
+                cell_m=cfg.occupancy_cell_m,
+                max_range_m=cfg.sensor_range_m,
+            )
+        else:
+            occ = build_occupancy(np.zeros((0, 3)), np.zeros((0, len(angles))), angles,
+                                  np.zeros(0), z, cfg.occupancy_cell_m, cfg.sensor_range_m)
+        nodes = [n for n in visited if g.nodes[n].get("floor") == fi and n not in stairs]
+        floors.append(Floor(fi, z, occ, nodes))
+
+    regions: dict[int, list[str]] = {}
+    region_floor: dict[int, int] = {}
+    for fl in floors:
+        for comm in _partition(gg, fl, cfg):
+            rid = len(regions)
+            regions[rid] = sorted(comm)
+            region_floor[rid] = fl.index
+    node_region = {n: r for r, ns in regions.items() for n in ns}
+    # Stair nodes and observed nodes take the region of their nearest regioned neighbour.
+    for n in g.nodes:
+        if n in node_region:
+            continue
+        ref = g.nodes[n].get("parent") or n
+        r = node_region.get(ref)
+        if r is None and ref in g:
+            try:
+                lengths = nx.single_source_dijkstra_path_length(gg.traversed(), ref, weight="length")
+                best = min((d, m) for m, d in lengths.items() if m in node_region)
+                r = node_region[best[1]]
+            except (ValueError, nx.NodeNotFound):
+                r = None
+        if r is not None:
+            node_region[n] = r
+    for n in g.nodes:
+        g.nodes[n]["region"] = node_region.get(n)
+        if "floor" not in g.nodes[n] and node_region.get(n) is not None:
+            g.nodes[n]["floor"] = region_floor[node_region[n]]
+    log.info("%d floors, %d stair nodes, %d regions", len(floors), len(stairs), len(regions))
+    return SceneMap(result, floors, stairs, regions, region_floor, node_region)
+
+
+def _partition(gg, fl: Floor, cfg: RegionConfig) -> list[set[str]]:
+    nodes = fl.nodes
+    if not nodes:
+        return []
+    if len(nodes) < 2 * cfg.min_region_nodes:
+        return [set(nodes)]
+    pos = gg.positions(nodes)
+    occ = fl.occupancy
+    idx = occ.to_index(pos)
+    pg = nx.Graph()
+    pg.add_nodes_from(nodes)
+    for u, v, d in gg.g.subgraph(nodes).edges(data=True):
+        pg.add_edge(u, v, weight=1.0 / (0.5 + d["length"]))
+    iu, ju = np.triu_indices(len(nodes), k=1)
+    dd = np.linalg.norm(pos[iu, :2] - pos[ju, :2], axis=1)
+    close = dd <= cfg.link_radius_m
+    iu, ju, dd = iu[close], ju[close], dd[close]
+    if len(iu):
+        los = line_of_sight(occ.occupied, idx[iu], idx[ju])
+        for a, b, d in zip(iu[los], ju[los], dd[los], strict=True):
+            w = 1.0 / (0.5 + d)
+            if pg.has_edge(nodes[a], nodes[b]):
+                w += pg.edges[nodes[a], nodes[b]]["weight"]
+            pg.add_edge(nodes[a], nodes[b], weight=w)
+    comms = [set(c) for c in nx.community.louvain_communities(
+        pg, weight="weight", resolution=cfg.louvain_resolution, seed=cfg.seed)]
+    # Tiny communities (a node in a doorway) join the neighbour they are most tied to.
+    comms.sort(key=len)
+    changed = True
+    while changed and len(comms) > 1:
+        changed = False
+        for c in comms:
+            if len(c) >= cfg.min_region_nodes:
+                continue
+            best, best_w = None, 0.0
+            for other in comms:
+                if other is c:
+                    continue
+                w = sum(pg.edges[u, v]["weight"] for u in c for v in pg[u] if v in other)
+                if w > best_w:
+                    best, best_w = other, w
+            if best is not None:
+                best |= c
+                comms.remove(c)
+                changed = True
+                break
+    comms.sort(key=lambda c: min(gg.g.nodes[n]["order"] for n in c))
+    return comms

@@ -1,0 +1,387 @@
+"""Visibility-aware tour planning per region (paper 4.1, Algorithm 1, step 2).
+
+For each region: reachable cells (explored free space with at least ``clearance`` to anything
+occupied or unknown) downsampled on a 1 m grid give candidate hubs; ``Vis(h)`` is the set of the
+region's explored cells within ``vis_radius_m`` that ``h`` sees (line of sight on the occupancy);
+a greedy set cover picks hubs until ``tau`` of the region is covered; 2-opt orders them into a
+Hamiltonian cycle under ``C(u, v) = L(u, v) + lambda_overlap * (1 - IoU(Vis u, Vis v))``, with
+``L`` the shortest path length over the reachable cells. The dense path between hubs follows those
+cells, so it keeps the clearance by construction, and is then shortcut where line of sight on the
+reachable cells allows (string pulling) and resampled.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import ndimage, sparse
+from scipy.sparse.csgraph import dijkstra
+
+from shared.schemas import Pose, Tour
+
+from services.mapper.core.errors import PlanningError
+from services.mapper.core.occupancy import OccupancyGrid, line_of_sight
+from services.mapper.core.regions import SceneMap
+
+log = logging.getLogger(__name__)
+
+
+class TourConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    hub_grid_m: float = Field(1.0, gt=0.0)
+    vis_radius_m: float = Field(3.0, gt=0.0)
+    tau: float = Field(0.9, gt=0.0, le=1.0)
+    lambda_overlap: float = Field(1.0, ge=0.0)  # metres of path one unit of (1 - IoU) is worth
+    body_radius_m: float = Field(0.2, ge=0.0)
+    clearance_margin_m: float = Field(0.1, ge=0.0)
+    vis_rays: int = Field(360, ge=36, le=2048)
+    path_step_m: float = Field(0.25, gt=0.0)
+    close_loop: bool = True  # return to the start hub: a loop closure for the reconstruction
+    max_2opt_rounds: int = Field(200, ge=0)
+
+    @property
+    def clearance_m(self) -> float:
+        return self.body_radius_m + self.clearance_margin_m
+
+
+@dataclass
+class PlannedTour:
+    """A tour plus what the executor and the benchmark need beyond the bus message."""
+
+    tour: Tour
+    hub_path_index: list[int]  # index into tour.path_m of each hub, in visiting order
+    length_m: float  # refined path length
+    nn_length_m: float  # plain nearest-neighbour cycle over the same hubs, by L
+    order_length_m: float  # the 2-opt cycle by L (comparable to nn_length_m)
+    achievable_coverage: float  # what every candidate hub together would cover
+    plan_s: float  # set cover + 2-opt time
+    candidates: int
+
+
+# --- pieces (public so that tests and benchmarks can call them on their own) --------------------
+
+
+def grid_graph(mask: np.ndarray, cell_m: float) -> tuple[sparse.csr_matrix, np.ndarray]:
+    """8-connected graph over the True cells of ``mask``; returns (csr, flat index -> node id)."""
+    nx_, ny_ = mask.shape
+    ids = np.full(mask.size, -1, dtype=np.int64)
+    flat = np.flatnonzero(mask.ravel())
+    ids[flat] = np.arange(len(flat))
+    ids = ids.reshape(mask.shape)
+    rows, cols, w = [], [], []
+    for di, dj in ((1, 0), (0, 1), (1, 1), (1, -1)):
+        i0, i1 = max(0, -di), nx_ - max(0, di)
+        j0, j1 = max(0, -dj), ny_ - max(0, dj)
+        a = ids[i0:i1, j0:j1]
+        b = ids[i0 + di : i1 + di, j0 + dj : j1 + dj]
+        ok = (a >= 0) & (b >= 0)
+        if di and dj:
+            # No diagonal squeeze between two blocked corner cells.
+            ok &= (ids[i0 + di : i1 + di, j0:j1] >= 0) & (ids[i0:i1, j0 + dj : j1 + dj] >= 0)
+        rows.append(a[ok])
+        cols.append(b[ok])
+        w.append(np.full(int(ok.sum()), cell_m * math.hypot(di, dj)))
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    ww = np.concatenate(w)
+    n = len(flat)
+    m = sparse.coo_matrix((np.concatenate([ww, ww]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
+    return m.tocsr(), flat
+
+
+def visibility(
+    occ: OccupancyGrid,
+    hubs_idx: np.ndarray,
+    targets_idx: np.ndarray,
+    radius_m: float,
+    rays: int = 360,
+) -> np.ndarray:
+    """(H, T) bool: target cell t visible from hub h (within radius, no occupied cell between)."""
+    blocked = occ.occupied
+    step = occ.cell_m * 0.5
+    samples = np.arange(step, radius_m + step, step)
+    ang = np.arange(rays) * (2.0 * math.pi / rays)
+    dirs = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    hub_xy = (hubs_idx + 0.5) * occ.cell_m  # grid-local metres
+    tgt_xy = (targets_idx + 0.5) * occ.cell_m
+    nx_, ny_ = blocked.shape
+    vis = np.zeros((len(hubs_idx), len(targets_idx)), dtype=bool)
+    for k, h in enumerate(hub_xy):
+        pts = h[None, None, :] + dirs[:, None, :] * samples[None, :, None]
+        ij = np.floor(pts / occ.cell_m).astype(np.int64)
+        inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx_) & (ij[..., 1] >= 0) & (ij[..., 1] < ny_)
+        hit = np.zeros(ij.shape[:2], dtype=bool)
+        hit[inside] = blocked[ij[inside][:, 0], ij[inside][:, 1]]
+        hit |= ~inside
+        first = np.where(hit.any(axis=1), samples[np.argmax(hit, axis=1)], np.inf)
+        d = tgt_xy - h
+        r = np.hypot(d[:, 0], d[:, 1])
+        a = np.floor((np.arctan2(d[:, 1], d[:, 0]) % (2 * math.pi)) / (2 * math.pi) * rays + 0.5)
+        a = a.astype(np.int64) % rays
+        # A wall cell itself is seen: allow the half cell in which the ray stopped.
+        vis[k] = (r <= radius_m) & (r <= first[a] + occ.cell_m * 0.75)
+    return vis
+
+
+def greedy_set_cover(vis: np.ndarray, tau: float, tie_break: np.ndarray | None = None) -> tuple[list[int], float]:
+    """Pick sets (rows of ``vis``) until ``tau`` of the columns are covered or no set adds any."""
+    n_t = vis.shape[1]
+    if n_t == 0 or vis.shape[0] == 0:
+        return [], 0.0
+    m = vis.astype(np.float32)
+    uncovered = np.ones(n_t, dtype=np.float32)
+    chosen: list[int] = []
+    tb = np.zeros(vis.shape[0]) if tie_break is None else tie_break / (np.max(tie_break) + 1e-9)
+    covered = 0.0
+    while covered < tau:
+        gain = m @ uncovered
+        best = int(np.argmax(gain + 0.5 * tb * (gain > 0)))
+        if gain[best] <= 0:
+            break
+        chosen.append(best)
+        uncovered *= 1.0 - m[best]
+        covered = 1.0 - float(uncovered.sum()) / n_t
+    return chosen, covered
+
+
+def tour_cost(order: list[int] | np.ndarray, cost: np.ndarray, closed: bool = True) -> float:
+    o = np.asarray(order)
+    if len(o) < 2:
+        return 0.0
+    c = float(cost[o[:-1], o[1:]].sum())
+    return c + (float(cost[o[-1], o[0]]) if closed else 0.0)
+
+
+def nearest_neighbour_order(cost: np.ndarray, start: int = 0) -> list[int]:
+    n = len(cost)
+    order = [start]
+    left = np.ones(n, dtype=bool)
+    left[start] = False
+    while left.any():
+        c = np.where(left, cost[order[-1]], np.inf)
+        nxt = int(np.argmin(c))
+        order.append(nxt)
+        left[nxt] = False
+    return order
+
+
+def two_opt(order: list[int], cost: np.ndarray, max_rounds: int = 200) -> list[int]:
+    """Best-improvement 2-opt on a closed tour with a symmetric cost; the start stays first."""
+    o = np.array(order)
+    n = len(o)
+    if n < 4:
+        return list(o)
+    for _ in range(max_rounds):
+        a = o
+        b = np.roll(o, -1)
+        i, j = np.triu_indices(n, k=2)
+        keep = ~((i == 0) & (j == n - 1))
+        i, j = i[keep], j[keep]
+        delta = cost[a[i], a[j]] + cost[b[i], b[j]] - cost[a[i], b[i]] - cost[a[j], b[j]]
+        k = int(np.argmin(delta))
+        if delta[k] >= -1e-9:
+            break
+        o = np.concatenate([o[: i[k] + 1], o[i[k] + 1 : j[k] + 1][::-1], o[j[k] + 1 :]])
+    return list(o)
+
+
+def string_pull(cells: np.ndarray, blocked: np.ndarray) -> np.ndarray:
+    """Drop path cells that a straight, unblocked segment can skip (greedy farthest visible)."""
+    if len(cells) <= 2:
+        return cells
+    out = [0]
+    k = 0
+    while k < len(cells) - 1:
+        cand = np.arange(len(cells) - 1, k, -1)
+        ok = line_of_sight(blocked, np.repeat(cells[k][None], len(cand), 0), cells[cand])
+        nxt = int(cand[np.argmax(ok)]) if ok.any() else k + 1
+        out.append(nxt)
+        k = nxt
+    return cells[out]
+
+
+def resample(points: np.ndarray, step_m: float) -> np.ndarray:
+    """Points every ``step_m`` along a polyline (ends kept)."""
+    if len(points) < 2:
+        return points
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return points[:1]
+    t = np.unique(np.concatenate([np.arange(0.0, s[-1], step_m), [s[-1]]]))
+    return np.column_stack([np.interp(t, s, points[:, d]) for d in range(points.shape[1])])
+
+
+# --- the planner ---------------------------------------------------------------------------------
+
+
+class TourPlanner:
+    def __init__(self, config: TourConfig | None = None):
+        self.config = config or TourConfig()
+
+    def plan(self, scene: SceneMap) -> list[PlannedTour]:
+        """One tour per region (regions without any reachable cell are skipped with a warning)."""
+        tours = []
+        for rid in sorted(scene.regions):
+            try:
+                tours.append(self.plan_region(scene, rid))
+            except PlanningError as exc:
+                log.warning("region %d: no tour: %s", rid, exc)
+        return tours
+
+    def plan_region(self, scene: SceneMap, rid: int) -> PlannedTour:
+        cfg = self.config
+        floor = scene.floors[scene.region_floor[rid]]
+        occ = floor.occupancy
+        g = scene.result.graph
+        nodes = scene.regions[rid]
+        floor_nodes = floor.nodes
+        fpos = g.positions(floor_nodes)
+        npos = g.positions(nodes)
+
+        # Every explored cell of the floor goes to the region of its nearest (geodesic) node.
+        free = occ.free
+        fg, fflat = grid_graph(free, occ.cell_m)
+        node_cells = _cells_of(occ, fpos, fflat, free)
+        ok = node_cells >= 0
+        if not ok.any():
+            raise PlanningError("no node of the floor lies on explored free space")
+        _, _, src = dijkstra(fg, indices=node_cells[ok], min_only=True, return_predecessors=True)
+        node_of_src = {int(c): floor_nodes[k] for k, c in zip(np.nonzero(ok)[0], node_cells[ok], strict=True)}
+        region_of = np.array(
+            [scene.node_region.get(node_of_src.get(int(s)), -1) if s >= 0 else -1 for s in src]
+        )
+        target_flat = fflat[region_of == rid]
+        if len(target_flat) == 0:
+            raise PlanningError("region has no explored cell")
+        targets = np.column_stack(np.unravel_index(target_flat, free.shape))
+
+        # Reachable cells: free with clearance, in the component of the region's nodes.
+        clear = occ.clearance_m()
+        reach = free & (clear >= cfg.clearance_m)
+        rg, rflat = grid_graph(reach, occ.cell_m)
+        rnode = _cells_of(occ, npos, rflat, reach, snap_m=cfg.clearance_m + 0.5)
+        if not (rnode >= 0).any():
+            raise PlanningError("no region node has the required clearance")
+        seeds = rnode[rnode >= 0]
+        dseed = dijkstra(rg, indices=seeds, min_only=True)
+        connected = np.isfinite(dseed)
+        region_mask = np.zeros(free.shape, dtype=bool)
+        region_mask.ravel()[target_flat] = True
+        # Hubs stand in the region's own cells (walking slightly into a doorway is fine).
+        in_region = ndimage.binary_dilation(region_mask, iterations=2).ravel()[rflat]
+        cand_nodes = np.nonzero(connected & in_region)[0]
+        if len(cand_nodes) == 0:
+            raise PlanningError("no reachable cell inside the region")
+        cand_idx = np.column_stack(np.unravel_index(rflat[cand_nodes], free.shape))
+        hubs_c, hub_nodes = _voxel_downsample(occ, cand_idx, cand_nodes, clear, cfg.hub_grid_m)
+
+        t0 = time.perf_counter()
+        vis = visibility(occ, hubs_c, targets, cfg.vis_radius_m, cfg.vis_rays)
+        achievable = float(vis.any(axis=0).mean())
+        chosen, coverage = greedy_set_cover(vis, cfg.tau, clear[hubs_c[:, 0], hubs_c[:, 1]])
+        if not chosen:
+            raise PlanningError("no hub sees any cell of the region")
+        hv = vis[chosen].astype(np.float32)
+        hub_graph_nodes = hub_nodes[chosen]
+        dist, pred = dijkstra(rg, indices=hub_graph_nodes, return_predecessors=True)
+        lmat = dist[:, hub_graph_nodes]
+        lmat = np.where(np.isfinite(lmat), lmat, 1e6)
+        lmat = np.minimum(lmat, lmat.T)
+        inter = hv @ hv.T
+        sizes = hv.sum(axis=1)
+        iou = inter / np.maximum(sizes[:, None] + sizes[None, :] - inter, 1.0)
+        cost = lmat + cfg.lambda_overlap * (1.0 - iou)
+        np.fill_diagonal(cost, 0.0)
+        # Start at the hub nearest to where exploration first entered the region.
+        first = min(nodes, key=lambda n: g.g.nodes[n]["order"])
+        entry = _cells_of(occ, g.positions([first]), rflat, reach, snap_m=cfg.clearance_m + 0.5)[0]
+        start = int(np.argmin(dijkstra(rg, indices=[entry])[0][hub_graph_nodes])) if entry >= 0 else 0
+        nn = nearest_neighbour_order(lmat, start)
+        order = two_opt(nearest_neighbour_order(cost, start), cost, cfg.max_2opt_rounds)
+        plan_s = time.perf_counter() - t0
+
+        path, hub_at = self._dense_path(order, hub_graph_nodes, pred, rflat, reach, occ)
+        length = float(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1).sum()) if len(path) > 1 else 0.0
+        hubs_m = occ.centres(hubs_c[chosen][order])
+        heading = 0.0
+        if len(path) > 1:
+            d = path[1] - path[0]
+            heading = math.atan2(d[1], d[0])
+        tour = Tour(
+            region=rid,
+            start_pose=Pose(position_m=tuple(float(v) for v in path[0]), heading_rad=heading),
+            hubs_m=hubs_m,
+            path_m=path,
+            coverage=coverage,
+        )
+        return PlannedTour(
+            tour=tour,
+            hub_path_index=hub_at,
+            length_m=length,
+            nn_length_m=tour_cost(nn, lmat, cfg.close_loop),
+            order_length_m=tour_cost(order, lmat, cfg.close_loop),
+            achievable_coverage=achievable,
+            plan_s=plan_s,
+            candidates=len(hubs_c),
+        )
+
+    def _dense_path(self, order, hub_nodes, pred, rflat, reach, occ):
+        cfg = self.config
+        blocked = ~reach
+        seq = list(order) + ([order[0]] if cfg.close_loop and len(order) > 1 else [])
+        pts: list[np.ndarray] = []
+        hub_at: list[int] = []
+        for k, h in enumerate(seq):
+            if k == 0:
+                pts.append(occ.centres(np.array([np.unravel_index(rflat[hub_nodes[h]], reach.shape)])))
+                hub_at.append(0)
+                continue
+            prev = seq[k - 1]
+            chain = [hub_nodes[h]]
+            row = pred[prev]
+            while chain[-1] != hub_nodes[prev] and chain[-1] >= 0:
+                chain.append(row[chain[-1]])
+            chain = chain[::-1]
+            cells = np.column_stack(np.unravel_index(rflat[np.array(chain)], reach.shape))
+            cells = string_pull(cells, blocked)
+            seg = resample(occ.centres(cells), cfg.path_step_m)
+            pts.append(seg[1:])
+            if k < len(order):
+                hub_at.append(sum(len(p) for p in pts) - 1)
+        path = np.concatenate(pts) if pts else np.zeros((0, 3))
+        return path, hub_at
+
+
+def _cells_of(occ: OccupancyGrid, pos: np.ndarray, flat_ids: np.ndarray, mask: np.ndarray, snap_m: float = 0.5) -> np.ndarray:
+    """Graph node of each position: its cell, or the nearest mask cell within ``snap_m``."""
+    out = np.full(len(pos), -1, dtype=np.int64)
+    if len(flat_ids) == 0 or len(pos) == 0:
+        return out
+    lookup = np.full(mask.size, -1, dtype=np.int64)
+    lookup[flat_ids] = np.arange(len(flat_ids))
+    cells = np.column_stack(np.unravel_index(flat_ids, mask.shape))
+    idx = occ.to_index(pos)
+    from scipy.spatial import cKDTree
+
+    d, k = cKDTree(cells).query(idx, distance_upper_bound=snap_m / occ.cell_m)
+    ok = np.isfinite(d)
+    out[ok] = k[ok]
+    return out
+
+
+def _voxel_downsample(occ, cand_idx, cand_nodes, clear, grid_m):
+    """One hub per ``grid_m`` voxel: the candidate cell with the most clearance."""
+    vox = np.floor((cand_idx + 0.5) * occ.cell_m / grid_m).astype(np.int64)
+    key = vox[:, 0] * 1_000_003 + vox[:, 1]
+    c = clear[cand_idx[:, 0], cand_idx[:, 1]]
+    order = np.lexsort((-c, key))
+    _, first = np.unique(key[order], return_index=True)
+    pick = order[first]
+    return cand_idx[pick], cand_nodes[pick]

@@ -1,0 +1,98 @@
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from shared.geometry import PinholeCamera
+from shared.schemas import NavGraph, Tour
+
+from services.mapper.core import (
+    DiscoveryConfig,
+    ExplorationConfig,
+    NodeStatus,
+    discover,
+    execute_tours,
+)
+from services.mapper.tools.boxworld import BoxWorldRobot, rooms_world
+
+
+@pytest.fixture(scope="module")
+def run():
+    world = rooms_world()
+    robot = BoxWorldRobot(world, PinholeCamera(48, 48, 90.0))
+    return world, robot, discover(robot)
+
+
+def test_exploration_covers_the_house(run):
+    world, _, d = run
+    assert d.result.finished
+    g = d.result.graph
+    nodes = g.positions(g.nodes_with(NodeStatus.VISITED, NodeStatus.COVERED))
+    cells = world.reachable_cells(0.2, 0.25)
+    dist, _ = cKDTree(nodes).query(cells)
+    assert (dist < 2.0).mean() >= 0.6
+
+
+def test_graph_edges_only_between_visited_nodes(run):
+    _, _, d = run
+    g = d.result.graph.g
+    for u, v in g.edges:
+        assert g.nodes[u]["status"] == NodeStatus.VISITED and g.nodes[v]["status"] == NodeStatus.VISITED
+    msg = d.nav_graph()
+    assert isinstance(msg, NavGraph)
+    assert sum(n.visited for n in msg.nodes) == d.result.steps or sum(n.visited for n in msg.nodes) <= d.result.steps
+
+
+def test_tours_cover_their_regions_and_keep_clearance(run):
+    world, _, d = run
+    assert d.tours
+    for pt in d.tours:
+        assert isinstance(pt.tour, Tour)
+        assert pt.tour.coverage >= min(0.9, pt.achievable_coverage) - 1e-9
+        for p in pt.tour.path_m:
+            assert not world.blocked(p[0], p[1], 0.0, 0.2)
+        assert pt.order_length_m <= pt.nn_length_m + 1.0  # lambda term may trade a little length
+
+
+def test_deterministic(run):
+    world, _, d = run
+    robot = BoxWorldRobot(world, PinholeCamera(48, 48, 90.0))
+    d2 = discover(robot)
+    assert d2.result.visit_order == d.result.visit_order
+    assert [len(t.tour.hubs_m) for t in d2.tours] == [len(t.tour.hubs_m) for t in d.tours]
+
+
+def test_step_budget_is_respected(world):
+    robot = BoxWorldRobot(world, PinholeCamera(32, 32, 90.0))
+    d = discover(robot, DiscoveryConfig(exploration=ExplorationConfig(max_steps=3)))
+    assert d.result.steps == 3 and not d.result.finished
+
+
+def test_unreachable_candidates_are_not_retried(world):
+    class Stubborn(BoxWorldRobot):
+        """Refuses every move east of x = 3 m."""
+
+        def move_to(self, dx_m, dy_m):
+            if self.pose.position_m[0] + dx_m > 3.0:
+                self.moves += 1
+                from shared.schemas import MoveResult, MoveStatus
+                return MoveResult(status=MoveStatus.BLOCKED, pose=self.pose, travelled_m=0.0, steps=0)
+            return super().move_to(dx_m, dy_m)
+
+    robot = Stubborn(world, PinholeCamera(32, 32, 90.0))
+    d = discover(robot)
+    assert d.result.finished
+    assert d.result.unreachable >= 1
+    assert d.result.moves < 200
+
+
+def test_execute_tours_records_frames_per_region(run):
+    world, robot, d = run
+    recs = execute_tours(robot, d.tours, d.scene)
+    assert [r.region for r in recs] == [t.tour.region for t in d.tours]
+    for rec, pt in zip(recs, d.tours, strict=True):
+        assert rec.hubs_visited == len(pt.tour.hubs_m)
+        assert len(rec.frames) >= 6 * rec.hubs_visited  # look-around frames at least
+        assert rec.blocked_moves == 0
+        assert np.allclose(rec.start_pose.position_m[:2], pt.tour.start_pose.position_m[:2], atol=0.06)
+        idx = [f.index for f in rec.frames]
+        assert len(idx) == len(set(idx))

@@ -1,0 +1,104 @@
+import math
+
+import numpy as np
+import pytest
+
+from services.mapper.core.occupancy import FREE, OCCUPIED, OccupancyGrid, build_occupancy, line_of_sight
+from services.mapper.core.tours import (
+    greedy_set_cover,
+    grid_graph,
+    nearest_neighbour_order,
+    resample,
+    tour_cost,
+    two_opt,
+    visibility,
+)
+from scipy.sparse.csgraph import dijkstra
+
+
+def _two_rooms():
+    """4 x 2 m free space split by a wall at x = 2 m with a 0.6 m door, 0.1 m cells."""
+    cells = np.full((40, 20), FREE, np.uint8)
+    cells[0, :] = cells[-1, :] = cells[:, 0] = cells[:, -1] = OCCUPIED
+    cells[20, :] = OCCUPIED
+    cells[20, 7:13] = FREE
+    return OccupancyGrid(cells, np.zeros(2), 0.1, 0.0)
+
+
+def test_grid_graph_geodesic_goes_through_the_door():
+    occ = _two_rooms()
+    g, flat = grid_graph(occ.free, occ.cell_m)
+    lookup = {f: k for k, f in enumerate(flat)}
+    a = lookup[np.ravel_multi_index((5, 2), occ.cells.shape)]
+    b = lookup[np.ravel_multi_index((35, 2), occ.cells.shape)]
+    d = dijkstra(g, indices=[a])[0][b]
+    # Via the door at y 0.7-1.3: two 1.58 m legs at least, a little more on an 8-connected grid.
+    assert 2 * math.hypot(1.5, 0.5) - 1e-9 <= d < 3.6
+    occ.cells[20, 7:13] = OCCUPIED
+    g, flat = grid_graph(occ.free, occ.cell_m)
+    lookup = {f: k for k, f in enumerate(flat)}
+    a = lookup[np.ravel_multi_index((5, 2), occ.cells.shape)]
+    b = lookup[np.ravel_multi_index((35, 2), occ.cells.shape)]
+    assert np.isinf(dijkstra(g, indices=[a])[0][b])
+
+
+def test_visibility_respects_walls_and_radius():
+    occ = _two_rooms()
+    free_idx = np.argwhere(occ.free)
+    vis = visibility(occ, np.array([[10, 10]]), free_idx, radius_m=1.5)[0]
+    r = np.hypot(*(((free_idx - [10, 10]) * 0.1).T))
+    assert not vis[r > 1.5 + 1e-9].any()
+    assert vis[(r < 0.8)].all()
+    assert vis[(free_idx[:, 0] > 20) & (np.abs(free_idx[:, 1] - 10) <= 1)].any()  # the door
+    vis = visibility(occ, np.array([[18, 2]]), free_idx, radius_m=1.5)[0]
+    assert not vis[(free_idx[:, 0] > 20) & (free_idx[:, 1] <= 4)].any()  # behind the wall
+
+
+def test_line_of_sight():
+    occ = _two_rooms()
+    assert line_of_sight(occ.occupied, np.array([[5, 10]]), np.array([[35, 10]]))[0]  # door
+    assert not line_of_sight(occ.occupied, np.array([[5, 2]]), np.array([[35, 2]]))[0]
+
+
+def test_greedy_set_cover_reaches_tau_and_is_small():
+    rng = np.random.default_rng(0)
+    vis = rng.random((30, 500)) < 0.1
+    vis[3, :250] = True
+    vis[7, 250:] = True
+    chosen, cov = greedy_set_cover(vis, 0.9)
+    assert cov >= 0.9
+    assert chosen[:2] in ([3, 7], [7, 3])
+    assert len(chosen) == 2
+    chosen, cov = greedy_set_cover(np.zeros((3, 10), bool), 0.9)
+    assert chosen == [] and cov == 0.0
+
+
+def test_two_opt_untangles_and_keeps_start():
+    ang = np.linspace(0, 2 * math.pi, 12, endpoint=False)
+    pts = np.column_stack([np.cos(ang), np.sin(ang)])
+    cost = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    rng = np.random.default_rng(1)
+    order = [0, *rng.permutation(np.arange(1, 12)).tolist()]
+    out = two_opt(order, cost)
+    assert out[0] == 0 and sorted(out) == list(range(12))
+    assert tour_cost(out, cost) == pytest.approx(12 * 2 * math.sin(math.pi / 12), rel=1e-6)
+    assert tour_cost(out, cost) <= tour_cost(nearest_neighbour_order(cost), cost) + 1e-9
+
+
+def test_resample_spacing():
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    out = resample(pts, 0.25)
+    assert np.allclose(out[0], pts[0]) and np.allclose(out[-1], pts[-1])
+    assert np.all(np.linalg.norm(np.diff(out, axis=0), axis=1) <= 0.25 + 1e-9)
+
+
+def test_build_occupancy_from_a_ray_scan():
+    angles = np.arange(360) * (2 * math.pi / 360)
+    # A square room of half-width 2 m around the origin, seen from the centre.
+    rng = 2.0 / np.maximum(np.abs(np.cos(angles)), np.abs(np.sin(angles)))
+    occ = build_occupancy(np.zeros((1, 3)), rng[None], angles, np.zeros(1), 0.0, 0.1, 5.0)
+    assert occ.area_m2() == pytest.approx(16.0, rel=0.15)
+    wall = occ.to_index(np.array([[2.05, 0.0]]))[0]
+    assert occ.cells[wall[0], wall[1]] == OCCUPIED
+    outside = occ.to_index(np.array([[3.0, 0.0]]))[0]
+    assert occ.cells[outside[0], outside[1]] == 0
