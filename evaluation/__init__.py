@@ -1,0 +1,1 @@
+"""Evaluation: VLN-CE metrics (and, later, the experiment runner)."""

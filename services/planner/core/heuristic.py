@@ -1,0 +1,271 @@
+"""The offline default policy: instruction sub-goals scored against anticipated semantics.
+
+At each step the policy (1) advances its current sub-goal when the sub-goal's landmark or room has been
+reached (seen close in the current panorama) or its turn and distance have been executed, (2) stops once
+the final landmark is close (or, without labels, once every sub-goal is used up), and otherwise (3) scores
+every waypoint by the current and next targets visible in its anticipated view (the map's semantic
+channel; the observed view when anticipation is off), agreement with the expected turn and progress
+(longer moves, no revisits). Without any labels it still navigates by turns and distances.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.registry import BackendConfig
+from shared.schemas import CandidateKind, Decision
+
+from .context import CandidateView, StepContext
+from .history import turn_phrase
+from .instruction import ParsedInstruction, SubGoal, Turn, label_matches, parse_instruction
+from .policy import POLICIES, Policy
+
+log = logging.getLogger(__name__)
+
+
+class HeuristicConfig(BackendConfig):
+    """Weights and thresholds of the heuristic policy."""
+
+    semantic_weight: float = 3.0
+    lookahead_weight: float = 1.0
+    turn_weight: float = 1.5
+    turn_sigma_deg: float = 35.0
+    progress_weight: float = 0.4
+    revisit_radius_m: float = 0.8
+    revisit_penalty: float = 1.5
+    hole_penalty: float = 0.5
+    backtrack_score: float = -0.6
+    reached_distance_m: float = 2.0  # an intermediate landmark counts as reached within this depth
+    stop_distance_m: float = 1.6  # the final landmark must be this close to stop
+    min_view_fraction: float = 0.02  # of a view's pixels, for a landmark to count as seen
+    room_fraction: float = 0.3  # of the near pixels, for the agent to be in a room
+    default_leg_m: float = 3.0  # a sub-goal whose target cannot be seen lasts this far
+    max_distance_factor: float = 2.5  # give up on the labels' stop after this x the parsed distance
+
+
+@dataclass
+class _MissionState:
+    parsed: ParsedInstruction
+    k: int = 0  # current sub-goal
+    turn_done: bool = False
+    leg_m: float = 0.0  # distance travelled in the current sub-goal
+    total_m: float = 0.0
+    last_xyz: np.ndarray | None = None
+
+
+@POLICIES.register("heuristic", HeuristicConfig)
+class HeuristicPolicy(Policy):
+    name = "heuristic"
+
+    def __init__(self, config: HeuristicConfig):
+        super().__init__()
+        self.config = config
+        self._state: _MissionState | None = None
+        self._ids_cache: dict[tuple, np.ndarray] = {}
+
+    def reset(self, mission_id: str) -> None:
+        super().reset(mission_id)
+        self._state = None
+
+    # --- label helpers --------------------------------------------------------------------------
+
+    def _ids(self, label_names: dict[int, str], target: str) -> np.ndarray:
+        key = (id(label_names), len(label_names), target)
+        ids = self._ids_cache.get(key)
+        if ids is None:
+            ids = np.array([i for i, n in label_names.items() if label_matches(n, target)], dtype=np.int64)
+            self._ids_cache[key] = ids
+        return ids
+
+    def _fraction(
+        self, labels: np.ndarray | None, depth: np.ndarray | None, ids: np.ndarray, max_depth_m=None
+    ) -> float:
+        if labels is None or ids.size == 0:
+            return 0.0
+        mask = np.isin(labels, ids)
+        if max_depth_m is not None and depth is not None:
+            mask &= (depth > 0) & (depth <= max_depth_m)
+        return float(mask.mean())
+
+    def _observed_sets(self, ctx: StepContext) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """(labels, depth) of every current view: the panorama when present, else the candidates' views."""
+        if ctx.panorama is not None and ctx.panorama.semantic is not None:
+            return list(zip(ctx.panorama.semantic, ctx.panorama.depth_m))
+        return [(v.observed_labels, v.observed_depth_m) for v in ctx.candidates if v.observed_labels is not None]
+
+    def _has_labels(self, ctx: StepContext) -> bool:
+        return bool(ctx.label_names) and (
+            bool(self._observed_sets(ctx)) or any(v.anticipated_labels is not None for v in ctx.candidates)
+        )
+
+    def _landmark_close(self, ctx: StepContext, target: str, max_depth_m: float) -> float:
+        """Largest fraction of a current view showing ``target`` within ``max_depth_m``."""
+        ids = self._ids(ctx.label_names, target)
+        best = 0.0
+        for labels, depth in self._observed_sets(ctx):
+            best = max(best, self._fraction(labels, depth, ids, max_depth_m))
+        return best
+
+    def _in_room(self, ctx: StepContext, room: str) -> bool:
+        ids = self._ids(ctx.label_names, room)
+        near = total = 0
+        for labels, depth in self._observed_sets(ctx):
+            if depth is None or labels is None:
+                continue
+            close = (depth > 0) & (depth <= 2.0) & (labels >= 0)
+            total += int(close.sum())
+            near += int((close & np.isin(labels, ids)).sum())
+        return total > 0 and near / total >= self.config.room_fraction
+
+    # --- sub-goal tracking --------------------------------------------------------------------------
+
+    def _update(self, ctx: StepContext) -> _MissionState:
+        st = self._state
+        if st is None or st.parsed.text != ctx.instruction:
+            st = self._state = _MissionState(parsed=parse_instruction(ctx.instruction))
+        xyz = ctx.pose.xyz
+        if st.last_xyz is not None:
+            d = float(np.linalg.norm(xyz[:2] - st.last_xyz[:2]))
+            st.leg_m += d
+            st.total_m += d
+        st.last_xyz = xyz
+        has_labels = self._has_labels(ctx)
+        while st.k < len(st.parsed.subgoals) and self._subgoal_done(ctx, st, st.parsed.subgoals[st.k], has_labels):
+            log.debug("sub-goal %d done: %s", st.k, st.parsed.subgoals[st.k].text)
+            st.k += 1
+            st.turn_done = False
+            st.leg_m = 0.0
+        return st
+
+    def _subgoal_done(self, ctx: StepContext, st: _MissionState, sg: SubGoal, has_labels: bool) -> bool:
+        is_last = st.k == len(st.parsed.subgoals) - 1
+        turn_ok = sg.turn is None or sg.turn == Turn.STRAIGHT or st.turn_done
+        if sg.stop or (is_last and sg.landmarks):
+            return False  # the final sub-goal ends with stop, decided separately
+        if not turn_ok:
+            return False
+        if sg.distance_m is not None and st.leg_m + 0.25 < sg.distance_m:
+            return False
+        if has_labels and sg.targets:
+            if any(self._landmark_close(ctx, t, self.config.reached_distance_m) >= self.config.min_view_fraction
+                   for t in sg.landmarks):
+                return True
+            if any(self._in_room(ctx, r) for r in sg.rooms):
+                return True
+            return st.leg_m >= self.config.default_leg_m * 2  # never seen: do not wait forever
+        if sg.targets and sg.distance_m is None:
+            return st.leg_m >= self.config.default_leg_m
+        return sg.distance_m is not None or sg.turn is not None and st.leg_m > 0.0
+
+    def _should_stop(self, ctx: StepContext, st: _MissionState) -> tuple[bool, str]:
+        parsed = st.parsed
+        n = len(parsed.subgoals)
+        if ctx.step == 0 and n > 0:
+            return False, ""
+        at_last = st.k >= n - 1
+        if not at_last:
+            return False, ""
+        final = parsed.final_landmarks
+        if self._has_labels(ctx) and final:
+            close = max(self._landmark_close(ctx, t, self.config.stop_distance_m) for t in final)
+            if close >= self.config.min_view_fraction:
+                return True, f"the final landmark ({', '.join(final)}) is close ({100 * close:.0f}% of a view)"
+            expected = sum(sg.distance_m or self.config.default_leg_m for sg in parsed.subgoals)
+            if st.total_m > self.config.max_distance_factor * max(expected, self.config.default_leg_m):
+                return True, "travelled far beyond the instruction's extent without reaching the landmark"
+            return False, ""
+        if self._has_labels(ctx) and parsed.final_rooms and not final:
+            if any(self._in_room(ctx, r) for r in parsed.final_rooms):
+                return True, f"inside the final room ({parsed.final_rooms[0]})"
+        if st.k >= n:
+            return True, "every sub-goal of the instruction is done"
+        sg = parsed.subgoals[-1] if n else None
+        leg = (sg.distance_m if sg and sg.distance_m else self.config.default_leg_m)
+        turn_ok = sg is None or sg.turn is None or sg.turn == Turn.STRAIGHT or st.turn_done
+        if turn_ok and st.leg_m + 0.25 >= leg:
+            return True, "the last sub-goal's turn and distance are done"
+        return False, ""
+
+    # --- scoring ----------------------------------------------------------------------------------------
+
+    def _score(self, ctx: StepContext, st: _MissionState, view: CandidateView) -> tuple[float, str]:
+        cfg = self.config
+        c = view.candidate
+        sgs = st.parsed.subgoals
+        cur = sgs[st.k] if st.k < len(sgs) else None
+        nxt = sgs[st.k + 1] if st.k + 1 < len(sgs) else None
+        notes: list[str] = []
+        score = 0.0
+
+        # Turn agreement: the current sub-goal's turn until executed, then a mild preference for straight.
+        if cur is not None and cur.turn is not None and not st.turn_done:
+            want, weight = cur.turn.angle_rad, cfg.turn_weight
+        else:
+            want, weight = 0.0, cfg.turn_weight * 0.3
+        delta = math.degrees(abs(math.remainder(c.angle_rad - want, 2 * math.pi)))
+        turn_s = weight * math.exp(-0.5 * (delta / cfg.turn_sigma_deg) ** 2)
+        score += turn_s
+
+        # Semantics: the anticipated view (or the observed one when anticipation is off or unlabelled).
+        use_anticipated = ctx.ablation.anticipation and view.anticipated_labels is not None
+        labels = view.anticipated_labels if use_anticipated else view.observed_labels
+        depth = view.anticipated_depth_m if use_anticipated else view.observed_depth_m
+        if labels is not None and ctx.label_names:
+            for targets, w in ((cur.targets if cur else []), cfg.semantic_weight), (
+                (nxt.targets if nxt else []), cfg.lookahead_weight
+            ):
+                for t in targets:
+                    f = self._fraction(labels, depth, self._ids(ctx.label_names, t))
+                    if f > 0:
+                        score += w * math.sqrt(f)
+                        notes.append(f"{t} {100 * f:.0f}%")
+
+        # Progress: prefer longer moves to new places; avoid returning where we have been.
+        score += cfg.progress_weight * min(c.distance_m or math.hypot(c.dx_m, c.dy_m), 3.0) / 3.0
+        if len(ctx.trajectory_m) > 1:
+            target = ctx.target_m(view)
+            past = ctx.trajectory_m[:-1, :2]
+            if np.min(np.linalg.norm(past - target[:2], axis=1)) < cfg.revisit_radius_m:
+                score -= cfg.revisit_penalty
+                notes.append("revisit")
+        if use_anticipated and view.anticipated_hole_fraction is not None:
+            score -= cfg.hole_penalty * view.anticipated_hole_fraction
+        why = f"{turn_phrase(c.angle_rad)} {c.distance_m:.1f} m" + (f" ({', '.join(notes)})" if notes else "")
+        return score, why
+
+    def decide(self, ctx: StepContext) -> Decision:
+        st = self._update(ctx)
+        sgs = st.parsed.subgoals
+        where = f"sub-goal {min(st.k, len(sgs) - 1) + 1}/{len(sgs)}" if sgs else "no parsable sub-goal"
+        stop = ctx.stop_candidate
+        do_stop, why_stop = self._should_stop(ctx, st)
+        if do_stop and stop is not None:
+            return self._decision(ctx, stop.index, f"{where}: stop - {why_stop}")
+
+        waypoints = ctx.by_kind(CandidateKind.WAYPOINT)
+        scored = [(self._score(ctx, st, v), v) for v in waypoints]
+        backtrack = ctx.by_kind(CandidateKind.BACKTRACK)
+        if backtrack:
+            scored.append(((self.config.backtrack_score, "go back: no better way on"), backtrack[0]))
+        if not scored:
+            idx = stop.index if stop is not None else ctx.candidates[0].index
+            return self._decision(ctx, idx, f"{where}: no way to move - stop", fallback=stop is None)
+        (best_score, why), best = max(scored, key=lambda s: s[0][0])
+        # The turn of the current sub-goal is executed once we move in (roughly) its direction.
+        cur = sgs[st.k] if st.k < len(sgs) else None
+        if cur is not None and cur.turn is not None and best.kind == CandidateKind.WAYPOINT:
+            tol = 60.0 if cur.turn != Turn.AROUND else 50.0
+            if math.degrees(abs(math.remainder(best.candidate.angle_rad - cur.turn.angle_rad, 2 * math.pi))) < tol:
+                st.turn_done = True
+                if cur.distance_m is None and not cur.targets and not cur.stop and st.k < len(sgs) - 1:
+                    # A bare "turn left" is done by this move, which already counts for the next clause
+                    # ("turn left and walk 3 m": the turning move is part of the 3 m).
+                    st.k += 1
+                    st.turn_done = False
+                    st.leg_m = 0.0
+        text = cur.text if cur is not None else "final approach"
+        return self._decision(ctx, best.index, f"{where} '{text}': {why} (score {best_score:.2f})")

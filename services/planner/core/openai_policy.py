@@ -1,0 +1,220 @@
+"""MLLM policy over any OpenAI-compatible chat-completions endpoint (OpenAI, vLLM, SGLang, Ollama ...).
+
+One step: build the prompt, call the endpoint (timeouts, retries with exponential backoff on transient
+errors), parse the answer; an invalid answer gets exactly one corrective re-ask, then the safe fallback
+(the heuristic policy by default, or stop). Tokens and cost are counted per mission.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import time
+from pathlib import Path
+from typing import Literal
+
+import openai
+from pydantic import Field, field_validator
+
+from shared.registry import BackendConfig
+from shared.schemas import Decision
+
+from .context import StepContext
+from .errors import AnswerError, PolicyBackendError
+from .policy import POLICIES, Policy, Usage
+from .prompt import PromptBuilder, corrective_message, parse_answer
+
+log = logging.getLogger(__name__)
+
+# USD per 1M tokens (input, output); used when the config gives no price. Unknown models cost 0.
+PRICES_PER_1M_USD: dict[str, tuple[float, float]] = {
+    "gpt-5.1": (1.25, 10.0),
+    "gpt-5": (1.25, 10.0),
+    "gpt-5-mini": (0.25, 2.0),
+    "gpt-4o": (2.5, 10.0),
+    "gpt-4o-mini": (0.15, 0.6),
+    "gpt-4.1": (2.0, 8.0),
+}
+
+
+class OpenAIConfig(BackendConfig):
+    """An OpenAI-compatible endpoint. The key comes from ``api_key`` or the ``api_key_env`` variable."""
+
+    model: str = "gpt-5.1"
+    base_url: str | None = None  # None: api.openai.com (or OPENAI_BASE_URL)
+    api_key: str | None = Field(default=None, repr=False)
+    api_key_env: str = "OPENAI_API_KEY"
+    temperature: float | None = None  # None: not sent (reasoning models accept only the default)
+    reasoning_effort: Literal["none", "minimal", "low", "medium", "high"] | None = None
+    max_completion_tokens: int | None = None
+    timeout_s: float = Field(60.0, gt=0)
+    retries: int = Field(2, ge=0, le=10)
+    backoff_initial_s: float = Field(1.0, ge=0)
+    backoff_max_s: float = Field(20.0, ge=0)
+    image_format: Literal["png", "jpeg"] = "jpeg"
+    jpeg_quality: int = Field(90, ge=10, le=100)
+    image_detail: Literal["auto", "low", "high"] = "auto"
+    price_input_per_1m_usd: float | None = None
+    price_output_per_1m_usd: float | None = None
+    fallback: Literal["heuristic", "stop"] = "heuristic"
+    on_error: Literal["fallback", "raise"] = "fallback"  # after retries are exhausted
+    save_prompts_dir: str | None = None  # save every step's prompt, answer and re-ask here
+
+    @field_validator("base_url")
+    @classmethod
+    def _url(cls, v):
+        if v is not None and not v.startswith(("http://", "https://")):
+            raise ValueError(f"base_url must be http(s), got {v!r}")
+        return v
+
+
+_TRANSIENT = (openai.APITimeoutError, openai.APIConnectionError, openai.RateLimitError, openai.InternalServerError)
+
+
+@POLICIES.register("openai", OpenAIConfig)
+class OpenAIPolicy(Policy):
+    name = "openai"
+
+    def __init__(self, config: OpenAIConfig, builder: PromptBuilder | None = None):
+        super().__init__()
+        self.config = config
+        self.builder = builder or PromptBuilder()
+        key = config.api_key or os.environ.get(config.api_key_env)
+        if not key:
+            if config.base_url is None:
+                raise PolicyBackendError(f"no API key: set {config.api_key_env} or api_key in the policy config")
+            key = "not-needed"  # local servers (vLLM, Ollama) usually take any key
+        # Retries are ours (typed, logged, with jittered backoff), so the SDK's are off.
+        self._client = openai.OpenAI(api_key=key, base_url=config.base_url, timeout=config.timeout_s, max_retries=0)
+        self._fallback: Policy | None = None
+        self._rng = random.Random(0)
+
+    def reset(self, mission_id: str) -> None:
+        super().reset(mission_id)
+        if self._fallback is not None:
+            self._fallback.reset(mission_id)
+
+    def close(self) -> None:
+        self._client.close()
+
+    # --- one request ---------------------------------------------------------------------------------
+
+    def _price(self) -> tuple[float, float]:
+        base = PRICES_PER_1M_USD.get(self.config.model)
+        if base is None:
+            base = next((p for m, p in PRICES_PER_1M_USD.items() if self.config.model.startswith(m + "-")), (0.0, 0.0))
+        pin = self.config.price_input_per_1m_usd
+        pout = self.config.price_output_per_1m_usd
+        return (base[0] if pin is None else pin, base[1] if pout is None else pout)
+
+    def _complete(self, messages: list[dict], usage: Usage) -> str:
+        cfg = self.config
+        kwargs: dict = {"model": cfg.model, "messages": messages}
+        if cfg.temperature is not None:
+            kwargs["temperature"] = cfg.temperature
+        if cfg.reasoning_effort is not None:
+            kwargs["reasoning_effort"] = cfg.reasoning_effort
+        if cfg.max_completion_tokens is not None:
+            kwargs["max_completion_tokens"] = cfg.max_completion_tokens
+        delay = cfg.backoff_initial_s
+        for attempt in range(cfg.retries + 1):
+            try:
+                resp = self._client.chat.completions.create(**kwargs)
+            except _TRANSIENT as exc:
+                if attempt >= cfg.retries:
+                    raise PolicyBackendError(
+                        f"{cfg.model}: {type(exc).__name__} after {attempt + 1} attempts: {exc}"
+                    ) from exc
+                sleep = min(delay, cfg.backoff_max_s) * (0.5 + self._rng.random())
+                log.warning(
+                    "%s: %s, retrying in %.2f s (%d/%d)", cfg.model, type(exc).__name__, sleep, attempt + 1, cfg.retries
+                )
+                time.sleep(sleep)
+                delay *= 2.0
+                continue
+            except openai.APIError as exc:  # 4xx and the like: retrying will not help
+                raise PolicyBackendError(f"{cfg.model}: {type(exc).__name__}: {exc}") from exc
+            usage.calls += 1
+            if resp.usage is not None:
+                pin, pout = self._price()
+                n_in, n_out = resp.usage.prompt_tokens or 0, resp.usage.completion_tokens or 0
+                usage.prompt_tokens += n_in
+                usage.completion_tokens += n_out
+                usage.cost_usd += (n_in * pin + n_out * pout) / 1e6
+            if not resp.choices:
+                return ""
+            return resp.choices[0].message.content or ""
+        raise AssertionError("unreachable")
+
+    # --- one step ------------------------------------------------------------------------------------
+
+    def decide(self, ctx: StepContext) -> Decision:
+        prompt = self.builder.build(ctx)
+        valid = prompt.candidate_indices
+        cfg = self.config
+        messages = prompt.to_openai_messages(cfg.image_format, cfg.jpeg_quality, cfg.image_detail)
+        step_usage = Usage()
+        answers: list[str] = []
+        error: Exception | None = None
+        try:
+            for attempt in range(2):  # the answer, then one corrective re-ask
+                text = self._complete(messages, step_usage)
+                answers.append(text)
+                try:
+                    index, reasoning = parse_answer(text, valid)
+                except AnswerError as exc:
+                    error = exc
+                    log.warning("step %d: invalid answer (%s)%s", ctx.step, exc, "; re-asking" if attempt == 0 else "")
+                    if attempt == 0:
+                        step_usage.reasks += 1
+                        messages = messages + [
+                            {"role": "assistant", "content": text},
+                            {"role": "user", "content": corrective_message(exc, valid)},
+                        ]
+                    continue
+                decision = self._decision(ctx, index, reasoning, **self._usage_fields(step_usage))
+                self._save(prompt, ctx, answers, decision)
+                return decision
+        except PolicyBackendError as exc:
+            if self.config.on_error == "raise":
+                self.usage.add(step_usage)
+                raise
+            error = exc
+            log.error("step %d: %s; falling back to %s", ctx.step, exc, self.config.fallback)
+        decision = self._fallback_decision(ctx, error, step_usage)
+        self._save(prompt, ctx, answers, decision)
+        return decision
+
+    def _usage_fields(self, step_usage: Usage) -> dict:
+        self.usage.add(step_usage)
+        return {
+            "prompt_tokens": step_usage.prompt_tokens,
+            "completion_tokens": step_usage.completion_tokens,
+            "cost_usd": step_usage.cost_usd,
+            "backend": f"openai:{self.config.model}",
+        }
+
+    def _fallback_decision(self, ctx: StepContext, error: Exception | None, step_usage: Usage) -> Decision:
+        step_usage.fallbacks += 1
+        fields = self._usage_fields(step_usage)
+        reason = f"fallback ({self.config.fallback}) after: {error}"
+        stop = ctx.stop_candidate
+        if self.config.fallback == "heuristic":
+            if self._fallback is None:
+                self._fallback = POLICIES.create("heuristic")
+                self._fallback.reset(self.mission_id)
+            d = self._fallback.decide(ctx)
+            return d.model_copy(update={**fields, "fallback": True, "reasoning": f"{reason}; {d.reasoning}"})
+        index = stop.index if stop is not None else ctx.candidates[0].index
+        return self._decision(ctx, index, reason, fallback=True, **fields)
+
+    def _save(self, prompt, ctx: StepContext, answers: list[str], decision: Decision) -> None:
+        if not self.config.save_prompts_dir:
+            return
+        mission = ctx.mission_id or self.mission_id or "mission"
+        folder = prompt.save(Path(self.config.save_prompts_dir) / mission / f"step_{ctx.step:03d}")
+        (folder / "answer.json").write_text(
+            json.dumps({"answers": answers, "decision": decision.model_dump(mode="json")}, indent=2)
+        )

@@ -1,0 +1,123 @@
+"""The oracle policy (evaluation only): follows the reference path with ground-truth geodesics.
+
+It proves the rest of the system sound: if waypoints, motion, the mission loop and the metrics are right,
+the oracle succeeds on nearly every episode. It needs ``ctx.oracle`` (goal, reference path, geodesic).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from shared.registry import BackendConfig
+from shared.schemas import CandidateKind, Decision
+
+from .context import StepContext
+from .errors import ContextError
+from .policy import POLICIES, Policy
+
+
+class OracleConfig(BackendConfig):
+    """Thresholds of the oracle policy."""
+
+    stop_radius_m: float = 1.5  # stop when this close (geodesic) and no move gets closer by min_gain_m
+    min_gain_m: float = 0.3
+    reference_weight: float = 0.5  # cost per metre of lateral deviation from the reference path
+    lookahead_m: float = 3.0  # aim at the reference point this far ahead of the agent's progress
+    allow_euclidean: bool = False  # use straight-line distances when the context has no geodesic
+
+
+def point_to_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of each point to a polyline and the arc length of its nearest point, vectorised.
+
+    Returns (distance (N,), arc length (N,)).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    line = np.asarray(polyline, dtype=np.float64)
+    if len(line) == 1:
+        return np.linalg.norm(pts - line[0], axis=1), np.zeros(len(pts))
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    seg_len = np.linalg.norm(ab, axis=1)
+    denom = np.maximum(seg_len**2, 1e-12)
+    t = np.clip(np.einsum("psd,sd->ps", pts[:, None, :] - a[None], ab) / denom, 0.0, 1.0)
+    proj = a[None] + t[..., None] * ab[None]
+    d = np.linalg.norm(pts[:, None, :] - proj, axis=2)
+    j = np.argmin(d, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    rows = np.arange(len(pts))
+    return d[rows, j], cum[j] + t[rows, j] * seg_len[j]
+
+
+def point_at_arc_length(polyline: np.ndarray, s_m: float) -> np.ndarray:
+    """The point of a polyline at arc length ``s_m`` (clamped to its ends)."""
+    line = np.asarray(polyline, dtype=np.float64)
+    seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    s = float(np.clip(s_m, 0.0, cum[-1]))
+    j = int(np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1))
+    t = 0.0 if seg[j] <= 0 else (s - cum[j]) / seg[j]
+    return line[j] + t * (line[j + 1] - line[j])
+
+
+@POLICIES.register("oracle", OracleConfig)
+class OraclePolicy(Policy):
+    name = "oracle"
+
+    def __init__(self, config: OracleConfig):
+        super().__init__()
+        self.config = config
+        self._progress_m = 0.0
+
+    def reset(self, mission_id: str) -> None:
+        super().reset(mission_id)
+        self._progress_m = 0.0
+
+    def _geo(self, ctx: StepContext):
+        info = ctx.oracle
+        if info is None:
+            raise ContextError("the oracle policy needs ctx.oracle (goal, reference path, geodesic)")
+        if info.geodesic is not None:
+            def geo(a, b):
+                d = info.geodesic(a, b)
+                return math.inf if d is None else float(d)
+            return geo
+        if not self.config.allow_euclidean:
+            raise ContextError("ctx.oracle has no geodesic callable and allow_euclidean is off")
+        return lambda a, b: float(np.linalg.norm(np.asarray(a) - np.asarray(b)))
+
+    def decide(self, ctx: StepContext) -> Decision:
+        geo = self._geo(ctx)
+        goal = np.asarray(ctx.oracle.goal_m, dtype=np.float64)
+        here = ctx.pose.xyz
+        d_here = geo(here, goal)
+        movable = [v for v in ctx.candidates if v.kind != CandidateKind.STOP]
+        stop = ctx.stop_candidate
+        if not movable:
+            if stop is None:
+                raise ContextError("no candidate at all")
+            return self._decision(ctx, stop.index, f"no move possible; {d_here:.2f} m from the goal")
+
+        targets = np.stack([ctx.target_m(v) for v in movable])
+        d_goal = np.array([geo(t, goal) for t in targets])
+        cost = d_goal.copy()
+        ref = ctx.oracle.reference_path_m
+        if ref is not None and len(ref) > 1:
+            ref = np.asarray(ref, dtype=np.float64)
+            _, s_here = point_to_polyline(here[None], ref)
+            # Progress never goes back: a path that loops near itself must not pull the agent backwards.
+            self._progress_m = max(self._progress_m, float(s_here[0]))
+            aim = point_at_arc_length(ref, self._progress_m + self.config.lookahead_m)
+            lateral, _ = point_to_polyline(targets, ref)
+            cost = np.array([geo(t, aim) for t in targets]) + self.config.reference_weight * lateral
+        best = int(np.argmin(cost))
+        gain = d_here - d_goal[best]
+        if stop is not None and d_here <= self.config.stop_radius_m and gain < self.config.min_gain_m:
+            return self._decision(ctx, stop.index, f"at the goal ({d_here:.2f} m)")
+        if stop is not None and d_here < 3.0 and d_goal[best] >= d_here:
+            return self._decision(ctx, stop.index, f"within the success radius ({d_here:.2f} m); no move gets closer")
+        v = movable[best]
+        return self._decision(
+            ctx, v.index, f"{d_goal[best]:.2f} m from the goal after this move (now {d_here:.2f} m)"
+        )
