@@ -99,12 +99,21 @@ MAPPER_GRAPH = Key(f"{_R}/mapper/graph", "mapper", Usage.PUBLICATION, reply="Nav
 MAPPER_TOURS = Key(f"{_R}/mapper/tours/{{region}}", "mapper", Usage.PUBLICATION, reply="Tour",
                    doc="planned recording tour per region")
 
+MAPPER_EXPLORE = Key(f"{_R}/mapper/explorations/submit", "mapper", Usage.QUERYABLE, "ExplorationRequest",
+                     "MissionAccepted", "start pre-exploration + tour recording + reconstruction")
+EXPLORATION_EVENTS = Key(f"{_R}/explorations/{{exploration}}/events", "mapper", Usage.PUBLICATION,
+                         reply="MissionEvent", doc="exploration progress events (mission_id = exploration id)")
+
 # --- maps (reconstructor owns the map store) --------------------------------------------------------
 MAP_LIST = Key(f"{ROOT}/maps/list", "reconstructor", Usage.QUERYABLE, "Ping", "MapListReply", "list maps")
 MAP_INFO = Key(f"{ROOT}/maps/{{map}}/info", "reconstructor", Usage.QUERYABLE, "MapRequest", "MapInfo",
                "metadata of one map")
 MAP_CHUNK = Key(f"{ROOT}/maps/{{map}}/chunk", "reconstructor", Usage.QUERYABLE, "MapChunkRequest", "MapChunk",
                 "the map's points, in chunks")
+MAP_BUILD = Key(f"{ROOT}/maps/{{map}}/build", "reconstructor", Usage.QUERYABLE, "BuildMapRequest", "MapInfo",
+                "reconstruct recorded tours into a stored map")
+MAP_IMPORT = Key(f"{ROOT}/maps/{{map}}/import", "reconstructor", Usage.QUERYABLE, "MapImportRequest", "MapInfo",
+                 "store an uploaded PLY/PCD cloud as a map")
 MAP_UPDATED = Key(f"{ROOT}/maps/{{map}}/updated", "reconstructor", Usage.PUBLICATION, reply="MapInfo",
                   doc="a new version of a map was stored")
 

@@ -240,12 +240,13 @@ class Tour(Message):
 
 
 class TourRecording(Message):
-    """Announces a finished recorded tour; frames travel separately on the frames key."""
+    """A finished recorded tour; its frames were published on ``IO_FRAMES`` under ``recording``."""
 
     exploration_id: str
+    recording: str
     region: int
     start_pose: Pose
-    frame_count: int
+    frame_count: int = Field(ge=0)
 
 
 # --- maps ------------------------------------------------------------------------------------------
@@ -365,6 +366,7 @@ class MissionOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     policy: str = "heuristic"
+    policy_config: dict[str, Any] = Field(default_factory=dict, description="the policy backend's config")
     max_steps: int = Field(40, ge=1, le=500)
     anticipation: bool = True
     anticipation_hfov_deg: float = Field(90.0, ge=30.0, le=150.0)
@@ -401,7 +403,12 @@ class MissionEventKind(StrEnum):
 
 
 class MissionEvent(Message):
-    """One thing that happened to a mission or exploration; ``seq`` orders them per mission."""
+    """One thing that happened to a mission or an exploration (``mission_id`` is then the
+    exploration id); ``seq`` orders the events of one job, gap-free from 0.
+
+    ``data`` is JSON-friendly; pictures travel JPEG-encoded in ``images`` (name -> bytes) so the
+    gateway can store them once and serve them by URL instead of inlining them in every event.
+    """
 
     mission_id: str
     seq: int = Field(ge=0)
@@ -410,6 +417,35 @@ class MissionEvent(Message):
     step: int = 0
     timestamp_s: float = Field(default_factory=time.time)
     data: dict[str, Any] = Field(default_factory=dict)
+    images: dict[str, bytes] = Field(default_factory=dict)
+
+
+class ExplorationRequest(Message):
+    """Pre-explore the robot's current scene, record tours and reconstruct a map named ``map_id``."""
+
+    exploration_id: str
+    map_id: str
+    max_steps: int = Field(400, ge=1, le=10_000)
+    reconstruction: str = Field("rgbd", description="regional reconstruction backend (rgbd, mono, ...)")
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class BuildMapRequest(Message):
+    """Mapper -> reconstructor: the recorded tours of an exploration are complete; build the map."""
+
+    exploration_id: str
+    map_id: str
+    recordings: list[TourRecording]
+    reconstruction: str = "rgbd"
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class MapImportRequest(Message):
+    """Store a user's own cloud (PLY or PCD bytes) as a map."""
+
+    map_id: str
+    filename: str = Field(pattern=r"^[^/\\]{1,200}\.(ply|pcd)$")
+    data: bytes = Field(min_length=1)
 
 
 # --- service plumbing ------------------------------------------------------------------------------
