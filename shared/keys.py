@@ -87,6 +87,10 @@ IO_LOOK = Key(f"{_R}/io/look_around", "robot_io", Usage.QUERYABLE, "Ping", "Pose
 IO_RESET = Key(f"{_R}/io/reset", "robot_io", Usage.QUERYABLE, "ResetRequest", "PoseReply", "teleport / reset")
 IO_GEODESIC = Key(f"{_R}/io/geodesic", "robot_io", Usage.QUERYABLE, "GeodesicRequest", "GeodesicReply",
                   "geodesic distance and shortest path (simulator oracle for metrics)")
+IO_RECORD = Key(f"{_R}/io/record", "robot_io", Usage.QUERYABLE, "RecordRequest", "RecordReply",
+                "start/stop recording a tour (frames published on IO_FRAMES)")
+IO_SCENE = Key(f"{_R}/io/scene", "robot_io", Usage.QUERYABLE, "Ping", "SceneSummary",
+               "what the robot knows of its scene (rooms, labels, bounds)")
 IO_POSE = Key(f"{_R}/io/pose", "robot_io", Usage.PUBLICATION, reply="Pose", doc="pose after every motion")
 IO_FRAMES = Key(f"{_R}/io/frames/{{recording}}", "robot_io", Usage.PUBLICATION, reply="Frame",
                 doc="recorded tour frames at a fixed rate")

@@ -175,6 +175,44 @@ class PoseReply(Message):
     pose: Pose
 
 
+class RecordRequest(Message):
+    """Start or stop recording a tour: while on, every motion publishes Frames on IO_FRAMES."""
+
+    recording: str
+    start: bool
+    rate_hz: float = Field(5.0, gt=0.0, le=60.0)
+    # Frames are downscaled to this width before publishing (same field of view); None: full size.
+    # Tours produce thousands of frames: 128 px keeps them to ~0.2 MB each.
+    max_width_px: int | None = Field(128, ge=16, le=4096)
+
+
+class RecordReply(Message):
+    recording: str
+    recording_on: bool
+    frame_count: int
+
+
+class RoomInfo(Message):
+    name: str
+    room_type: str
+    floor: int = 0
+    bounds_min_m: tuple[float, float, float]
+    bounds_max_m: tuple[float, float, float]
+
+
+class SceneSummary(Message):
+    """What robot-io tells others about its scene (the simulator knows it; a real robot may not)."""
+
+    scene: str
+    bounds_min_m: tuple[float, float, float]
+    bounds_max_m: tuple[float, float, float]
+    floors: int = 1
+    reachable_area_m2: float = 0.0
+    label_names: dict[int, str] = Field(default_factory=dict)
+    rooms: list[RoomInfo] = Field(default_factory=list)
+    start_pose: Pose | None = None
+
+
 class GeodesicRequest(Message):
     start_m: tuple[float, float, float]
     goal_m: tuple[float, float, float]
@@ -437,6 +475,8 @@ class BuildMapRequest(Message):
     map_id: str
     recordings: list[TourRecording]
     reconstruction: str = "rgbd"
+    label_names: dict[int, str] = Field(default_factory=dict, description="semantic ids of the frames")
+    source: str = ""
     options: dict[str, Any] = Field(default_factory=dict)
 
 

@@ -1,18 +1,126 @@
-"""renderer service: the bus adapter around its core (decode request -> call core -> encode reply)."""
+"""renderer service: anticipated views and spatial maps from stored maps.
+
+Maps are fetched from the map store (the reconstructor) by id in chunks and indexed once per
+(map, version); ``MAP_UPDATED`` tells us when "latest" moved. Several renderer instances can run
+side by side: each serves the same keys and keeps its own cache.
+"""
 
 from __future__ import annotations
 
+import logging
+import threading
+import time
+from collections import OrderedDict
+from typing import Any
+
+from pydantic import Field
+
+from services.renderer.core import RENDERERS, IndexedCloud, PointCloud, SpatialMapper
+from shared import keys
+from shared.bus.typed import NotFound, RemoteError
+from shared.clients import MapClient
 from shared.runner import Node, Service, ServiceSettings
+from shared.schemas import (
+    ErrorCode, MapInfo, RenderRequest, RenderResult, SpatialMapRequest, SpatialMapResult,
+)
+
+log = logging.getLogger(__name__)
 
 
-class RendererServiceSettings(ServiceSettings):
-    pass
+class RendererSettings(ServiceSettings):
+    backend: str = Field("numpy", description="splatting backend: numpy or torch (CUDA when present)")
+    backend_config: dict[str, Any] = Field(default_factory=dict)
+    cache_maps: int = Field(4, ge=1, le=64, description="indexed maps kept in memory")
+
+
+class MapCache:
+    """(map_id, version) -> IndexedCloud, least recently used out; one fetch per key at a time."""
+
+    def __init__(self, maps: MapClient, capacity: int):
+        self.maps, self.capacity = maps, capacity
+        self._lock = threading.Lock()
+        self._items: OrderedDict[tuple[str, int], IndexedCloud] = OrderedDict()
+        self._latest: dict[str, int] = {}
+        self._fetching: dict[tuple[str, int], threading.Lock] = {}
+
+    def forget_latest(self, map_id: str, version: int | None = None) -> None:
+        with self._lock:
+            if version is None:
+                self._latest.pop(map_id, None)
+            else:
+                self._latest[map_id] = version
+
+    def get(self, map_id: str, version: int | None) -> tuple[IndexedCloud, int]:
+        if version is None:
+            version = self._latest.get(map_id)
+            if version is None:
+                version = self._info(map_id, None).version
+                with self._lock:
+                    self._latest[map_id] = version
+        key = (map_id, version)
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key], version
+            fetch_lock = self._fetching.setdefault(key, threading.Lock())
+        with fetch_lock:  # concurrent requests for a new map wait for one fetch
+            with self._lock:
+                if key in self._items:
+                    return self._items[key], version
+            info = self._info(map_id, version)
+            t0 = time.perf_counter()
+            cloud = PointCloud.from_chunks(self.maps.chunks(map_id, version), info.label_names)
+            index = IndexedCloud(cloud)
+            log.info("indexed map %s v%d: %d points in %.2f s", map_id, version, len(cloud.xyz),
+                     time.perf_counter() - t0)
+            with self._lock:
+                self._items[key] = index
+                while len(self._items) > self.capacity:
+                    self._items.popitem(last=False)
+                self._fetching.pop(key, None)
+        return index, version
+
+    def _info(self, map_id: str, version: int | None) -> MapInfo:
+        try:
+            return self.maps.info(map_id, version)
+        except RemoteError as exc:
+            if exc.code == ErrorCode.NOT_FOUND:
+                raise NotFound(f"no map {map_id!r}" + (f" version {version}" if version else "")) from None
+            raise
 
 
 class RendererService(Service):
     name = "renderer"
-    Settings = RendererServiceSettings
+    Settings = RendererSettings
+
+    def __init__(self, settings: RendererSettings):
+        super().__init__(settings)
+        self.renderer = RENDERERS.create(settings.backend, settings.backend_config or None)
+        self.mapper = SpatialMapper()
+        self.cache: MapCache | None = None
+
+    def backends(self) -> dict[str, str]:
+        return {"splat": self.settings.backend}
 
     def start(self, node: Node) -> None:
-        # info and metrics queryables and the liveliness token come from the runner.
-        pass
+        self.cache = MapCache(MapClient(node.bus), self.settings.cache_maps)
+        node.own(node.bus.subscribe(keys.MAP_UPDATED.pattern(), MapInfo,
+                                    lambda _k, info: self.cache.forget_latest(info.map_id, info.version)))
+        node.serve(keys.RENDER_VIEWS.format(), RenderRequest, self.views)
+        node.serve(keys.RENDER_MAP.format(), SpatialMapRequest, self.spatial_map)
+
+    def views(self, req: RenderRequest) -> RenderResult:
+        t0 = time.perf_counter()
+        index, version = self.cache.get(req.map_id, req.version)
+        out = self.renderer.render(index, req.views, req.camera, req.camera_height_m, req.with_labels)
+        return RenderResult(map_id=req.map_id, version=version, rgb=out.rgb, depth_m=out.depth_m,
+                            hole_mask=out.hole_mask, labels=out.labels if req.with_labels else None,
+                            render_s=time.perf_counter() - t0)
+
+    def spatial_map(self, req: SpatialMapRequest) -> SpatialMapResult:
+        t0 = time.perf_counter()
+        index, version = self.cache.get(req.map_id, req.version)
+        img = self.mapper.draw(index, req.pose, req.trajectory_m, req.candidates, req.agent_up, req.size_px,
+                               req.radius_m)
+        return SpatialMapResult(map_id=req.map_id, version=version, image=img.image,
+                                metres_per_px=img.metres_per_px, render_s=time.perf_counter() - t0)

@@ -1,18 +1,171 @@
-"""robot_io service: the bus adapter around its core (decode request -> call core -> encode reply)."""
+"""robot-io service: the only process that touches a robot or simulator.
+
+A thin adapter: each queryable decodes its request, calls the :class:`Robot` port (one call at a
+time - a robot has one body), and encodes the reply. While a recording is on, the frames the robot
+emits are published on ``IO_FRAMES/{recording}`` for the reconstructor.
+"""
 
 from __future__ import annotations
 
+import logging
+import threading
+from typing import Any
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from services.robot_io.core import ROBOTS, Robot
+from shared import keys
 from shared.runner import Node, Service, ServiceSettings
+from shared.schemas import (
+    Frame, GeodesicReply, GeodesicRequest, MoveRequest, MoveResult, ObserveRequest, Panorama, Ping,
+    PoseReply, RecordReply, RecordRequest, ResetRequest, RoomInfo, SceneSummary, TurnRequest,
+)
+
+log = logging.getLogger(__name__)
 
 
-class RobotIoServiceSettings(ServiceSettings):
-    pass
+class RobotIoSettings(ServiceSettings):
+    backend: str = Field("sim", description="robot backend (registered in services.robot_io.core.ROBOTS)")
+    backend_config: dict[str, Any] = Field(default_factory=dict, description="the backend's typed config")
+
+
+def scene_summary(info: Any) -> SceneSummary:
+    """The backend's scene description, as the bus message (backends may return a model or a dict)."""
+    d = info.model_dump() if hasattr(info, "model_dump") else dict(info)
+    rooms = []
+    for r in d.get("rooms", []):
+        z = float(r.get("floor_z_m", 0.0))
+        lo, hi = r.get("min_xy_m", (0, 0)), r.get("max_xy_m", (0, 0))
+        rooms.append(RoomInfo(name=r["name"], room_type=r.get("type") or r.get("room_type", ""),
+                              floor=int(r.get("floor", 0)), bounds_min_m=(lo[0], lo[1], z),
+                              bounds_max_m=(hi[0], hi[1], z + 2.5)))
+    return SceneSummary(
+        scene=str(d.get("name", "")), bounds_min_m=tuple(d["bounds_min_m"]), bounds_max_m=tuple(d["bounds_max_m"]),
+        floors=int(d.get("floors", 1)), reachable_area_m2=float(d.get("reachable_area_m2", 0.0)),
+        label_names={int(k): str(v) for k, v in d.get("label_names", {}).items()}, rooms=rooms,
+        start_pose=d.get("start_pose"),
+    )
+
+
+def downscale_frame(frame: Frame, max_width_px: int | None) -> Frame:
+    """Shrink a frame by an integer factor, keeping the field of view (pinhole stays exact).
+
+    Colour is area-averaged; depth and labels take the top-left sample of each block (averaging
+    depth across an edge would invent surfaces that do not exist).
+    """
+    w = frame.camera.width_px
+    if max_width_px is None or w <= max_width_px:
+        return frame
+    f = -(-w // max_width_px)
+    h2, w2 = frame.camera.height_px // f, w // f
+    rgb = cv2.resize(np.ascontiguousarray(frame.rgb[: h2 * f, : w2 * f]), (w2, h2), interpolation=cv2.INTER_AREA)
+    # The pixel centre of block (i, j) is its centre, not its corner: sample the middle pixel.
+    o = f // 2
+    depth = None if frame.depth_m is None else np.ascontiguousarray(frame.depth_m[o::f, o::f][:h2, :w2])
+    sem = None if frame.semantic is None else np.ascontiguousarray(frame.semantic[o::f, o::f][:h2, :w2])
+    cam = frame.camera.model_copy(update={"width_px": w2, "height_px": h2})
+    return frame.model_copy(update={"rgb": rgb, "depth_m": depth, "semantic": sem, "camera": cam})
 
 
 class RobotIoService(Service):
     name = "robot_io"
-    Settings = RobotIoServiceSettings
+    Settings = RobotIoSettings
+
+    def __init__(self, settings: RobotIoSettings, robot: Robot | None = None):
+        super().__init__(settings)
+        self.robot = robot or ROBOTS.create(settings.backend, settings.backend_config)
+        # One body: motions, observations and recordings are serialised.
+        self._lock = threading.RLock()
+        self._recordings: dict[str, tuple[Any, list[int]]] = {}
+        self._node: Node | None = None
+
+    def backends(self) -> dict[str, str]:
+        return {"robot": self.settings.backend}
 
     def start(self, node: Node) -> None:
-        # info and metrics queryables and the liveliness token come from the runner.
-        pass
+        self._node = node
+        r = node.robot
+        # One worker per endpoint: the lock serialises anyway, and order of motions matters.
+        node.serve(keys.IO_OBSERVE.format(robot=r), ObserveRequest, self.observe, workers=1)
+        node.serve(keys.IO_MOVE.format(robot=r), MoveRequest, self.move_to, workers=1)
+        node.serve(keys.IO_TURN.format(robot=r), TurnRequest, self.turn, workers=1)
+        node.serve(keys.IO_LOOK.format(robot=r), Ping, self.look_around, workers=1)
+        node.serve(keys.IO_RESET.format(robot=r), ResetRequest, self.reset, workers=1)
+        node.serve(keys.IO_RECORD.format(robot=r), RecordRequest, self.record, workers=1)
+        node.serve(keys.IO_GEODESIC.format(robot=r), GeodesicRequest, self.geodesic, workers=2)
+        node.serve(keys.IO_SCENE.format(robot=r), Ping, self.scene, workers=1)
+
+    def stop(self) -> None:
+        with self._lock:
+            for ctx, _ in self._recordings.values():
+                ctx.__exit__(None, None, None)
+            self._recordings.clear()
+            self.robot.close()
+
+    # --- handlers ------------------------------------------------------------------------------------
+    def _publish_pose(self) -> None:
+        if self._node:
+            self._node.bus.publish(keys.IO_POSE.format(robot=self._node.robot), self.robot.pose)
+
+    def observe(self, req: ObserveRequest) -> Panorama:
+        with self._lock:
+            return self.robot.observe(req.camera, with_semantic=req.with_semantic)
+
+    def move_to(self, req: MoveRequest) -> MoveResult:
+        with self._lock:
+            result = self.robot.move_to(req.dx_m, req.dy_m)
+        self._publish_pose()
+        return result
+
+    def turn(self, req: TurnRequest) -> PoseReply:
+        with self._lock:
+            pose = self.robot.turn(req.angle_rad)
+        self._publish_pose()
+        return PoseReply(pose=pose)
+
+    def look_around(self, _: Ping) -> PoseReply:
+        # The sweep's frames reach subscribers through an open recording; the reply is the pose.
+        with self._lock:
+            self.robot.look_around()
+            return PoseReply(pose=self.robot.pose)
+
+    def reset(self, req: ResetRequest) -> PoseReply:
+        with self._lock:
+            pose = self.robot.reset(req.pose)
+        self._publish_pose()
+        return PoseReply(pose=pose)
+
+    def record(self, req: RecordRequest) -> RecordReply:
+        keys.validate_segment(req.recording, "recording")
+        with self._lock:
+            if req.start:
+                if req.recording in self._recordings:
+                    raise ValueError(f"recording {req.recording!r} is already on")
+                key = keys.IO_FRAMES.format(robot=self._node.robot, recording=req.recording)
+                counter = [0]
+
+                def sink(frame: Frame, key=key, counter=counter, width=req.max_width_px) -> None:
+                    counter[0] += 1
+                    self._node.bus.publish(key, downscale_frame(frame, width))
+
+                ctx = self.robot.recording(sink, req.rate_hz)
+                ctx.__enter__()
+                self._recordings[req.recording] = (ctx, counter)
+                return RecordReply(recording=req.recording, recording_on=True, frame_count=0)
+            if req.recording not in self._recordings:
+                raise ValueError(f"no recording {req.recording!r} is on")
+            ctx, counter = self._recordings.pop(req.recording)
+            ctx.__exit__(None, None, None)
+            return RecordReply(recording=req.recording, recording_on=False, frame_count=counter[0])
+
+    def geodesic(self, req: GeodesicRequest) -> GeodesicReply:
+        d = float(self.robot.geodesic_distance(req.start_m, req.goal_m))
+        if not np.isfinite(d):
+            return GeodesicReply(distance_m=None)
+        path = self.robot.shortest_path(req.start_m, req.goal_m)
+        return GeodesicReply(distance_m=d, path_m=None if path is None else np.asarray(path, np.float64))
+
+    def scene(self, _: Ping) -> SceneSummary:
+        return scene_summary(self.robot.scene_info())

@@ -1,0 +1,205 @@
+"""The mission loop of Section 4.3, one step at a time, against ports (no bus here).
+
+    observe -> candidates (waypoint predictor) + backtrack + stop -> anticipated views (renderer)
+    -> spatial map -> compressed history -> decide (policy) -> act (robot) -> event
+
+The ports are small protocols; the planner service passes bus clients, tests pass in-process
+objects (the simulator, the renderer core, the predictor core).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from evaluation.metrics import episode_metrics
+from shared.schemas import (
+    CameraIntrinsics, Candidate, CandidateKind, Decision, MissionEventKind, MissionOptions, MissionState,
+    MoveResult, Panorama, Pose, RenderResult, SpatialMapResult, ViewPose,
+)
+
+from .context import Ablation, OracleInfo, StepContext, build_candidate_views, with_stop_and_backtrack
+from .history import HistoryRecorder, action_for
+from .policy import Policy
+
+log = logging.getLogger(__name__)
+
+
+class RobotPort(Protocol):
+    def observe(self) -> Panorama: ...
+    def move_to(self, dx_m: float, dy_m: float) -> MoveResult: ...
+    def reset(self, pose: Pose | None = None) -> Pose: ...
+    def geodesic_distance(self, start_m, goal_m) -> float: ...
+
+
+class PredictorPort(Protocol):
+    def predict(self, pano: Panorama) -> list[Candidate]: ...
+
+
+class RendererPort(Protocol):
+    def views(self, map_id: str, views: list[ViewPose], camera: CameraIntrinsics | None = None,
+              with_labels: bool = True) -> RenderResult: ...
+
+    def spatial_map(self, map_id: str, pose: Pose, trajectory_m: np.ndarray | None = None,
+                    candidates: list[Candidate] | None = None, **kw) -> SpatialMapResult: ...
+
+
+# emit(kind, state, step, data, images)
+Emit = Callable[..., Any]
+
+
+class MissionCancelled(Exception):
+    pass
+
+
+@dataclass
+class MissionOutcome:
+    state: MissionState
+    stop_called: bool
+    steps: int
+    trajectory_m: np.ndarray
+    decisions: list[Decision] = field(default_factory=list)
+    metrics: dict[str, Any] | None = None
+    reason: str = ""
+    step_latency_s: list[float] = field(default_factory=list)
+
+
+def _thumb(rgb: np.ndarray, size_px: int) -> np.ndarray:
+    return cv2.resize(np.ascontiguousarray(rgb), (size_px, size_px), interpolation=cv2.INTER_AREA)
+
+
+def panorama_strip(pano: Panorama, height_px: int = 96) -> np.ndarray:
+    """The 12 views side by side, left-most = leftmost direction (view i looks right of view i-1)."""
+    views = [_thumb(v, height_px) for v in pano.rgb[::-1]]
+    return np.concatenate(views, axis=1)
+
+
+@dataclass
+class MissionLoop:
+    """Runs one mission; ``emit`` publishes events, ``cancel`` is polled between steps."""
+
+    robot: RobotPort
+    predictor: PredictorPort
+    renderer: RendererPort | None
+    policy: Policy
+    emit: Emit
+    cancel: threading.Event = field(default_factory=threading.Event)
+    label_names: dict[int, str] = field(default_factory=dict)
+    thumb_px: int = 128
+    jpeg: Callable[[np.ndarray], bytes] | None = None
+
+    def run(self, mission_id: str, instruction: str, map_id: str, opts: MissionOptions) -> MissionOutcome:
+        ablation = Ablation(anticipation=opts.anticipation, anticipation_hfov_deg=opts.anticipation_hfov_deg,
+                            spatial_map=opts.spatial_map)
+        if opts.start_pose is not None:
+            self.robot.reset(opts.start_pose)
+        self.policy.reset(mission_id)
+        history = HistoryRecorder()
+        visited: list[tuple[float, float, float]] = []  # nodes before the current one (backtrack target)
+        decisions: list[Decision] = []
+        latencies: list[float] = []
+        goal = np.asarray(opts.goal_m, float) if opts.goal_m is not None else None
+        reference = np.asarray(opts.reference_path_m, float) if opts.reference_path_m else None
+        oracle = (OracleInfo(goal_m=goal, reference_path_m=reference, geodesic=self.robot.geodesic_distance)
+                  if goal is not None else None)
+        pano = self.robot.observe()
+        trajectory = [pano.pose.xyz]
+        stop_called = False
+        step = 0
+        self.emit(MissionEventKind.STARTED, MissionState.RUNNING, step=0,
+                  data={"pose": _pose(pano.pose), "instruction": instruction, "map_id": map_id,
+                        "options": opts.model_dump(mode="json")})
+        for step in range(opts.max_steps):
+            if self.cancel.is_set():
+                raise MissionCancelled()
+            t0 = time.perf_counter()
+            timings: dict[str, float] = {}
+            pose = pano.pose
+            waypoints = self.predictor.predict(pano)
+            t1 = time.perf_counter()
+            timings["candidates_s"] = t1 - t0
+            cands = with_stop_and_backtrack(waypoints, pose, visited[-1] if visited else None)
+            movable = [c for c in cands if c.kind != CandidateKind.STOP]
+            render = None
+            if ablation.anticipation and self.renderer is not None and movable:
+                views = [ViewPose(position_m=(pose.position_m[0] + c.dx_m, pose.position_m[1] + c.dy_m,
+                                              pose.position_m[2]),
+                                  heading_rad=math.atan2(c.dy_m, c.dx_m)) for c in movable]
+                cam = CameraIntrinsics(hfov_deg=ablation.anticipation_hfov_deg)
+                render = self.renderer.views(map_id, views, cam)
+            t2 = time.perf_counter()
+            timings["anticipation_s"] = t2 - t1
+            smap = None
+            if ablation.spatial_map and self.renderer is not None:
+                smap = self.renderer.spatial_map(map_id, pose, np.asarray(trajectory), cands)
+            t3 = time.perf_counter()
+            timings["spatial_map_s"] = t3 - t2
+            ctx = StepContext(
+                instruction=instruction, step=step, pose=pose, candidates=build_candidate_views(cands, pano, render),
+                trajectory_m=np.asarray(trajectory), history=history.compressed(),
+                spatial_map_rgb=None if smap is None else smap.image, label_names=self.label_names,
+                ablation=ablation, mission_id=mission_id, max_steps=opts.max_steps, panorama=pano, oracle=oracle,
+            )
+            t4 = time.perf_counter()
+            timings["prompt_ready_s"] = t4 - t0
+            latencies.append(t4 - t0)
+            decision = self.policy.decide(ctx)
+            t5 = time.perf_counter()
+            timings["decide_s"] = t5 - t4
+            decisions.append(decision)
+            chosen = ctx.candidate(decision.candidate_index)
+            self._emit_step(step, pano, ctx, decision, timings, smap)
+            if chosen.kind == CandidateKind.STOP:
+                stop_called = True
+                break
+            history.record(step, pano.rgb[0], action_for(chosen.candidate))
+            c = chosen.candidate
+            result = self.robot.move_to(c.dx_m, c.dy_m)
+            if chosen.kind == CandidateKind.BACKTRACK:
+                visited.pop()
+            else:
+                visited.append(pose.position_m)
+            trajectory.append(result.pose.xyz)
+            pano = self.robot.observe()
+        state = MissionState.SUCCEEDED if stop_called else MissionState.FAILED
+        reason = "" if stop_called else f"step budget of {opts.max_steps} exhausted without a stop"
+        metrics = None
+        traj = np.asarray(trajectory)
+        if goal is not None:
+            m = episode_metrics(traj, goal, geodesic=self.robot.geodesic_distance, stop_called=stop_called,
+                                reference_path_m=reference)
+            metrics = m.to_dict()
+        return MissionOutcome(state, stop_called, len(decisions), traj, decisions, metrics, reason, latencies)
+
+    def _emit_step(self, step: int, pano: Panorama, ctx: StepContext, decision: Decision,
+                   timings: dict[str, float], smap: SpatialMapResult | None) -> None:
+        images: dict[str, bytes] = {}
+        if self.jpeg is not None:
+            images["panorama"] = self.jpeg(panorama_strip(pano))
+            if smap is not None:
+                images["map"] = self.jpeg(smap.image)
+            for v in ctx.candidates:
+                if v.observed_rgb is not None:
+                    images[f"cand_{v.index}_observed"] = self.jpeg(_thumb(v.observed_rgb, self.thumb_px))
+                if v.anticipated_rgb is not None:
+                    images[f"cand_{v.index}_anticipated"] = self.jpeg(_thumb(v.anticipated_rgb, self.thumb_px))
+        self.emit(MissionEventKind.STEP, MissionState.RUNNING, step=step, images=images, data={
+            "pose": _pose(pano.pose),
+            "candidates": [v.candidate.model_dump(mode="json") for v in ctx.candidates],
+            "decision": decision.model_dump(mode="json"),
+            "reasoning": decision.reasoning,
+            "timings_s": {k: round(v, 4) for k, v in timings.items()},
+            "usage": self.policy.usage.to_dict(),
+        })
+
+
+def _pose(p: Pose) -> dict[str, Any]:
+    return {"position_m": list(p.position_m), "heading_rad": p.heading_rad}

@@ -1,0 +1,158 @@
+"""Typed clients for each service's queryables: what one service calls on another.
+
+A client is a thin veneer over :class:`~shared.bus.typed.TypedBus` and :mod:`shared.keys`; it
+gives the cores plain method calls (``robot.observe()``, ``renderer.views(...)``) so that they can
+be driven by a remote service exactly as by an in-process object in unit tests.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+from collections.abc import Iterator
+
+import numpy as np
+
+from shared import keys
+from shared.bus.typed import TypedBus
+from shared.schemas import (
+    BuildMapRequest, CameraIntrinsics, Candidate, CandidateSet, Frame, GeodesicReply, GeodesicRequest,
+    MapChunk, MapChunkRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
+    Panorama, Ping, Pose, PoseReply, RecordReply, RecordRequest, RenderRequest, RenderResult, ResetRequest,
+    SceneSummary, SpatialMapRequest, SpatialMapResult, TurnRequest, ViewPose,
+)
+
+_recording_ids = itertools.count()
+
+
+class RobotClient:
+    """The robot port over the bus (what robot-io serves). Satisfies the mapper's robot protocols."""
+
+    def __init__(self, bus: TypedBus, robot: str, *, timeout_s: float = 30.0,
+                 observe_camera: CameraIntrinsics | None = None):
+        self.bus, self.robot, self.timeout_s = bus, robot, timeout_s
+        self.observe_camera = observe_camera
+        self._pose: Pose | None = None
+        self.last_recording: RecordReply | None = None
+
+    def _k(self, key: keys.Key) -> str:
+        return key.format(robot=self.robot)
+
+    @property
+    def pose(self) -> Pose:
+        if self._pose is None:
+            self._pose = self.observe().pose
+        return self._pose
+
+    def observe(self, camera: CameraIntrinsics | None = None, with_semantic: bool = True) -> Panorama:
+        pano = self.bus.request(self._k(keys.IO_OBSERVE),
+                                ObserveRequest(camera=camera or self.observe_camera, with_semantic=with_semantic),
+                                Panorama, timeout_s=self.timeout_s)
+        self._pose = pano.pose
+        return pano
+
+    def move_to(self, dx_m: float, dy_m: float) -> MoveResult:
+        res = self.bus.request(self._k(keys.IO_MOVE), MoveRequest(dx_m=dx_m, dy_m=dy_m), MoveResult,
+                               timeout_s=self.timeout_s)
+        self._pose = res.pose
+        return res
+
+    def turn(self, angle_rad: float) -> Pose:
+        self._pose = self.bus.request(self._k(keys.IO_TURN), TurnRequest(angle_rad=angle_rad), PoseReply,
+                                      timeout_s=self.timeout_s).pose
+        return self._pose
+
+    def look_around(self) -> list[Frame]:
+        # The sweep's frames travel on the recording's frames key, not in this reply.
+        self._pose = self.bus.request(self._k(keys.IO_LOOK), Ping(), PoseReply, timeout_s=self.timeout_s).pose
+        return []
+
+    def reset(self, pose: Pose | None = None) -> Pose:
+        self._pose = self.bus.request(self._k(keys.IO_RESET), ResetRequest(pose=pose), PoseReply,
+                                      timeout_s=self.timeout_s).pose
+        return self._pose
+
+    def scene(self) -> SceneSummary:
+        return self.bus.request(self._k(keys.IO_SCENE), Ping(), SceneSummary, timeout_s=self.timeout_s)
+
+    def geodesic(self, start_m, goal_m) -> GeodesicReply:
+        return self.bus.request(self._k(keys.IO_GEODESIC),
+                                GeodesicRequest(start_m=tuple(map(float, start_m)), goal_m=tuple(map(float, goal_m))),
+                                GeodesicReply, timeout_s=self.timeout_s)
+
+    def geodesic_distance(self, start_m, goal_m) -> float:
+        d = self.geodesic(start_m, goal_m).distance_m
+        return float("inf") if d is None else d
+
+    @contextlib.contextmanager
+    def recording(self, sink=None, rate_hz: float = 5.0, *, recording: str | None = None,
+                  max_width_px: int | None = 128) -> Iterator[str]:
+        """Record a tour on robot-io; frames go to whoever subscribes to ``IO_FRAMES`` (the
+        reconstructor), not to ``sink``. ``last_recording`` holds the frame count afterwards."""
+        name = recording or f"rec-{os.getpid()}-{next(_recording_ids)}"
+        self.bus.request(self._k(keys.IO_RECORD),
+                         RecordRequest(recording=name, start=True, rate_hz=rate_hz, max_width_px=max_width_px),
+                         RecordReply, timeout_s=self.timeout_s)
+        try:
+            yield name
+        finally:
+            self.last_recording = self.bus.request(self._k(keys.IO_RECORD),
+                                                   RecordRequest(recording=name, start=False), RecordReply,
+                                                   timeout_s=self.timeout_s)
+
+
+class MapperClient:
+    def __init__(self, bus: TypedBus, robot: str, *, timeout_s: float = 10.0):
+        self.bus, self.robot, self.timeout_s = bus, robot, timeout_s
+
+    def predict(self, pano: Panorama) -> list[Candidate]:
+        return self.bus.request(keys.MAPPER_PREDICT.format(robot=self.robot), pano, CandidateSet,
+                                timeout_s=self.timeout_s).candidates
+
+
+class MapClient:
+    """The map store (served by the reconstructor)."""
+
+    def __init__(self, bus: TypedBus, *, timeout_s: float = 30.0):
+        self.bus, self.timeout_s = bus, timeout_s
+
+    def list(self) -> list[MapInfo]:
+        return self.bus.request(keys.MAP_LIST.format(), Ping(), MapListReply, timeout_s=self.timeout_s).maps
+
+    def info(self, map_id: str, version: int | None = None) -> MapInfo:
+        return self.bus.request(keys.MAP_INFO.format(map=map_id), MapRequest(map_id=map_id, version=version),
+                                MapInfo, timeout_s=self.timeout_s)
+
+    def chunks(self, map_id: str, version: int | None = None, max_points: int = 1_000_000) -> Iterator[MapChunk]:
+        """Every chunk of one version of a map, in order."""
+        index, count = 0, 1
+        while index < count:
+            chunk = self.bus.request(keys.MAP_CHUNK.format(map=map_id),
+                                     MapChunkRequest(map_id=map_id, version=version, index=index,
+                                                     max_points=max_points),
+                                     MapChunk, timeout_s=self.timeout_s)
+            version, count = chunk.version, chunk.count  # pin the version the first chunk came from
+            index += 1
+            yield chunk
+
+    def build(self, req: BuildMapRequest, timeout_s: float = 1800.0) -> MapInfo:
+        return self.bus.request(keys.MAP_BUILD.format(map=req.map_id), req, MapInfo, timeout_s=timeout_s)
+
+
+class RendererClient:
+    def __init__(self, bus: TypedBus, *, timeout_s: float = 30.0):
+        self.bus, self.timeout_s = bus, timeout_s
+
+    def views(self, map_id: str, views: list[ViewPose], camera: CameraIntrinsics | None = None,
+              with_labels: bool = True) -> RenderResult:
+        req = RenderRequest(map_id=map_id, views=views, camera=camera or CameraIntrinsics(), with_labels=with_labels)
+        return self.bus.request(keys.RENDER_VIEWS.format(), req, RenderResult, timeout_s=self.timeout_s)
+
+    def spatial_map(self, map_id: str, pose: Pose, trajectory_m: np.ndarray | None = None,
+                    candidates: list[Candidate] | None = None, **kw) -> SpatialMapResult:
+        req = SpatialMapRequest(map_id=map_id, pose=pose, trajectory_m=trajectory_m, candidates=candidates or [], **kw)
+        return self.bus.request(keys.RENDER_MAP.format(), req, SpatialMapResult, timeout_s=self.timeout_s)
+
+
+__all__ = ["MapClient", "MapperClient", "RendererClient", "RobotClient"]

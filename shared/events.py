@@ -1,0 +1,41 @@
+"""Publishing the events of one job (a mission or an exploration) with a gap-free sequence."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import cv2
+import numpy as np
+
+from shared.bus.typed import TypedBus
+from shared.schemas import MissionEvent, MissionEventKind, MissionState
+
+
+def jpeg(image_rgb: np.ndarray, quality: int = 85) -> bytes:
+    """RGB uint8 image -> JPEG bytes (what events carry for the dashboard)."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2BGR),
+                           [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+class EventStream:
+    """``seq`` starts at 0 and increases by one per event, so a listener can detect a gap."""
+
+    def __init__(self, bus: TypedBus, key: str, job_id: str):
+        self.bus, self.key, self.job_id = bus, key, job_id
+        self._seq = 0
+        self._lock = threading.Lock()
+        self.state = MissionState.QUEUED
+
+    def emit(self, kind: MissionEventKind, state: MissionState, *, step: int = 0,
+             data: dict[str, Any] | None = None, images: dict[str, bytes] | None = None) -> MissionEvent:
+        with self._lock:
+            ev = MissionEvent(mission_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
+                              data=data or {}, images=images or {})
+            self._seq += 1
+            self.state = state
+            self.bus.publish(self.key, ev)
+        return ev

@@ -1,0 +1,86 @@
+"""robot-io and mapper services on the fake bus, driven through the typed clients."""
+
+import time
+
+import numpy as np
+import pytest
+
+from services.mapper.service import MapperService, MapperSettings
+from services.robot_io.service import RobotIoService, RobotIoSettings, downscale_frame
+from shared import keys
+from shared.bus import FakeBus, FakeNetwork
+from shared.bus.typed import RemoteError, TypedBus
+from shared.clients import MapperClient, RobotClient
+from shared.runner import RunningService
+from shared.schemas import CameraIntrinsics, ErrorCode, Frame, MoveStatus, Pose, RecordReply, RecordRequest
+
+CAM = {"width_px": 64, "height_px": 64, "hfov_deg": 90.0}
+
+
+@pytest.fixture(scope="module")
+def system():
+    net = FakeNetwork()
+    robot_settings = RobotIoSettings(instance="io-1", backend_config={"scene": "generated:0", "camera": CAM})
+    with RunningService(RobotIoService(robot_settings), FakeBus(net)), \
+            RunningService(MapperService(MapperSettings(instance="m-1")), FakeBus(net)):
+        yield net
+
+
+def test_observe_move_and_pose_over_the_bus(system):
+    bus = TypedBus(FakeBus(system))
+    robot = RobotClient(bus, "robot0")
+    start = robot.reset()
+    pano = robot.observe()
+    assert pano.rgb.shape == (12, 64, 64, 3) and pano.semantic is not None
+    cands = MapperClient(bus, "robot0").predict(pano)
+    assert 1 <= len(cands) <= 5
+    c = cands[0]
+    res = robot.move_to(c.dx_m, c.dy_m)
+    assert res.status in (MoveStatus.REACHED, MoveStatus.BLOCKED)
+    assert np.hypot(*(res.pose.xyz - start.xyz)[:2]) == pytest.approx(res.travelled_m, abs=0.3)
+    scene = robot.scene()
+    assert scene.rooms and scene.label_names and scene.reachable_area_m2 > 20
+
+
+def test_recording_publishes_frames_and_counts_them(system):
+    bus = TypedBus(FakeBus(system))
+    robot = RobotClient(bus, "robot0")
+    robot.reset()
+    got: list[Frame] = []
+    bus.subscribe(keys.IO_FRAMES.pattern(robot="robot0"), Frame, lambda k, f: got.append(f))
+    with robot.recording(rate_hz=5.0, recording="t1", max_width_px=32):
+        robot.turn(1.0)
+        robot.look_around()
+    n = robot.last_recording.frame_count
+    assert n > 5
+    end = time.monotonic() + 5
+    while len(got) < n and time.monotonic() < end:
+        time.sleep(0.01)
+    assert len(got) == n and got[0].rgb.shape == (32, 32, 3) and got[0].camera.width_px == 32
+
+
+def test_bad_requests_get_typed_errors_and_service_keeps_serving(system):
+    bus = TypedBus(FakeBus(system))
+    robot = RobotClient(bus, "robot0")
+    with pytest.raises(RemoteError) as e:
+        with robot.recording(recording="bad/name"):
+            pass
+    assert e.value.code == ErrorCode.BAD_REQUEST
+    with pytest.raises(RemoteError) as e:
+        bus.request(keys.IO_RECORD.format(robot="robot0"), RecordRequest(recording="nope", start=False), RecordReply)
+    assert e.value.code == ErrorCode.BAD_REQUEST
+    for bad in [b"", b"\x00" * 50, b"ANT1" + b"\xff" * 100]:
+        (reply,) = bus.raw.query(keys.IO_MOVE.format(robot="robot0"), bad)
+        assert not reply.ok
+    assert robot.observe().rgb.shape[0] == 12
+
+
+def test_downscale_keeps_field_of_view_geometry():
+    rng = np.random.default_rng(0)
+    cam = CameraIntrinsics(width_px=128, height_px=128)
+    f = Frame(index=0, timestamp_s=0, pose=Pose(position_m=(0, 0, 0)), imu_heading_rad=0.0, camera=cam,
+              rgb=rng.integers(0, 255, (128, 128, 3), dtype=np.uint8), depth_m=np.full((128, 128), 2.0, np.float32))
+    small = downscale_frame(f, 32)
+    assert small.rgb.shape == (32, 32, 3) and small.depth_m.shape == (32, 32)
+    assert small.camera.hfov_deg == cam.hfov_deg
+    assert small.camera.pinhole().fx == pytest.approx(cam.pinhole().fx / 4)
