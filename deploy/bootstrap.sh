@@ -4,9 +4,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# open3d needs these shared libraries; install the missing ones (we may be root on a fresh Debian).
+# open3d needs these shared libraries; the dashboard's browser test drives Debian's chromium (never a
+# downloaded browser). Install the missing ones (we may be root on a fresh Debian).
 missing=()
-for pkg in libusb-1.0-0 libgl1 libgomp1; do
+for pkg in libusb-1.0-0 libgl1 libgomp1 chromium; do
   dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
 done
 if [ ${#missing[@]} -gt 0 ]; then

@@ -173,21 +173,25 @@ class Launcher:
             self.bus.close()
             self.bus = None
         codes: dict[str, int | None] = {}
-        # Services first, router last, so their goodbyes (liveliness drops) still reach peers.
-        for p in reversed(self.procs):
-            p.stopping = True
-            if p.popen and p.popen.poll() is None:
-                p.popen.send_signal(signal.SIGTERM)
-        end = time.monotonic() + timeout_s
-        for p in reversed(self.procs):
-            if not p.popen:
-                continue
-            try:
-                codes[p.name] = p.popen.wait(max(0.1, end - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning("%s did not stop in time: killing it", p.name)
-                p.popen.kill()
-                codes[p.name] = p.popen.wait()
+        # Services first, the router last: their goodbyes (undeclarations, liveliness drops) still
+        # reach their peers, and no session waits on a router that is already gone.
+        services = [p for p in self.procs if p.name != "router"]
+        routers = [p for p in self.procs if p.name == "router"]
+        for group in (services, routers):
+            for p in group:
+                p.stopping = True
+                if p.popen and p.popen.poll() is None:
+                    p.popen.send_signal(signal.SIGTERM)
+            end = time.monotonic() + timeout_s
+            for p in group:
+                if not p.popen:
+                    continue
+                try:
+                    codes[p.name] = p.popen.wait(max(0.1, end - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    log.warning("%s did not stop in time: killing it", p.name)
+                    p.popen.kill()
+                    codes[p.name] = p.popen.wait()
         return codes
 
     def __enter__(self):

@@ -147,12 +147,14 @@ class RendererClient:
     def views(self, map_id: str, views: list[ViewPose], camera: CameraIntrinsics | None = None,
               with_labels: bool = True) -> RenderResult:
         req = RenderRequest(map_id=map_id, views=views, camera=camera or CameraIntrinsics(), with_labels=with_labels)
-        return self.bus.request(keys.RENDER_VIEWS.format(), req, RenderResult, timeout_s=self.timeout_s)
+        return self.bus.request(keys.RENDER_VIEWS.format(), req, RenderResult, timeout_s=self.timeout_s,
+                                balance="renderer")
 
     def spatial_map(self, map_id: str, pose: Pose, trajectory_m: np.ndarray | None = None,
                     candidates: list[Candidate] | None = None, **kw) -> SpatialMapResult:
         req = SpatialMapRequest(map_id=map_id, pose=pose, trajectory_m=trajectory_m, candidates=candidates or [], **kw)
-        return self.bus.request(keys.RENDER_MAP.format(), req, SpatialMapResult, timeout_s=self.timeout_s)
+        return self.bus.request(keys.RENDER_MAP.format(), req, SpatialMapResult, timeout_s=self.timeout_s,
+                                balance="renderer")
 
 
 __all__ = ["MapClient", "MapperClient", "RendererClient", "RobotClient"]

@@ -34,6 +34,15 @@ def validate_segment(value: str, what: str = "key part") -> str:
     return value
 
 
+def routed(key: str, instance: str) -> str:
+    """The instance-only route of a shared queryable (``<key>/@<instance>``).
+
+    ``@`` makes the last chunk *verbatim* in zenoh: no wildcard matches it, so ``ant/**`` never
+    reaches these routes by accident, while a client that wants one replica addresses it exactly.
+    """
+    return f"{key}/@{validate_segment(instance, 'instance')}"
+
+
 class Usage(StrEnum):
     QUERYABLE = "queryable"
     PUBLICATION = "publication"

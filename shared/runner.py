@@ -84,16 +84,20 @@ class Node:
         return entity
 
     def serve(self, key: str, model: type[Req], handler: Callable[[Req], Message], *,
-              workers: int | None = None, name: str | None = None) -> Closeable:
+              workers: int | None = None, name: str | None = None, replicated: bool = False) -> Closeable:
+        """Serve a queryable; ``replicated`` also serves this instance's own route so that clients
+        can share load across replicas (``TypedBus.request(..., balance=service)``)."""
         return self.own(self.bus.serve(
             key, model, handler, workers=workers or self.settings.workers,
             max_queue=self.settings.max_queue, name=name or key.rsplit("/", 1)[-1],
+            instance=self.instance if replicated else None,
         ))
 
     def close(self) -> None:
         for e in reversed(self._entities):
             e.close()
         self._entities.clear()
+        self.bus.close()
 
 
 class Service(ABC):
@@ -157,6 +161,7 @@ def run(service_cls: type[Service], argv: list[str] | None = None) -> int:
         with ZenohBus(settings.zenoh) as bus, RunningService(service_cls(settings), bus):
             stop.wait()
             log.info("stopping")
+        log.info("stopped")
     except Exception:
         log.exception("%s failed", service_cls.name)
         return 1

@@ -16,7 +16,9 @@ def main() -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: None)
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_config=None,
-                log_level=settings.log_level.lower())
+                log_level=settings.log_level.lower(),
+                # SSE streams never end by themselves; give them a grace period, then close them.
+                timeout_graceful_shutdown=settings.shutdown_grace_s or None)
     return 0
 
 

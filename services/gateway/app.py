@@ -1,18 +1,32 @@
-"""The gateway: HTTP in front of the bus. It never does navigation work itself."""
+"""The gateway: HTTP in front of the bus. It never does navigation work itself.
+
+It opens the bus (zenoh, or a fake one in tests), the SQLite store and the event ingest in its
+lifespan; routers per resource (missions, explorations, maps, status, health, dashboard) only call
+them through the dependencies of :mod:`services.gateway.deps`.
+"""
 
 from __future__ import annotations
 
+import asyncio
+import logging
 from collections.abc import Callable
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.staticfiles import StaticFiles
 
 import shared
-from services.gateway.routes import health, status
+from services.gateway import errors
+from services.gateway.events import EventHub, EventIngest
+from services.gateway.limits import BodyLimit
+from services.gateway.routes import dashboard, explorations, health, maps, missions, status
 from services.gateway.settings import GatewaySettings
+from services.gateway.store import GatewayStore
 from shared.bus.base import Bus
 from shared.runner import Node, RunningService, Service
+
+log = logging.getLogger(__name__)
 
 
 class GatewayService(Service):
@@ -20,6 +34,9 @@ class GatewayService(Service):
 
     name = "gateway"
     Settings = GatewaySettings
+
+    def backends(self) -> dict[str, str]:
+        return {"store": "sqlite-wal", "auth": "bearer" if self.settings.api_token else "open"}
 
     def start(self, node: Node) -> None:
         pass
@@ -37,20 +54,35 @@ def create_app(settings: GatewaySettings | None = None,
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        store = GatewayStore(settings.db_path)
+        hub = EventHub(asyncio.get_running_loop())
         bus = bus_factory(settings)
         running = RunningService(GatewayService(settings), bus)
         app.state.settings = settings
         app.state.bus = running.node.bus
+        app.state.store = store
+        app.state.hub = hub
+        # Subscribed before the first request: every event published from now on is stored.
+        app.state.ingest = EventIngest(running.node.bus, store, hub, settings.robot)
+        log.info("gateway on %s:%d, database %s", settings.host, settings.port, settings.db_path)
         try:
             yield
         finally:
+            app.state.ingest.close()
+            hub.close()
             running.close()
             bus.close()
+            store.close()
 
-    app = FastAPI(title="SpatialAnt gateway", version=shared.__version__, lifespan=lifespan)
+    app = FastAPI(title="SpatialAnt gateway", version=shared.__version__, lifespan=lifespan,
+                  description="Missions, explorations and maps of the SpatialAnt robot; live events over SSE.")
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, upload_max_bytes=settings.max_upload_bytes,
+                       upload_paths=("/maps",))
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
-                           allow_headers=["*"])
-    app.include_router(health.router)
-    app.include_router(status.router)
+                           allow_headers=["*"], expose_headers=["Location"])
+    errors.install(app)
+    for module in (health, status, missions, explorations, maps, dashboard):
+        app.include_router(module.router)
+    app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     return app

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from pydantic import Field
 
 from shared.runner import ServiceSettings
@@ -10,6 +12,18 @@ from shared.runner import ServiceSettings
 class GatewaySettings(ServiceSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
-    api_token: str | None = Field(None, description="bearer token required by mutating routes")
+    api_token: str | None = Field(None, description="bearer token required by mutating routes (None: open)")
     cors_origins: list[str] = Field(default_factory=list)
     status_timeout_s: float = Field(1.0, gt=0, le=30)
+
+    db_path: Path = Field(Path("runs/gateway/gateway.sqlite3"),
+                          description="SQLite file (WAL) holding missions, explorations, events, images")
+    request_timeout_s: float = Field(5.0, gt=0, le=120, description="bus requests made for one HTTP call")
+    max_body_bytes: int = Field(1 << 20, ge=1024, description="largest JSON request body")
+    max_upload_bytes: int = Field(512 << 20, ge=1024, description="largest uploaded cloud (POST /maps)")
+    max_instruction_chars: int = Field(4000, ge=1, le=4000)
+    validate_map: bool = Field(True, description="ask the reconstructor that a mission's map exists")
+    map_chunk_points: int = Field(500_000, ge=1000, le=10_000_000, description="points per MAP_CHUNK request")
+    sse_keepalive_s: float = Field(15.0, gt=0, le=300, description="comment line sent on idle SSE streams")
+    sse_batch: int = Field(200, ge=1, le=10_000, description="events read from the DB per SSE round")
+    shutdown_grace_s: float = Field(3.0, ge=0, le=60, description="open streams get this long at shutdown")

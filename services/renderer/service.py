@@ -103,11 +103,13 @@ class RendererService(Service):
         return {"splat": self.settings.backend}
 
     def start(self, node: Node) -> None:
+        # Compile the splatting kernels now, not on the first request of a mission.
+        log.info("renderer kernels ready in %.2f s", self.renderer.warm_up())
         self.cache = MapCache(MapClient(node.bus), self.settings.cache_maps)
         node.own(node.bus.subscribe(keys.MAP_UPDATED.pattern(), MapInfo,
                                     lambda _k, info: self.cache.forget_latest(info.map_id, info.version)))
-        node.serve(keys.RENDER_VIEWS.format(), RenderRequest, self.views)
-        node.serve(keys.RENDER_MAP.format(), SpatialMapRequest, self.spatial_map)
+        node.serve(keys.RENDER_VIEWS.format(), RenderRequest, self.views, replicated=True)
+        node.serve(keys.RENDER_MAP.format(), SpatialMapRequest, self.spatial_map, replicated=True)
 
     def views(self, req: RenderRequest) -> RenderResult:
         t0 = time.perf_counter()

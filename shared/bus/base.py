@@ -15,7 +15,7 @@ import logging
 import queue
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Protocol
@@ -78,10 +78,11 @@ class Bus(ABC):
 
     @abstractmethod
     def serve(
-        self, key: str, handler: QueryHandler, *, workers: int = 1, max_queue: int = 64
+        self, key: str | Sequence[str], handler: QueryHandler, *, workers: int = 1, max_queue: int = 64
     ) -> Closeable:
-        """Answer queries on ``key`` with ``handler``; it returns the reply payload or raises
-        :class:`QueryFailed` (any other exception becomes an error reply with its message)."""
+        """Answer queries on ``key`` (or on each of several keys, sharing one worker pool) with
+        ``handler``; it returns the reply payload or raises :class:`QueryFailed` (any other
+        exception becomes an error reply with its message)."""
 
     @abstractmethod
     def liveliness_token(self, key: str) -> Closeable: ...
@@ -159,6 +160,10 @@ class Dispatcher:
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(timeout_s)
+
+
+def as_keys(key: str | Sequence[str]) -> list[str]:
+    return [key] if isinstance(key, str) else list(key)
 
 
 def run_query_handler(handler: QueryHandler, key: str, payload: bytes | None) -> tuple[bool, Payload]:

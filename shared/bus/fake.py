@@ -11,7 +11,7 @@ from concurrent.futures import Future, wait
 
 from shared.bus.base import (
     Bus, Closeable, Dispatcher, LivelinessHandler, Overloaded, Payload, QueryHandler, QueryTarget,
-    Reply, SampleHandler, run_query_handler,
+    Reply, SampleHandler, as_keys, run_query_handler,
 )
 from shared.bus.keyexpr import intersects
 
@@ -86,15 +86,17 @@ class FakeBus(Bus):
         done, _ = wait(futures, timeout=timeout_s)
         return [f.result() for f in futures if f in done]
 
-    def serve(self, key: str, handler: QueryHandler, *, workers: int = 1, max_queue: int = 64) -> Closeable:
-        disp = Dispatcher(f"q:{key}", workers, max_queue)
-        entry = (key, disp, handler)
+    def serve(self, key, handler: QueryHandler, *, workers: int = 1, max_queue: int = 64) -> Closeable:
+        all_keys = as_keys(key)
+        disp = Dispatcher(f"q:{all_keys[0]}", workers, max_queue)
+        entries = [(k, disp, handler) for k in all_keys]
         with self.net.lock:
-            self.net.queryables.append(entry)
+            self.net.queryables.extend(entries)
 
         def close():
             with self.net.lock:
-                self.net.queryables.remove(entry)
+                for e in entries:
+                    self.net.queryables.remove(e)
             disp.close()
 
         return self._track(_Entity(close))

@@ -10,10 +10,12 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import TypeVar
 
+from shared import keys
 from shared.bus.base import Bus, Closeable, QueryFailed, QueryTarget, Reply
 from shared.codec import CodecError, decode, decode_any, encode
 from shared.schemas import ErrorCode, ErrorReply, Message
@@ -59,6 +61,48 @@ def error_for(exc: BaseException) -> tuple[ErrorCode, str]:
     return ErrorCode.INTERNAL, f"{type(exc).__name__}: {exc}"
 
 
+class Replicas:
+    """The live instances of one service, from liveliness, handed out round-robin.
+
+    zenoh sends a query to *one* matching queryable (the nearest), so replicas of a service would
+    not share the load by themselves; a client that wants them to addresses each instance's own
+    route (:func:`shared.keys.routed`) in turn, and moves to the next one when an instance is gone
+    or overloaded.
+    """
+
+    def __init__(self, bus: Bus, service: str):
+        self._lock = threading.Lock()
+        self._instances: list[str] = []
+        self._next = 0
+        prefix = keys.ALIVE.pattern(service=service)
+        self._watch = bus.watch_liveliness(prefix, self._on_token)
+        # The watch delivers current tokens asynchronously; seed the list so the first call balances.
+        for token in bus.alive(prefix, timeout_s=1.0):
+            self._on_token(token, True)
+
+    def _on_token(self, token: str, alive: bool) -> None:
+        instance = token.rsplit("/", 1)[-1]
+        with self._lock:
+            if alive and instance not in self._instances:
+                self._instances.append(instance)
+                self._instances.sort()
+            elif not alive and instance in self._instances:
+                self._instances.remove(instance)
+
+    def order(self) -> list[str]:
+        """All live instances, starting with the next one in turn."""
+        with self._lock:
+            n = len(self._instances)
+            if not n:
+                return []
+            start = self._next % n
+            self._next += 1
+            return self._instances[start:] + self._instances[:start]
+
+    def close(self) -> None:
+        self._watch.close()
+
+
 class TypedBus:
     def __init__(self, bus: Bus, service: str = "client", telemetry: Telemetry | None = None,
                  max_request_bytes: int = 256 * 1024 * 1024):
@@ -66,6 +110,8 @@ class TypedBus:
         self.service = service
         self.telemetry = telemetry
         self.max_request_bytes = max_request_bytes
+        self._replicas_lock = threading.Lock()
+        self._replica_sets: dict[str, Replicas] = {}
 
     # --- publish / subscribe ---------------------------------------------------------------------
     def publish(self, key: str, msg: Message) -> None:
@@ -95,7 +141,10 @@ class TypedBus:
 
     # --- queries ---------------------------------------------------------------------------------
     def serve(self, key: str, model: type[Req], handler: Callable[[Req], Message], *,
-              workers: int = 1, max_queue: int = 64, name: str | None = None) -> Closeable:
+              workers: int = 1, max_queue: int = 64, name: str | None = None,
+              instance: str | None = None) -> Closeable:
+        """Serve ``key``; with ``instance``, also its instance route (for balancing clients),
+        both fed to the same worker pool."""
         endpoint = name or key
 
         def on_query(k: str, payload: bytes | None) -> bytes:
@@ -116,7 +165,8 @@ class TypedBus:
                 self.telemetry.record(endpoint, time.perf_counter() - t0, ok=True)
             return out
 
-        return self.raw.serve(key, on_query, workers=workers, max_queue=max_queue)
+        routes = [key] if instance is None else [key, keys.routed(key, instance)]
+        return self.raw.serve(routes, on_query, workers=workers, max_queue=max_queue)
 
     def _decode_reply(self, key: str, reply: Reply, model: type[Rep]) -> Rep:
         data = reply.payload if reply.ok else reply.error
@@ -130,11 +180,40 @@ class TypedBus:
             raise RemoteError(msg.code, msg.message, msg.service, key)
         return msg
 
-    def request(self, key: str, msg: Message, model: type[Rep], *, timeout_s: float = 10.0) -> Rep:
-        replies = self.raw.query(key, encode(msg), timeout_s=timeout_s, target=QueryTarget.BEST)
+    def request(self, key: str, msg: Message, model: type[Rep], *, timeout_s: float = 10.0,
+                balance: str | None = None) -> Rep:
+        """Ask one queryable on ``key``. With ``balance=<service>``, spread requests over that
+        service's live replicas in turn; an instance that is gone, silent or overloaded is skipped
+        for the next one, so a dying replica costs a retry, not a failed request."""
+        payload = encode(msg)
+        if balance:
+            for instance in self._replicas(balance).order():
+                route = keys.routed(key, instance)
+                replies = self.raw.query(route, payload, timeout_s=timeout_s, target=QueryTarget.BEST)
+                if not replies:
+                    continue
+                try:
+                    return self._decode_reply(route, replies[0], model)
+                except RemoteError as exc:
+                    if exc.code != ErrorCode.UNAVAILABLE:
+                        raise
+        replies = self.raw.query(key, payload, timeout_s=timeout_s, target=QueryTarget.BEST)
         if not replies:
             raise NoReplyError(key, timeout_s)
         return self._decode_reply(key, replies[0], model)
+
+    def _replicas(self, service: str) -> Replicas:
+        with self._replicas_lock:
+            r = self._replica_sets.get(service)
+            if r is None:
+                r = self._replica_sets[service] = Replicas(self.raw, service)
+            return r
+
+    def close(self) -> None:
+        with self._replicas_lock:
+            for r in self._replica_sets.values():
+                r.close()
+            self._replica_sets.clear()
 
     def request_all(self, key: str, msg: Message, model: type[Rep], *,
                     timeout_s: float = 2.0) -> list[Rep | RemoteError]:

@@ -9,7 +9,7 @@ import zenoh
 
 from shared.bus.base import (
     Bus, Closeable, Dispatcher, LivelinessHandler, Overloaded, Payload, QueryHandler, QueryTarget,
-    Reply, SampleHandler, run_query_handler,
+    Reply, SampleHandler, as_keys, run_query_handler,
 )
 from shared.bus.config import ZenohSettings, zenoh_config
 
@@ -88,9 +88,12 @@ class ZenohBus(Bus):
                 replies.append(Reply(key, None, r.err.payload.to_bytes()))
         return replies
 
-    def serve(self, key: str, handler: QueryHandler, *, workers: int = 1, max_queue: int = 64) -> Closeable:
-        disp = Dispatcher(f"q:{key}", workers, max_queue)
+    def serve(self, key, handler: QueryHandler, *, workers: int = 1, max_queue: int = 64) -> Closeable:
+        all_keys = as_keys(key)
+        disp = Dispatcher(f"q:{all_keys[0]}", workers, max_queue)
+        return self._track(_Declared(*[self._declare_queryable(k, handler, disp) for k in all_keys], disp.close))
 
+    def _declare_queryable(self, key: str, handler: QueryHandler, disp: Dispatcher):
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else None
 
@@ -110,8 +113,7 @@ class ZenohBus(Bus):
                 query.reply_err(str(exc).encode())
                 query.drop()
 
-        qbl = self.session.declare_queryable(key, on_query, complete=True)
-        return self._track(_Declared(qbl.undeclare, disp.close))
+        return self.session.declare_queryable(key, on_query, complete=True).undeclare
 
     def liveliness_token(self, key: str) -> Closeable:
         tok = self.session.liveliness().declare_token(key)

@@ -23,7 +23,10 @@ before splatting (a splat carries its point's depth unchanged), so neither algor
 nine-fold z-buffer.
 
 Both algorithms are written once against a tiny array backend, implemented with numpy and with
-torch (CUDA when available, else CPU); the two give the same images within float tolerance.
+torch (CUDA when available, else CPU); the two give the same images within float tolerance. The
+numpy backend runs ``layered`` through compiled loops (:mod:`kernels`, numba) when numba is
+installed, bit-identical to its array code and ~5x faster, and renders the views of one call on
+``workers`` threads.
 """
 
 from __future__ import annotations
@@ -32,12 +35,14 @@ import logging
 import math
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 from pydantic import Field
 
+from services.renderer.core import kernels
 from services.renderer.core.cloud import Frustum, IndexedCloud
 from services.renderer.core.errors import BackendUnavailableError
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
@@ -64,6 +69,13 @@ class SplatConfig(BackendConfig):
     # Level of detail: keep about this many points per pixel a block can cover (None: every point).
     # The cost of a view then follows the pixels it fills, not the density of the cloud.
     lod_points_per_px: float | None = Field(6.0, gt=0.0)
+    # numpy backend: the per-point passes of ``layered`` run as compiled loops (numba) when it is
+    # installed ("auto"), always ("numba": an error without it) or never ("numpy": array code).
+    # Both give identical images; the compiled loops are ~5x faster.
+    kernel: Literal["auto", "numba", "numpy"] = "auto"
+    # numpy backend: views of one call rendered at once on this many threads (the compiled loops
+    # and numpy's array loops release the GIL). Images do not depend on it.
+    workers: int = Field(2, ge=1, le=64)
 
 
 class TorchSplatConfig(SplatConfig):
@@ -78,8 +90,9 @@ class RenderedViews:
     depth_m: np.ndarray  # float32 (B, H, W); z-depth, 0 in holes
     hole_mask: np.ndarray  # bool (B, H, W); True where no point reached the pixel
     labels: np.ndarray | None  # int32 (B, H, W); -1 in holes or when the cloud has no labels
-    view_s: list[float] = field(default_factory=list)  # wall time per view
+    view_s: list[float] = field(default_factory=list)  # wall time per view (its own thread's)
     visible_points: list[int] = field(default_factory=list)  # points left after culling, per view
+    batch_s: float = 0.0  # wall time of the whole call (views may overlap on several threads)
 
     @property
     def hole_fraction(self) -> float:
@@ -99,6 +112,7 @@ class _CloudArrays:
     rgb: object  # float32 (N, 3)
     labels: object | None
     rgb_packed: object | None = None  # numpy only: r + g 2^17 + b 2^34 as float64
+    rgb_u32: object | None = None  # numpy only: r | g << 8 | b << 16 as int32, for the kernels
 
 
 _PACK = float(2**17)
@@ -107,6 +121,7 @@ _PACK_MAX_COUNT = 514  # 514 * 255 < 2^17: packed per-pixel sums stay exact up t
 
 class _NumpyOps:
     name = "numpy"
+    concurrent_views = True
 
     def asarray(self, a: np.ndarray):
         return a
@@ -194,12 +209,15 @@ class _NumpyOps:
                 c.rgb.astype(np.float32),
                 c.labels,
                 rgb[:, 0] + rgb[:, 1] * _PACK + rgb[:, 2] * _PACK**2,
+                kernels.pack_rgb(c.rgb),
             )
         return index.cache[key]
 
 
 class _TorchOps:
     name = "torch"
+    # torch parallelises inside each op (and a GPU serialises kernels): one view at a time.
+    concurrent_views = False
 
     def __init__(self, device: str):
         import torch
@@ -303,6 +321,14 @@ class SplatRenderer:
             raise ValueError(f"far_m ({config.far_m}) must exceed near_m ({config.near_m})")
         self.config = config
         self._ops = ops
+        # The compiled loops implement the numpy backend's ``layered`` passes; ``exact`` (the
+        # reference) and torch always run as array code.
+        self._use_kernel = (
+            ops.name == "numpy" and config.algorithm == "layered" and config.kernel != "numpy"
+            and kernels.AVAILABLE
+        )
+        if config.kernel == "numba" and not kernels.AVAILABLE:
+            raise BackendUnavailableError("kernel 'numba' requested but numba is not installed")
 
     @property
     def backend(self) -> str:
@@ -311,6 +337,16 @@ class SplatRenderer:
     @property
     def device(self) -> str:
         return str(getattr(self._ops, "device", "cpu"))
+
+    @property
+    def kernel(self) -> str:
+        """``"numba"`` when the per-point passes run compiled, else ``"array"``."""
+        return "numba" if self._use_kernel else "array"
+
+    def warm_up(self) -> float:
+        """Compile the kernels now (a one-off per process, ~1-3 s, or well under a second from
+        numba's disk cache) so that the first request does not pay for it; returns seconds spent."""
+        return kernels.warm_up() if self._use_kernel else 0.0
 
     def render(
         self,
@@ -338,7 +374,11 @@ class SplatRenderer:
         camera: CameraIntrinsics | PinholeCamera | None = None,
         with_labels: bool = True,
     ) -> RenderedViews:
-        """Render from explicit 4x4 world_from_camera matrices (OpenCV camera axes)."""
+        """Render from explicit 4x4 world_from_camera matrices (OpenCV camera axes).
+
+        With the numpy backend, up to ``config.workers`` views render at once on threads; every
+        view writes only its own slice of the output, so the images do not depend on it."""
+        t_batch = time.perf_counter()
         cam = _pinhole(camera)
         cfg = self.config
         frustum = Frustum.for_camera(cam, cfg.near_m, cfg.far_m)
@@ -351,53 +391,113 @@ class SplatRenderer:
             labels=np.full((b, h, w), -1, np.int32) if labelled else None,
         )
         arrays = self._ops.cloud_arrays(index)
-        for i, wfc in enumerate(world_from_cameras):
+
+        def one(i: int) -> tuple[int, float]:
             t0 = time.perf_counter()
-            mask = index.visible_blocks(np.asarray(wfc, float), frustum) if cfg.cull else None
+            wfc = np.asarray(world_from_cameras[i], float)
+            mask = index.visible_blocks(wfc, frustum) if cfg.cull else None
             counts = None
             if cfg.lod_points_per_px is not None:
-                counts = index.lod_counts(np.asarray(wfc, float), cam.fx, cfg.lod_points_per_px)
-            idx = index.point_indices(mask, counts)
-            out.visible_points.append(len(idx))
-            rgb, depth, hole, labels = self._render_one(arrays, idx, np.asarray(wfc, float), cam, labelled)
+                counts = index.lod_counts(wfc, cam.fx, cfg.lod_points_per_px)
+            (rgb, depth, hole, labels), n = self._render_one(arrays, index, mask, counts, wfc, cam, labelled)
             out.rgb[i], out.depth_m[i], out.hole_mask[i] = rgb, depth, hole
             if labelled:
                 out.labels[i] = labels
-            out.view_s.append(time.perf_counter() - t0)
+            return n, time.perf_counter() - t0
+
+        workers = min(cfg.workers, b) if self._ops.concurrent_views else 1
+        if workers > 1:
+            with ThreadPoolExecutor(workers, thread_name_prefix="splat") as pool:
+                done = list(pool.map(one, range(b)))
+        else:
+            done = [one(i) for i in range(b)]
+        out.visible_points = [n for n, _ in done]
+        out.view_s = [dt for _, dt in done]
+        out.batch_s = time.perf_counter() - t_batch
         return out
 
-    def _render_one(self, arrays, idx_np: np.ndarray, wfc: np.ndarray, cam: PinholeCamera, labelled: bool):
+    def _render_one(
+        self, arrays, index: IndexedCloud, mask, counts, wfc: np.ndarray, cam: PinholeCamera, labelled: bool
+    ):
+        """One view from the blocks in ``mask`` (None: all), ``counts[b]`` points of block ``b``
+        (None: all). Returns ((rgb, depth, hole, labels), number of points rendered)."""
         ops, cfg = self._ops, self.config
         h, w = cam.height_px, cam.width_px
         hp, wp = h + 2, w + 2  # padded grid: sources one pixel outside the image still splat in
         npad = hp * wp  # bin ``npad`` collects every point that misses the image, so nothing is compacted
-        if len(idx_np) == 0:
-            return _empty(h, w)
-        xs, ys, zs = arrays.x, arrays.y, arrays.z
-        idx = ops.asarray(idx_np)
         # Rows of K [R^T | -R^T t]: one affine map per image coordinate, evaluated elementwise (not
-        # as a matmul) so that numpy and torch round identically.
-        proj = cam.matrix() @ np.linalg.inv(wfc)[:3]
-        x, y, zw = xs[idx], ys[idx], zs[idx]
-        (a0, a1, a2, a3), (b0, b1, b2, b3), (c0, c1, c2, c3) = (
-            [float(np.float32(v)) for v in row] for row in proj
-        )
-        z = x * c0 + y * c1 + zw * c2 + c3
-        with np.errstate(divide="ignore", invalid="ignore"):  # z = 0: masked out just below
-            inv = 1.0 / z
-            u = (x * a0 + y * a1 + zw * a2 + a3) * inv
-            v = (x * b0 + y * b1 + zw * b2 + b3) * inv
-        iu = ops.floor_int(u + 0.5)
-        iv = ops.floor_int(v + 0.5)
-        valid = (z > cfg.near_m) & (z < cfg.far_m) & (iu >= -1) & (iu <= w) & (iv >= -1) & (iv <= h)
-        q = ops.where(valid, (iv + 1) * wp + (iu + 1), npad)
-        z = ops.where(valid, z, math.inf)
-        # Sub-pixel offsets of each point from its pixel centre, quantised to 1/255 px so that the
-        # backends' sums agree exactly (and numpy can pack them into one exact float64 sum).
-        qu = ops.rint(ops.clamp(u - iu + 0.5, 0.0, 1.0) * 255.0)
-        qv = ops.rint(ops.clamp(v - iv + 0.5, 0.0, 1.0) * 255.0)
+        # as a matmul) so that numpy, torch and the kernels round identically.
+        proj = (cam.matrix() @ np.linalg.inv(wfc)[:3]).astype(np.float32)
+        rel1 = np.float32(1.0 + cfg.depth_tolerance_rel)
+        best_pt = None
 
-        zbuf = ops.scatter_min(npad + 1, q, z)
+        overflow = False
+        if self._use_kernel:
+            starts = index.starts if mask is None else index.starts[mask]
+            runs = index.counts if counts is None else counts
+            runs = runs if mask is None else runs[mask]
+            n = int(runs.sum())
+            if n == 0:
+                return _empty(h, w), 0
+            zbuf, sums, best, overflow = kernels.front_pass(
+                arrays.x, arrays.y, arrays.z, arrays.rgb_u32, starts, runs, proj.ravel(),
+                np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, rel1, np.float32(cfg.depth_tolerance_m),
+                labelled,
+            )
+            if overflow:
+                log.debug("a pixel's front layer exceeds %d points: array code for this view",
+                          kernels.MAX_FRONT_POINTS)
+        if self._use_kernel and not overflow:
+            zpad = zbuf[:npad].reshape(hp, wp)
+            chans, gx, gy = self._surfels(sums[0], sums[1], sums[2:5], sums[5], sums[6], h, w)
+            lab_pad = np.empty((0, 0), np.int64)
+            if labelled:
+                best_pt = best[:npad].reshape(hp, wp)
+                lab_pad = np.where(best_pt >= 0, arrays.labels[np.maximum(best_pt, 0)], -1).astype(np.int64)
+            rgb_img = np.empty((h, w, 3), np.uint8)
+            depth = np.empty((h, w), np.float32)
+            hole = np.empty((h, w), bool)
+            labels = np.empty((h, w), np.int32) if labelled else None
+            kernels.compose(
+                chans, np.stack([gx[-1], gx[0], gx[1]]), np.stack([gy[-1], gy[0], gy[1]]), zpad, lab_pad,
+                rel1, np.float32(cfg.depth_tolerance_m), rgb_img, depth, hole,
+                labels if labelled else np.empty((0, 0), np.int32), labelled,
+            )
+            return (rgb_img, depth, hole, labels), n
+        else:
+            idx_np = index.point_indices(mask, counts)
+            n = len(idx_np)
+            if n == 0:
+                return _empty(h, w), 0
+            xs, ys, zs = arrays.x, arrays.y, arrays.z
+            idx = ops.asarray(idx_np)
+            x, y, zw = xs[idx], ys[idx], zs[idx]
+            (a0, a1, a2, a3), (b0, b1, b2, b3), (c0, c1, c2, c3) = ([float(v) for v in row] for row in proj)
+            z = x * c0 + y * c1 + zw * c2 + c3
+            with np.errstate(divide="ignore", invalid="ignore"):  # z = 0: masked out just below
+                inv = 1.0 / z
+                u = (x * a0 + y * a1 + zw * a2 + a3) * inv
+                v = (x * b0 + y * b1 + zw * b2 + b3) * inv
+            iu = ops.floor_int(u + 0.5)
+            iv = ops.floor_int(v + 0.5)
+            valid = (z > cfg.near_m) & (z < cfg.far_m) & (iu >= -1) & (iu <= w) & (iv >= -1) & (iv <= h)
+            q = ops.where(valid, (iv + 1) * wp + (iu + 1), npad)
+            z = ops.where(valid, z, math.inf)
+            # Sub-pixel offsets of each point from its pixel centre, quantised to 1/255 px so that
+            # the backends' sums agree exactly (and numpy can pack them into one exact float64 sum).
+            qu = ops.rint(ops.clamp(u - iu + 0.5, 0.0, 1.0) * 255.0)
+            qv = ops.rint(ops.clamp(v - iv + 0.5, 0.0, 1.0) * 255.0)
+            zbuf = ops.scatter_min(npad + 1, q, z)
+            if cfg.algorithm == "layered":
+                # The front layer of each pixel: its points within epsilon of the pixel's own nearest.
+                front = z <= zbuf[q] * float(rel1) + cfg.depth_tolerance_m
+                cnt, s_z, s_rgb, s_u, s_v = ops.accumulate_front(npad + 1, q, front, z, arrays, idx, qu, qv)
+            if labelled:
+                # Nearest point per source pixel (largest point id among exact ties, so every path
+                # agrees), then the nearest source among the nine that reach each pixel.
+                front = z == zbuf[q]
+                best_pt = ops.scatter_max_int(npad + 1, q[front], idx[front])[:npad].reshape(hp, wp)
+
         zpad = zbuf[:npad].reshape(hp, wp)
         zmin = None
         for oy, ox in _OFFSETS:
@@ -409,7 +509,7 @@ class SplatRenderer:
         if cfg.algorithm == "exact":
             acc = self._exact(arrays, idx, z, q, qu, qv, thr, inv2s2, h, w)
         else:
-            acc = self._layered(arrays, idx, z, q, qu, qv, zbuf, zpad, thr, inv2s2, h, w)
+            acc = self._layered(cnt, s_z, s_rgb, s_u, s_v, zpad, thr, h, w)
         acc_w = acc[0]
         hole = ~(acc_w > 0)
         safe = ops.where(hole, 1.0, acc_w)
@@ -418,10 +518,6 @@ class SplatRenderer:
 
         labels = None
         if labelled:
-            # Nearest point per source pixel (largest point id among exact ties, so both backends
-            # agree), then the nearest source among the nine that reach each pixel.
-            front = z == zbuf[q]
-            best_pt = ops.scatter_max_int(npad + 1, q[front], idx[front])[:npad].reshape(hp, wp)
             lab_pad = ops.where(best_pt >= 0, ops.to_int64(arrays.labels[ops.clamp(best_pt, 0, None)]), -1)
             best = None
             for oy, ox in _OFFSETS:
@@ -436,16 +532,15 @@ class SplatRenderer:
             labels = ops.to_numpy(ops.where(hole, -1, labels)).astype(np.int32)
 
         rgb_img = np.clip(np.rint(np.moveaxis(ops.to_numpy(rgb), 0, -1)), 0, 255).astype(np.uint8)
-        return rgb_img, ops.to_numpy(depth).astype(np.float32), ops.to_numpy(hole), labels
+        return (rgb_img, ops.to_numpy(depth).astype(np.float32), ops.to_numpy(hole), labels), n
 
-    def _layered(self, arrays, idx, z, q, qu, qv, zbuf, zpad, thr, inv2s2, h, w):
+    def _surfels(self, cnt, s_z, s_rgb, s_u, s_v, h, w):
+        """Per source pixel: the five summed channels (count, depth, r, g, b) as (5, H+2, W+2) and
+        the separable Gaussian factors of the surfel's mean offset towards each neighbour."""
         ops, cfg = self._ops, self.config
         hp, wp = h + 2, w + 2
         npad = hp * wp
-        zq = zbuf[q]
-        # The front layer of each pixel: its points within epsilon of the pixel's own nearest one.
-        front = z <= zq * (1.0 + cfg.depth_tolerance_rel) + cfg.depth_tolerance_m
-        cnt, s_z, s_rgb, s_u, s_v = ops.accumulate_front(npad + 1, q, front, z, arrays, idx, qu, qv)
+        inv2s2 = 1.0 / (2.0 * cfg.kernel_sigma_px**2)
         safe = ops.where(cnt > 0, cnt, 1.0)
         # Mean sub-pixel position of the surfel, in pixels from its pixel centre.
         mu = (s_u / safe)[:npad].reshape(hp, wp) / 255.0 - 0.5
@@ -455,6 +550,12 @@ class SplatRenderer:
         # The Gaussian is separable: three horizontal and three vertical factors cover nine offsets.
         gx = {ox: ops.exp(-((mu - ox) ** 2) * inv2s2) for ox in (-1, 0, 1)}
         gy = {oy: ops.exp(-((mv - oy) ** 2) * inv2s2) for oy in (-1, 0, 1)}
+        return chans, gx, gy
+
+    def _layered(self, cnt, s_z, s_rgb, s_u, s_v, zpad, thr, h, w):
+        """Splat the per-pixel front-layer surfels over their 3x3 neighbourhoods (image space)."""
+        chans, gx, gy = self._surfels(cnt, s_z, s_rgb, s_u, s_v, h, w)
+        ops = self._ops
         acc = None
         for oy, ox in _OFFSETS:
             r0, c0 = 1 - oy, 1 - ox

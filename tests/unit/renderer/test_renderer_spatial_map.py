@@ -100,3 +100,22 @@ def test_map_shows_obstacles_dark_and_unknown_grey():
     assert m.image[box[1], box[0]].max() < 60
     assert tuple(m.image[unknown[1], unknown[0]]) == (120, 120, 120)
     assert m.image[free[1], free[0]].min() > 220
+
+
+def test_picture_candidates_stand_in_free_space_and_do_not_face_walls(room_index, room_gt):
+    from services.renderer.tools.pictures import free_space_candidates
+    from shared.geometry import PinholeCamera, camera_pose
+
+    grid = SpatialMapper().grid(room_index, 0.0)
+    agent = np.array([1.5, 3.0])
+    for heading in (0.0, math.pi / 2, math.pi):
+        cands = free_space_candidates(grid, agent, heading)
+        assert 1 <= len(cands) <= 3
+        for c in cands:
+            xy = agent + (c.dx_m, c.dy_m)
+            r, col = grid.world_to_cell(xy)[0]
+            assert grid.cells[r, col] == FREE
+            # The view from the waypoint, facing away from the agent, sees at least 1 m ahead.
+            _, depth, _ = room_gt.render(
+                camera_pose((xy[0], xy[1], 0.0), math.atan2(c.dy_m, c.dx_m)), PinholeCamera(64, 64, 90.0))
+            assert depth[32, 32] > 1.0

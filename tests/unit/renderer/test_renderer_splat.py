@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from services.renderer.core import RENDERERS, IndexedCloud, PointCloud
+from services.renderer.core import RENDERERS, IndexedCloud, PointCloud, kernels
 from services.renderer.core.errors import BackendUnavailableError, EmptyCloudError
 from services.renderer.tools import scenes
 from shared.geometry import PinholeCamera, camera_pose
@@ -198,3 +198,58 @@ def test_replica_office_fidelity(shared_data):
     ssim = [structural_similarity(gt.render(p, CAM)[0], out.rgb[i], channel_axis=2) for i, p in enumerate(poses)]
     # Measured ~0.8 on these poses; the smooth office texture is easy for splats away from holes.
     assert np.mean(ssim) > 0.6, ssim
+
+
+needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+
+
+@needs_numba
+@pytest.mark.parametrize("hfov_deg", [60.0, 120.0])
+def test_compiled_kernel_is_bit_identical_to_array_code(room_index, hfov_deg):
+    cam = PinholeCamera(200, 150, hfov_deg)  # not square: rows and columns must not be swapped
+    poses = [camera_pose(pos, h, p) for pos, h, p in scenes.room_view_poses(4, seed=13)]
+    # Standing in a wall: points behind the camera, inside the near plane and at grazing angles.
+    poses.append(camera_pose((4.0, 3.0, 0.0), 0.3, 0.0))
+    compiled = RENDERERS.create("numpy", {"kernel": "numba"})
+    array = RENDERERS.create("numpy", {"kernel": "numpy"})
+    assert compiled.kernel == "numba" and array.kernel == "array"
+    a = compiled.render_poses(room_index, poses, cam)
+    b = array.render_poses(room_index, poses, cam)
+    assert np.array_equal(a.rgb, b.rgb)
+    assert np.array_equal(a.depth_m, b.depth_m)
+    assert np.array_equal(a.hole_mask, b.hole_mask)
+    assert np.array_equal(a.labels, b.labels)
+    assert a.visible_points == b.visible_points
+    assert 0.0 < a.hole_fraction < 0.5
+
+
+@needs_numba
+def test_compiled_kernel_without_labels_and_lod_off():
+    near = _wall(2.0, 0.6, 20_000, (250, 0, 0), 0)
+    far = _wall(4.0, 3.0, 80_000, (0, 0, 250), 1, seed=1)
+    both = PointCloud.concatenate([near, far])
+    index = IndexedCloud(PointCloud(both.xyz, both.rgb), block_m=0.5)
+    cfg = {"lod_points_per_px": None}
+    a = RENDERERS.create("numpy", {**cfg, "kernel": "numba"}).render(index, [_view(), _view(0.4)], CAM)
+    b = RENDERERS.create("numpy", {**cfg, "kernel": "numpy"}).render(index, [_view(), _view(0.4)], CAM)
+    assert a.labels is None and b.labels is None
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth_m, b.depth_m)
+    assert (a.rgb[0, 128, 128] == (250, 0, 0)).all()
+
+
+def test_views_on_threads_equal_sequential_views(room_index):
+    views = [_view(h, p, pos) for pos, h, p in scenes.room_view_poses(5, seed=14)]
+    one = RENDERERS.create("numpy", {"workers": 1}).render(room_index, views, CAM)
+    many = RENDERERS.create("numpy", {"workers": 3}).render(room_index, views, CAM)
+    assert np.array_equal(one.rgb, many.rgb) and np.array_equal(one.labels, many.labels)
+    assert np.array_equal(one.depth_m, many.depth_m)
+    assert one.visible_points == many.visible_points
+    assert many.batch_s > 0 and len(many.view_s) == 5 and all(t > 0 for t in many.view_s)
+
+
+def test_numba_kernel_requested_without_numba(monkeypatch):
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    with pytest.raises(BackendUnavailableError):
+        RENDERERS.create("numpy", {"kernel": "numba"})
+    # "auto" falls back to the array code.
+    assert RENDERERS.create("numpy").kernel == "array"

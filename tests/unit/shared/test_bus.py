@@ -129,3 +129,31 @@ def test_running_service_info_metrics_and_typed_errors():
     with pytest.raises(NoReplyError):
         client.request(key, MoveRequest(dx_m=0, dy_m=0), PoseReply, timeout_s=0.1)
     assert client.raw.alive(keys.ALIVE.pattern()) == []
+
+
+def test_balanced_requests_spread_over_replicas_and_skip_dead_ones():
+    net = FakeNetwork()
+    served = {"r1": 0, "r2": 0}
+    running = []
+    for inst in served:
+        class Replica(Service):
+            name = "renderer"
+
+            def start(self, node: Node, inst=inst) -> None:
+                def handle(req: MoveRequest) -> PoseReply:
+                    served[inst] += 1
+                    return PoseReply(pose=Pose(position_m=(0, 0, 0)))
+
+                node.serve("ant/render/views", MoveRequest, handle, replicated=True)
+
+        running.append(RunningService(Replica(ServiceSettings(instance=inst)), FakeBus(net)))
+    client = TypedBus(FakeBus(net))
+    for _ in range(20):
+        client.request("ant/render/views", MoveRequest(dx_m=0, dy_m=0), PoseReply, balance="renderer")
+    assert served == {"r1": 10, "r2": 10}
+    running[0].close()  # one replica dies: every request still gets an answer
+    for _ in range(10):
+        client.request("ant/render/views", MoveRequest(dx_m=0, dy_m=0), PoseReply, balance="renderer")
+    assert served == {"r1": 10, "r2": 20}
+    running[1].close()
+    client.close()

@@ -1,0 +1,68 @@
+"""How failures become HTTP answers: every one a clear status and reason, never a bare 500.
+
+Bus errors map by what they mean for the caller: nobody answered -> 503, the service said the input
+was bad -> 422, not found -> 404, timeout -> 504, the service itself failed -> 502 (the gateway is fine,
+what stands behind it is not).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+
+from shared.bus.typed import NoReplyError, RemoteError
+from shared.keys import KeyExprError
+from shared.schemas import ErrorCode
+
+log = logging.getLogger(__name__)
+
+_STATUS = {
+    ErrorCode.BAD_REQUEST: 422,
+    ErrorCode.NOT_FOUND: 404,
+    ErrorCode.UNAVAILABLE: 503,
+    ErrorCode.TIMEOUT: 504,
+    ErrorCode.INTERNAL: 502,
+}
+
+
+class GatewayError(Exception):
+    """Base of the gateway's own errors; ``status_code`` and ``detail`` make the HTTP answer."""
+
+    status_code = 400
+
+    def __init__(self, detail: str, status_code: int | None = None):
+        super().__init__(detail)
+        self.detail = detail
+        if status_code is not None:
+            self.status_code = status_code
+
+
+def remote_status(exc: RemoteError) -> int:
+    if isinstance(exc, NoReplyError):
+        return 503
+    return _STATUS.get(exc.code, 502)
+
+
+def remote_detail(exc: RemoteError, what: str = "") -> str:
+    if isinstance(exc, NoReplyError):
+        return f"{what or 'the service'} is unavailable: {exc.message}"
+    return f"{what + ': ' if what else ''}{exc.message}"
+
+
+def install(app: FastAPI) -> None:
+    async def on_remote(_request: Request, exc: RemoteError) -> JSONResponse:
+        code = remote_status(exc)
+        log.log(logging.WARNING if code >= 500 else logging.INFO, "bus error -> %d: %s", code, exc)
+        return JSONResponse({"detail": remote_detail(exc), "code": exc.code.value}, status_code=code)
+
+    async def on_gateway(_request: Request, exc: GatewayError) -> JSONResponse:
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+
+    async def on_key(_request: Request, exc: KeyExprError) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=422)
+
+    app.add_exception_handler(RemoteError, on_remote)
+    app.add_exception_handler(GatewayError, on_gateway)
+    app.add_exception_handler(KeyExprError, on_key)

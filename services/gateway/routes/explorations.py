@@ -1,0 +1,107 @@
+"""Explorations: pre-explore the robot's current scene and reconstruct it into a map."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Header, Path, Query, Response, status
+from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.gateway.deps import Authorized, BusDep, HubDep, SettingsDep, StoreDep
+from services.gateway.errors import GatewayError, remote_detail, remote_status
+from services.gateway.records import ExplorationPage, ExplorationRecord, JobCreated, JobKind
+from services.gateway.routes.missions import SEGMENT, SSE_DOC, events_response, image_response
+from services.gateway.store import JobRow
+from shared import keys
+from shared.bus.typed import RemoteError
+from shared.schemas import ExplorationRequest, MissionAccepted, MissionState
+
+router = APIRouter(prefix="/explorations", tags=["explorations"])
+JobId = Annotated[str, Path(pattern=SEGMENT, description="exploration id")]
+
+
+class ExplorationCreate(BaseModel):
+    """``POST /explorations``: explore the current scene and store the reconstruction as ``map_id``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    map_id: str | None = Field(None, pattern=SEGMENT, description="name of the map to build (default: generated)")
+    max_steps: int = Field(400, ge=1, le=10_000)
+    reconstruction: str = Field("rgbd", pattern=SEGMENT, description="regional reconstruction backend")
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+def exploration_record(row: JobRow) -> ExplorationRecord:
+    s = row.summary
+    return ExplorationRecord(
+        id=row.id, kind=JobKind.EXPLORATION, state=row.state, step=row.step, last_seq=row.last_seq,
+        created_s=row.created_s, updated_s=row.updated_s, started_s=s.get("started_s"),
+        finished_s=s.get("finished_s"), error=s.get("error"), message=s.get("message"),
+        images=s.get("images", {}), url=f"/explorations/{row.id}", events_url=f"/explorations/{row.id}/events",
+        map_id=s.get("map_id") or row.request.get("map_id"), progress=s.get("progress"), stage=s.get("stage"),
+        request=row.request)
+
+
+def _get(store, job_id: str) -> JobRow:
+    row = store.get_job(job_id, JobKind.EXPLORATION)
+    if row is None:
+        raise GatewayError(f"no exploration {job_id!r}", 404)
+    return row
+
+
+@router.post("", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED, dependencies=[Authorized],
+             responses={401: {}, 409: {}, 422: {}, 503: {}})
+def submit(body: ExplorationCreate, bus: BusDep, store: StoreDep, settings: SettingsDep,
+           response: Response) -> JobCreated:
+    """Start pre-exploration, tour recording and reconstruction of the robot's current scene."""
+    job_id = f"x-{uuid.uuid4().hex[:16]}"
+    map_id = body.map_id or f"map-{job_id[2:10]}"
+    request = {**body.model_dump(mode="json"), "map_id": map_id}
+    store.create_job(JobKind.EXPLORATION, job_id, request)
+    try:
+        reply = bus.request(keys.MAPPER_EXPLORE.format(robot=settings.robot),
+                            ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
+                                               reconstruction=body.reconstruction, options=body.options),
+                            MissionAccepted, timeout_s=settings.request_timeout_s)
+    except RemoteError as exc:
+        store.delete_job(job_id)
+        raise GatewayError(remote_detail(exc, "the mapper refused the exploration"), remote_status(exc)) from None
+    if not reply.accepted:
+        store.delete_job(job_id)
+        raise GatewayError(f"the mapper refused the exploration: {reply.reason or 'no reason given'}", 409)
+    response.headers["Location"] = f"/explorations/{job_id}"
+    return JobCreated(id=job_id, state=MissionState.QUEUED, url=f"/explorations/{job_id}",
+                      events_url=f"/explorations/{job_id}/events")
+
+
+@router.get("", response_model=ExplorationPage)
+async def list_explorations(store: StoreDep,
+                      state: Annotated[list[MissionState] | None, Query()] = None,
+                      limit: Annotated[int, Query(ge=1, le=500)] = 50,
+                      offset: Annotated[int, Query(ge=0)] = 0) -> ExplorationPage:
+    """Explorations, newest first."""
+    rows, total = store.list_jobs(JobKind.EXPLORATION, states=state, limit=limit, offset=offset)
+    return ExplorationPage(items=[exploration_record(r) for r in rows], total=total, limit=limit, offset=offset)
+
+
+@router.get("/{exploration_id}", response_model=ExplorationRecord, responses={404: {}})
+async def get_exploration(exploration_id: JobId, store: StoreDep) -> ExplorationRecord:
+    """State, stage and progress (0-1); ``map_id`` names the map it builds."""
+    return exploration_record(_get(store, exploration_id))
+
+
+@router.get("/{exploration_id}/events", response_class=StreamingResponse, responses=SSE_DOC)
+async def exploration_events(exploration_id: JobId, store: StoreDep, hub: HubDep, settings: SettingsDep,
+                             last_event_id: Annotated[str | None, Header()] = None,
+                             after: Annotated[int | None, Query(ge=-1)] = None):
+    """Server-Sent Events of the exploration, resumable with ``Last-Event-ID``."""
+    return events_response(JobKind.EXPLORATION, exploration_id, store, hub, settings, last_event_id, after)
+
+
+@router.get("/{exploration_id}/events/{seq}/images/{name}.jpg", response_class=Response,
+            responses={200: {"content": {"image/jpeg": {}}}, 404: {}})
+async def exploration_image(exploration_id: JobId, seq: Annotated[int, Path(ge=0)],
+                      name: Annotated[str, Path(pattern=SEGMENT)], store: StoreDep) -> Response:
+    return image_response(store, exploration_id, seq, name)

@@ -1,0 +1,141 @@
+"""Maps: list, metadata, download the cloud as PLY (streamed), upload a PLY/PCD cloud."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Path, Query, Request, Response, status
+from fastapi.responses import StreamingResponse
+from starlette.concurrency import run_in_threadpool
+
+from services.gateway.deps import Authorized, BusDep, SettingsDep
+from services.gateway.errors import GatewayError, remote_detail, remote_status
+from services.gateway.routes.missions import SEGMENT
+from shared import keys
+from shared.bus.typed import RemoteError, TypedBus
+from shared.schemas import MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, Ping
+
+log = logging.getLogger(__name__)
+router = APIRouter(prefix="/maps", tags=["maps"])
+MapId = Annotated[str, Path(pattern=SEGMENT, description="map id")]
+Version = Annotated[int | None, Query(ge=1, description="a stored version (default: the latest)")]
+
+
+def ply_header(point_count: int, with_labels: bool, comment: str = "") -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0"]
+    if comment:
+        lines.append(f"comment {comment}")
+    lines += [f"element vertex {point_count}", "property float x", "property float y", "property float z",
+              "property uchar red", "property uchar green", "property uchar blue"]
+    if with_labels:
+        lines.append("property int label")
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def ply_vertex_dtype(with_labels: bool) -> np.dtype:
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    if with_labels:
+        fields.append(("label", "<i4"))
+    return np.dtype(fields)
+
+
+def ply_body(chunk: MapChunk, with_labels: bool) -> bytes:
+    """The chunk's points as packed PLY vertex records (one vectorised copy)."""
+    out = np.empty(len(chunk.xyz_m), ply_vertex_dtype(with_labels))
+    out["x"], out["y"], out["z"] = chunk.xyz_m[:, 0], chunk.xyz_m[:, 1], chunk.xyz_m[:, 2]
+    out["red"], out["green"], out["blue"] = chunk.rgb[:, 0], chunk.rgb[:, 1], chunk.rgb[:, 2]
+    if with_labels:
+        out["label"] = chunk.labels if chunk.labels is not None else -1
+    return out.tobytes()
+
+
+def _ask(bus: TypedBus, what: str, fn):
+    try:
+        return fn()
+    except RemoteError as exc:
+        raise GatewayError(remote_detail(exc, what), remote_status(exc)) from None
+
+
+@router.get("", response_model=list[MapInfo], responses={503: {}})
+def list_maps(bus: BusDep, settings: SettingsDep) -> list[MapInfo]:
+    """Every stored map (latest versions), as the reconstructor reports them."""
+    reply = _ask(bus, "cannot list maps", lambda: bus.request(keys.MAP_LIST.format(), Ping(), MapListReply,
+                                                              timeout_s=settings.request_timeout_s))
+    return reply.maps
+
+
+@router.get("/{map_id}", response_model=MapInfo, responses={404: {}, 503: {}})
+def get_map(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version = None) -> MapInfo:
+    """Metadata of one map: points, bounds, labels, regions, metric scale factors, timings."""
+    return _ask(bus, f"map {map_id!r}", lambda: bus.request(
+        keys.MAP_INFO.format(map=map_id), MapRequest(map_id=map_id, version=version), MapInfo,
+        timeout_s=settings.request_timeout_s))
+
+
+@router.get("/{map_id}/cloud.ply", response_class=StreamingResponse,
+            responses={200: {"content": {"application/octet-stream": {}}, "description": "binary PLY"},
+                       404: {}, 503: {}})
+def download_cloud(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version = None) -> StreamingResponse:
+    """The map's points as a binary little-endian PLY (x y z float, red green blue uchar[, label int]),
+    streamed chunk by chunk so a large cloud never sits whole in the gateway's memory."""
+    timeout_s = settings.request_timeout_s
+
+    def chunk(index: int, v: int | None) -> MapChunk:
+        return bus.request(keys.MAP_CHUNK.format(map=map_id),
+                           MapChunkRequest(map_id=map_id, version=v, index=index, max_points=settings.map_chunk_points),
+                           MapChunk, timeout_s=timeout_s)
+
+    info = get_map(map_id, bus, settings, version)
+    # The first chunk before the response starts: an error is still a clean status code, and it
+    # tells whether the cloud has labels; later chunks are pinned to its version.
+    first = _ask(bus, f"map {map_id!r}", lambda: chunk(0, info.version))
+    with_labels = first.labels is not None
+    header = ply_header(info.point_count, with_labels, f"SpatialAnt map {map_id} version {first.version}")
+    size = len(header) + info.point_count * ply_vertex_dtype(with_labels).itemsize
+
+    def body() -> Iterator[bytes]:
+        yield header
+        sent = len(first.xyz_m)
+        yield ply_body(first, with_labels)
+        for i in range(1, first.count):
+            c = chunk(i, first.version)  # an error here ends the stream short of Content-Length
+            sent += len(c.xyz_m)
+            yield ply_body(c, with_labels)
+        if sent != info.point_count:
+            log.error("map %s v%d: chunks held %d points, info said %d", map_id, first.version, sent,
+                      info.point_count)
+
+    filename = f"{map_id}-v{first.version}.ply"
+    return StreamingResponse(body(), media_type="application/octet-stream",
+                             headers={"Content-Length": str(size),
+                                      "Content-Disposition": f'attachment; filename="{filename}"'})
+
+
+@router.post("", response_model=MapInfo, status_code=status.HTTP_201_CREATED, dependencies=[Authorized],
+             responses={401: {}, 413: {}, 415: {}, 422: {}, 503: {}},
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
+async def upload_cloud(request: Request, bus: BusDep, settings: SettingsDep, response: Response,
+                       map_id: Annotated[str, Query(pattern=SEGMENT, description="name of the new map")],
+                       filename: Annotated[str, Query(pattern=r"^[^/\\]{1,200}\.(ply|pcd)$")] = "cloud.ply",
+                       ) -> MapInfo:
+    """Store a PLY or PCD cloud as a map: the file is the raw body
+    (``curl --data-binary @room.ply -H 'Content-Type: application/octet-stream' '/maps?map_id=room'``)."""
+    data = await request.body()
+    if not data:
+        raise GatewayError("empty body: send the PLY/PCD file as the request body", 422)
+    head = data[:256].lstrip()
+    is_ply = head.startswith(b"ply")
+    is_pcd = head.startswith(b"#") or head.startswith(b"VERSION")
+    if not (is_ply and filename.endswith(".ply")) and not (is_pcd and filename.endswith(".pcd")):
+        raise GatewayError(f"{filename!r}: the body is not a {filename.rsplit('.', 1)[-1].upper()} file", 415)
+    msg = MapImportRequest(map_id=map_id, filename=filename, data=data)
+    # Blocking bus request: off the event loop.
+    info = await run_in_threadpool(_ask, bus, f"cannot import {filename!r}", lambda: bus.request(
+        keys.MAP_IMPORT.format(map=map_id), msg, MapInfo, timeout_s=max(settings.request_timeout_s, 60.0)))
+    response.headers["Location"] = f"/maps/{map_id}"
+    return info

@@ -1,0 +1,200 @@
+"""Missions: submit, list, inspect, cancel, follow live (SSE) and fetch their pictures."""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Path, Query, Response, status
+from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+
+from services.gateway.deps import Authorized, BusDep, HubDep, SettingsDep, StoreDep
+from services.gateway.errors import GatewayError, remote_detail, remote_status
+from services.gateway.events import event_json, parse_last_event_id, sse_stream
+from services.gateway.records import (
+    EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary,
+)
+from services.gateway.store import JobRow
+from shared import keys
+from shared.bus.typed import RemoteError
+from shared.schemas import (
+    CancelRequest, ErrorCode, MapInfo, MapRequest, MissionAccepted, MissionOptions, MissionRequest, MissionState,
+)
+
+log = logging.getLogger(__name__)
+router = APIRouter(prefix="/missions", tags=["missions"])
+
+SEGMENT = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+JobId = Annotated[str, Path(pattern=SEGMENT, description="mission id")]
+ImageName = Annotated[str, Path(pattern=SEGMENT)]
+
+
+class MissionCreate(BaseModel):
+    """``POST /missions``: what to do, on which map, how."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    instruction: Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=4000)]
+    map_id: str = Field(pattern=SEGMENT, description="a map listed by GET /maps")
+    options: MissionOptions = Field(default_factory=MissionOptions)
+
+
+def _links(job_id: str) -> tuple[str, str]:
+    return f"/missions/{job_id}", f"/missions/{job_id}/events"
+
+
+def mission_record(row: JobRow) -> MissionRecord:
+    url, events_url = _links(row.id)
+    s = row.summary
+    req = row.request
+    return MissionRecord(
+        id=row.id, kind=JobKind.MISSION, state=row.state, step=row.step, last_seq=row.last_seq,
+        created_s=row.created_s, updated_s=row.updated_s, started_s=s.get("started_s"),
+        finished_s=s.get("finished_s"), error=s.get("error"), message=s.get("message"), images=s.get("images", {}),
+        url=url, events_url=events_url, instruction=req.get("instruction", ""), map_id=req.get("map_id", ""),
+        options=req.get("options", {}), pose=s.get("pose"), trajectory=s.get("trajectory", []),
+        candidates=s.get("candidates", []), decisions=s.get("decisions", []), metrics=s.get("metrics"),
+        prompt_tokens=s.get("prompt_tokens", 0), completion_tokens=s.get("completion_tokens", 0),
+        cost_usd=s.get("cost_usd", 0.0))
+
+
+def _summary(row: JobRow) -> MissionSummary:
+    return MissionSummary(id=row.id, state=row.state, step=row.step, instruction=row.request.get("instruction", ""),
+                          map_id=row.request.get("map_id", ""), created_s=row.created_s, updated_s=row.updated_s,
+                          url=f"/missions/{row.id}")
+
+
+def _get(store, job_id: str) -> JobRow:
+    row = store.get_job(job_id, JobKind.MISSION)
+    if row is None:
+        raise GatewayError(f"no mission {job_id!r}", 404)
+    return row
+
+
+@router.post("", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED, dependencies=[Authorized],
+             responses={401: {}, 409: {}, 413: {}, 422: {}, 503: {}})
+def submit(body: MissionCreate, bus: BusDep, store: StoreDep, settings: SettingsDep, response: Response) -> JobCreated:
+    """Start a navigation mission; follow it at ``url`` (poll) or ``events_url`` (SSE)."""
+    if len(body.instruction) > settings.max_instruction_chars:
+        raise GatewayError(f"instruction longer than {settings.max_instruction_chars} characters", 422)
+    if settings.validate_map:
+        try:
+            bus.request(keys.MAP_INFO.format(map=body.map_id), MapRequest(map_id=body.map_id), MapInfo,
+                        timeout_s=settings.request_timeout_s)
+        except RemoteError as exc:
+            if exc.code == ErrorCode.NOT_FOUND:
+                raise GatewayError(f"unknown map {body.map_id!r} (see GET /maps)", 422) from None
+            raise GatewayError(remote_detail(exc, "cannot check the map"), remote_status(exc)) from None
+    job_id = f"m-{uuid.uuid4().hex[:16]}"
+    request = body.model_dump(mode="json")
+    # The row exists before the planner hears of the mission, so its first event has a home.
+    store.create_job(JobKind.MISSION, job_id, request)
+    try:
+        reply = bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
+                            MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
+                                           options=body.options),
+                            MissionAccepted, timeout_s=settings.request_timeout_s)
+    except RemoteError as exc:
+        store.delete_job(job_id)
+        raise GatewayError(remote_detail(exc, "the planner refused the mission"), remote_status(exc)) from None
+    if not reply.accepted:
+        store.delete_job(job_id)
+        raise GatewayError(f"the planner refused the mission: {reply.reason or 'no reason given'}", 409)
+    url, events_url = _links(job_id)
+    response.headers["Location"] = url
+    row = store.get_job(job_id)
+    return JobCreated(id=job_id, state=row.state if row else MissionState.QUEUED, url=url, events_url=events_url)
+
+
+@router.get("", response_model=MissionPage)
+async def list_missions(store: StoreDep,
+                  state: Annotated[list[MissionState] | None, Query(description="keep these states")] = None,
+                  limit: Annotated[int, Query(ge=1, le=500)] = 50,
+                  offset: Annotated[int, Query(ge=0)] = 0) -> MissionPage:
+    """Missions, newest first, paged and filterable by state (``?state=running&state=queued``)."""
+    rows, total = store.list_jobs(JobKind.MISSION, states=state, limit=limit, offset=offset)
+    return MissionPage(items=[_summary(r) for r in rows], total=total, limit=limit, offset=offset)
+
+
+@router.get("/{mission_id}", response_model=MissionRecord, responses={404: {}})
+async def get_mission(mission_id: JobId, store: StoreDep) -> MissionRecord:
+    """State, step, trajectory, decisions, metrics (when the episode has a goal), tokens and cost."""
+    return mission_record(_get(store, mission_id))
+
+
+@router.post("/{mission_id}/cancel", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED,
+             dependencies=[Authorized], responses={401: {}, 404: {}, 409: {}, 503: {}})
+def cancel(mission_id: JobId, bus: BusDep, store: StoreDep, settings: SettingsDep) -> JobCreated:
+    """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream."""
+    row = _get(store, mission_id)
+    if row.terminal:
+        raise GatewayError(f"mission {mission_id!r} has already ended ({row.state.value})", 409)
+    try:
+        reply = bus.request(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
+                            MissionAccepted, timeout_s=settings.request_timeout_s)
+    except RemoteError as exc:
+        if exc.code == ErrorCode.NOT_FOUND:
+            # The planner no longer knows it (it restarted): the mission cannot finish any more.
+            store.mark(mission_id, MissionState.CANCELLED, "cancelled; the planner no longer ran it")
+        else:
+            raise GatewayError(remote_detail(exc, "cannot cancel"), remote_status(exc)) from None
+    else:
+        if not reply.accepted:
+            raise GatewayError(f"the planner refused to cancel: {reply.reason or 'no reason given'}", 409)
+    url, events_url = _links(mission_id)
+    row = _get(store, mission_id)
+    return JobCreated(id=mission_id, state=row.state, url=url, events_url=events_url)
+
+
+def events_response(kind: JobKind, job_id: str, store, hub, settings, last_event_id: str | None,
+                    after: int | None) -> StreamingResponse:
+    if store.get_job(job_id, kind) is None:
+        raise GatewayError(f"no {kind.value} {job_id!r}", 404)
+    try:
+        start = parse_last_event_id(last_event_id, after)
+    except ValueError as exc:
+        raise GatewayError(str(exc), 400) from None
+    stream = sse_stream(store, hub, kind, job_id, start, keepalive_s=settings.sse_keepalive_s,
+                        batch=settings.sse_batch)
+    # no-transform and X-Accel-Buffering: proxies must pass events through as they come.
+    return StreamingResponse(stream, media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache, no-transform", "X-Accel-Buffering": "no"})
+
+
+SSE_DOC = {200: {"content": {"text/event-stream": {}},
+                 "description": "``id: seq``, ``event: kind``, ``data: event JSON``; ``event: end`` closes"},
+           404: {}, 400: {}}
+
+
+@router.get("/{mission_id}/events", response_class=StreamingResponse, responses=SSE_DOC)
+async def mission_events(mission_id: JobId, store: StoreDep, hub: HubDep, settings: SettingsDep,
+                         last_event_id: Annotated[str | None, Header()] = None,
+                         after: Annotated[int | None, Query(ge=-1, description="resume after this seq")] = None):
+    """Server-Sent Events: the stored events after ``Last-Event-ID`` (or ``?after=``), then live ones."""
+    return events_response(JobKind.MISSION, mission_id, store, hub, settings, last_event_id, after)
+
+
+@router.get("/{mission_id}/history", response_model=list[EventRecord], responses={404: {}})
+async def mission_history(mission_id: JobId, store: StoreDep,
+                    after: Annotated[int, Query(ge=-1)] = -1,
+                    limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> list[EventRecord]:
+    """The stored events as JSON (for clients that do not speak SSE), images by URL."""
+    _get(store, mission_id)
+    return [EventRecord(**event_json(JobKind.MISSION, e)) for e in store.events(mission_id, after, limit)]
+
+
+def image_response(store, job_id: str, seq: int, name: str) -> Response:
+    jpeg = store.image(job_id, seq, name)
+    if jpeg is None:
+        raise GatewayError(f"no image {name!r} at event {seq} of {job_id!r}", 404)
+    # An event's image never changes once stored.
+    return Response(jpeg, media_type="image/jpeg", headers={"Cache-Control": "public, max-age=31536000, immutable"})
+
+
+@router.get("/{mission_id}/events/{seq}/images/{name}.jpg", response_class=Response,
+            responses={200: {"content": {"image/jpeg": {}}}, 404: {}})
+async def mission_image(mission_id: JobId, seq: Annotated[int, Path(ge=0)], name: ImageName, store: StoreDep) -> Response:
+    """One JPEG of one event (panorama, map, cand_<i>_observed, cand_<i>_anticipated, ...)."""
+    return image_response(store, mission_id, seq, name)

@@ -1,0 +1,279 @@
+// SpatialAnt dashboard: plain JS against the gateway's API (no build step).
+// Everything user-provided is inserted with textContent, never innerHTML.
+"use strict";
+
+const $ = (sel) => document.querySelector(sel);
+const el = (tag, cls, text) => {
+  const e = document.createElement(tag);
+  if (cls) e.className = cls;
+  if (text !== undefined) e.textContent = text;
+  return e;
+};
+const TERMINAL = new Set(["succeeded", "failed", "cancelled"]);
+const METRIC_NAMES = { ne_m: "NE (m)", osr: "OSR", sr: "SR", spl: "SPL", ndtw: "nDTW", sdtw: "SDTW", tl_m: "TL (m)" };
+
+let current = null;      // id of the mission on screen
+let stream = null;       // its EventSource
+let record = null;       // its record, kept up to date from events
+
+function token() { return localStorage.getItem("ant-token") || ""; }
+
+async function api(path, opts = {}) {
+  const headers = Object.assign({ "Accept": "application/json" }, opts.headers || {});
+  if (opts.body) headers["Content-Type"] = "application/json";
+  if (token() && opts.method && opts.method !== "GET") headers["Authorization"] = "Bearer " + token();
+  const r = await fetch(path, Object.assign({}, opts, { headers }));
+  let body = null;
+  try { body = await r.json(); } catch (_) { /* empty or not JSON */ }
+  if (!r.ok) {
+    let detail = body && body.detail;
+    if (Array.isArray(detail)) detail = detail.map((d) => `${(d.loc || []).slice(1).join(".")}: ${d.msg}`).join("; ");
+    throw new Error(`${r.status}: ${detail || r.statusText}`);
+  }
+  return body;
+}
+
+// --- services, maps, missions -------------------------------------------------------------------
+async function refreshStatus() {
+  const box = $("#services");
+  try {
+    const s = await api("/status");
+    const seen = new Map(s.services.map((x) => [x.service, x]));
+    box.replaceChildren(...s.expected.map((name) => {
+      const svc = seen.get(name);
+      const p = el("span", "pill " + (svc ? "up" : "down"), svc ? `${name} ×${svc.instances}` : `${name} down`);
+      if (svc && svc.details[0]) p.title = `version ${svc.details[0].version || "?"}`;
+      return p;
+    }));
+  } catch (e) {
+    box.replaceChildren(el("span", "pill down", "status unavailable"));
+  }
+}
+
+async function refreshMaps() {
+  const list = $("#maps"), select = $("#map-select");
+  try {
+    const maps = await api("/maps");
+    const keep = select.value;
+    select.replaceChildren(...maps.map((m) => { const o = el("option", "", m.map_id); o.value = m.map_id; return o; }));
+    if (keep && maps.some((m) => m.map_id === keep)) select.value = keep;
+    list.replaceChildren(...(maps.length ? maps.map((m) => {
+      const li = el("li");
+      li.append(el("span", "text", m.map_id),
+        el("span", "meta", `${(m.point_count / 1000).toFixed(1)}k pts · v${m.version}`));
+      li.title = `source ${m.source || "?"}; click to download the cloud`;
+      li.onclick = () => { window.location.href = `/maps/${encodeURIComponent(m.map_id)}/cloud.ply`; };
+      return li;
+    }) : [el("li", "muted", "no maps yet")]));
+  } catch (e) {
+    list.replaceChildren(el("li", "muted", "maps unavailable (" + e.message + ")"));
+  }
+}
+
+async function refreshMissions() {
+  const state = $("#state-filter").value;
+  try {
+    const page = await api("/missions?limit=50" + (state ? "&state=" + state : ""));
+    $("#missions").replaceChildren(...(page.items.length ? page.items.map((m) => {
+      const li = el("li");
+      li.dataset.id = m.id;
+      if (m.id === current) li.classList.add("active");
+      li.append(el("span", "dot " + m.state), el("span", "text", m.instruction),
+        el("span", "meta", `${m.state} · ${m.step}`));
+      li.title = `${m.id} on ${m.map_id}`;
+      li.onclick = () => select(m.id);
+      return li;
+    }) : [el("li", "muted", "no missions yet")]));
+  } catch (e) { /* keep the last list */ }
+}
+
+// --- one mission ------------------------------------------------------------------------------------
+function setImage(img, url) { if (url && img.getAttribute("src") !== url) img.src = url; }
+
+function renderHead() {
+  $("#mission").classList.remove("empty");
+  $("#m-title").textContent = `Mission ${record.id}`;
+  $("#m-instruction").textContent = record.instruction || "";
+  const badge = $("#m-state");
+  badge.textContent = record.state;
+  badge.className = "badge " + record.state;
+  $("#m-step").textContent = `step ${record.step}`;
+  $("#cancel").hidden = TERMINAL.has(record.state);
+}
+
+function renderImages(images) {
+  setImage($("#panorama"), images.panorama);
+  setImage($("#spatial-map"), images.map);
+  drawTrajectory(!images.map);
+}
+
+function drawTrajectory(visible) {
+  // The planner's spatial map already shows the trajectory; draw our own only when it has none.
+  const c = $("#traj"), g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  const t = record.trajectory || [];
+  if (!visible || t.length < 1) return;
+  const xs = t.map((p) => p[0]), ys = t.map((p) => p[1]);
+  const span = Math.max(2, Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys));
+  const s = (c.width - 40) / span, cx = (Math.max(...xs) + Math.min(...xs)) / 2, cy = (Math.max(...ys) + Math.min(...ys)) / 2;
+  const px = (p) => [c.width / 2 + (p[0] - cx) * s, c.height / 2 - (p[1] - cy) * s];
+  g.strokeStyle = "#4f9cff"; g.lineWidth = 3; g.beginPath();
+  t.forEach((p, i) => { const [x, y] = px(p); i ? g.lineTo(x, y) : g.moveTo(x, y); });
+  g.stroke();
+  const [x, y] = px(t[t.length - 1]);
+  g.fillStyle = "#ff5d6c"; g.beginPath(); g.arc(x, y, 6, 0, 2 * Math.PI); g.fill();
+}
+
+function renderDecision(decision, extra) {
+  const box = $("#decision");
+  if (!decision) return;
+  const choice = decision.kind === "stop" ? "Stop" :
+    decision.kind === "backtrack" ? "Backtrack" : `Go to candidate ${decision.candidate_index}`;
+  const reason = el("p", "reason", decision.reasoning || "(no reasoning given)");
+  const tokens = el("div", "tokens",
+    `${decision.backend || "policy"} · ${record.prompt_tokens} prompt + ${record.completion_tokens} completion tokens` +
+    ` · $${(record.cost_usd || 0).toFixed(4)}` + (decision.fallback ? " · fallback" : ""));
+  box.replaceChildren(el("div", "choice", `Step ${decision.step ?? record.step}: ${choice}`), reason, tokens);
+  if (extra && extra.timings_s) {
+    const t = Object.entries(extra.timings_s).map(([k, v]) => `${k} ${(+v).toFixed(2)} s`).join(" · ");
+    box.append(el("div", "tokens", t));
+  }
+}
+
+function renderMetrics(metrics) {
+  const body = $("#metrics tbody");
+  if (!metrics) {
+    const tr = el("tr");
+    tr.append(el("td", "muted", TERMINAL.has(record.state) ? "no goal given: no metrics" : "reported at the end"));
+    body.replaceChildren(tr);
+    return;
+  }
+  body.replaceChildren(...Object.entries(metrics).map(([k, v]) => {
+    const tr = el("tr");
+    tr.append(el("td", "", METRIC_NAMES[k] || k), el("td", "", typeof v === "number" ? v.toFixed(3) : String(v)));
+    return tr;
+  }));
+}
+
+function renderCandidates(candidates, images, chosen) {
+  const box = $("#candidates");
+  const cards = (candidates || []).filter((c) => (c.kind || "waypoint") === "waypoint").map((c) => {
+    const card = el("div", "cand" + (c.index === chosen ? " chosen" : ""));
+    card.dataset.index = c.index;
+    const title = el("div", "title");
+    title.append(el("b", "", `#${c.index}${c.index === chosen ? " · chosen" : ""}`),
+      el("span", "", `${(+c.distance_m || 0).toFixed(1)} m · ${((+c.angle_rad || 0) * 180 / Math.PI).toFixed(0)}°`));
+    const views = el("div", "views");
+    for (const [kind, label] of [["observed", "observed"], ["anticipated", "anticipated"]]) {
+      const f = el("figure"), img = el("img");
+      img.alt = `candidate ${c.index} ${label}`;
+      const url = images[`cand_${c.index}_${kind}`];
+      if (url) img.src = url;
+      f.append(img, el("figcaption", "", label));
+      views.append(f);
+    }
+    card.append(title, views);
+    return card;
+  });
+  box.replaceChildren(...(cards.length ? cards : [el("p", "muted", "no candidates yet")]));
+}
+
+function addStep(ev) {
+  const d = ev.data || {};
+  let text = ev.kind;
+  if (d.decision) text = d.decision.kind === "stop" ? "stop" : `go to #${d.decision.candidate_index}`;
+  if (ev.kind === "finished") text = `finished: ${ev.state}`;
+  if (ev.kind === "error") text = `error: ${d.error || d.message || ""}`;
+  const li = el("li");
+  li.dataset.seq = ev.seq;
+  li.append(el("span", "k", `${ev.kind} ${ev.step}`), el("span", "", text));
+  if (d.decision && d.decision.reasoning) li.title = d.decision.reasoning;
+  $("#steps").append(li);
+  li.scrollIntoView({ block: "nearest" });
+}
+
+function onEvent(ev) {
+  if (!record || ev.mission_id !== record.id) return;
+  if (ev.seq <= record._seen) return;
+  record._seen = ev.seq;
+  record.state = ev.state; record.step = ev.step;
+  const d = ev.data || {};
+  if (d.pose && d.pose.position_m) {
+    const t = record.trajectory, p = d.pose.position_m;
+    if (!t.length || t[t.length - 1].join() !== p.join()) t.push(p);
+  }
+  if (d.decision) {
+    record.prompt_tokens += d.decision.prompt_tokens || 0;
+    record.completion_tokens += d.decision.completion_tokens || 0;
+    record.cost_usd += d.decision.cost_usd || 0;
+  }
+  if (d.metrics) record.metrics = d.metrics;
+  Object.assign(record.images, ev.images || {});
+  renderHead();
+  renderImages(record.images);
+  if (d.candidates) {
+    record.candidates = d.candidates;
+    renderCandidates(d.candidates, ev.images || {}, d.decision ? d.decision.candidate_index : null);
+  }
+  if (d.decision) renderDecision(Object.assign({ step: ev.step }, d.decision), d);
+  renderMetrics(record.metrics);
+  addStep(ev);
+}
+
+async function select(id) {
+  if (stream) { stream.close(); stream = null; }
+  current = id;
+  history.replaceState(null, "", "#" + id);
+  document.querySelectorAll("#missions li").forEach((li) => li.classList.toggle("active", li.dataset.id === id));
+  $("#steps").replaceChildren();
+  $("#decision").replaceChildren(el("p", "muted", "Waiting for the first step."));
+  $("#candidates").replaceChildren();
+  try {
+    record = await api(`/missions/${encodeURIComponent(id)}`);
+  } catch (e) { $("#form-error").textContent = e.message; return; }
+  // The stream replays every event from the start, so the view is built from events alone.
+  Object.assign(record, { _seen: -1, trajectory: [], images: {}, prompt_tokens: 0, completion_tokens: 0, cost_usd: 0 });
+  renderHead();
+  renderMetrics(record.metrics);
+  stream = new EventSource(`/missions/${encodeURIComponent(id)}/events`);
+  const handler = (msg) => onEvent(JSON.parse(msg.data));
+  for (const k of ["started", "step", "progress", "finished", "error"]) stream.addEventListener(k, handler);
+  stream.addEventListener("end", () => { stream.close(); stream = null; refreshMissions(); });
+}
+
+async function submit(e) {
+  e.preventDefault();
+  const err = $("#form-error"), btn = $("#submit");
+  err.textContent = "";
+  localStorage.setItem("ant-token", $("#token").value.trim());
+  const body = {
+    instruction: $("#instruction").value.trim(), map_id: $("#map-select").value,
+    options: { policy: $("#policy").value.trim() || "heuristic", max_steps: parseInt($("#max-steps").value, 10) || 40 },
+  };
+  if (!body.instruction) { err.textContent = "write an instruction first"; return; }
+  if (!body.map_id) { err.textContent = "no map to navigate: explore or upload one first"; return; }
+  btn.disabled = true;
+  try {
+    const created = await api("/missions", { method: "POST", body: JSON.stringify(body) });
+    await refreshMissions();
+    await select(created.id);
+  } catch (ex) { err.textContent = ex.message; } finally { btn.disabled = false; }
+}
+
+async function cancel() {
+  if (!current) return;
+  try { await api(`/missions/${encodeURIComponent(current)}/cancel`, { method: "POST" }); }
+  catch (e) { $("#form-error").textContent = e.message; }
+}
+
+$("#mission-form").addEventListener("submit", submit);
+$("#cancel").addEventListener("click", cancel);
+$("#state-filter").addEventListener("change", refreshMissions);
+$("#token").value = token();
+refreshStatus(); refreshMaps(); refreshMissions().then(() => {
+  const id = location.hash.slice(1);
+  if (id) select(id);
+});
+setInterval(refreshStatus, 5000);
+setInterval(refreshMissions, 3000);
+setInterval(refreshMaps, 15000);

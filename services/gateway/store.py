@@ -1,0 +1,301 @@
+"""SQLite persistence (WAL) of jobs (missions, explorations), their events and their images.
+
+* ``jobs``: one row per job with its request and the record folded from its events
+  (:func:`services.gateway.records.apply_event`), updated in the same transaction as each event;
+* ``events``: every event, keyed (job, seq); a redelivered event is ignored, so ingest is idempotent;
+* ``images``: each JPEG stored once, served by URL.
+
+Writes go through one connection under a lock (SQLite has one writer anyway); reads use one
+connection per thread, which WAL lets run beside the writer without blocking.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from services.gateway.records import TERMINAL, JobKind, apply_event, empty_summary
+from shared.schemas import MissionEvent, MissionState
+
+log = logging.getLogger(__name__)
+
+_IMAGE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    kind TEXT NOT NULL,
+    state TEXT NOT NULL,
+    step INTEGER NOT NULL DEFAULT 0,
+    last_seq INTEGER NOT NULL DEFAULT -1,
+    request TEXT NOT NULL,
+    summary TEXT NOT NULL,
+    created_s REAL NOT NULL,
+    updated_s REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS jobs_kind_state ON jobs (kind, state, created_s);
+CREATE INDEX IF NOT EXISTS jobs_kind_created ON jobs (kind, created_s);
+CREATE TABLE IF NOT EXISTS events (
+    job_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    kind TEXT NOT NULL,
+    state TEXT NOT NULL,
+    step INTEGER NOT NULL,
+    timestamp_s REAL NOT NULL,
+    data TEXT NOT NULL,
+    images TEXT NOT NULL,
+    PRIMARY KEY (job_id, seq)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS images (
+    job_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    name TEXT NOT NULL,
+    jpeg BLOB NOT NULL,
+    PRIMARY KEY (job_id, seq, name)
+);
+"""
+
+
+class StoreError(Exception):
+    """Base of the store's errors."""
+
+
+class JobExists(StoreError):
+    pass
+
+
+def image_url(kind: JobKind, job_id: str, seq: int, name: str) -> str:
+    return f"/{kind.value}s/{job_id}/events/{seq}/images/{name}.jpg"
+
+
+@dataclass(frozen=True)
+class JobRow:
+    id: str
+    kind: JobKind
+    state: MissionState
+    step: int
+    last_seq: int
+    request: dict[str, Any]
+    summary: dict[str, Any]
+    created_s: float
+    updated_s: float
+
+    @property
+    def terminal(self) -> bool:
+        return self.state in TERMINAL
+
+
+@dataclass(frozen=True)
+class StoredEvent:
+    job_id: str
+    seq: int
+    kind: str
+    state: MissionState
+    step: int
+    timestamp_s: float
+    data: dict[str, Any]
+    image_names: list[str]
+
+
+def _json(obj: Any) -> str:
+    # Planner data may hold numpy scalars or tuples; anything JSON cannot encode becomes its str.
+    return json.dumps(obj, separators=(",", ":"), default=lambda o: o.item() if hasattr(o, "item") else str(o))
+
+
+class GatewayStore:
+    """The gateway's database. Thread-safe; ``with GatewayStore(path) as store: ...``."""
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        if str(path) != ":memory:":
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._write_lock = threading.Lock()
+        self._local = threading.local()
+        self._readers: list[sqlite3.Connection] = []
+        self._readers_lock = threading.Lock()
+        self._closed = False
+        self._writer = self._connect()
+        with self._write_lock, self._writer:
+            self._writer.executescript(_SCHEMA)
+
+    def _connect(self) -> sqlite3.Connection:
+        conn = sqlite3.connect(self.path, check_same_thread=False, timeout=30.0, isolation_level=None)
+        conn.execute("PRAGMA journal_mode=WAL")
+        # NORMAL in WAL mode loses at most the last transactions on power loss, never corrupts.
+        conn.execute("PRAGMA synchronous=NORMAL")
+        conn.execute("PRAGMA busy_timeout=30000")
+        return conn
+
+    def _reader(self) -> sqlite3.Connection:
+        if self._closed:
+            raise StoreError("the store is closed")
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = self._connect()
+            conn.execute("PRAGMA query_only=1")
+            self._local.conn = conn
+            with self._readers_lock:
+                self._readers.append(conn)
+        return conn
+
+    # --- jobs --------------------------------------------------------------------------------------
+    def create_job(self, kind: JobKind, job_id: str, request: dict[str, Any]) -> JobRow:
+        now = time.time()
+        with self._write_lock:
+            try:
+                self._writer.execute(
+                    "INSERT INTO jobs (id, kind, state, step, last_seq, request, summary, created_s, updated_s)"
+                    " VALUES (?, ?, ?, 0, -1, ?, ?, ?, ?)",
+                    (job_id, kind.value, MissionState.QUEUED.value, _json(request), _json(empty_summary()),
+                     now, now))
+            except sqlite3.IntegrityError:
+                raise JobExists(f"{kind.value} {job_id!r} already exists") from None
+        row = self.get_job(job_id)
+        assert row is not None
+        return row
+
+    def delete_job(self, job_id: str) -> None:
+        """Forget a job that never started (its submission was refused)."""
+        with self._write_lock:
+            self._writer.execute("BEGIN IMMEDIATE")
+            try:
+                for table, col in (("images", "job_id"), ("events", "job_id"), ("jobs", "id")):
+                    self._writer.execute(f"DELETE FROM {table} WHERE {col} = ?", (job_id,))
+                self._writer.execute("COMMIT")
+            except BaseException:
+                self._writer.execute("ROLLBACK")
+                raise
+
+    def mark(self, job_id: str, state: MissionState, error: str | None = None) -> None:
+        """Set a job's state from the gateway itself (e.g. the planner lost it)."""
+        with self._write_lock:
+            row = self._writer.execute("SELECT summary FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                return
+            summary = json.loads(row[0])
+            if error:
+                summary["error"] = error
+            self._writer.execute("UPDATE jobs SET state = ?, summary = ?, updated_s = ? WHERE id = ?",
+                                 (state.value, _json(summary), time.time(), job_id))
+
+    @staticmethod
+    def _row(r: tuple) -> JobRow:
+        return JobRow(id=r[0], kind=JobKind(r[1]), state=MissionState(r[2]), step=r[3], last_seq=r[4],
+                      request=json.loads(r[5]), summary=json.loads(r[6]), created_s=r[7], updated_s=r[8])
+
+    _COLS = "id, kind, state, step, last_seq, request, summary, created_s, updated_s"
+
+    def get_job(self, job_id: str, kind: JobKind | None = None) -> JobRow | None:
+        r = self._reader().execute(f"SELECT {self._COLS} FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if r is None or (kind is not None and r[1] != kind.value):
+            return None
+        return self._row(r)
+
+    def job_progress(self, job_id: str) -> tuple[MissionState, int] | None:
+        """(state, last_seq) of a job: the cheap read an SSE stream polls."""
+        r = self._reader().execute("SELECT state, last_seq FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return None if r is None else (MissionState(r[0]), r[1])
+
+    def list_jobs(self, kind: JobKind, *, states: list[MissionState] | None = None, limit: int = 50,
+                  offset: int = 0) -> tuple[list[JobRow], int]:
+        """Newest first; returns (page, total matching)."""
+        where, args = "kind = ?", [kind.value]
+        if states:
+            where += f" AND state IN ({','.join('?' * len(states))})"
+            args += [s.value for s in states]
+        db = self._reader()
+        total = db.execute(f"SELECT COUNT(*) FROM jobs WHERE {where}", args).fetchone()[0]
+        rows = db.execute(f"SELECT {self._COLS} FROM jobs WHERE {where} ORDER BY created_s DESC, id"
+                          " LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
+        return [self._row(r) for r in rows], total
+
+    # --- events ------------------------------------------------------------------------------------
+    def append_event(self, kind: JobKind, event: MissionEvent) -> bool:
+        """Store one event, its images and the refolded record; False when it was already stored.
+
+        An event for a job the gateway did not submit (another client, or before a gateway restart
+        lost nothing but the submission) creates that job's row, so nothing published is lost.
+        """
+        names = [n for n in event.images if _IMAGE_NAME.match(n)]
+        if len(names) != len(event.images):
+            log.warning("event %s/%d: dropped images with invalid names %s", event.mission_id, event.seq,
+                        sorted(set(event.images) - set(names)))
+        urls = {n: image_url(kind, event.mission_id, event.seq, n) for n in names}
+        with self._write_lock:
+            db = self._writer
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                cur = db.execute(
+                    "INSERT OR IGNORE INTO events (job_id, seq, kind, state, step, timestamp_s, data, images)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                    (event.mission_id, event.seq, event.kind.value, event.state.value, event.step,
+                     event.timestamp_s, _json(event.data), _json(names)))
+                if cur.rowcount == 0:
+                    db.execute("ROLLBACK")
+                    return False
+                db.executemany("INSERT OR REPLACE INTO images (job_id, seq, name, jpeg) VALUES (?, ?, ?, ?)",
+                               [(event.mission_id, event.seq, n, bytes(event.images[n])) for n in names])
+                r = db.execute("SELECT state, last_seq, summary, kind FROM jobs WHERE id = ?",
+                               (event.mission_id,)).fetchone()
+                if r is None:
+                    now = time.time()
+                    db.execute(
+                        "INSERT INTO jobs (id, kind, state, step, last_seq, request, summary, created_s,"
+                        " updated_s) VALUES (?, ?, ?, 0, -1, ?, ?, ?, ?)",
+                        (event.mission_id, kind.value, MissionState.QUEUED.value, _json({}),
+                         _json(empty_summary()), event.timestamp_s, now))
+                    r = (MissionState.QUEUED.value, -1, _json(empty_summary()), kind.value)
+                summary = apply_event(json.loads(r[2]), event, urls)
+                # A late, out-of-order event enriches the record but does not roll its state back.
+                newest = event.seq >= r[1]
+                state = event.state.value if newest else r[0]
+                db.execute(
+                    "UPDATE jobs SET state = ?, step = CASE WHEN ? THEN ? ELSE step END, last_seq = MAX(last_seq, ?),"
+                    " summary = ?, updated_s = ? WHERE id = ?",
+                    (state, newest, event.step, event.seq, _json(summary), time.time(), event.mission_id))
+                db.execute("COMMIT")
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+        return True
+
+    def events(self, job_id: str, after_seq: int = -1, limit: int = 1000) -> list[StoredEvent]:
+        rows = self._reader().execute(
+            "SELECT job_id, seq, kind, state, step, timestamp_s, data, images FROM events"
+            " WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?", (job_id, after_seq, limit)).fetchall()
+        return [StoredEvent(job_id=r[0], seq=r[1], kind=r[2], state=MissionState(r[3]), step=r[4],
+                            timestamp_s=r[5], data=json.loads(r[6]), image_names=json.loads(r[7])) for r in rows]
+
+    def image(self, job_id: str, seq: int, name: str) -> bytes | None:
+        r = self._reader().execute("SELECT jpeg FROM images WHERE job_id = ? AND seq = ? AND name = ?",
+                                   (job_id, seq, name)).fetchone()
+        return None if r is None else bytes(r[0])
+
+    def counts(self) -> dict[str, int]:
+        db = self._reader()
+        return {t: db.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0] for t in ("jobs", "events", "images")}
+
+    # --- lifecycle ---------------------------------------------------------------------------------
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        with self._readers_lock:
+            for conn in self._readers:
+                conn.close()
+            self._readers.clear()
+        with self._write_lock:
+            self._writer.close()
+
+    def __enter__(self) -> GatewayStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

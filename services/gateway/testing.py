@@ -1,0 +1,308 @@
+"""Scripted planner, mapper and reconstructor for the gateway's tests, bench and dashboard demos.
+
+Like dora's ``MockNode``: small fake services that speak the real contracts (:mod:`shared.keys`,
+:mod:`shared.schemas`) on any bus (FakeBus or zenoh), accept a job and publish a few realistic
+events with small JPEG pictures (panorama, spatial map, each candidate's observed and anticipated view).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from shared import keys
+from shared.bus.base import Closeable
+from shared.bus.typed import NotFound, TypedBus
+from shared.schemas import (
+    CancelRequest, Candidate, CandidateKind, Decision, ExplorationRequest, MapChunk, MapChunkRequest,
+    MapImportRequest, MapInfo, MapListReply, MapRequest, MissionAccepted, MissionEvent, MissionEventKind,
+    MissionRequest, MissionState, Ping,
+)
+
+_PALETTE = np.array([[66, 135, 245], [245, 166, 35], [80, 200, 120], [220, 80, 90], [160, 110, 220],
+                     [70, 200, 200]], np.uint8)
+
+
+def jpeg(rgb: np.ndarray, quality: int = 80) -> bytes:
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def room_view(seed: int, size: int = 128, label: str = "", hole: bool = False) -> np.ndarray:
+    """A plausible indoor view: floor and wall gradient, a coloured 'object', optional render holes."""
+    rng = np.random.default_rng(seed)
+    h = w = size
+    y = np.linspace(0, 1, h)[:, None, None]
+    wall = np.array([200, 190, 175]) * (0.75 + 0.25 * (1 - y))
+    floor = np.array([140, 110, 80]) * (0.6 + 0.4 * y)
+    img = np.where(y > 0.62, floor, wall) * np.ones((1, w, 1))
+    c = _PALETTE[rng.integers(len(_PALETTE))]
+    x0, bw = rng.integers(5, w // 2), rng.integers(w // 6, w // 3)
+    img[int(h * 0.35):int(h * 0.7), x0:x0 + bw] = c
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    if hole:
+        holes = rng.random((h // 8, w // 8)) < 0.15
+        img[np.kron(holes, np.ones((8, 8), bool))] = 0
+    if label:
+        cv2.putText(img, label, (4, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
+
+
+def spatial_map(trajectory: list[tuple[float, float]], candidates: list[tuple[float, float]],
+                size: int = 256, extent_m: float = 12.0) -> np.ndarray:
+    img = np.full((size, size, 3), 235, np.uint8)
+    s = size / extent_m
+
+    def px(p):
+        return int(size / 2 + p[0] * s), int(size / 2 - p[1] * s)
+
+    cv2.rectangle(img, px((-5, -5)), px((5, 5)), (60, 60, 60), 2)
+    cv2.line(img, px((0, -5)), px((0, 1)), (60, 60, 60), 2)
+    for a, b in zip(trajectory, trajectory[1:]):
+        cv2.line(img, px(a), px(b), (30, 120, 220), 2, cv2.LINE_AA)
+    for c in candidates:
+        cv2.circle(img, px(c), 4, (240, 150, 20), -1, cv2.LINE_AA)
+    if trajectory:
+        cv2.circle(img, px(trajectory[-1]), 6, (220, 40, 40), -1, cv2.LINE_AA)
+    return img
+
+
+@dataclass
+class _Run:
+    request: MissionRequest
+    cancel: threading.Event = field(default_factory=threading.Event)
+    thread: threading.Thread | None = None
+
+
+class ScriptedPlanner:
+    """Serves MISSION_SUBMIT/MISSION_CANCEL; each mission walks ``steps`` steps on a thread.
+
+    Refuses instructions containing ``"refuse"`` (accepted=False) and map ids starting ``"broken"``
+    (BAD_REQUEST), so tests can exercise every answer.
+    """
+
+    def __init__(self, bus: TypedBus, robot: str = "robot0", *, steps: int = 3, step_interval_s: float = 0.01,
+                 candidates: int = 3, image_px: int = 96):
+        self.bus, self.robot = bus, robot
+        self.steps, self.step_interval_s, self.n_candidates, self.image_px = steps, step_interval_s, candidates, image_px
+        self.runs: dict[str, _Run] = {}
+        self._entities: list[Closeable] = [
+            bus.serve(keys.MISSION_SUBMIT.format(robot=robot), MissionRequest, self._submit, workers=2),
+            bus.serve(keys.MISSION_CANCEL.format(robot=robot), CancelRequest, self._cancel),
+        ]
+
+    def _submit(self, req: MissionRequest) -> MissionAccepted:
+        if "refuse" in req.instruction:
+            return MissionAccepted(mission_id=req.mission_id, accepted=False, reason="scripted refusal")
+        if req.map_id.startswith("broken"):
+            raise ValueError(f"map {req.map_id!r} cannot be navigated")
+        run = _Run(req)
+        run.thread = threading.Thread(target=self._walk, args=(run,), daemon=True, name=f"walk-{req.mission_id}")
+        self.runs[req.mission_id] = run
+        run.thread.start()
+        return MissionAccepted(mission_id=req.mission_id, accepted=True)
+
+    def _cancel(self, req: CancelRequest) -> MissionAccepted:
+        run = self.runs.get(req.mission_id)
+        if run is None:
+            raise NotFound(f"no mission {req.mission_id!r}")
+        run.cancel.set()
+        return MissionAccepted(mission_id=req.mission_id, accepted=True)
+
+    def _walk(self, run: _Run) -> None:
+        req, mid = run.request, run.request.mission_id
+        key = keys.MISSION_EVENTS.format(robot=self.robot, mission=mid)
+        seq = 0
+
+        def emit(kind, state, step, data, images=None):
+            nonlocal seq
+            self.bus.publish(key, MissionEvent(mission_id=mid, seq=seq, kind=kind, state=state, step=step,
+                                               data=data, images=images or {}))
+            seq += 1
+
+        pos, heading = np.zeros(3), 0.0
+        traj = [(0.0, 0.0)]
+        emit(MissionEventKind.STARTED, MissionState.RUNNING, 0,
+             {"pose": {"position_m": pos.tolist(), "heading_rad": heading}, "instruction": req.instruction,
+              "map_id": req.map_id})
+        steps = min(self.steps, req.options.max_steps)
+        for step in range(1, steps + 1):
+            if run.cancel.wait(self.step_interval_s):
+                emit(MissionEventKind.FINISHED, MissionState.CANCELLED, step - 1, {"message": "cancelled"})
+                return
+            n = self.n_candidates
+            cands = [Candidate(index=i, dx_m=float(1.5 * math.cos(heading + (i - n // 2) * 0.7)),
+                               dy_m=float(1.5 * math.sin(heading + (i - n // 2) * 0.7)),
+                               angle_rad=(i - n // 2) * 0.7, distance_m=1.5, score=1.0 / (1 + i)) for i in range(n)]
+            cands.append(Candidate(index=n, kind=CandidateKind.STOP))
+            final = step == steps
+            choice = cands[-1] if final else cands[step % n]
+            decision = Decision(candidate_index=choice.index, kind=choice.kind, backend="scripted",
+                                reasoning=(f"Step {step}: the instruction mentions the kitchen; candidate "
+                                           f"{choice.index}'s anticipated view shows a doorway towards it."
+                                           if not final else "The goal room is in view: stop."),
+                                prompt_tokens=800 + 10 * step, completion_tokens=60, cost_usd=0.001)
+            px = self.image_px
+            images = {"panorama": jpeg(np.concatenate([room_view(100 * step + v, px // 2) for v in range(12)], 1)),
+                      "map": jpeg(spatial_map(traj, [(pos[0] + c.dx_m, pos[1] + c.dy_m) for c in cands[:n]]))}
+            for c in cands[:n]:
+                images[f"cand_{c.index}_observed"] = jpeg(room_view(1000 * step + c.index, px, "observed"))
+                images[f"cand_{c.index}_anticipated"] = jpeg(room_view(1000 * step + c.index, px, "anticipated",
+                                                                       hole=True))
+            if not final:
+                pos = pos + np.array([choice.dx_m, choice.dy_m, 0.0])
+                heading = math.atan2(choice.dy_m, choice.dx_m)
+                traj.append((float(pos[0]), float(pos[1])))
+            emit(MissionEventKind.STEP, MissionState.RUNNING, step,
+                 {"pose": {"position_m": pos.tolist(), "heading_rad": heading},
+                  "candidates": [c.model_dump(mode="json") for c in cands],
+                  "decision": decision.model_dump(mode="json"),
+                  "timings_s": {"observe": 0.05, "render": 0.12, "policy": 0.3}}, images)
+        data: dict = {"pose": {"position_m": pos.tolist(), "heading_rad": heading}}
+        if req.options.goal_m is not None:
+            ne = float(np.linalg.norm(pos - np.asarray(req.options.goal_m)))
+            data["metrics"] = {"ne_m": ne, "sr": float(ne <= 3.0), "osr": float(ne <= 3.0), "spl": 0.8 * (ne <= 3.0),
+                               "tl_m": 1.5 * (steps - 1), "ndtw": 0.7}
+        emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, steps, data)
+
+    def close(self) -> None:
+        for run in self.runs.values():
+            run.cancel.set()
+        for e in self._entities:
+            e.close()
+        for run in self.runs.values():
+            if run.thread is not None:
+                run.thread.join(5.0)
+
+
+class ScriptedMapper:
+    """Serves MAPPER_EXPLORE; an exploration publishes progress events and finishes with its map."""
+
+    def __init__(self, bus: TypedBus, robot: str = "robot0", *, stages: int = 3, stage_interval_s: float = 0.01,
+                 reconstructor: ScriptedReconstructor | None = None):
+        self.bus, self.robot, self.stages, self.interval_s = bus, robot, stages, stage_interval_s
+        self.reconstructor = reconstructor
+        self._threads: list[threading.Thread] = []
+        self._entities = [bus.serve(keys.MAPPER_EXPLORE.format(robot=robot), ExplorationRequest, self._submit)]
+
+    def _submit(self, req: ExplorationRequest) -> MissionAccepted:
+        t = threading.Thread(target=self._run, args=(req,), daemon=True)
+        self._threads.append(t)
+        t.start()
+        return MissionAccepted(mission_id=req.exploration_id, accepted=True)
+
+    def _run(self, req: ExplorationRequest) -> None:
+        key = keys.EXPLORATION_EVENTS.format(robot=self.robot, exploration=req.exploration_id)
+        names = ["discovery", "tours", "reconstruction"]
+        self.bus.publish(key, MissionEvent(mission_id=req.exploration_id, seq=0, kind=MissionEventKind.STARTED,
+                                           state=MissionState.RUNNING, data={"stage": names[0], "progress": 0.0}))
+        for i in range(1, self.stages + 1):
+            time.sleep(self.interval_s)
+            self.bus.publish(key, MissionEvent(
+                mission_id=req.exploration_id, seq=i, kind=MissionEventKind.PROGRESS, state=MissionState.RUNNING,
+                step=i * 10, data={"stage": names[min(i, len(names)) - 1], "progress": i / (self.stages + 1)},
+                images={"map": jpeg(spatial_map([(0, 0), (i, 0)], []))}))
+        if self.reconstructor is not None:
+            self.reconstructor.add_random(req.map_id, 2000)
+        self.bus.publish(key, MissionEvent(mission_id=req.exploration_id, seq=self.stages + 1,
+                                           kind=MissionEventKind.FINISHED, state=MissionState.SUCCEEDED,
+                                           step=self.stages * 10, data={"map_id": req.map_id, "progress": 1.0}))
+
+    def close(self) -> None:
+        for e in self._entities:
+            e.close()
+        for t in self._threads:
+            t.join(5.0)
+
+
+class ScriptedReconstructor:
+    """An in-memory map store behind MAP_LIST/INFO/CHUNK/IMPORT (imports parse PLY/PCD with open3d)."""
+
+    def __init__(self, bus: TypedBus):
+        self.maps: dict[str, tuple[MapInfo, np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        self._lock = threading.Lock()
+        self._entities = [
+            bus.serve(keys.MAP_LIST.format(), Ping, self._list),
+            bus.serve(keys.MAP_INFO.pattern(), MapRequest, self._info, workers=2),
+            bus.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self._chunk, workers=2),
+            bus.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self._import),
+        ]
+
+    def add(self, map_id: str, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
+            source: str = "scripted") -> MapInfo:
+        with self._lock:
+            version = self.maps[map_id][0].version + 1 if map_id in self.maps else 1
+            info = MapInfo(map_id=map_id, version=version, point_count=len(xyz),
+                           bounds_min_m=tuple(map(float, xyz.min(0))) if len(xyz) else (0.0, 0.0, 0.0),
+                           bounds_max_m=tuple(map(float, xyz.max(0))) if len(xyz) else (0.0, 0.0, 0.0),
+                           source=source, has_labels=labels is not None,
+                           label_names={0: "floor", 1: "wall"} if labels is not None else {})
+            self.maps[map_id] = (info, xyz.astype(np.float32), rgb.astype(np.uint8), labels)
+        return info
+
+    def add_random(self, map_id: str, n: int, seed: int = 0, labels: bool = False) -> MapInfo:
+        rng = np.random.default_rng(seed)
+        xyz = rng.uniform([-5, -5, 0], [5, 5, 2.5], (n, 3))
+        rgb = rng.integers(0, 256, (n, 3))
+        return self.add(map_id, xyz, rgb, rng.integers(0, 2, n).astype(np.int32) if labels else None)
+
+    def _get(self, map_id: str):
+        entry = self.maps.get(map_id)
+        if entry is None:
+            raise NotFound(f"no map {map_id!r}")
+        return entry
+
+    def _list(self, _: Ping) -> MapListReply:
+        return MapListReply(maps=[e[0] for e in self.maps.values()])
+
+    def _info(self, req: MapRequest) -> MapInfo:
+        return self._get(req.map_id)[0]
+
+    def _chunk(self, req: MapChunkRequest) -> MapChunk:
+        info, xyz, rgb, labels = self._get(req.map_id)
+        count = max(1, math.ceil(len(xyz) / req.max_points))
+        if req.index >= count:
+            raise ValueError(f"chunk {req.index} >= count {count}")
+        sl = slice(req.index * req.max_points, (req.index + 1) * req.max_points)
+        return MapChunk(map_id=req.map_id, version=info.version, index=req.index, count=count, xyz_m=xyz[sl],
+                        rgb=rgb[sl], labels=None if labels is None else labels[sl])
+
+    def _import(self, req: MapImportRequest) -> MapInfo:
+        import tempfile
+
+        import open3d as o3d
+
+        suffix = "." + req.filename.rsplit(".", 1)[-1]
+        with tempfile.NamedTemporaryFile(suffix=suffix) as f:
+            f.write(req.data)
+            f.flush()
+            pcd = o3d.io.read_point_cloud(f.name)
+        xyz = np.asarray(pcd.points)
+        if len(xyz) == 0:
+            raise ValueError(f"{req.filename}: no points could be read")
+        rgb = (np.asarray(pcd.colors) * 255).round() if pcd.has_colors() else np.full((len(xyz), 3), 128)
+        return self.add(req.map_id, xyz, rgb, source=f"upload:{req.filename}")
+
+    def close(self) -> None:
+        for e in self._entities:
+            e.close()
+
+
+def ply_bytes(xyz: np.ndarray, rgb: np.ndarray) -> bytes:
+    """A binary PLY of ``xyz`` and ``rgb`` (for upload tests)."""
+    buf = io.BytesIO()
+    buf.write((f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\nproperty float x\n"
+               "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+               "property uchar blue\nend_header\n").encode())
+    rec = np.empty(len(xyz), [("p", "<f4", 3), ("c", "u1", 3)])
+    rec["p"], rec["c"] = xyz, rgb
+    buf.write(rec.tobytes())
+    return buf.getvalue()

@@ -1,0 +1,231 @@
+"""Compiled per-point passes of the ``layered`` splat (numba), bit-identical to the array version.
+
+The array version in :mod:`splat` spends most of a view on work that only a loop does well: fancy
+gathers of the visible points, a scatter-min (``np.minimum.at``), seven weighted ``np.bincount``
+calls and the temporaries between them. Here the same arithmetic runs as two loops over the culled,
+level-of-detail-trimmed runs of the block index (no index array is ever built):
+
+1. project every point, keep its target pixel, depth and quantised sub-pixel offset, and take the
+   per-pixel minimum depth;
+2. accumulate the front layer of each pixel (count, depth sum, colour sums, offset sums) and the
+   nearest point's id for the label image.
+
+Every operation reproduces the float32 / float64 rounding of the numpy expressions it replaces
+(NEP 50 promotion: float32 arrays with Python floats stay float32; ``u - iu`` is float64; the
+bincount sums are float64 in point order), so both paths give the same images bit for bit and the
+tests compare them exactly. The kernels release the GIL, so views of one step render on several
+threads at once.
+
+numba is optional: :data:`AVAILABLE` is False when it is not installed and the renderer falls back
+to the array path.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+try:  # pragma: no cover - exercised by whichever environment runs the tests
+    import numba
+
+    AVAILABLE = True
+except ImportError:  # pragma: no cover
+    numba = None
+    AVAILABLE = False
+
+
+# A pixel's colour sums share one int64 (21 bits each) and its offset sums another (32 bits
+# each): exact while no pixel's front layer holds more than this many points (255 * n < 2^21);
+# past it the caller falls back to the array code.
+MAX_FRONT_POINTS = (1 << 21) // 255 - 1
+
+
+def _front_pass(
+    x, y, z, rgb_packed, run_starts, run_counts, proj, near, far, w, h, tol_rel1, tol_abs, with_labels,
+):
+    """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
+
+    Returns, per padded pixel plus one miss bin: the minimum depth (float32 (P,)), the front-layer
+    sums as float32 rows (7, P) (count, depth, r, g, b, u, v: what ``accumulate_front`` returns),
+    the id of the nearest point (int64 (P,), largest id among ties, -1 where none), and whether
+    some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid)."""
+    wp = w + 2
+    npad = (h + 2) * wp
+    n = 0
+    for r in range(run_counts.shape[0]):
+        n += run_counts[r]
+    q_of = np.empty(n, np.int32)
+    z_of = np.empty(n, np.float32)
+    uv_of = np.empty(n, np.int32)  # qu + 256 qv
+    a0, a1, a2, a3 = proj[0], proj[1], proj[2], proj[3]
+    b0, b1, b2, b3 = proj[4], proj[5], proj[6], proj[7]
+    c0, c1, c2, c3 = proj[8], proj[9], proj[10], proj[11]
+    one = np.float32(1.0)
+    half = np.float32(0.5)
+    # Pass 1a, projection: branch-free over contiguous slices so that it vectorises. Points that
+    # miss the image (or the depth range) all go to the spare bin ``npad``, never read back;
+    # out-of-range depths divide by one instead, so u, v stay finite and convert safely.
+    k0 = 0
+    for r in range(run_counts.shape[0]):
+        s = run_starts[r]
+        m = run_counts[r]
+        xs, ys, zs = x[s : s + m], y[s : s + m], z[s : s + m]
+        qo, zo, uo = q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m]
+        for i in range(m):
+            px, py, pz = xs[i], ys[i], zs[i]
+            zc = px * c0 + py * c1 + pz * c2 + c3
+            in_range = (zc > near) & (zc < far)
+            inv = one / (zc if in_range else one)
+            u = (px * a0 + py * a1 + pz * a2 + a3) * inv
+            v = (px * b0 + py * b1 + pz * b2 + b3) * inv
+            fu = np.floor(u + half)
+            fv = np.floor(v + half)
+            valid = in_range & (fu >= -1) & (fu <= w) & (fv >= -1) & (fv <= h)
+            iu = np.int32(fu if valid else np.float32(-1.0))
+            iv = np.int32(fv if valid else np.float32(h + 1))  # (h + 2) * wp + 0 = npad
+            qo[i] = (iv + 1) * wp + (iu + 1)
+            du = min(max(np.float64(u) - np.float64(fu) + 0.5, 0.0), 1.0) * 255.0
+            dv = min(max(np.float64(v) - np.float64(fv) + 0.5, 0.0), 1.0) * 255.0
+            uo[i] = np.int32(np.rint(du)) + 256 * np.int32(np.rint(dv))
+            zo[i] = zc
+        k0 += m
+    # Pass 1b, per-pixel minimum depth.
+    zbuf = np.full(npad + 1, np.inf, np.float32)
+    for k in range(n):
+        q = q_of[k]
+        zbuf[q] = min(zbuf[q], z_of[k])
+    # Pass 2a, the front layer: points behind it go to the spare bin too (vectorises: a gather).
+    for k in range(n):
+        q = q_of[k]
+        q_of[k] = q if z_of[k] <= zbuf[q] * tol_rel1 + tol_abs else npad
+    # Pass 2b, sums. Depth sums are float64 in point order, exactly as ``np.bincount`` adds; the
+    # other sums are exact integers, packed so that a point touches two cache lines, not eight.
+    s_z = np.zeros(npad + 1, np.float64)
+    acc = np.zeros((npad + 1, 4), np.int64)  # count, packed rgb, packed uv, nearest id
+    acc[:, 3] = -1
+    k = 0
+    for r in range(run_counts.shape[0]):
+        s = run_starts[r]
+        for p in range(s, s + run_counts[r]):
+            t = q_of[k]
+            zc = z_of[k]
+            uv = np.int64(uv_of[k])
+            k += 1
+            c = np.int64(rgb_packed[p])
+            s_z[t] += np.float64(zc)
+            acc[t, 0] += 1
+            acc[t, 1] += (c & 0xFF) | (((c >> 8) & 0xFF) << 21) | ((c >> 16) << 42)
+            acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
+            if with_labels:
+                acc[t, 3] = max(acc[t, 3], p if zc == zbuf[t] else -1)
+    overflow = False
+    for i in range(npad):
+        overflow |= acc[i, 0] > MAX_FRONT_POINTS
+    sums = np.empty((7, npad + 1), np.float32)
+    best = np.empty(npad + 1, np.int64)
+    mask21 = (1 << 21) - 1
+    mask32 = (1 << 32) - 1
+    for i in range(npad + 1):
+        sums[0, i] = acc[i, 0]
+        sums[1, i] = s_z[i]
+        c = acc[i, 1]
+        sums[2, i] = c & mask21
+        sums[3, i] = (c >> 21) & mask21
+        sums[4, i] = (c >> 42) & mask21
+        uv = acc[i, 2]
+        sums[5, i] = uv & mask32
+        sums[6, i] = (uv >> 32) & mask32
+        best[i] = acc[i, 3]
+    return zbuf, sums, best, overflow
+
+
+def _compose(chans, gx, gy, zpad, lab_pad, tol_rel1, tol_abs, rgb_out, depth_out, hole_out, labels_out,
+             with_labels):
+    """The image-space half of ``layered`` (``SplatRenderer._layered`` and the code after it),
+    fused into one pass over the pixels: occlusion threshold from the 3x3 minimum depth, the nine
+    Gaussian-weighted surfel contributions in the same order and float32 rounding as the array
+    code, normalisation, and the nearest source's label. Writes into the ``*_out`` images."""
+    h, w = depth_out.shape
+    for i in range(h):
+        for j in range(w):
+            zmin = zpad[i, j]
+            for r in range(i, i + 3):
+                for c in range(j, j + 3):
+                    zmin = min(zmin, zpad[r, c])
+            thr = zmin * tol_rel1 + tol_abs
+            a0 = a1 = a2 = a3 = a4 = np.float32(0.0)
+            best_z = np.float32(0.0)
+            best_l = -1
+            first = True
+            for oy in range(-1, 2):
+                r = i + 1 - oy
+                for ox in range(-1, 2):
+                    c = j + 1 - ox
+                    zs = zpad[r, c]
+                    k = gx[ox + 1, r, c] * gy[oy + 1, r, c]
+                    k = k if zs <= thr else np.float32(0.0)
+                    a0 += chans[0, r, c] * k
+                    a1 += chans[1, r, c] * k
+                    a2 += chans[2, r, c] * k
+                    a3 += chans[3, r, c] * k
+                    a4 += chans[4, r, c] * k
+                    if with_labels and (first or zs < best_z):
+                        best_z = zs
+                        best_l = lab_pad[r, c]
+                    first = False
+            if a0 > 0:
+                hole_out[i, j] = False
+                depth_out[i, j] = a1 / a0
+                rgb_out[i, j, 0] = np.uint8(min(max(np.rint(a2 / a0), 0.0), 255.0))
+                rgb_out[i, j, 1] = np.uint8(min(max(np.rint(a3 / a0), 0.0), 255.0))
+                rgb_out[i, j, 2] = np.uint8(min(max(np.rint(a4 / a0), 0.0), 255.0))
+                if with_labels:
+                    labels_out[i, j] = best_l
+            else:
+                hole_out[i, j] = True
+                depth_out[i, j] = 0.0
+                rgb_out[i, j, 0] = rgb_out[i, j, 1] = rgb_out[i, j, 2] = 0
+                if with_labels:
+                    labels_out[i, j] = -1
+
+
+if AVAILABLE:
+    front_pass = numba.njit(nogil=True, cache=True, error_model="numpy")(_front_pass)
+    compose = numba.njit(nogil=True, cache=True, error_model="numpy")(_compose)
+else:  # pragma: no cover
+    front_pass = compose = None
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """uint8 (N, 3) -> int32 (N,) ``r | g << 8 | b << 16``: one load per point in the kernel."""
+    rgb = rgb.astype(np.int32)
+    return np.ascontiguousarray(rgb[:, 0] | (rgb[:, 1] << 8) | (rgb[:, 2] << 16))
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's on-disk cache) the kernels; returns the seconds it took.
+
+    A one-off per process: call it at service start so the first request does not pay for it."""
+    if not AVAILABLE:
+        return 0.0
+    import time
+
+    t0 = time.perf_counter()
+    xyz = np.zeros((1, 3), np.float32)
+    front_pass(
+        xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(1, np.int32), np.zeros(1, np.int64), np.ones(1, np.int64),
+        np.zeros(12, np.float32), np.float32(0.05), np.float32(20.0), 4, 4, np.float32(1.05), np.float32(0.1),
+        True,
+    )
+    f32 = np.ones((3, 6, 6), np.float32)
+    compose(
+        np.ones((5, 6, 6), np.float32), f32, f32, f32[0], np.zeros((6, 6), np.int64), np.float32(1.05),
+        np.float32(0.1), np.empty((4, 4, 3), np.uint8), np.empty((4, 4), np.float32), np.empty((4, 4), bool),
+        np.empty((4, 4), np.int32), True,
+    )
+    dt = time.perf_counter() - t0
+    log.debug("splat kernels ready in %.2f s", dt)
+    return dt

@@ -1,0 +1,118 @@
+"""The dashboard in a real headless Chromium: submit a mission, watch its steps appear.
+
+The gateway runs under uvicorn on 127.0.0.1 over a real zenoh bus; a scripted planner and
+reconstructor answer on a second zenoh session. Needs Debian's ``chromium`` and the ``playwright``
+package (no downloaded browser); skipped where either is missing.
+"""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from deploy.launcher import free_port
+from services.gateway.app import create_app
+from services.gateway.settings import GatewaySettings
+from services.gateway.testing import ScriptedPlanner, ScriptedReconstructor
+from shared.bus.config import ZenohSettings
+from shared.bus.typed import TypedBus
+
+pytestmark = pytest.mark.e2e
+
+CHROMIUM = "/usr/bin/chromium"
+LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+               "--disable-component-update", "--no-first-run"]
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _wait(pred, timeout_s: float, what: str):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return
+        time.sleep(0.05)
+    raise TimeoutError(f"{what} not within {timeout_s} s")
+
+
+@pytest.fixture
+def live_gateway(tmp_path):
+    uvicorn = pytest.importorskip("uvicorn")
+    from shared.bus.zenoh_bus import ZenohBus
+
+    zport, hport = free_port(), free_port()
+    services_bus = ZenohBus(ZenohSettings(listen=[f"tcp/127.0.0.1:{zport}"]))
+    typed = TypedBus(services_bus, "scripted")
+    recon = ScriptedReconstructor(typed)
+    recon.add_random("demo-house", 20_000)
+    planner = ScriptedPlanner(typed, steps=6, step_interval_s=0.6, candidates=3, image_px=128)
+    settings = GatewaySettings(instance="gw-e2e", host="127.0.0.1", port=hport, db_path=tmp_path / "gw.sqlite3",
+                               zenoh=ZenohSettings(connect=[f"tcp/127.0.0.1:{zport}"]), request_timeout_s=5.0)
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_config=None,
+                                           timeout_graceful_shutdown=2))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{hport}"
+
+    def ready():
+        try:
+            # Ready once the gateway answers and reaches the reconstructor over zenoh.
+            return httpx.get(f"{url}/maps", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    try:
+        _wait(ready, 30, "gateway up and connected")
+        yield url
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        planner.close()
+        recon.close()
+        services_bus.close()
+
+
+def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_path):
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1440, "height": 1250})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(f"{live_gateway}/dashboard")
+            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+            page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
+            page.click("#submit")
+            # Steps arrive live over SSE: the first while the mission still runs ...
+            page.wait_for_selector("#steps li[data-seq='1']", timeout=15_000)
+            assert page.text_content("#m-state") == "running"
+            # ... then the rest, with pictures, candidates and the decision's reasoning.
+            page.wait_for_selector("#m-state.succeeded", timeout=30_000)
+            page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
+            page.wait_for_function(
+                "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
+                timeout=10_000)
+            steps = page.locator("#steps li").count()
+            cards = page.locator(".cand").count()
+            reasoning = page.text_content("#decision .reason")
+            shot = page.screenshot(full_page=True)
+        finally:
+            browser.close()
+    assert steps == 8  # started, 6 steps, finished
+    assert cards == 3
+    assert "stop" in (reasoning or "").lower()
+    assert not errors, errors
+    (tmp_path / "dashboard.png").write_bytes(shot)
+    out = REPO / "runs" / "screenshots"
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(tmp_path / "dashboard.png", out / "dashboard.png")
+    # And what the browser saw is what the API kept.
+    record = httpx.get(f"{live_gateway}/missions?limit=1", timeout=5).json()["items"][0]
+    assert record["state"] == "succeeded" and record["step"] == 6
