@@ -18,6 +18,7 @@ from shared import keys
 from shared.bus.typed import TypedBus
 from shared.schemas import (
     BuildMapRequest, CameraIntrinsics, Candidate, CandidateSet, Frame, GeodesicReply, GeodesicRequest,
+    LoadSceneRequest,
     MapChunk, MapChunkRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
     Panorama, Ping, Pose, PoseReply, RecordReply, RecordRequest, RenderRequest, RenderResult, ResetRequest,
     SceneSummary, SpatialMapRequest, SpatialMapResult, TurnRequest, ViewPose,
@@ -75,6 +76,11 @@ class RobotClient:
 
     def scene(self) -> SceneSummary:
         return self.bus.request(self._k(keys.IO_SCENE), Ping(), SceneSummary, timeout_s=self.timeout_s)
+
+    def load_scene(self, scene: str) -> SceneSummary:
+        self._pose = None
+        return self.bus.request(self._k(keys.IO_LOAD_SCENE), LoadSceneRequest(scene=scene), SceneSummary,
+                                timeout_s=max(self.timeout_s, 120.0))
 
     def geodesic(self, start_m, goal_m) -> GeodesicReply:
         return self.bus.request(self._k(keys.IO_GEODESIC),

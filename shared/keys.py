@@ -100,6 +100,8 @@ IO_RECORD = Key(f"{_R}/io/record", "robot_io", Usage.QUERYABLE, "RecordRequest",
                 "start/stop recording a tour (frames published on IO_FRAMES)")
 IO_SCENE = Key(f"{_R}/io/scene", "robot_io", Usage.QUERYABLE, "Ping", "SceneSummary",
                "what the robot knows of its scene (rooms, labels, bounds)")
+IO_LOAD_SCENE = Key(f"{_R}/io/scene/load", "robot_io", Usage.QUERYABLE, "LoadSceneRequest", "SceneSummary",
+                    "load another scene (simulator backends; evaluation over many houses)")
 IO_POSE = Key(f"{_R}/io/pose", "robot_io", Usage.PUBLICATION, reply="Pose", doc="pose after every motion")
 IO_FRAMES = Key(f"{_R}/io/frames/{{recording}}", "robot_io", Usage.PUBLICATION, reply="Frame",
                 doc="recorded tour frames at a fixed rate")
@@ -145,3 +147,14 @@ MISSION_EVENTS = Key(f"{_R}/missions/{{mission}}/events", "planner", Usage.PUBLI
                      doc="mission events (started, step, finished, error)")
 
 CATALOGUE: tuple[Key, ...] = tuple(v for v in globals().values() if isinstance(v, Key))
+
+
+def markdown_table() -> str:
+    """The catalogue as the README's Markdown table (``python -m shared.keys``)."""
+    rows = ["| key expression | owner | usage | request | reply / sample |", "|---|---|---|---|---|"]
+    rows += [f"| `{k.template}` | {k.owner} | {k.usage} | {k.request or '-'} | {k.reply or '-'} |" for k in CATALOGUE]
+    return "\n".join(rows)
+
+
+if __name__ == "__main__":
+    print(markdown_table())

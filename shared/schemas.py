@@ -213,6 +213,12 @@ class SceneSummary(Message):
     start_pose: Pose | None = None
 
 
+class LoadSceneRequest(Message):
+    """Switch the simulator to another scene (generated:<seed>[:floors=2], or a mesh path)."""
+
+    scene: str = Field(min_length=1, max_length=1000)
+
+
 class GeodesicRequest(Message):
     start_m: tuple[float, float, float]
     goal_m: tuple[float, float, float]

@@ -19,7 +19,7 @@ from services.robot_io.core import ROBOTS, Robot
 from shared import keys
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    Frame, GeodesicReply, GeodesicRequest, MoveRequest, MoveResult, ObserveRequest, Panorama, Ping,
+    Frame, GeodesicReply, GeodesicRequest, LoadSceneRequest, MoveRequest, MoveResult, ObserveRequest, Panorama, Ping,
     PoseReply, RecordReply, RecordRequest, ResetRequest, RoomInfo, SceneSummary, TurnRequest,
 )
 
@@ -29,6 +29,10 @@ log = logging.getLogger(__name__)
 class RobotIoSettings(ServiceSettings):
     backend: str = Field("sim", description="robot backend (registered in services.robot_io.core.ROBOTS)")
     backend_config: dict[str, Any] = Field(default_factory=dict, description="the backend's typed config")
+
+
+def _config_fields(backend: str) -> set[str]:
+    return set(ROBOTS.config_class(backend).model_fields)
 
 
 def scene_summary(info: Any) -> SceneSummary:
@@ -96,6 +100,7 @@ class RobotIoService(Service):
         node.serve(keys.IO_RECORD.format(robot=r), RecordRequest, self.record, workers=1)
         node.serve(keys.IO_GEODESIC.format(robot=r), GeodesicRequest, self.geodesic, workers=2)
         node.serve(keys.IO_SCENE.format(robot=r), Ping, self.scene, workers=1)
+        node.serve(keys.IO_LOAD_SCENE.format(robot=r), LoadSceneRequest, self.load_scene, workers=1)
 
     def stop(self) -> None:
         with self._lock:
@@ -168,4 +173,17 @@ class RobotIoService(Service):
         return GeodesicReply(distance_m=d, path_m=None if path is None else np.asarray(path, np.float64))
 
     def scene(self, _: Ping) -> SceneSummary:
+        return scene_summary(self.robot.scene_info())
+
+    def load_scene(self, req: LoadSceneRequest) -> SceneSummary:
+        s: RobotIoSettings = self.settings  # type: ignore[assignment]
+        if "scene" not in _config_fields(s.backend):
+            raise ValueError(f"the {s.backend!r} robot backend cannot load scenes")
+        with self._lock:
+            if self._recordings:
+                raise ValueError("cannot switch scenes while a recording is on")
+            robot = ROBOTS.create(s.backend, {**s.backend_config, "scene": req.scene})  # fails before the swap
+            old, self.robot = self.robot, robot
+            old.close()
+        self._publish_pose()
         return scene_summary(self.robot.scene_info())

@@ -84,3 +84,15 @@ def test_downscale_keeps_field_of_view_geometry():
     assert small.rgb.shape == (32, 32, 3) and small.depth_m.shape == (32, 32)
     assert small.camera.hfov_deg == cam.hfov_deg
     assert small.camera.pinhole().fx == pytest.approx(cam.pinhole().fx / 4)
+
+
+def test_load_scene_switches_the_simulator_and_refuses_bad_specs(system):
+    bus = TypedBus(FakeBus(system))
+    robot = RobotClient(bus, "robot0")
+    before = robot.scene()
+    other = robot.load_scene("generated:3")
+    assert other.scene != before.scene
+    with pytest.raises(RemoteError):
+        robot.load_scene("/no/such/mesh.ply")
+    assert robot.scene().scene == other.scene  # a failed load leaves the current scene in place
+    robot.load_scene("generated:0")
