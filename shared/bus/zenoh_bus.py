@@ -94,6 +94,7 @@ class ZenohBus(Bus):
         return self._track(_Declared(*[self._declare_queryable(k, handler, disp) for k in all_keys], disp.close))
 
     def _declare_queryable(self, key: str, handler: QueryHandler, disp: Dispatcher):
+        reply_key = None if "*" in key else key
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else None
 
@@ -101,7 +102,8 @@ class ZenohBus(Bus):
                 try:
                     ok, out = run_query_handler(handler, str(query.key_expr), payload)
                     if ok:
-                        query.reply(key, out)
+                        # A queryable on a wildcard (ant/maps/*/info) answers on the concrete key asked.
+                        query.reply(reply_key if reply_key else str(query.key_expr), out)
                     else:
                         query.reply_err(out)
                 finally:

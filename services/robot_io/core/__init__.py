@@ -4,7 +4,18 @@ Pure Python (numpy / open3d / scipy / networkx); never imports zenoh. The bus ad
 (``services/robot_io/service.py``) decodes requests, calls these objects and encodes replies.
 """
 
-from .episodes import Episode, EpisodeDataset, generate_episodes, read_episodes, write_episodes
+from .episodes import (
+    Episode,
+    EpisodeDataset,
+    GroundTruth,
+    follow_path,
+    generate_episodes,
+    ground_truth_for,
+    read_episodes,
+    read_ground_truth,
+    write_episodes,
+    write_ground_truth,
+)
 from .errors import (
     EpisodeFormatError,
     EpisodeGenerationError,
@@ -15,6 +26,7 @@ from .errors import (
     SceneNotFoundError,
 )
 from .house import HouseSpec, generate_house
+from .info import ObjectInfo, RoomInfo, SceneInfo
 from .navgrid import AgentShape, NavGrid
 from .render import Intrinsics, RenderOutput, SceneRenderer
 from .robot import ROBOTS, Robot, SimConfig, SimRobot
@@ -23,8 +35,9 @@ from .sensors import SensorNoiseConfig
 
 __all__ = [
     "ROBOTS", "AgentShape", "Episode", "EpisodeDataset", "EpisodeFormatError", "EpisodeGenerationError",
-    "HouseSpec", "Intrinsics", "NavGrid", "NavigationError", "RenderOutput", "Robot", "RobotIOError", "Room",
-    "Scene", "SceneError", "SceneFormatError", "SceneNotFoundError", "SceneObject", "SceneRenderer",
-    "SensorNoiseConfig", "SimConfig", "SimRobot", "generate_episodes", "generate_house", "load_scene",
-    "read_episodes", "write_episodes",
+    "GroundTruth", "HouseSpec", "Intrinsics", "NavGrid", "NavigationError", "ObjectInfo", "RenderOutput", "Robot",
+    "RobotIOError", "Room", "RoomInfo", "Scene", "SceneError", "SceneFormatError", "SceneInfo", "SceneNotFoundError",
+    "SceneObject", "SceneRenderer", "SensorNoiseConfig", "SimConfig", "SimRobot", "follow_path", "generate_episodes",
+    "generate_house", "ground_truth_for", "load_scene", "read_episodes", "read_ground_truth", "write_episodes",
+    "write_ground_truth",
 ]

@@ -64,6 +64,17 @@ class MeshBuilder:
         self._labs.append(np.full(len(tris), self.label(label), dtype=np.int32))
         self._n += len(verts)
 
+    def _add_tris(self, tris: np.ndarray, color, label: str) -> None:
+        """tris (N, 3, 3), counter-clockwise seen from the side the normal points to."""
+        normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        cols = shade(np.asarray(color), normals)
+        self._verts.append(tris.reshape(-1, 3))
+        self._cols.append(np.repeat(cols, 3, axis=0))
+        self._tris.append(self._n + np.arange(3 * len(tris)).reshape(-1, 3))
+        self._labs.append(np.full(len(tris), self.label(label), dtype=np.int32))
+        self._n += 3 * len(tris)
+
     def box(self, lo, hi, color, label: str) -> None:
         """An axis-aligned box between corners ``lo`` and ``hi`` (metres)."""
         lo = np.asarray(lo, dtype=np.float64)
@@ -83,16 +94,16 @@ class MeshBuilder:
         bot = np.column_stack([cx + radius * ring[:, 0], cy + radius * ring[:, 1], np.full(segments, z0)])
         top = np.column_stack([cx + rt * ring[:, 0], cy + rt * ring[:, 1], np.full(segments, z1)])
         nxt = np.roll(np.arange(segments), -1)
-        sides = np.stack([bot, bot[nxt], top[nxt], top], axis=1)
-        self._add_quads(sides, color, label)
-        # Caps as fans of degenerate quads (a triangle repeated), so everything stays quads.
+        if rt > 0:
+            self._add_quads(np.stack([bot, bot[nxt], top[nxt], top], axis=1), color, label)
+        else:  # a cone: the quads' top edge collapses to the apex
+            self._add_tris(np.stack([bot, bot[nxt], top], axis=1), color, label)
+        # Caps as triangle fans; degenerate triangles would cost ray-casting time and show nothing.
         c_top = np.array([cx, cy, z1])
         c_bot = np.array([cx, cy, z0])
-        caps_t = np.stack([np.broadcast_to(c_top, top.shape), top, top[nxt], top[nxt]], axis=1)
-        caps_b = np.stack([np.broadcast_to(c_bot, bot.shape), bot[nxt], bot, bot], axis=1)
         if rt > 0:
-            self._add_quads(caps_t, color, label)
-        self._add_quads(caps_b, color, label)
+            self._add_tris(np.stack([np.broadcast_to(c_top, top.shape), top, top[nxt]], axis=1), color, label)
+        self._add_tris(np.stack([np.broadcast_to(c_bot, bot.shape), bot[nxt], bot], axis=1), color, label)
 
     def build(self):
         """(vertices (N,3), triangles (T,3), colours (N,3) float32, labels (T,), label_names)."""

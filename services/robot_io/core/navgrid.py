@@ -12,6 +12,9 @@ Built from the mesh alone (so it works for generated houses and scanned meshes a
    ``max_climb`` and ``height`` above it.
 4. **Graph.** 8-connected nodes whose heights differ by at most ``max_climb`` (diagonals only when
    both orthogonal neighbours exist, so paths never cut corners); stairs are ordinary edges.
+5. **Stray regions.** Disconnected regions that stand less than the agent height above the next
+   surface below (table, bed and counter tops) or are smaller than ``min_region_area_m2`` are
+   removed: only floors remain walkable.
 
 Geodesic distances are Dijkstra over that graph (distance fields cached per source node); paths are
 shortened by line-of-sight on the same grid. ``segment_clear`` is the collision model that
@@ -57,6 +60,7 @@ class NavGrid:
         max_slope_deg: float = 30.0,
         obstacle_density_per_m2: float = 1500.0,
         seed: int = 0,
+        min_region_area_m2: float = 1.0,
     ):
         self.agent = agent
         self.cell_m = float(cell_m)
@@ -87,6 +91,9 @@ class NavGrid:
         self._prune_footprint()
         self._prune_obstacles(v[nz < cos_slope], area2[nz < cos_slope] / 2.0, obstacle_density_per_m2, seed)
         self._build_graph()
+        self.min_region_area_m2 = float(min_region_area_m2)
+        if self._drop_stray_regions():
+            self._build_graph()
         self._fields: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         log.info(
             "nav grid %dx%d @ %.2f m: %d nodes, %d components, main %.1f m2",
@@ -122,6 +129,16 @@ class NavGrid:
             zp[lag:] = z[:-lag]
             cand = prev_same & (zp > z + 1e-3) & ~np.isfinite(z_above)
             z_above[cand] = zp[cand]
+        # Height above the next surface below: a walkable region that stands less than the agent's
+        # height above something (a table or bed top) is furniture, not floor.
+        z_below = np.full(len(z), -np.inf)
+        for lag in (1, 2, 3):
+            nxt_same = np.zeros(len(z), dtype=bool)
+            nxt_same[:-lag] = ray_ids[:-lag] == ray_ids[lag:]
+            zn = np.full(len(z), -np.inf)
+            zn[:-lag] = z[lag:]
+            cand = nxt_same & (zn < z - 1e-3) & ~np.isfinite(z_below)
+            z_below[cand] = zn[cand]
         # A floor face coincident with a downward face (the bottom of a box standing on it) is covered.
         tied_down = np.zeros(len(z), dtype=bool)
         for lag in (1, 2):
@@ -150,6 +167,9 @@ class NavGrid:
         self._zgrid = np.full((nx_ * ny_, self.levels), np.nan)
         self._zgrid[col, k] = zz
         self._zgrid = self._zgrid.reshape(nx_, ny_, self.levels)
+        self._gapgrid = np.full((nx_ * ny_, self.levels), np.inf)
+        self._gapgrid[col, k] = zz - z_below[ok]
+        self._gapgrid = self._gapgrid.reshape(nx_, ny_, self.levels)
 
     def _node_arrays(self):
         ix, iy, k = np.nonzero(~np.isnan(self._zgrid))
@@ -247,6 +267,33 @@ class NavGrid:
         sizes = np.bincount(self.component, minlength=self.n_components)
         self.main_component = int(np.argmax(sizes)) if n else -1
         self._tree = cKDTree(self.nodes_m * np.array([1.0, 1.0, 4.0]))  # floors far apart in z
+
+    def _drop_stray_regions(self) -> int:
+        """Remove walkable regions that are not floor: furniture tops and specks; returns how many.
+
+        A region other than the largest goes when it is smaller than ``min_region_area_m2`` or when
+        it stands (median over its cells) less than the agent's height above the next surface
+        below it: a table, bed or counter top, which a real agent cannot climb onto anyway. Floors
+        of other storeys and rooms cut off in a scan stand a storey high or on the ground, and stay.
+        """
+        if self.n_components <= 1:
+            return 0
+        ix, iy, k = self._ijk.T
+        gap = self._gapgrid[ix, iy, k]
+        sizes = np.bincount(self.component, minlength=self.n_components)
+        area = sizes * self.cell_m**2
+        order = np.argsort(self.component, kind="stable")
+        starts = np.r_[0, np.cumsum(sizes)[:-1]]
+        median_gap = np.array([np.median(gap[order[a : a + n]]) for a, n in zip(starts, sizes)])
+        largest = int(np.argmax(sizes))
+        drop = (area < self.min_region_area_m2) | (median_gap < self.agent.height_m)
+        drop[largest] = False
+        if not drop.any():
+            return 0
+        gone = drop[self.component]
+        self._zgrid[ix[gone], iy[gone], k[gone]] = np.nan
+        log.debug("dropped %d stray walkable regions (%d cells)", int(drop.sum()), int(gone.sum()))
+        return int(drop.sum())
 
     # --- queries -------------------------------------------------------------------------------------
 

@@ -1,10 +1,17 @@
 """RGB-D-semantic rendering of a :class:`Scene` with open3d's Embree ray caster.
 
-All views of a request are cast in one ``cast_rays`` call. Ray directions are the camera's unit-z
-pixel rays rotated into the world, so the returned hit parameter *is* the z-depth (open3d measures
-``t_hit`` in units of the direction's length); no per-pixel division is needed. Colour is the
-barycentric interpolation of vertex colours, or a texture lookup through the triangle UVs; meshes
-whose triangles are flat-coloured (the procedural houses) take a single gather per pixel.
+The hot path (a 12-view panorama is ~0.8 M rays) is organised around what Embree needs and what
+numpy does fast:
+
+* **Rays in one GEMM.** The camera-frame pixel rays are cached per intrinsics in homogeneous form
+  ``(x, y, 1, 1)``; one batched matmul with a ``(B, 4, 6)`` matrix per view writes the whole
+  ``(B, H*W, 6)`` origin + direction buffer in place (origin from the 4th column, direction =
+  rotation of the unit-z ray). Directions have unit camera-z, so the ``t_hit`` open3d returns *is*
+  the z-depth; no per-pixel division.
+* **One cast.** All views go to one ``cast_rays`` call (Embree parallelises across them).
+* **Lookups, not maths.** Colour (flat, barycentric vertex colours or texture), labels and the
+  zeroing of misses are table lookups per pixel, fused into one compiled pass
+  (:mod:`.shading`; numpy fallback with identical output).
 """
 
 from __future__ import annotations
@@ -20,11 +27,9 @@ import open3d as o3d
 from shared.geometry import PinholeCamera, camera_pose
 
 from .scene import Scene
+from .shading import ShadingTables, shade
 
 log = logging.getLogger(__name__)
-
-_INVALID = np.uint32(0xFFFFFFFF)
-
 
 @dataclass
 class RenderOutput:
@@ -52,19 +57,31 @@ class Intrinsics:
 
 
 @lru_cache(maxsize=16)
-def _pixel_rays(k: Intrinsics) -> np.ndarray:
-    u = np.arange(k.width_px, dtype=np.float32)
-    v = np.arange(k.height_px, dtype=np.float32)
-    uu, vv = np.meshgrid(u, v)
-    rays = np.stack([(uu - k.cx) / k.fx, (vv - k.cy) / k.fy, np.ones_like(uu)], axis=-1)
+def _homogeneous_rays(k: Intrinsics) -> np.ndarray:
+    """(H*W, 4) float32 rows ``(x, y, 1, 1)``: the unit-z pixel ray plus a 1 that picks up the origin."""
+    u = (np.arange(k.width_px, dtype=np.float64) - k.cx) / k.fx
+    v = (np.arange(k.height_px, dtype=np.float64) - k.cy) / k.fy
+    rays = np.ones((k.height_px, k.width_px, 4), dtype=np.float32)
+    rays[:, :, 0] = u[None, :]
+    rays[:, :, 1] = v[:, None]
+    rays = rays.reshape(-1, 4)
     rays.setflags(write=False)
     return rays
 
 
-class SceneRenderer:
-    """Casts camera rays into one scene; thread-compatible (one Embree scene, read-only after build)."""
+def ray_matrices(world_from_camera: np.ndarray) -> np.ndarray:
+    """(B, 4, 6) float32 maps from homogeneous pixel rays to ``[origin, direction]`` per pose."""
+    poses = np.asarray(world_from_camera, dtype=np.float64).reshape(-1, 4, 4)
+    m = np.zeros((len(poses), 4, 6), dtype=np.float32)
+    m[:, 3, :3] = poses[:, :3, 3]
+    m[:, :3, 3:] = np.transpose(poses[:, :3, :3], (0, 2, 1))
+    return m
 
-    def __init__(self, scene: Scene, nthreads: int = 0):
+
+class SceneRenderer:
+    """Casts camera rays into one scene; thread-safe (one Embree scene, read-only after build)."""
+
+    def __init__(self, scene: Scene, nthreads: int = 0, use_kernel: bool = True):
         self.scene = scene
         self.nthreads = nthreads
         self._rc = o3d.t.geometry.RaycastingScene()
@@ -72,14 +89,9 @@ class SceneRenderer:
         mesh.vertex.positions = o3d.core.Tensor(scene.vertices.astype(np.float32))
         mesh.triangle.indices = o3d.core.Tensor(scene.triangles.astype(np.int32))
         self._rc.add_triangles(mesh)
-        tri_cols = scene.vertex_colors[scene.triangles]  # (T, 3 corners, 3)
-        # Flat-coloured meshes skip the barycentric blend: one gather instead of three.
-        self._flat = bool(np.all(np.abs(tri_cols - tri_cols[:, :1]).max(axis=(1, 2)) < 1.0 / 512))
-        # uint8 colour per corner (+ a black row for misses), float for blending
-        self._tri_rgb = np.vstack([np.round(tri_cols[:, 0] * 255).astype(np.uint8), np.zeros((1, 3), np.uint8)])
-        self._tri_cols = np.ascontiguousarray(tri_cols, dtype=np.float32)
-        self._labels = np.append(scene.triangle_labels, np.int32(-1)).astype(np.int32)
-        self._tex = scene.texture
+        self._tables = ShadingTables.build(scene.vertex_colors, scene.triangles, scene.triangle_labels, scene.texture)
+        self.use_kernel = use_kernel
+        self._tri_mean: np.ndarray | None = None
         self._normals = None
         self._buf: np.ndarray | None = None
         self._lock = threading.Lock()
@@ -88,12 +100,22 @@ class SceneRenderer:
     def raycasting_scene(self) -> o3d.t.geometry.RaycastingScene:
         return self._rc
 
+    @property
+    def triangle_count(self) -> int:
+        return self._tables.miss_row
+
     def triangle_normals(self) -> np.ndarray:
         if self._normals is None:
             v = self.scene.vertices[self.scene.triangles]
             n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
             self._normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         return self._normals
+
+    def triangle_colors(self) -> np.ndarray:
+        """(T, 3) float32 mean vertex colour of each triangle, in [0, 1]."""
+        if self._tri_mean is None:
+            self._tri_mean = self.scene.vertex_colors[self.scene.triangles].mean(axis=1).astype(np.float32)
+        return self._tri_mean
 
     # --- ray casting ---------------------------------------------------------------------------------
 
@@ -119,53 +141,20 @@ class SceneRenderer:
         single = poses.ndim == 2
         poses = poses[None] if single else poses
         b, h, w = len(poses), k.height_px, k.width_px
-        rays_cam = _pixel_rays(k).reshape(-1, 3)
+        mats = ray_matrices(poses)
         with self._lock:
-            # A reused ray buffer: fresh 20 MB allocations per panorama cost as much as the maths.
+            # A reused ray buffer: a fresh 20 MB allocation per panorama costs as much as the maths.
             if self._buf is None or self._buf.shape != (b, h * w, 6):
                 self._buf = np.empty((b, h * w, 6), np.float32)
-            buf = self._buf
-            for i in range(b):
-                buf[i, :, :3] = poses[i, :3, 3]
-                np.matmul(rays_cam, poses[i, :3, :3].T.astype(np.float32), out=buf[i, :, 3:])
-            hit = self._rc.cast_rays(o3d.core.Tensor.from_numpy(buf), nthreads=self.nthreads)
+            np.matmul(_homogeneous_rays(k)[None], mats, out=self._buf)
+            hit = self._rc.cast_rays(o3d.core.Tensor.from_numpy(self._buf), nthreads=self.nthreads)
         depth = hit["t_hit"].numpy().reshape(b, h, w)
         prim = hit["primitive_ids"].numpy().reshape(b, h, w)
-        miss = prim == _INVALID
-        depth[miss] = 0.0  # t_hit is the z-depth because the directions have unit z
-        prim[miss] = len(self._labels) - 1  # the extra "miss" row of every lookup table
-        rgb = self._colour(prim, miss, hit)
-        sem = self._labels[prim] if with_semantic else None
+        uv = hit["primitive_uvs"].numpy().reshape(b, h, w, 2)
+        rgb, sem = shade(self._tables, prim, uv, depth, with_semantic, use_kernel=self.use_kernel)
         if single:
             return RenderOutput(rgb[0], depth[0], None if sem is None else sem[0])
         return RenderOutput(rgb, depth, sem)
-
-    def _colour(self, pid: np.ndarray, miss: np.ndarray, hit) -> np.ndarray:
-        if self._flat and self._tex is None:
-            return self._tri_rgb[pid]
-        uv = hit["primitive_uvs"].numpy().reshape(*pid.shape, 2)
-        safe = np.where(miss, 0, pid)
-        w1, w2 = uv[..., 0:1], uv[..., 1:2]
-        w0 = 1.0 - w1 - w2
-        c = self._tri_cols[safe]  # (..., 3 corners, 3)
-        rgb = w0 * c[..., 0, :] + w1 * c[..., 1, :] + w2 * c[..., 2, :]
-        rgb = np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        if self._tex is not None:
-            mids = self._tex.material_ids[safe]
-            tuv = self._tex.triangle_uvs[safe]  # (..., 3, 2)
-            st = w0 * tuv[..., 0, :] + w1 * tuv[..., 1, :] + w2 * tuv[..., 2, :]
-            for m, img in enumerate(self._tex.images):
-                sel = (mids == m) & ~miss
-                if not sel.any():
-                    continue
-                h, w = img.shape[:2]
-                s = st[sel]
-                # Repeat-wrap like GL_REPEAT; glTF/OBJ v runs upwards, image rows downwards.
-                px = np.floor((s[:, 0] % 1.0) * w).astype(np.int64).clip(0, w - 1)
-                py = np.floor((1.0 - (s[:, 1] % 1.0)) * h).astype(np.int64).clip(0, h - 1)
-                rgb[sel] = img[py, px]
-        rgb[miss] = 0
-        return rgb
 
     def render_views(
         self,

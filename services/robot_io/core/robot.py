@@ -45,6 +45,7 @@ from shared.registry import BackendConfig, Registry
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose
 
 from .errors import NavigationError, RobotIOError
+from .info import SceneInfo
 from .navgrid import AgentShape, NavGrid
 from .render import SceneRenderer
 from .scene import Scene, load_scene
@@ -89,8 +90,8 @@ class Robot(ABC):
         """Place the agent at ``pose`` (snapped to walkable ground) or the scene's start pose."""
 
     @abstractmethod
-    def scene_info(self) -> dict:
-        """What the robot knows about its world (name, bounds, rooms, labels); JSON-serialisable."""
+    def scene_info(self) -> SceneInfo:
+        """What the robot knows about its world: name, bounds, rooms, objects, labels, walkable area."""
 
     @abstractmethod
     def recording(self, sink: FrameSink, rate_hz: float = 10.0) -> contextlib.AbstractContextManager[None]:
@@ -187,26 +188,8 @@ class SimRobot(Robot):
         """Simulated time (s) since creation; advances with motion."""
         return self._clock_s
 
-    def scene_info(self) -> dict:
-        lo, hi = self.scene.bounds_m
-        return {
-            "name": self.scene.name,
-            "source": self.scene.source,
-            "floors": self.scene.floors,
-            "bounds_min_m": [float(v) for v in lo],
-            "bounds_max_m": [float(v) for v in hi],
-            "label_names": {int(k): v for k, v in self.scene.label_names.items()},
-            "rooms": [
-                {"name": r.name, "type": r.room_type, "floor": r.floor, "min_xy_m": list(r.min_xy_m), "max_xy_m": list(r.max_xy_m), "floor_z_m": r.floor_z_m}
-                for r in self.scene.rooms
-            ],
-            "objects": [
-                {"id": o.object_id, "label": o.label, "colour": o.colour, "room": o.room, "position_m": list(o.position_m), "size_m": list(o.size_m)}
-                for o in self.scene.objects
-            ],
-            "reachable_area_m2": self.nav.reachable_area_m2,
-            "start_pose": self.scene.start_pose.model_dump() if self.scene.start_pose else None,
-        }
+    def scene_info(self) -> SceneInfo:
+        return SceneInfo.from_scene(self.scene, self.nav)
 
     def reset(self, pose: Pose | None = None) -> Pose:
         if pose is None:

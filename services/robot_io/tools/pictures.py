@@ -38,7 +38,7 @@ def top_view(robot: SimRobot, floor_z_m: float, px_per_m: float = 40.0) -> tuple
     hit = robot.renderer.cast(origins, dirs)
     prim = hit["primitive_ids"]
     miss = prim == np.uint32(0xFFFFFFFF)
-    tri_rgb = robot.renderer._tri_cols.mean(axis=1)
+    tri_rgb = robot.renderer.triangle_colors()
     rgb = np.zeros((h, w, 3), np.float32)
     rgb[~miss] = tri_rgb[prim[~miss]]
     # Shade by height so furniture stands out from the floor.

@@ -8,7 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from services.robot_io.core.episodes import Episode, generate_episodes, read_episodes, write_episodes
+from services.robot_io.core.episodes import (
+    Episode,
+    generate_episodes,
+    ground_truth_for,
+    read_episodes,
+    read_ground_truth,
+    write_episodes,
+    write_ground_truth,
+)
 from services.robot_io.core.errors import SceneNotFoundError
 from shared.schemas import Pose
 
@@ -74,3 +82,44 @@ def test_generated_episodes(house_robot, tmp_path):
     # The same seed gives the same episodes.
     ds2 = generate_episodes(house_robot.scene, house_robot.nav, 6, seed=2)
     assert [e.raw for e in ds2.episodes] == [e.raw for e in ds.episodes]
+
+
+GT = "r2r_ce/R2R_VLNCE_v1-3_preprocessed_val_unseen_gt.json.gz"
+
+
+def test_real_ground_truth_round_trips_exactly(shared_data, tmp_path):
+    src = shared_data / GT
+    gt = read_ground_truth(src)
+    assert len(gt) == 1839
+    out = write_ground_truth(gt, tmp_path / "gt.json.gz")
+    with gzip.open(src, "rb") as a, gzip.open(out, "rb") as b:
+        assert a.read() == b.read()
+    # Locations start at the episode start (world frame), one per forward step plus the start.
+    eps = read_episodes(shared_data / R2R).by_id()
+    for key in list(gt)[:50]:
+        rec, ep = gt[key], eps[int(key)]
+        assert np.allclose(rec.locations_m[0], ep.start_pose.xyz)
+        assert len(rec.locations_m) == rec.forward_steps + 1 == rec.actions.count(1) + 1
+        assert rec.actions[-1] == 0 and np.linalg.norm(rec.locations_m[-1] - ep.goal_m) < 0.5
+
+
+def test_generated_ground_truth_follows_the_oracle(house_robot, tmp_path):
+    ds = generate_episodes(house_robot.scene, house_robot.nav, 3, seed=4)
+    gt = ground_truth_for(ds, house_robot.nav)
+    assert list(gt) == [str(e.episode_id) for e in ds.episodes]
+    for ep in ds.episodes:
+        rec = gt[str(ep.episode_id)]
+        locs = rec.locations_m
+        assert np.allclose(locs[0][:2], ep.start_pose.xyz[:2])
+        assert rec.actions[-1] == 0 and 0 not in rec.actions[:-1] and set(rec.actions) <= {0, 1, 2, 3}
+        assert len(locs) == rec.forward_steps + 1
+        steps = np.linalg.norm(np.diff(locs[:, :2], axis=0), axis=1)
+        assert np.all(steps <= 0.25 + 1e-6) and np.median(steps) > 0.24
+        assert np.linalg.norm(locs[-1][:2] - ep.goal_m[:2]) <= 0.5
+        assert all(house_robot.nav.is_navigable(p) for p in locs)
+        # An oracle on the shortest path walks little more than the geodesic distance.
+        assert steps.sum() < ep.geodesic_distance_m + 1.0
+    out = write_ground_truth(gt, tmp_path / "gt.json.gz")
+    again = read_ground_truth(out)
+    assert {k: v.raw for k, v in again.items()} == {k: v.raw for k, v in gt.items()}
+    assert write_ground_truth(again, tmp_path / "gt2.json.gz").read_bytes() == out.read_bytes()

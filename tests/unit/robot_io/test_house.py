@@ -95,3 +95,31 @@ def test_export_ply_roundtrip(tmp_path):
     m = o3d.io.read_triangle_mesh(str(path))
     assert len(m.triangles) == len(s.triangles)
     assert np.allclose(np.asarray(m.vertex_colors), s.vertex_colors, atol=1 / 255)
+
+
+def test_room_names_are_numbered_per_type_only_when_repeated():
+    for spec in ("generated:0", "generated:1:floors=2"):
+        rooms = [r for r in generate_house(spec).rooms if r.room_type != "staircase"]
+        names = [r.name for r in rooms]
+        assert len(set(names)) == len(names)
+        for t in {r.room_type for r in rooms}:
+            same = [r.name for r in rooms if r.room_type == t]
+            # "bedroom", "bedroom 2", "bedroom 3": the first has no number, the others count up per type.
+            assert same == [t] + [f"{t} {k}" for k in range(2, len(same) + 1)], same
+
+
+@pytest.mark.parametrize("fixture", ["house_robot", "two_floor_robot"])
+def test_furniture_tops_are_not_walkable(fixture, request):
+    robot = request.getfixturevalue(fixture)
+    nav = robot.nav
+    assert nav.n_components == 1
+    # Every walkable cell is floor or stairs: at a storey's floor height, or inside the stairwell.
+    floors = np.array(sorted({r.floor_z_m for r in robot.scene.rooms}))
+    on_floor = np.min(np.abs(nav.nodes_m[:, 2:3] - floors[None, :]), axis=1) < 0.05
+    stairs = [r for r in robot.scene.rooms if r.room_type == "staircase"]
+    in_stairwell = np.zeros(len(nav.nodes_m), dtype=bool)
+    for r in stairs:
+        in_stairwell |= np.all((nav.nodes_m[:, :2] >= r.min_xy_m) & (nav.nodes_m[:, :2] <= r.max_xy_m), axis=1)
+    assert np.all(on_floor | in_stairwell)
+    # Tables and beds exist in these houses, so the rule above had something to reject.
+    assert any(o.label in ("table", "bed", "coffee table") for o in robot.scene.objects)

@@ -166,3 +166,25 @@ def test_registry_and_missing_scene(tmp_path):
     with pytest.raises(SceneNotFoundError) as exc:
         ROBOTS.create("sim", {"scene": "mp3d/abc/abc.glb", "scenes_dir": str(tmp_path)})
     assert "abc.glb" in str(exc.value) and str(tmp_path) in str(exc.value)
+
+
+def test_scene_info_is_typed_and_json_friendly(two_floor_robot):
+    import json
+
+    from services.robot_io.core.info import SceneInfo
+
+    info = two_floor_robot.scene_info()
+    assert isinstance(info, SceneInfo)
+    scene = two_floor_robot.scene
+    assert info.floors == 2 and info.triangle_count == len(scene.triangles)
+    assert [r.name for r in info.rooms] == [r.name for r in scene.rooms]
+    assert len(info.objects) == len(scene.objects) >= 15
+    assert info.objects[0].description == scene.objects[0].description
+    assert info.label_names[scene.label_id("wall")] == "wall"
+    assert info.reachable_area_m2 == pytest.approx(two_floor_robot.nav.reachable_area_m2) and info.reachable_area_m2 > 50
+    lo, hi = scene.bounds_m
+    assert info.bounds_min_m == pytest.approx(tuple(lo)) and info.bounds_max_m == pytest.approx(tuple(hi))
+    dumped = info.model_dump()
+    assert dumped["rooms"][0]["room_type"] and dumped["start_pose"]["position_m"] == scene.start_pose.position_m
+    text = json.dumps(info.model_dump(mode="json"))
+    assert SceneInfo.model_validate_json(text) == info
