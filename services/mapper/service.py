@@ -89,14 +89,17 @@ class MapperService(Service):
             robot = RobotClient(node.bus, node.robot, observe_camera=cam)
             cfg = DiscoveryConfig.model_validate(req.options.get("discovery", {}))
             cfg.exploration.max_steps = req.max_steps
-            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={"phase": "exploring"})
+            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING,
+                        data={"stage": "exploring", "progress": 0.02, "message": "frontier DFS over waypoints"})
             disc = discover(robot, cfg)
             node.bus.publish(keys.MAPPER_GRAPH.format(robot=node.robot), disc.nav_graph())
             for tour in disc.tour_messages():
                 node.bus.publish(keys.MAPPER_TOURS.format(robot=node.robot, region=str(tour.region)), tour)
-            explored = {"phase": "touring", "nodes": len(disc.result.graph.graph),
-                        "regions": len(disc.tours), "timings_s": disc.timings_s}
-            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data=explored)
+            explored = {"nodes": len(disc.result.graph.graph), "regions": len(disc.tours),
+                        "timings_s": {k: round(v, 3) for k, v in disc.timings_s.items()}}
+            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
+                "stage": "touring", "progress": 0.3, **explored,
+                "message": f"explored {explored['nodes']} nodes; recording {len(disc.tours)} region tours"})
 
             recordings: list[TourRecording] = []
 
@@ -105,9 +108,10 @@ class MapperService(Service):
                 recordings.append(TourRecording(exploration_id=req.exploration_id, recording=last.recording,
                                                 region=rec.region, start_pose=rec.start_pose,
                                                 frame_count=last.frame_count))
-                events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING,
-                            data={"phase": "touring", "region": rec.region, "frames": last.frame_count,
-                                  "done": len(recordings), "of": len(disc.tours)})
+                events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
+                    "stage": "touring", "progress": 0.3 + 0.5 * len(recordings) / max(1, len(disc.tours)),
+                    "region": rec.region, "frames": last.frame_count,
+                    "message": f"region {rec.region}: {last.frame_count} frames ({len(recordings)}/{len(disc.tours)})"})
 
             class _Recorder:
                 # execute_tours opens robot.recording(sink, rate); route it to robot-io's recorder
@@ -120,19 +124,20 @@ class MapperService(Service):
                                            recording=f"{req.exploration_id}-r{len(recordings)}")
 
             execute_tours(_Recorder(), disc.tours, disc.scene, rate_hz=s.tour_rate_hz, on_recording=on_recording)
-            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING,
-                        data={"phase": "reconstructing", "recordings": len(recordings)})
+            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
+                "stage": "reconstructing", "progress": 0.85,
+                "message": f"reconstructing {len(recordings)} regions"})
             scene = robot.scene()
             info = MapClient(node.bus).build(BuildMapRequest(
                 exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
                 reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
                 label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene}"))
             events.emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, data={
-                "map_id": info.map_id, "version": info.version, "points": info.point_count,
+                "stage": "done", "progress": 1.0, "map_id": info.map_id, "version": info.version, "points": info.point_count,
                 "regions": len(recordings), "wall_s": round(time.perf_counter() - t0, 2),
                 "exploration": explored,
             })
         except (RemoteError, Exception) as exc:  # a failed job ends with a reason, never silently
             log.exception("exploration %s failed", req.exploration_id)
             events.emit(MissionEventKind.ERROR, MissionState.FAILED,
-                        data={"reason": f"{type(exc).__name__}: {exc}"})
+                        data={"error": f"{type(exc).__name__}: {exc}"})

@@ -128,20 +128,22 @@ class PlannerService(Service):
                 cancel=cancel, label_names=info.label_names, jpeg=jpeg,
             )
             out = loop.run(req.mission_id, req.instruction, req.map_id, opts)
-            data = {"stop_called": out.stop_called, "steps": out.steps, "reason": out.reason,
+            data = {"stop_called": out.stop_called, "steps": out.steps,
                     "trajectory_m": out.trajectory_m.tolist(), "metrics": out.metrics,
                     "usage": policy.usage.to_dict(),
                     "step_latency_s": [round(x, 4) for x in out.step_latency_s]}
+            if out.reason:
+                data["error"] = out.reason
             events.emit(MissionEventKind.FINISHED, out.state, step=out.steps, data=data)
         except MissionCancelled:
-            events.emit(MissionEventKind.FINISHED, MissionState.CANCELLED, data={"reason": "cancelled"})
+            events.emit(MissionEventKind.FINISHED, MissionState.CANCELLED, data={"message": "cancelled on request"})
         except RemoteError as exc:
             log.warning("mission %s failed: %s", req.mission_id, exc)
             events.emit(MissionEventKind.ERROR, MissionState.FAILED,
-                        data={"reason": f"a service did not answer properly: {exc}"})
+                        data={"error": f"a service did not answer properly: {exc}"})
         except Exception as exc:
             log.exception("mission %s failed", req.mission_id)
-            events.emit(MissionEventKind.ERROR, MissionState.FAILED, data={"reason": f"{type(exc).__name__}: {exc}"})
+            events.emit(MissionEventKind.ERROR, MissionState.FAILED, data={"error": f"{type(exc).__name__}: {exc}"})
         finally:
             if policy is not None:
                 policy.close()

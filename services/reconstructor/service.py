@@ -1,18 +1,153 @@
-"""reconstructor service: the bus adapter around its core (decode request -> call core -> encode reply)."""
+"""reconstructor service: collects recorded tours, builds grounded maps, owns the map store.
+
+* subscribes to every robot's tour frames (``IO_FRAMES``) and keeps them per recording;
+* ``MAP_BUILD``: waits for a build request's recordings to be complete, reconstructs, aligns and
+  integrates them (the core), stores the map atomically and announces it on ``MAP_UPDATED``;
+* ``MAP_LIST`` / ``MAP_INFO`` / ``MAP_CHUNK`` / ``MAP_IMPORT``: the map store over the bus.
+"""
 
 from __future__ import annotations
 
+import logging
+import threading
+import time
+from collections import OrderedDict
+
+from pydantic import Field
+
+from services.reconstructor.core import (
+    DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig, Reconstructor, region_from_frames,
+)
+from shared import keys
+from shared.bus.typed import NotFound
 from shared.runner import Node, Service, ServiceSettings
+from shared.schemas import (
+    BuildMapRequest, Frame, MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, Ping,
+)
+
+log = logging.getLogger(__name__)
 
 
-class ReconstructorServiceSettings(ServiceSettings):
-    pass
+class ReconstructorSettings(ServiceSettings):
+    store_dir: str = Field("runs/maps", description="where maps are stored (a volume in production)")
+    frame_buffer_mb: int = Field(2048, ge=16, description="recorded frames kept in memory, all recordings")
+    frames_timeout_s: float = Field(30.0, gt=0, description="wait this long for a recording's last frames")
+    merge_voxel_m: float = Field(0.03, gt=0, le=1.0)
+
+
+class FrameBuffer:
+    """Frames per recording, oldest recordings dropped first when over the memory budget."""
+
+    def __init__(self, budget_bytes: int):
+        self.budget = budget_bytes
+        self._lock = threading.Condition()
+        self._recs: OrderedDict[str, dict[int, Frame]] = OrderedDict()
+        self._bytes = 0
+
+    @staticmethod
+    def _size(f: Frame) -> int:
+        return sum(a.nbytes for a in (f.rgb, f.depth_m, f.semantic) if a is not None)
+
+    def add(self, recording: str, frame: Frame) -> None:
+        with self._lock:
+            frames = self._recs.setdefault(recording, {})
+            if frame.index in frames:
+                return  # a duplicate delivery
+            frames[frame.index] = frame
+            self._bytes += self._size(frame)
+            while self._bytes > self.budget and len(self._recs) > 1:
+                old, dropped = self._recs.popitem(last=False)
+                self._bytes -= sum(self._size(f) for f in dropped.values())
+                log.warning("frame buffer full: dropped recording %s (%d frames)", old, len(dropped))
+            self._lock.notify_all()
+
+    def wait(self, recording: str, count: int, timeout_s: float) -> list[Frame]:
+        """The recording's frames in order, once ``count`` arrived (or what there is at the deadline)."""
+        end = time.monotonic() + timeout_s
+        with self._lock:
+            while len(self._recs.get(recording, {})) < count:
+                left = end - time.monotonic()
+                if left <= 0:
+                    break
+                self._lock.wait(left)
+            frames = self._recs.get(recording, {})
+            return [frames[i] for i in sorted(frames)]
+
+    def drop(self, recording: str) -> None:
+        with self._lock:
+            frames = self._recs.pop(recording, {})
+            self._bytes -= sum(self._size(f) for f in frames.values())
 
 
 class ReconstructorService(Service):
     name = "reconstructor"
-    Settings = ReconstructorServiceSettings
+    Settings = ReconstructorSettings
+
+    def __init__(self, settings: ReconstructorSettings):
+        super().__init__(settings)
+        self.store = MapStore(settings.store_dir)
+        self.frames = FrameBuffer(settings.frame_buffer_mb * 1024 * 1024)
+        self._node: Node | None = None
+
+    def backends(self) -> dict[str, str]:
+        return {"reconstruction": DEFAULT_RECONSTRUCTOR, "store": str(self.store.root)}
 
     def start(self, node: Node) -> None:
-        # info and metrics queryables and the liveliness token come from the runner.
-        pass
+        self._node = node
+        node.own(node.bus.subscribe(keys.IO_FRAMES.pattern(), Frame, self._on_frame))
+        node.serve(keys.MAP_LIST.format(), Ping, self.list_maps)
+        node.serve(keys.MAP_INFO.pattern(), MapRequest, self.info)
+        node.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self.chunk)
+        node.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self.import_map, workers=1)
+        node.serve(keys.MAP_BUILD.pattern(), BuildMapRequest, self.build, workers=1)
+
+    def _on_frame(self, key: str, frame: Frame) -> None:
+        self.frames.add(key.rsplit("/", 1)[-1], frame)
+
+    # --- the store -----------------------------------------------------------------------------------
+    def list_maps(self, _: Ping) -> MapListReply:
+        return MapListReply(maps=self.store.list())
+
+    def info(self, req: MapRequest) -> MapInfo:
+        try:
+            return self.store.info(req.map_id, req.version)
+        except MapNotFoundError as exc:
+            raise NotFound(str(exc)) from None
+
+    def chunk(self, req: MapChunkRequest) -> MapChunk:
+        try:
+            return self.store.chunk(req.map_id, req.version, req.index, req.max_points)
+        except MapNotFoundError as exc:
+            raise NotFound(str(exc)) from None
+
+    def import_map(self, req: MapImportRequest) -> MapInfo:
+        info = self.store.import_cloud(req.map_id, req.data, filename=req.filename)
+        self._announce(info)
+        return info
+
+    def _announce(self, info: MapInfo) -> None:
+        self._node.bus.publish(keys.MAP_UPDATED.format(map=info.map_id), info)
+
+    # --- building ------------------------------------------------------------------------------------
+    def build(self, req: BuildMapRequest) -> MapInfo:
+        keys.validate_segment(req.map_id, "map id")
+        if not req.recordings:
+            raise ValueError("a build needs at least one recording")
+        s: ReconstructorSettings = self.settings  # type: ignore[assignment]
+        regions = []
+        for rec in req.recordings:
+            frames = self.frames.wait(rec.recording, rec.frame_count, s.frames_timeout_s)
+            if len(frames) < rec.frame_count:
+                log.warning("recording %s: %d of %d frames arrived", rec.recording, len(frames), rec.frame_count)
+            regions.append(region_from_frames(rec.region, rec.start_pose, frames))
+        config = ReconstructionConfig.model_validate(
+            {"backend": req.reconstruction, "merge_voxel_m": s.merge_voxel_m, **req.options})
+        with Reconstructor(config) as recon:
+            built = recon.build(regions, req.label_names)
+        info = self.store.save(req.map_id, built.cloud, source=req.source or f"exploration {req.exploration_id}",
+                               regions=len(built.regions), scale_factors=built.scale_factors,
+                               timings_s=built.timings_s, details=built.details())
+        for rec in req.recordings:
+            self.frames.drop(rec.recording)
+        self._announce(info)
+        return info

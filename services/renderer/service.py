@@ -28,8 +28,8 @@ log = logging.getLogger(__name__)
 
 
 class RendererSettings(ServiceSettings):
-    backend: str = Field("numpy", description="splatting backend: numpy or torch (CUDA when present)")
-    backend_config: dict[str, Any] = Field(default_factory=dict)
+    splat_backend: str = Field("numpy", description="splatting backend: numpy or torch (CUDA when present)")
+    splat_config: dict[str, Any] = Field(default_factory=dict)
     cache_maps: int = Field(4, ge=1, le=64, description="indexed maps kept in memory")
 
 
@@ -95,12 +95,12 @@ class RendererService(Service):
 
     def __init__(self, settings: RendererSettings):
         super().__init__(settings)
-        self.renderer = RENDERERS.create(settings.backend, settings.backend_config or None)
+        self.renderer = RENDERERS.create(settings.splat_backend, settings.splat_config or None)
         self.mapper = SpatialMapper()
         self.cache: MapCache | None = None
 
     def backends(self) -> dict[str, str]:
-        return {"splat": self.settings.backend}
+        return {"splat": self.settings.splat_backend}
 
     def start(self, node: Node) -> None:
         # Compile the splatting kernels now, not on the first request of a mission.

@@ -27,8 +27,9 @@ log = logging.getLogger(__name__)
 
 
 class RobotIoSettings(ServiceSettings):
-    backend: str = Field("sim", description="robot backend (registered in services.robot_io.core.ROBOTS)")
-    backend_config: dict[str, Any] = Field(default_factory=dict, description="the backend's typed config")
+    # Field names are unique across services so that one environment can configure them all.
+    robot_backend: str = Field("sim", description="robot backend (registered in services.robot_io.core.ROBOTS)")
+    robot_config: dict[str, Any] = Field(default_factory=dict, description="the backend's typed config")
 
 
 def _config_fields(backend: str) -> set[str]:
@@ -79,14 +80,14 @@ class RobotIoService(Service):
 
     def __init__(self, settings: RobotIoSettings, robot: Robot | None = None):
         super().__init__(settings)
-        self.robot = robot or ROBOTS.create(settings.backend, settings.backend_config)
+        self.robot = robot or ROBOTS.create(settings.robot_backend, settings.robot_config)
         # One body: motions, observations and recordings are serialised.
         self._lock = threading.RLock()
         self._recordings: dict[str, tuple[Any, list[int]]] = {}
         self._node: Node | None = None
 
     def backends(self) -> dict[str, str]:
-        return {"robot": self.settings.backend}
+        return {"robot": self.settings.robot_backend}
 
     def start(self, node: Node) -> None:
         self._node = node
@@ -177,12 +178,12 @@ class RobotIoService(Service):
 
     def load_scene(self, req: LoadSceneRequest) -> SceneSummary:
         s: RobotIoSettings = self.settings  # type: ignore[assignment]
-        if "scene" not in _config_fields(s.backend):
-            raise ValueError(f"the {s.backend!r} robot backend cannot load scenes")
+        if "scene" not in _config_fields(s.robot_backend):
+            raise ValueError(f"the {s.robot_backend!r} robot backend cannot load scenes")
         with self._lock:
             if self._recordings:
                 raise ValueError("cannot switch scenes while a recording is on")
-            robot = ROBOTS.create(s.backend, {**s.backend_config, "scene": req.scene})  # fails before the swap
+            robot = ROBOTS.create(s.robot_backend, {**s.robot_config, "scene": req.scene})  # fails before the swap
             old, self.robot = self.robot, robot
             old.close()
         self._publish_pose()

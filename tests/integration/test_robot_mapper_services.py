@@ -20,7 +20,7 @@ CAM = {"width_px": 64, "height_px": 64, "hfov_deg": 90.0}
 @pytest.fixture(scope="module")
 def system():
     net = FakeNetwork()
-    robot_settings = RobotIoSettings(instance="io-1", backend_config={"scene": "generated:0", "camera": CAM})
+    robot_settings = RobotIoSettings(instance="io-1", robot_config={"scene": "generated:0", "camera": CAM})
     with RunningService(RobotIoService(robot_settings), FakeBus(net)), \
             RunningService(MapperService(MapperSettings(instance="m-1")), FakeBus(net)):
         yield net

@@ -119,7 +119,8 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
                     if f.index not in seen:
                         sink(f)
                 rec.hubs_visited += 1
-    rec.frames = frames
+    # The sink and the look-around return interleave: the reconstructor wants the video in time order.
+    rec.frames = sorted(frames, key=lambda f: (f.timestamp_s, f.index))
     log.info(
         "region %d: %d frames, %d hubs, %.1f m, %d blocked",
         tour.region, len(frames), rec.hubs_visited, rec.travelled_m, rec.blocked_moves,

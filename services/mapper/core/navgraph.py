@@ -34,6 +34,11 @@ class GridGraph:
         self.dz_m = dz_m
         self.g = nx.Graph()
 
+    @property
+    def graph(self) -> nx.Graph:
+        """The underlying networkx graph (alias of ``g``)."""
+        return self.g
+
     def node_id(self, position_m) -> str:
         """The voxel id of a position: ``"ix_iy_iz"``."""
         x, y, z = (float(v) for v in position_m)

@@ -71,6 +71,8 @@ class GeometricPredictorConfig(BackendConfig):
     body_height_m: float = Field(1.5, gt=0.1, le=3.0)
     max_step_m: float = Field(0.22, gt=0.0, le=1.0)
     max_slope_deg: float = Field(38.0, ge=0.0, le=60.0)
+    confirm_rise_m: float = Field(0.25, gt=0.0, le=2.0)  # further climb that proves a blind rise is stairs
+    flight_spread_deg: float = Field(20.0, ge=0.0, le=90.0)  # a confirmed flight vouches this far aside
     profile_bin_m: float = Field(0.1, gt=0.01, le=0.5)
     sensor_range_m: float = Field(5.0, gt=0.0)
     pixel_stride: int = Field(2, ge=1, le=16)
@@ -147,21 +149,37 @@ class GeometricPredictor:
         top = np.full(views * cols * nb, -np.inf)
         np.maximum.at(top, flat, height[inband])
         top = top.reshape(views * cols, nb)
+        bottom = np.full(views * cols * nb, np.inf)
+        np.minimum.at(bottom, flat, height[inband])
+        # A bin whose points span more height than a step plus the steepest slope is a vertical
+        # face (a wall, a sofa front): never walkable, whatever blind stretch came before it.
+        vertical = (top - bottom.reshape(views * cols, nb)) > (
+            c.max_step_m + math.tan(math.radians(c.max_slope_deg)) * c.profile_bin_m
+        )
 
         # Walk outward along each column: the ground may rise by less than a step per profile bin
         # (stairs, ramps); the first bin whose highest point rises more than that is the obstacle.
         # Points above the body band were dropped above, so ceilings and lamps never block.
         # The camera cannot see the floor right in front of the feet (and far rows are sparse), so
-        # the first surface after a blind stretch may already be a few treads up a staircase: it is
-        # accepted when it lies under the steepest walkable slope, tentatively - if the surface
-        # then drops away, it was furniture.
+        # the first surface after a blind stretch may already be a few treads up a staircase - or
+        # the top of a bed whose front edge hides in the blind zone. Such a rise is accepted only
+        # tentatively: it must be *confirmed* by the ground climbing on by ``confirm_rise_m``
+        # (more treads), and a surface that stays flat, drops away or ends at a wall was furniture.
         n_col = views * cols
         ground = np.zeros(n_col)
         hit = np.full(n_col, np.inf)
         open_ = np.ones(n_col, dtype=bool)
         last_r = np.zeros(n_col)  # range of the last surface seen (the feet at first)
-        tentative = np.full(n_col, np.inf)
+        tentative = np.full(n_col, np.inf)  # where an unconfirmed climb's obstacle would stand
+        tent_z = np.zeros(n_col)
+        tent_first = np.full(n_col, np.inf)  # where that raised surface was first seen
+        strict = np.zeros(n_col, dtype=bool)  # the pending climb's edge hid in the blind zone
+        climbed = np.zeros(n_col, dtype=bool)  # a blind-zone climb was confirmed: a flight
+        doubt = np.full(n_col, np.inf)  # unconfirmed climb: where it was first seen
         tan_slope = math.tan(math.radians(c.max_slope_deg))
+        # Lowest sampled ray: a surface of height t is visible from range (cam_h - t) / low_tan on.
+        low_tan = max(float(yn.max()), 1e-3)
+        near_edge_m = c.clearance_m + c.profile_bin_m
         for b in range(nb):
             t = top[:, b]
             seen = np.isfinite(t) & open_
@@ -172,15 +190,42 @@ class GeometricPredictor:
             # Over a stretch nobody saw (pixel rows are sparse far away), the ground may have
             # climbed as much as the steepest walkable slope allows.
             slope_ok = rise <= c.max_step_m + tan_slope * np.maximum(r_b - last_r - c.profile_bin_m, 0.0)
-            blocked = seen & (rise > c.max_step_m) & ~slope_ok
-            dropped = seen & (rise < -c.max_step_m) & np.isfinite(tentative)
-            hit[blocked] = r_b
-            hit[dropped] = tentative[dropped]
+            pending = np.isfinite(tentative)
+            confirmed = seen & pending & (t >= tent_z + c.confirm_rise_m) & (rise <= c.max_step_m)
+            tentative[confirmed] = np.inf
+            climbed |= confirmed & strict
+            strict[confirmed] = False
+            pending &= ~confirmed
+            blocked = seen & (rise > c.max_step_m) & (~slope_ok | vertical[:, b])
+            dropped = seen & (rise < -c.max_step_m) & pending
+            unconfirmed = blocked & pending & strict
+            hit[blocked] = np.where(unconfirmed[blocked], tentative[blocked], r_b)
+            doubt[unconfirmed] = tent_first[unconfirmed]
+            # A surface that drops away again is a step-up/step-down block; its far edge decides
+            # nothing, and a flight seen from its side drops too: stop where it was first seen.
+            hit[dropped] = tent_first[dropped]
             open_ &= ~(blocked | dropped)
-            tentative[seen & slope_ok & (rise > c.max_step_m)] = r_b
+            new_tent = seen & open_ & slope_ok & (rise > c.max_step_m) & ~pending
+            if new_tent.any():
+                # Where did the raised surface begin? Seen well past the range from which the
+                # lowest ray would have caught it, it begins where it was first seen; otherwise its
+                # edge hides in the blind stretch, assumed just beyond the body.
+                visible_from = (c.camera_height_m - t) / low_tan
+                hidden = r_b <= visible_from + 2.0 * c.profile_bin_m
+                edge = np.where(hidden, np.maximum(last_r, np.minimum(r_b, near_edge_m)), r_b)
+                tentative[new_tent] = edge[new_tent]
+                tent_z[new_tent] = t[new_tent]
+                tent_first[new_tent] = r_b
+                strict[new_tent] = hidden[new_tent]
             walk = seen & open_ & (rise > -4.0 * c.max_step_m)
             ground[walk] = t[walk]
             last_r[seen] = r_b
+        # A climb out of the blind zone never confirmed by the end of what the column saw was
+        # furniture, not stairs. (Far climbs after a sparse-row gap are judged by the drop alone:
+        # above the camera only risers are visible, so a flight's top never looks confirmed.)
+        left = open_ & np.isfinite(tentative) & strict
+        hit[left] = tentative[left]
+        doubt[left] = tent_first[left]
         hit = hit.reshape(views, cols)
 
         # Column azimuth relative to the agent heading; views look at headings_rad[i].
@@ -188,6 +233,19 @@ class GeometricPredictor:
         az = wrap_angle(heads[:, None] - col_angle[None, :])
         step = 2.0 * math.pi / c.angle_bins
         abin = np.round(az / step).astype(np.int64) % c.angle_bins
+        # An unconfirmed climb beside a confirmed flight is the same flight seen at a slant (its
+        # side wall ends the column early): trust where it was first seen, not the blind edge.
+        flight = np.zeros(c.angle_bins, dtype=bool)
+        flight[abin.ravel()[climbed]] = True
+        if flight.any():
+            half = max(1, int(round(c.flight_spread_deg / (360.0 / c.angle_bins))))
+            near = np.zeros_like(flight)
+            for k in range(-half, half + 1):
+                near |= np.roll(flight, k)
+            relax = near[abin].ravel() & np.isfinite(doubt)
+            hit = hit.ravel()
+            hit[relax] = doubt[relax]
+            hit = hit.reshape(views, cols)
         out = np.full(c.angle_bins, np.inf)
         np.minimum.at(out, abin.ravel(), hit.ravel())
         covered = np.zeros(c.angle_bins, dtype=bool)
@@ -211,7 +269,9 @@ class GeometricPredictor:
         d = np.where(finite, obstacle_m[None, :], 0.0)
         lateral = d * self._sin
         along = d * self._cos
-        touches = finite & (lateral < radius_m) & (along > -radius_m)
+        # Only obstacles ahead matter: moving away from a point never brings the disc closer, even
+        # when the robot already stands nearer to it than the radius (the body sizes differ).
+        touches = finite & (lateral < radius_m) & (along > 0.0)
         stop = along - np.sqrt(np.maximum(radius_m**2 - lateral**2, 0.0))
         stop = np.where(touches, stop, np.inf)
         free = np.min(stop, axis=1)

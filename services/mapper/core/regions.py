@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import ConvexHull, QhullError
 
 from services.mapper.core.explorer import ExplorationResult
 from services.mapper.core.navgraph import NodeStatus
@@ -28,7 +29,10 @@ class RegionConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     floor_gap_m: float = Field(0.3, gt=0.0)  # heights closer than this are one level
-    floor_min_nodes: int = Field(3, ge=1)
+    # A level is a floor only with enough nodes spread over enough area: a stairwell landing or a
+    # pause on the flight is not one (stair-run nodes are left out before levels are counted).
+    floor_min_nodes: int = Field(5, ge=1)
+    floor_min_area_m2: float = Field(6.0, ge=0.0)  # convex hull of the level's nodes
     stair_min_rise_m: float = Field(0.1, gt=0.0)  # a move rising this much is vertical
     stair_min_total_m: float = Field(0.5, gt=0.0)  # a run of vertical moves this tall is stairs
     occupancy_cell_m: float = Field(0.1, gt=0.0)
@@ -59,16 +63,45 @@ class SceneMap:
     node_region: dict[str, int] = field(default_factory=dict)
 
 
-def detect_floors(z_m: np.ndarray, gap_m: float, min_nodes: int) -> list[float]:
-    """Levels where heights pile up: single-linkage clusters of sorted z, big enough ones kept."""
-    z = np.sort(np.asarray(z_m, dtype=np.float64))
+def detect_floors(
+    z_m: np.ndarray,
+    gap_m: float,
+    min_nodes: int,
+    xy_m: np.ndarray | None = None,
+    min_area_m2: float = 0.0,
+) -> list[float]:
+    """Levels where heights pile up: single-linkage clusters of sorted z, big enough ones kept.
+
+    With ``xy_m`` (N, 2) a level must also spread over ``min_area_m2`` (convex hull of its nodes).
+    When no cluster qualifies the most populated one is the only floor.
+    """
+    z = np.asarray(z_m, dtype=np.float64)
     if len(z) == 0:
         return []
-    splits = np.nonzero(np.diff(z) > gap_m)[0] + 1
-    levels = [float(np.median(c)) for c in np.split(z, splits) if len(c) >= min_nodes]
+    order = np.argsort(z, kind="stable")
+    zs = z[order]
+    splits = np.nonzero(np.diff(zs) > gap_m)[0] + 1
+    groups = np.split(order, splits)
+    levels = []
+    for grp in groups:
+        if len(grp) < min_nodes:
+            continue
+        if xy_m is not None and min_area_m2 > 0 and _hull_area(np.asarray(xy_m)[grp]) < min_area_m2:
+            continue
+        levels.append(float(np.median(z[grp])))
     if not levels:
-        levels = [float(np.median(z))]
+        biggest = max(groups, key=len)
+        levels = [float(np.median(z[biggest]))]
     return levels
+
+
+def _hull_area(xy: np.ndarray) -> float:
+    if len(xy) < 3:
+        return 0.0
+    try:
+        return float(ConvexHull(xy).volume)  # a 2-D hull's "volume" is its area
+    except QhullError:
+        return 0.0  # collinear nodes: a corridor one node wide has no area to speak of
 
 
 def detect_stair_positions(trajectory_m: np.ndarray, min_rise_m: float, min_total_m: float) -> np.ndarray:
@@ -100,20 +133,21 @@ def analyse(result: ExplorationResult, config: RegionConfig | None = None) -> Sc
     g = gg.g
     visited = gg.nodes_with(NodeStatus.VISITED)
     vpos = gg.positions(visited)
-    levels = detect_floors(vpos[:, 2], cfg.floor_gap_m, cfg.floor_min_nodes)
+    stair_pts = detect_stair_positions(result.trajectory_m, cfg.stair_min_rise_m, cfg.stair_min_total_m)
+    on_run = np.zeros(len(visited), dtype=bool)
+    if len(stair_pts) and len(vpos):
+        d = np.linalg.norm(vpos[:, None, :] - stair_pts[None, :, :], axis=2)
+        on_run = d.min(axis=1) < gg.dxy_m
+    # Stair-run nodes first out, then the levels: a pause on the flight never makes a floor.
+    keep = ~on_run if (~on_run).any() else np.ones(len(vpos), dtype=bool)
+    levels = detect_floors(vpos[keep, 2], cfg.floor_gap_m, cfg.floor_min_nodes,
+                           vpos[keep, :2], cfg.floor_min_area_m2) if len(vpos) else [0.0]
 
     stairs: set[str] = set()
     if len(vpos):
         dist = np.abs(vpos[:, 2:3] - np.array(levels)[None, :])
         nearest = dist.argmin(axis=1)
         off_floor = dist.min(axis=1) > cfg.floor_gap_m
-        stair_pts = detect_stair_positions(
-            result.trajectory_m, cfg.stair_min_rise_m, cfg.stair_min_total_m
-        )
-        on_run = np.zeros(len(visited), dtype=bool)
-        if len(stair_pts):
-            d = np.linalg.norm(vpos[:, None, :] - stair_pts[None, :, :], axis=2)
-            on_run = d.min(axis=1) < gg.dxy_m
         lv = np.array(levels)
         for k, nid in enumerate(visited):
             f = int(nearest[k])
@@ -128,7 +162,9 @@ def analyse(result: ExplorationResult, config: RegionConfig | None = None) -> Sc
     angles = result.scan_angles_rad
     floors: list[Floor] = []
     for fi, z in enumerate(levels):
-        scans = [s for s in result.scans if abs(s.position_m[2] - z) <= cfg.floor_gap_m]
+        # Scans taken on the flight see the stairwell as walkable ground of this floor: left out.
+        scans = [s for s in result.scans
+                 if abs(s.position_m[2] - z) <= cfg.floor_gap_m and s.node not in stairs]
         if scans:
             occ = build_occupancy(
                 np.stack([s.position_m for s in scans]),

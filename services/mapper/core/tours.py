@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage, sparse
-from scipy.sparse.csgraph import dijkstra
+from scipy.sparse.csgraph import connected_components, dijkstra
 
 from shared.schemas import Pose, Tour
 
@@ -269,9 +269,12 @@ class TourPlanner:
         rnode = _cells_of(occ, npos, rflat, reach, snap_m=cfg.clearance_m + 0.5)
         if not (rnode >= 0).any():
             raise PlanningError("no region node has the required clearance")
+        # One tour walks one connected piece of reachable space: the piece that holds most of the
+        # region's nodes (a sliver cut off by furniture would need a hub the robot cannot reach).
         seeds = rnode[rnode >= 0]
-        dseed = dijkstra(rg, indices=seeds, min_only=True)
-        connected = np.isfinite(dseed)
+        _, comp = connected_components(rg, directed=False)
+        main = np.bincount(comp[seeds]).argmax()
+        connected = comp == main
         region_mask = np.zeros(free.shape, dtype=bool)
         region_mask.ravel()[target_flat] = True
         # Hubs stand in the region's own cells (walking slightly into a doorway is fine).
@@ -284,8 +287,13 @@ class TourPlanner:
 
         t0 = time.perf_counter()
         vis = visibility(occ, hubs_c, targets, cfg.vis_radius_m, cfg.vis_rays)
-        achievable = float(vis.any(axis=0).mean())
-        chosen, coverage = greedy_set_cover(vis, cfg.tau, clear[hubs_c[:, 0], hubs_c[:, 1]])
+        # Cells that no reachable standpoint sees (behind furniture, beyond a gap in a wall) cannot
+        # be recorded by any tour: tau applies to the coverable cells, the coverage reported is of
+        # all the region's cells.
+        coverable = vis.any(axis=0)
+        achievable = float(coverable.mean())
+        chosen, rel = greedy_set_cover(vis[:, coverable], cfg.tau, clear[hubs_c[:, 0], hubs_c[:, 1]])
+        coverage = rel * achievable
         if not chosen:
             raise PlanningError("no hub sees any cell of the region")
         hv = vis[chosen].astype(np.float32)

@@ -15,6 +15,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
 
 from shared.geometry import PinholeCamera  # noqa: E402
 from shared.schemas import CameraIntrinsics  # noqa: E402
@@ -61,8 +63,29 @@ def render(d: Discovery, out_png: Path) -> Path:
             ax.annotate(f"R{pt.tour.region} {pt.tour.coverage:.2f}", hubs[0, :2], fontsize=8, zorder=6)
         ax.set_title(f"floor {fl.index} (z={fl.z_m:.2f} m)")
         ax.set_aspect("equal")
+        # Zoom on what was explored: the occupancy grid is padded by the sensor range.
+        known = np.argwhere(occ.cells != 0)
+        if len(known):
+            lo = occ.origin_m + known.min(axis=0) * occ.cell_m - 0.5
+            hi = occ.origin_m + (known.max(axis=0) + 1) * occ.cell_m + 0.5
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    handles = [
+        Line2D([], [], marker="o", ls="", color="0.6", mec="k", label="visited node (colour = region)"),
+        Line2D([], [], marker="^", ls="", color="0.6", mec="k", label="stair node"),
+        Line2D([], [], marker="x", ls="", color="red", label="unreachable candidate"),
+        Line2D([], [], color="0.45", lw=0.8, label="traversed edge"),
+        Line2D([], [], marker="*", ls="-", ms=12, color="tab:blue", mec="k", label="hubs + tour (label: region, coverage)"),
+        Patch(facecolor="white", edgecolor="0.5", label="free"),
+        Patch(facecolor="0.1", label="occupied"),
+        Patch(facecolor="0.75", label="unknown"),
+    ]
+    ncol = 4 if len(floors) > 1 else 2
+    fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
     fig.suptitle(f"{d.result.steps} steps, {len(d.scene.regions)} regions, {len(d.tours)} tours")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07 if len(floors) > 1 else 0.13, 1, 1))
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=110)
     plt.close(fig)

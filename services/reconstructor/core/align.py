@@ -1,0 +1,209 @@
+"""Cross-modal metric alignment and global pose integration (paper 4.2).
+
+For a regional cloud: render a forward-facing RGB image and depth map at the local origin with the
+renderer's Gaussian splatting; among the video frames at the start of the path, pick the one whose
+RGB is most similar (SSIM averaged over the three channels); take that frame's metric depth from a
+metric-depth backend; the scale is ``delta = mean(metric / rendered)`` over the pixels where neither
+has a hole (the median is reported too). The matched frame's heading relative to the start heading
+is ``theta_t``. Then ``W_global = R_z(theta0 + theta_t) (delta W_local) + p0``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+from skimage.metrics import structural_similarity
+
+from services.renderer.core import RENDERERS, IndexedCloud, PointCloud
+from shared.geometry import camera_rotation, rot_z, wrap_angle
+from shared.registry import BackendConfig
+
+from .depth import MetricDepth
+from .errors import AlignmentError
+from .frames import PosedImage, RegionInput
+from .regional import RegionalCloud
+
+log = logging.getLogger(__name__)
+
+# The forward render must not depend on the cloud's unknown scale: relative occlusion tolerance
+# only, and clip planes far outside any scale a network could produce.
+_SCALE_FREE_SPLAT = {
+    "near_m": 1e-4, "far_m": 1e5, "depth_tolerance_m": 0.0, "depth_tolerance_rel": 0.05,
+    "lod_points_per_px": None,
+}
+
+
+class AlignmentConfig(BackendConfig):
+    """How the forward view is rendered, matched and turned into a scale."""
+
+    renderer: str = "numpy"
+    renderer_config: dict = Field(default_factory=dict)  # overrides of the scale-free splat settings
+    match_radius_m: float = Field(0.3, gt=0.0)  # candidate frames: camera this close to the start camera
+    match_window: int = Field(400, ge=1)  # ... among the first this many frames of the recording
+    max_pitch_deg: float = Field(10.0, ge=0.0, le=90.0)  # ... and about level, like the render
+    statistic: Literal["mean", "median"] = "mean"  # the paper's delta is the mean ratio
+    min_valid_fraction: float = Field(0.02, gt=0.0, le=1.0)
+    # Omega also leaves out pixels at depth discontinuities and beside holes, where a splat or a
+    # sensor mixes two surfaces: their ratio measures the mix, not the scale. A pixel is an edge
+    # when its 3x3 neighbourhood's max/min depth exceeds 1 + this (scale-free); None keeps them.
+    edge_rel: float | None = Field(0.1, gt=0.0)
+    # "auto": apply theta_t only to non-metric clouds, whose frame orientation is unknown; a metric
+    # backend already works in the start pose's frame (theta_t is still measured and reported).
+    use_matched_heading: Literal["auto", "always", "never"] = "auto"
+
+
+@dataclass
+class AlignmentReport:
+    """What alignment found for one region (JSON-friendly via :meth:`as_dict`)."""
+
+    region: int
+    matched_index: int  # Frame.index of the matched frame
+    ssim: float
+    theta_t_rad: float
+    theta_applied_rad: float
+    delta_mean: float
+    delta_median: float
+    delta_applied: float
+    valid_fraction: float
+    candidates: int
+    metric_backend: str
+    render_s: float
+    match_s: float
+    depth_s: float
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class MetricAligner:
+    """Renders, matches and scales regional clouds; one instance serves many regions."""
+
+    def __init__(self, config: AlignmentConfig | None, depth: MetricDepth):
+        self.config = cfg = config or AlignmentConfig()
+        self.depth = depth
+        self.renderer = RENDERERS.create(cfg.renderer, {**_SCALE_FREE_SPLAT, **cfg.renderer_config})
+
+    def candidates(self, region: RegionInput, pitch_rad: float = 0.0) -> list[PosedImage]:
+        """Frames at the start of the path (the paper's frames 'at the start position') pitched
+        like the forward render (level for robot recordings)."""
+        cfg = self.config
+        cam0 = region.start_pose.xyz + np.array([0.0, 0.0, region.camera_height_m])
+        max_pitch = math.radians(cfg.max_pitch_deg)
+        out = [
+            im for im in region.images[: cfg.match_window]
+            if np.linalg.norm(im.position_m - cam0) <= cfg.match_radius_m
+            and abs(im.pitch_rad - pitch_rad) <= max_pitch
+        ]
+        if not out:
+            raise AlignmentError(
+                f"region {region.region}: no level frame within {cfg.match_radius_m} m of the path start"
+            )
+        return out
+
+    def align(self, region: RegionInput, regional: RegionalCloud) -> AlignmentReport:
+        cfg = self.config
+        if len(regional.cloud) == 0:
+            raise AlignmentError(f"region {region.region}: empty regional cloud")
+        cands = self.candidates(region, regional.camera_pitch_rad)
+        cam = cands[0].camera
+        cands = [im for im in cands if im.camera == cam]
+        t0 = time.perf_counter()
+        view = self.forward_view(regional, cam)
+        rgb_f, depth_f, hole_f = view.rgb[0], view.depth_m[0], view.hole_mask[0]
+        t1 = time.perf_counter()
+        scores = np.array([_ssim_rgb(rgb_f, im.rgb) for im in cands])
+        best = int(np.argmax(scores))
+        matched = cands[best]
+        t2 = time.perf_counter()
+        metric = self.depth.depth(matched)
+        t3 = time.perf_counter()
+        valid = (~hole_f) & (depth_f > 0) & np.isfinite(metric) & (metric > 0)
+        if cfg.edge_rel is not None:
+            valid &= ~_edges(np.where(valid, depth_f, 0.0), cfg.edge_rel)
+            valid &= ~_edges(np.where(valid, metric, 0.0), cfg.edge_rel)
+        frac = float(valid.mean())
+        if frac < cfg.min_valid_fraction or valid.sum() < 16:
+            raise AlignmentError(
+                f"region {region.region}: only {frac:.1%} of the forward view has both rendered and metric depth"
+            )
+        ratio = metric[valid].astype(np.float64) / depth_f[valid].astype(np.float64)
+        d_mean, d_median = float(ratio.mean()), float(np.median(ratio))
+        if regional.metric:
+            applied = 1.0
+        else:
+            applied = d_mean if cfg.statistic == "mean" else d_median
+        theta_t = float(wrap_angle(matched.imu_heading_rad - region.images[0].imu_heading_rad))
+        use = cfg.use_matched_heading == "always" or (cfg.use_matched_heading == "auto" and not regional.metric)
+        rep = AlignmentReport(
+            region=region.region, matched_index=matched.index, ssim=float(scores[best]),
+            theta_t_rad=theta_t, theta_applied_rad=theta_t if use else 0.0,
+            delta_mean=d_mean, delta_median=d_median, delta_applied=float(applied),
+            valid_fraction=frac, candidates=len(cands), metric_backend=self.depth.name,
+            render_s=t1 - t0, match_s=t2 - t1, depth_s=t3 - t2,
+        )
+        log.info(
+            "region %d: matched frame %d (ssim %.3f, theta_t %.1f deg), delta mean %.4f median %.4f",
+            rep.region, rep.matched_index, rep.ssim, math.degrees(theta_t), d_mean, d_median,
+        )
+        return rep
+
+    def forward_view(self, regional: RegionalCloud, camera):
+        """The forward render at the local origin (for pictures and debugging)."""
+        index = IndexedCloud(regional.cloud, block_m=_block_size(regional.cloud))
+        wfc = np.eye(4)
+        wfc[:3, :3] = camera_rotation(0.0, regional.camera_pitch_rad)
+        wfc[:3, 3] = regional.camera_origin_m
+        return self.renderer.render_poses(index, [wfc], camera, with_labels=False)
+
+
+def _edges(depth: np.ndarray, rel: float) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood spans a depth ratio above ``1 + rel`` or touches a hole (0)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    d = depth.astype(np.float64)
+    lo = minimum_filter(d, size=3, mode="nearest")
+    hi = maximum_filter(d, size=3, mode="nearest")
+    return (lo <= 0) | (hi > lo * (1.0 + rel))
+
+
+def _block_size(cloud: PointCloud) -> float:
+    # Culling blocks follow the cloud's own (unknown) scale: about 8 blocks across its extent.
+    lo, hi = cloud.bounds()
+    return float(max(np.max(hi - lo) / 8.0, 1e-3))
+
+
+def _ssim_rgb(a: np.ndarray, b: np.ndarray) -> float:
+    """Structural similarity averaged over the three colour channels."""
+    if a.shape != b.shape:
+        raise AlignmentError(f"rendered view {a.shape} and frame {b.shape} differ in size")
+    win = min(7, min(a.shape[:2]) // 2 * 2 - 1)
+    if win < 3:
+        raise AlignmentError(f"images of {a.shape[:2]} are too small for SSIM")
+    return float(np.mean([
+        structural_similarity(a[..., c], b[..., c], data_range=255, win_size=win) for c in range(3)
+    ]))
+
+
+def to_world(
+    regional: RegionalCloud,
+    report: AlignmentReport,
+    region: RegionInput,
+) -> PointCloud:
+    """``W_global = R_z(theta0 + theta_t) (delta (W_local - c) + (0, 0, h)) + p0``.
+
+    ``c`` is the forward camera's position in the regional frame: subtracting it and adding the
+    metric camera height puts the floor point of the start pose at the origin, whatever the frame
+    the backend used.
+    """
+    c = regional.camera_origin_m
+    h = np.array([0.0, 0.0, region.camera_height_m])
+    metric = (regional.cloud.xyz.astype(np.float64) - c) * report.delta_applied + h
+    r = rot_z(region.start_pose.heading_rad + report.theta_applied_rad)
+    xyz = metric @ r.T + region.start_pose.xyz
+    return PointCloud(xyz, regional.cloud.rgb, regional.cloud.labels, dict(regional.cloud.label_names))

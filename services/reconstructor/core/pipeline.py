@@ -1,0 +1,213 @@
+"""Physically grounded reconstruction end to end: regional clouds -> metric alignment -> global
+integration -> one merged, voxel-downsampled map (paper Section 4.2)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.renderer.core import PointCloud
+from shared.geometry import DEFAULT_CAMERA_HEIGHT_M
+
+from .align import AlignmentConfig, AlignmentReport, MetricAligner, to_world
+from .depth import DEFAULT_METRIC_DEPTH, METRIC_DEPTH, MetricDepth
+from .errors import EmptyRecordingError, ReconstructorError
+from .frames import RecordingLike, RegionInput, region_from_recording
+from .regional import DEFAULT_RECONSTRUCTOR, RECONSTRUCTORS, RegionalCloud, RegionalReconstructor
+from .voxel import voxel_downsample
+
+log = logging.getLogger(__name__)
+
+
+class ReconstructionConfig(BaseModel):
+    """Everything a map build takes; the defaults run offline on a CPU with RGB-D frames."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    backend: str = DEFAULT_RECONSTRUCTOR
+    backend_config: dict[str, Any] = Field(default_factory=dict)
+    metric_depth: str = DEFAULT_METRIC_DEPTH
+    metric_depth_config: dict[str, Any] = Field(default_factory=dict)
+    alignment: AlignmentConfig = Field(default_factory=AlignmentConfig)
+    merge_voxel_m: float = Field(0.03, gt=0.0, le=1.0)
+    camera_height_m: float = Field(DEFAULT_CAMERA_HEIGHT_M, gt=0.0, le=3.0)
+    # A region that cannot be reconstructed or aligned is left out (and reported) instead of
+    # failing the whole map; off by default so that problems are loud.
+    skip_failed_regions: bool = False
+
+
+@dataclass
+class RegionReport:
+    """Per-region outcome of a build (JSON-friendly via :meth:`as_dict`)."""
+
+    region: int
+    backend: str
+    frames: int
+    points_local: int
+    points_world: int
+    metric: bool
+    alignment: AlignmentReport | None
+    timings_s: dict[str, float]
+    true_scale: float | None = None
+    error: str | None = None
+
+    @property
+    def scale_error(self) -> float | None:
+        """``|delta * s_true - 1|`` where the backend knows its true scale (mono-sim)."""
+        if self.true_scale is None or self.alignment is None:
+            return None
+        return abs(self.alignment.delta_applied * self.true_scale - 1.0)
+
+    def as_dict(self) -> dict:
+        d = {k: v for k, v in self.__dict__.items() if k != "alignment"}
+        d["alignment"] = None if self.alignment is None else self.alignment.as_dict()
+        d["scale_error"] = self.scale_error
+        return d
+
+
+@dataclass
+class MapBuild:
+    """A reconstructed map: the merged world cloud and how it was made."""
+
+    cloud: PointCloud
+    regions: list[RegionReport]
+    timings_s: dict[str, float]
+    config: ReconstructionConfig
+    regional_clouds: list[PointCloud] = field(default_factory=list)  # world frame, before the merge
+
+    @property
+    def scale_factors(self) -> list[float]:
+        return [r.alignment.delta_applied for r in self.regions if r.alignment is not None]
+
+    @property
+    def frames(self) -> int:
+        return sum(r.frames for r in self.regions)
+
+    def details(self) -> dict:
+        """Metadata for the map store (regions, alignment, timings, config)."""
+        return {
+            "backend": self.config.backend,
+            "metric_depth": self.config.metric_depth,
+            "frames": self.frames,
+            "regions": [r.as_dict() for r in self.regions],
+            "config": self.config.model_dump(mode="json"),
+        }
+
+
+ProgressFn = Callable[[int, int, RegionReport], None]
+
+
+class Reconstructor:
+    """Builds maps from region recordings with the configured backends (created once, reused)."""
+
+    def __init__(
+        self,
+        config: ReconstructionConfig | None = None,
+        backend: RegionalReconstructor | None = None,
+        depth: MetricDepth | None = None,
+    ):
+        self.config = cfg = config or ReconstructionConfig()
+        self.backend = backend or RECONSTRUCTORS.create(cfg.backend, cfg.backend_config or None)
+        self.depth = depth or METRIC_DEPTH.create(cfg.metric_depth, cfg.metric_depth_config or None)
+        self.aligner = MetricAligner(cfg.alignment, self.depth)
+
+    def close(self) -> None:
+        self.backend.close()
+
+    def __enter__(self) -> Reconstructor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def build_from_recordings(
+        self, recordings: Sequence[RecordingLike], label_names: dict[int, str] | None = None,
+        on_region: ProgressFn | None = None,
+    ) -> MapBuild:
+        """Convenience for the mapper's ``RegionRecording`` list (validates every frame first)."""
+        regions = [region_from_recording(r, self.config.camera_height_m) for r in recordings]
+        return self.build(regions, label_names, on_region)
+
+    def build(
+        self, regions: Sequence[RegionInput], label_names: dict[int, str] | None = None,
+        on_region: ProgressFn | None = None,
+    ) -> MapBuild:
+        """Reconstruct, align and integrate every region; merge into one map."""
+        if not regions:
+            raise EmptyRecordingError("no regions to reconstruct")
+        t_start = time.perf_counter()
+        totals = {"regional": 0.0, "align": 0.0, "integrate": 0.0}
+        reports: list[RegionReport] = []
+        clouds: list[PointCloud] = []
+        for k, region in enumerate(regions):
+            try:
+                rep, world = self._one(region, label_names, totals)
+            except ReconstructorError as exc:
+                if not self.config.skip_failed_regions:
+                    raise
+                log.warning("region %d left out: %s", region.region, exc)
+                rep = RegionReport(region.region, self.backend.name, len(region.images), 0, 0,
+                                   self.backend.metric, None, {}, error=f"{type(exc).__name__}: {exc}")
+                world = None
+            reports.append(rep)
+            if world is not None:
+                clouds.append(world)
+            if on_region is not None:
+                on_region(k, len(regions), rep)
+        if not clouds:
+            raise EmptyRecordingError("no region could be reconstructed")
+        t0 = time.perf_counter()
+        merged = voxel_downsample(PointCloud.concatenate(clouds), self.config.merge_voxel_m)
+        if label_names:
+            merged.label_names = dict(label_names)
+        totals["merge"] = time.perf_counter() - t0
+        totals["total"] = time.perf_counter() - t_start
+        log.info("map: %d regions, %d points, %.2f s", len(clouds), len(merged), totals["total"])
+        return MapBuild(merged, reports, totals, self.config, clouds)
+
+    def _one(self, region: RegionInput, label_names, totals) -> tuple[RegionReport, PointCloud]:
+        t0 = time.perf_counter()
+        regional: RegionalCloud = self.backend.reconstruct(region, label_names)
+        t1 = time.perf_counter()
+        report = self.aligner.align(region, regional)
+        t2 = time.perf_counter()
+        world = to_world(regional, report, region)
+        t3 = time.perf_counter()
+        totals["regional"] += t1 - t0
+        totals["align"] += t2 - t1
+        totals["integrate"] += t3 - t2
+        rep = RegionReport(
+            region=region.region, backend=regional.backend, frames=regional.frames_used,
+            points_local=len(regional.cloud), points_world=len(world), metric=regional.metric,
+            alignment=report,
+            timings_s={**regional.timings_s, "regional": t1 - t0, "align": t2 - t1, "integrate": t3 - t2},
+            true_scale=regional.true_scale,
+        )
+        if rep.scale_error is not None:
+            log.info("region %d: scale error %.2f %%", region.region, 100.0 * rep.scale_error)
+        return rep, world
+
+
+def chamfer(a_xyz: np.ndarray, b_xyz: np.ndarray) -> dict[str, float]:
+    """Nearest-neighbour distances both ways: accuracy (a -> b), completeness (b -> a), Chamfer mean."""
+    from scipy.spatial import cKDTree
+
+    if len(a_xyz) == 0 or len(b_xyz) == 0:
+        return {"accuracy_mean_m": math.inf, "completeness_mean_m": math.inf, "chamfer_m": math.inf}
+    d_ab, _ = cKDTree(b_xyz).query(a_xyz, workers=-1)
+    d_ba, _ = cKDTree(a_xyz).query(b_xyz, workers=-1)
+    return {
+        "accuracy_mean_m": float(d_ab.mean()),
+        "accuracy_p95_m": float(np.percentile(d_ab, 95)),
+        "completeness_mean_m": float(d_ba.mean()),
+        "completeness_p95_m": float(np.percentile(d_ba, 95)),
+        "chamfer_m": float(0.5 * (d_ab.mean() + d_ba.mean())),
+        "chamfer_p95_m": float(0.5 * (np.percentile(d_ab, 95) + np.percentile(d_ba, 95))),
+    }

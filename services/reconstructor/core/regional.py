@@ -1,0 +1,312 @@
+"""Regional reconstruction (paper 4.2): one point cloud per recorded region, in its local frame.
+
+Backends (``RECONSTRUCTORS``):
+
+* ``rgbd`` (default where depth exists): back-projects every frame's metric depth with its pose,
+  fuses the points in voxels (centroid, mean colour, majority semantic label) and removes
+  statistical outliers. Metric. The cloud is in the frame of the region's start pose (floor point,
+  heading), so the paper's ``W = R_z(theta0 + theta_t) W_metric + p0`` gives world coordinates.
+* ``mono-sim``: the emulation of a monocular neural SLAM (SLAM3R) for simulation. It runs the RGB-D
+  fusion, then does what a scale-ambiguous monocular reconstruction does to the result: the cloud is
+  expressed in the camera frame of a reference frame chosen among the first level frames at the
+  start (SLAM3R's initial window picks one), scaled by an unknown per-region factor, holed by
+  dropped patches and perturbed by depth-proportional noise, all seeded. Reported non-metric, so
+  the metric alignment has to recover the scale; the true factor is kept only for benchmarks.
+* ``mono``: the SLAM3R adapter (``services.reconstructor.core.slam3r``), an optional GPU extra.
+
+A backend returns a :class:`RegionalCloud`; ``camera_origin_m`` says where the camera that looks
+along local +x sits in the cloud's own (possibly scaled) frame: ``(0, 0, h)`` for the floor-point
+frame of ``rgbd``, the origin for camera-centred monocular frames.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from services.renderer.core import PointCloud
+from shared.geometry import camera_rotation, rot_z
+from shared.registry import BackendConfig, Registry
+
+from .errors import EmptyRecordingError, MissingDepthError
+from .frames import PosedImage, RegionInput
+from .voxel import VoxelAccumulator
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RegionalCloud:
+    """A region's cloud in its local frame, before metric alignment and global integration."""
+
+    region: int
+    cloud: PointCloud
+    metric: bool
+    camera_origin_m: np.ndarray  # (3,) the forward camera's position in the cloud's frame
+    backend: str
+    frames_used: int
+    points_in: int = 0
+    timings_s: dict[str, float] = field(default_factory=dict)
+    # Where the cloud's frame sits relative to the start pose when the backend knows it (rgbd: 0).
+    # Monocular backends do not; alignment estimates it from the matched frame.
+    true_scale: float | None = None  # simulation ground truth (mono-sim); for benchmarks only
+    true_yaw_rad: float | None = None
+    # Pitch of the forward camera (looking along local +x): level for robot recordings; a dataset
+    # whose trajectory starts looking down (Replica) renders its forward view pitched like it.
+    camera_pitch_rad: float = 0.0
+
+
+class RegionalReconstructor(ABC):
+    """A regional reconstruction backend; create through ``RECONSTRUCTORS``."""
+
+    name: str = ""
+    metric: bool = True
+
+    @abstractmethod
+    def reconstruct(self, region: RegionInput, label_names: dict[int, str] | None = None) -> RegionalCloud:
+        """Reconstruct one region's recording into a cloud in its local frame."""
+
+    def close(self) -> None:
+        """Release models or devices."""
+
+    def __enter__(self) -> RegionalReconstructor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+RECONSTRUCTORS: Registry[RegionalReconstructor] = Registry("reconstructor")
+DEFAULT_RECONSTRUCTOR = "rgbd"
+
+
+class RgbdConfig(BackendConfig):
+    """RGB-D fusion of the frames' metric depth with their poses."""
+
+    voxel_m: float = Field(0.03, gt=0.0, le=1.0)
+    min_depth_m: float = Field(0.1, ge=0.0)
+    max_depth_m: float = Field(8.0, gt=0.0)
+    # Every n-th pixel in each direction: 2 quarters the work; the voxel grid still fills up close by.
+    pixel_stride: int = Field(1, ge=1, le=16)
+    min_points_per_voxel: int = Field(1, ge=1)
+    batch_frames: int = Field(96, ge=1, le=4096)
+    remove_outliers: bool = True
+    outlier_neighbors: int = Field(16, ge=2, le=256)
+    outlier_std_ratio: float = Field(2.5, gt=0.0)
+    keep_labels: bool = True
+
+    @model_validator(mode="after")
+    def _range(self):
+        if self.max_depth_m <= self.min_depth_m:
+            raise ValueError(f"max_depth_m ({self.max_depth_m}) must exceed min_depth_m ({self.min_depth_m})")
+        return self
+
+
+@RECONSTRUCTORS.register("rgbd", RgbdConfig)
+class RgbdReconstructor(RegionalReconstructor):
+    """Metric RGB-D fusion (vectorised back-projection, voxel fusion, statistical outlier removal)."""
+
+    name = "rgbd"
+    metric = True
+
+    def __init__(self, config: RgbdConfig | None = None):
+        self.config = config or RgbdConfig()
+        self._rays: dict[tuple, np.ndarray] = {}
+
+    def reconstruct(self, region: RegionInput, label_names: dict[int, str] | None = None) -> RegionalCloud:
+        cfg = self.config
+        t0 = time.perf_counter()
+        images = region.images
+        if not images:
+            raise EmptyRecordingError(f"region {region.region}: no frames")
+        with_depth = [im for im in images if im.depth_m is not None]
+        if not with_depth:
+            raise MissingDepthError(
+                f"region {region.region}: no frame carries depth; use a monocular backend (mono, mono-sim)"
+            )
+        labelled = cfg.keep_labels and all(im.semantic is not None for im in with_depth)
+        local = region.local_from_world()
+        acc = VoxelAccumulator(cfg.voxel_m, cfg.min_points_per_voxel)
+        for b in range(0, len(with_depth), cfg.batch_frames):
+            xyz, rgb, lab = self._backproject(with_depth[b : b + cfg.batch_frames], local, labelled)
+            acc.add(xyz, rgb, lab)
+        t1 = time.perf_counter()
+        cloud = acc.cloud(label_names)
+        if len(cloud) == 0:
+            raise EmptyRecordingError(f"region {region.region}: no valid depth in {len(with_depth)} frames")
+        t2 = time.perf_counter()
+        if cfg.remove_outliers and len(cloud) > cfg.outlier_neighbors:
+            cloud = remove_statistical_outliers(cloud, cfg.outlier_neighbors, cfg.outlier_std_ratio)
+        t3 = time.perf_counter()
+        log.info("region %d: %d frames -> %d points (%d in)", region.region, len(with_depth), len(cloud), acc.points_in)
+        return RegionalCloud(
+            region=region.region,
+            cloud=cloud,
+            metric=True,
+            camera_origin_m=np.array([0.0, 0.0, region.camera_height_m]),
+            backend=self.name,
+            frames_used=len(with_depth),
+            camera_pitch_rad=float(images[0].pitch_rad),
+            points_in=acc.points_in,
+            timings_s={"fuse": t1 - t0, "voxel": t2 - t1, "outliers": t3 - t2},
+        )
+
+    def _pixel_rays(self, cam) -> tuple[np.ndarray, np.ndarray]:
+        s = self.config.pixel_stride
+        key = (cam.width_px, cam.height_px, cam.hfov_deg, s)
+        if key not in self._rays:
+            self._rays[key] = np.ascontiguousarray(cam.pixel_rays()[::s, ::s].reshape(-1, 3), dtype=np.float32)
+        return self._rays[key]
+
+    def _backproject(self, images: list[PosedImage], local: np.ndarray, labelled: bool):
+        cfg, s = self.config, self.config.pixel_stride
+        xyz_parts, rgb_parts, lab_parts = [], [], []
+        for im in images:
+            rays = self._pixel_rays(im.camera)
+            d = im.depth_m[::s, ::s].reshape(-1)
+            ok = np.flatnonzero((d > cfg.min_depth_m) & (d < cfg.max_depth_m))  # NaN compares False
+            if len(ok) == 0:
+                continue
+            m = (local @ im.world_from_camera).astype(np.float32)
+            dk = d[ok]
+            xc = rays[ok, 0] * dk
+            yc = rays[ok, 1] * dk
+            # Elementwise rather than an (N, 3) @ (3, 3) matmul: numpy has no fast path for such
+            # tall, thin products and this is the hot loop of the fusion.
+            pts = np.empty((len(ok), 3), np.float32)
+            for j in range(3):
+                pts[:, j] = m[j, 0] * xc + m[j, 1] * yc + m[j, 2] * dk + m[j, 3]
+            xyz_parts.append(pts)
+            rgb_parts.append(im.rgb[::s, ::s].reshape(-1, 3)[ok])
+            if labelled:
+                lab_parts.append(im.semantic[::s, ::s].reshape(-1)[ok])
+        if not xyz_parts:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), None
+        return (
+            np.concatenate(xyz_parts),
+            np.concatenate(rgb_parts),
+            np.concatenate(lab_parts) if labelled else None,
+        )
+
+
+def remove_statistical_outliers(cloud: PointCloud, neighbors: int, std_ratio: float) -> PointCloud:
+    """Drop points whose mean distance to their ``neighbors`` nearest is unusually large (open3d)."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.xyz.astype(np.float64)))
+    _, keep = pcd.remove_statistical_outlier(nb_neighbors=neighbors, std_ratio=std_ratio)
+    return cloud.subset(np.sort(np.asarray(keep, dtype=np.int64)))
+
+
+class MonoSimConfig(BackendConfig):
+    """Emulated monocular reconstruction (unknown scale, holes, noise); seeded per region."""
+
+    seed: int = 0
+    fusion: RgbdConfig = Field(default_factory=RgbdConfig)
+    # The unknown scale is log-uniform in this range (a network's normalised units are arbitrary).
+    scale_range: tuple[float, float] = (0.3, 3.0)
+    hole_fraction: float = Field(0.15, ge=0.0, le=0.9)  # of the points, dropped in patches
+    hole_radius_m: float = Field(0.3, gt=0.0)
+    noise_rel: float = Field(0.01, ge=0.0, le=0.2)  # sigma = noise_rel * distance from the camera
+    # SLAM3R anchors its cloud to a reference frame of its initial window: pick one among the first
+    # level frames at the start position (0 frames: always the first frame).
+    reference_window: int = Field(12, ge=1)
+
+    @model_validator(mode="after")
+    def _scales(self):
+        lo, hi = self.scale_range
+        if not 0 < lo <= hi:
+            raise ValueError(f"scale_range must satisfy 0 < lo <= hi, got {self.scale_range}")
+        return self
+
+
+@RECONSTRUCTORS.register("mono-sim", MonoSimConfig)
+class MonoSimReconstructor(RegionalReconstructor):
+    """A scale-ambiguous monocular reconstruction emulated from RGB-D frames (simulation only)."""
+
+    name = "mono-sim"
+    metric = False
+
+    def __init__(self, config: MonoSimConfig | None = None):
+        self.config = config or MonoSimConfig()
+        self._fusion = RgbdReconstructor(self.config.fusion)
+
+    def reconstruct(self, region: RegionInput, label_names: dict[int, str] | None = None) -> RegionalCloud:
+        cfg = self.config
+        t0 = time.perf_counter()
+        base = self._fusion.reconstruct(region, label_names)
+        rng = np.random.default_rng([cfg.seed, region.region & 0x7FFFFFFF])
+        ref = _reference_image(region, cfg.reference_window, rng)
+        # Reference camera pose in the start-pose frame; the cloud moves into its level camera frame.
+        m = region.local_from_world() @ ref.world_from_camera
+        cam_local = m[:3, 3]
+        yaw = math.atan2(m[1, 2], m[0, 2])
+        xyz = (base.cloud.xyz.astype(np.float64) - cam_local) @ rot_z(yaw)  # rows: R^T p
+        keep = _drop_patches(xyz, cfg.hole_fraction, cfg.hole_radius_m, rng)
+        xyz = xyz[keep]
+        if cfg.noise_rel > 0:
+            dist = np.linalg.norm(xyz, axis=1, keepdims=True)
+            xyz = xyz + rng.standard_normal(xyz.shape) * (cfg.noise_rel * dist)
+        lo, hi = cfg.scale_range
+        scale = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+        cloud = base.cloud.subset(keep)
+        cloud = PointCloud(xyz * scale, cloud.rgb, cloud.labels, cloud.label_names)
+        if len(cloud) == 0:
+            raise EmptyRecordingError(f"region {region.region}: the emulation dropped every point")
+        return RegionalCloud(
+            region=region.region,
+            cloud=cloud,
+            metric=False,
+            camera_origin_m=np.zeros(3),
+            backend=self.name,
+            frames_used=base.frames_used,
+            points_in=base.points_in,
+            timings_s={**base.timings_s, "emulate": time.perf_counter() - t0 - sum(base.timings_s.values())},
+            true_scale=scale,
+            true_yaw_rad=yaw,
+            camera_pitch_rad=float(ref.pitch_rad),
+        )
+
+
+def _reference_image(region: RegionInput, window: int, rng: np.random.Generator) -> PosedImage:
+    start = region.start_pose.xyz
+    h = region.camera_height_m
+    pitch0 = region.images[0].pitch_rad
+    cands = [
+        im for im in region.images[:window]
+        if abs(im.pitch_rad - pitch0) < math.radians(1.0)
+        and np.linalg.norm(im.position_m - (start + [0.0, 0.0, h])) < 0.05
+    ]
+    if not cands:
+        return region.images[0]
+    return cands[int(rng.integers(len(cands)))]
+
+
+def _drop_patches(xyz: np.ndarray, fraction: float, radius_m: float, rng: np.random.Generator) -> np.ndarray:
+    """Keep-mask that removes about ``fraction`` of the points in balls of ``radius_m``."""
+    keep = np.ones(len(xyz), bool)
+    if fraction <= 0 or len(xyz) == 0:
+        return keep
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(xyz)
+    target = int(fraction * len(xyz))
+    # Draw centres in batches until enough points are gone; each ball removes what it covers.
+    for _ in range(64):
+        if (~keep).sum() >= target:
+            break
+        centres = xyz[rng.integers(len(xyz), size=8)]
+        for idx in tree.query_ball_point(centres, radius_m):
+            keep[idx] = False
+    return keep
+
+
+def level_camera_to_local(points_cam: np.ndarray, pitch_rad: float = 0.0) -> np.ndarray:
+    """OpenCV camera-frame points of a camera looking along local +x (pitched) into z-up axes."""
+    return np.asarray(points_cam, np.float64) @ camera_rotation(0.0, pitch_rad).T

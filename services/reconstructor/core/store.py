@@ -1,0 +1,360 @@
+"""The map store: versioned maps on disk, written atomically, served in chunks.
+
+Layout under ``root``::
+
+    <map_id>/v000001/cloud.ply          points and colours (binary PLY, open3d)
+    <map_id>/v000001/cloud.labels.npz   semantic labels and their names (when the map has labels)
+    <map_id>/v000001/meta.json          MapInfo + details (source, regions, scale factors, timings)
+    <map_id>/.lock                      serialises version allocation between processes
+
+A version is written into a hidden temporary directory beside the versions, every file is fsynced,
+then the directory is renamed into place (atomic on POSIX) and the parent fsynced. A crash at any
+point leaves either the complete version or an orphaned temporary directory that listing ignores
+and the next writer cleans up; never a half-written map. ``meta.json`` records the SHA-256 of the
+PLY, checked on load.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.renderer.core import PointCloud
+from services.renderer.core.errors import CloudFormatError
+from shared.keys import KeyExprError, validate_segment
+from shared.schemas import MapChunk, MapInfo
+
+from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStoreError
+
+log = logging.getLogger(__name__)
+
+_TMP_PREFIX = ".tmp-"
+_CLOUD = "cloud.ply"
+_META = "meta.json"
+_STALE_TMP_S = 3600.0
+
+
+@dataclass
+class StoredMap:
+    """A loaded map version: its metadata, the extra details and the cloud."""
+
+    info: MapInfo
+    cloud: PointCloud
+    details: dict[str, Any]
+
+
+class MapStore:
+    """Versioned maps under ``root``; safe for several threads and processes sharing the folder."""
+
+    def __init__(self, root: str | Path, cache_maps: int = 2, fsync: bool = True):
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.fsync = fsync
+        self._cache: OrderedDict[tuple[str, int], StoredMap] = OrderedDict()
+        self._cache_size = max(0, int(cache_maps))
+        self._lock = threading.Lock()
+
+    # --- writing -------------------------------------------------------------------------------
+
+    def save(
+        self,
+        map_id: str,
+        cloud: PointCloud,
+        source: str = "",
+        regions: int = 0,
+        scale_factors: list[float] | None = None,
+        timings_s: dict[str, float] | None = None,
+        details: dict[str, Any] | None = None,
+    ) -> MapInfo:
+        """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`."""
+        map_dir = self._map_dir(map_id, create=True)
+        if len(cloud) == 0:
+            raise MapFormatError(f"map {map_id!r}: refusing to store an empty cloud")
+        self._clean_stale(map_dir)
+        tmp = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=map_dir))
+        try:
+            ply = tmp / _CLOUD
+            cloud.save(ply)
+            digest = _sha256(ply)
+            lo, hi = cloud.bounds()
+            with self._version_lock(map_dir):
+                version = self._next_version(map_dir)
+                info = MapInfo(
+                    map_id=map_id, version=version, point_count=len(cloud),
+                    bounds_min_m=tuple(float(v) for v in lo), bounds_max_m=tuple(float(v) for v in hi),
+                    source=source, has_labels=cloud.labels is not None,
+                    label_names={int(k): v for k, v in cloud.label_names.items()},
+                    regions=regions, scale_factors=list(scale_factors or []),
+                    timings_s=dict(timings_s or {}), created_s=time.time(),
+                )
+                meta = {"info": info.model_dump(mode="json"), "details": _jsonable(details or {}),
+                        "files": {_CLOUD: digest}}
+                (tmp / _META).write_text(json.dumps(meta, indent=1))
+                if self.fsync:
+                    for f in tmp.iterdir():
+                        _fsync_file(f)
+                    _fsync_dir(tmp)
+                os.rename(tmp, map_dir / _version_name(version))
+                if self.fsync:
+                    _fsync_dir(map_dir)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        log.info("stored map %s v%d: %d points", map_id, version, len(cloud))
+        return info
+
+    def import_cloud(
+        self, map_id: str, data: bytes | str | Path, filename: str | None = None, source: str | None = None,
+        max_points: int = 50_000_000,
+    ) -> MapInfo:
+        """Store a user's PLY/PCD cloud (bytes with a ``filename``, or a path) as a new map version."""
+        if isinstance(data, (bytes, bytearray, memoryview)):
+            if not filename:
+                raise MapFormatError("importing bytes needs a filename (.ply or .pcd)")
+            suffix = Path(filename).suffix.lower()
+            if suffix not in (".ply", ".pcd"):
+                raise MapFormatError(f"{filename!r}: only .ply and .pcd clouds can be imported")
+            with tempfile.TemporaryDirectory(prefix="import-") as tmp:
+                p = Path(tmp) / f"upload{suffix}"
+                p.write_bytes(bytes(data))
+                cloud = _read_cloud(p, filename)
+        else:
+            p = Path(data)
+            if p.suffix.lower() not in (".ply", ".pcd"):
+                raise MapFormatError(f"{p.name!r}: only .ply and .pcd clouds can be imported")
+            cloud = _read_cloud(p, p.name)
+            filename = filename or p.name
+        if len(cloud) > max_points:
+            raise MapFormatError(f"{filename}: {len(cloud)} points exceed the limit of {max_points}")
+        return self.save(map_id, cloud, source=source or f"import:{filename}", details={"imported": filename})
+
+    # --- reading -------------------------------------------------------------------------------
+
+    def list(self, all_versions: bool = False) -> list[MapInfo]:
+        """Every map's latest version (or every version), sorted by id then version."""
+        out = []
+        for d in sorted(self.root.iterdir()) if self.root.is_dir() else []:
+            if not d.is_dir() or d.name.startswith("."):
+                continue
+            versions = self._versions(d)
+            for v in versions if all_versions else versions[-1:]:
+                with contextlib.suppress(MapStoreError):
+                    out.append(self.info(d.name, v))
+        return out
+
+    def versions(self, map_id: str) -> list[int]:
+        return self._versions(self._map_dir(map_id))
+
+    def info(self, map_id: str, version: int | None = None) -> MapInfo:
+        return MapInfo.model_validate(self._meta(map_id, version)["info"])
+
+    def details(self, map_id: str, version: int | None = None) -> dict[str, Any]:
+        return self._meta(map_id, version).get("details", {})
+
+    def load(self, map_id: str, version: int | None = None, verify: bool = True) -> StoredMap:
+        """The map's cloud and metadata (latest version when ``version`` is None); cached."""
+        v = self._resolve(map_id, version)
+        key = (map_id, v)
+        with self._lock:
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key]
+        vdir = self._map_dir(map_id) / _version_name(v)
+        meta = self._meta(map_id, v)
+        ply = vdir / _CLOUD
+        if verify:
+            want = meta.get("files", {}).get(_CLOUD)
+            if want is not None and _sha256(ply) != want:
+                raise MapFormatError(f"map {map_id} v{v}: cloud file does not match its checksum")
+        try:
+            cloud = PointCloud.load(ply)
+        except CloudFormatError as exc:
+            raise MapFormatError(f"map {map_id} v{v}: {exc}") from exc
+        info = MapInfo.model_validate(meta["info"])
+        cloud.label_names = {int(k): v for k, v in info.label_names.items()} or cloud.label_names
+        if len(cloud) != info.point_count:
+            raise MapFormatError(f"map {map_id} v{v}: {len(cloud)} points, metadata says {info.point_count}")
+        stored = StoredMap(info, cloud, meta.get("details", {}))
+        with self._lock:
+            if self._cache_size:
+                self._cache[key] = stored
+                while len(self._cache) > self._cache_size:
+                    self._cache.popitem(last=False)
+        return stored
+
+    def chunk(self, map_id: str, version: int | None = None, index: int = 0, max_points: int = 1_000_000) -> MapChunk:
+        """Chunk ``index`` of ``ceil(N / max_points)``: what the bus serves per ``MapChunkRequest``."""
+        if max_points < 1:
+            raise MapStoreError(f"max_points must be positive, got {max_points}")
+        m = self.load(map_id, version)
+        n = len(m.cloud)
+        count = max(1, -(-n // max_points))
+        if not 0 <= index < count:
+            raise MapNotFoundError(f"map {map_id} v{m.info.version}: chunk {index} of {count} does not exist")
+        sl = slice(index * max_points, min(n, (index + 1) * max_points))
+        c = m.cloud
+        return MapChunk(
+            map_id=map_id, version=m.info.version, index=index, count=count,
+            xyz_m=c.xyz[sl], rgb=c.rgb[sl], labels=None if c.labels is None else c.labels[sl],
+        )
+
+    def chunks(self, map_id: str, version: int | None = None, max_points: int = 1_000_000) -> Iterator[MapChunk]:
+        first = self.chunk(map_id, version, 0, max_points)
+        yield first
+        for i in range(1, first.count):
+            yield self.chunk(map_id, first.version, i, max_points)
+
+    def delete(self, map_id: str, version: int | None = None) -> None:
+        """Remove one version (or the whole map); the rename first makes it vanish atomically."""
+        map_dir = self._map_dir(map_id)
+        target = map_dir if version is None else map_dir / _version_name(self._resolve(map_id, version))
+        if not target.is_dir():
+            raise MapNotFoundError(f"map {map_id!r} version {version} not found")
+        trash = target.with_name(f"{_TMP_PREFIX}del-{uuid.uuid4().hex}")
+        os.rename(target, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+        with self._lock:
+            for key in [k for k in self._cache if k[0] == map_id and (version is None or k[1] == version)]:
+                del self._cache[key]
+
+    # --- internals -----------------------------------------------------------------------------
+
+    def _map_dir(self, map_id: str, create: bool = False) -> Path:
+        try:
+            validate_segment(map_id, "map id")
+        except KeyExprError as exc:
+            raise InvalidMapIdError(str(exc)) from None
+        d = self.root / map_id
+        if create:
+            d.mkdir(parents=True, exist_ok=True)
+        elif not d.is_dir():
+            raise MapNotFoundError(f"no map {map_id!r}")
+        return d
+
+    @staticmethod
+    def _versions(map_dir: Path) -> list[int]:
+        out = []
+        for d in map_dir.iterdir():
+            if d.is_dir() and d.name.startswith("v") and d.name[1:].isdigit() and (d / _META).is_file():
+                out.append(int(d.name[1:]))
+        return sorted(out)
+
+    def _next_version(self, map_dir: Path) -> int:
+        # Deleted versions are never reused: a counter file (under the version lock) remembers the
+        # highest number ever handed out, so a client caching "v2" never sees a different v2.
+        counter = map_dir / ".last_version"
+        used = [int(d.name[1:]) for d in map_dir.iterdir() if d.name.startswith("v") and d.name[1:].isdigit()]
+        with contextlib.suppress(OSError, ValueError):
+            used.append(int(counter.read_text().strip()))
+        version = max(used, default=0) + 1
+        tmp = map_dir / f"{_TMP_PREFIX}counter-{uuid.uuid4().hex}"
+        tmp.write_text(str(version))
+        if self.fsync:
+            _fsync_file(tmp)
+        os.replace(tmp, counter)
+        return version
+
+    def _resolve(self, map_id: str, version: int | None) -> int:
+        versions = self._versions(self._map_dir(map_id))
+        if not versions:
+            raise MapNotFoundError(f"map {map_id!r} has no stored version")
+        if version is None:
+            return versions[-1]
+        if version not in versions:
+            raise MapNotFoundError(f"map {map_id!r} has no version {version} (have {versions})")
+        return version
+
+    def _meta(self, map_id: str, version: int | None) -> dict:
+        v = self._resolve(map_id, version)
+        p = self._map_dir(map_id) / _version_name(v) / _META
+        try:
+            return json.loads(p.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise MapFormatError(f"map {map_id} v{v}: unreadable metadata ({exc})") from exc
+
+    @contextlib.contextmanager
+    def _version_lock(self, map_dir: Path):
+        with open(map_dir / ".lock", "a+") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+
+    @staticmethod
+    def _clean_stale(map_dir: Path) -> None:
+        now = time.time()
+        for d in map_dir.glob(_TMP_PREFIX + "*"):
+            # Only old ones: a young temporary directory may belong to a writer still at work.
+            with contextlib.suppress(OSError):
+                if now - d.stat().st_mtime > _STALE_TMP_S:
+                    shutil.rmtree(d, ignore_errors=True) if d.is_dir() else d.unlink()
+
+
+def _version_name(v: int) -> str:
+    return f"v{v:06d}"
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _read_cloud(path: Path, name: str) -> PointCloud:
+    import open3d as o3d
+
+    pcd = o3d.io.read_point_cloud(str(path))
+    xyz = np.asarray(pcd.points)
+    if len(xyz) == 0:
+        raise MapFormatError(f"{name}: no points could be read (not a PLY/PCD point cloud?)")
+    finite = np.isfinite(xyz).all(axis=1)
+    if not finite.any():
+        raise MapFormatError(f"{name}: every point is non-finite")
+    rgb = np.asarray(pcd.colors) if pcd.has_colors() else np.full((len(xyz), 3), 0.5)
+    if not finite.all():
+        log.warning("%s: dropping %d non-finite points", name, int((~finite).sum()))
+    return PointCloud(xyz[finite], rgb[finite])
+
+
+def _jsonable(obj: Any) -> Any:
+    """Round-trip through JSON with numpy scalars and arrays turned into Python values."""
+    def default(o):
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+    return json.loads(json.dumps(obj, default=default, allow_nan=True))

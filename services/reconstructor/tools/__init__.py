@@ -1,0 +1,1 @@
+"""Command-line tools of the reconstructor (pictures of stored maps, an offline end-to-end build)."""
