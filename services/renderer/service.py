@@ -15,7 +15,7 @@ from typing import Any
 
 from pydantic import Field
 
-from services.renderer.core import RENDERERS, IndexedCloud, PointCloud, SpatialMapper
+from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, PointCloud, SpatialMapper
 from shared import keys
 from shared.bus.typed import NotFound, RemoteError
 from shared.clients import MapClient
@@ -111,18 +111,14 @@ class RendererService(Service):
         node.serve(keys.RENDER_VIEWS.format(), RenderRequest, self.views, replicated=True)
         node.serve(keys.RENDER_MAP.format(), SpatialMapRequest, self.spatial_map, replicated=True)
 
+    def _map(self, map_id: str, version: int | None) -> MapRenderer:
+        index, version = self.cache.get(map_id, version)
+        return MapRenderer(index, self.renderer, self.mapper, map_id, version)
+
     def views(self, req: RenderRequest) -> RenderResult:
-        t0 = time.perf_counter()
-        index, version = self.cache.get(req.map_id, req.version)
-        out = self.renderer.render(index, req.views, req.camera, req.camera_height_m, req.with_labels)
-        return RenderResult(map_id=req.map_id, version=version, rgb=out.rgb, depth_m=out.depth_m,
-                            hole_mask=out.hole_mask, labels=out.labels if req.with_labels else None,
-                            render_s=time.perf_counter() - t0)
+        return self._map(req.map_id, req.version).views(req.map_id, req.views, req.camera, req.with_labels,
+                                                         req.camera_height_m)
 
     def spatial_map(self, req: SpatialMapRequest) -> SpatialMapResult:
-        t0 = time.perf_counter()
-        index, version = self.cache.get(req.map_id, req.version)
-        img = self.mapper.draw(index, req.pose, req.trajectory_m, req.candidates, req.agent_up, req.size_px,
-                               req.radius_m)
-        return SpatialMapResult(map_id=req.map_id, version=version, image=img.image,
-                                metres_per_px=img.metres_per_px, render_s=time.perf_counter() - t0)
+        return self._map(req.map_id, req.version).spatial_map(req.map_id, req.pose, req.trajectory_m, req.candidates,
+                                                               req.agent_up, req.size_px, req.radius_m)

@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from evaluation.metrics import episode_metrics
+from evaluation.metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
     CameraIntrinsics, Candidate, CandidateKind, Decision, MissionEventKind, MissionOptions, MissionState,
     MoveResult, Panorama, Pose, RenderResult, SpatialMapResult, ViewPose,
@@ -70,6 +70,7 @@ class MissionOutcome:
     metrics: dict[str, Any] | None = None
     reason: str = ""
     step_latency_s: list[float] = field(default_factory=list)
+    episode_metrics: EpisodeMetrics | None = None
 
 
 def _thumb(rgb: np.ndarray, size_px: int) -> np.ndarray:
@@ -95,6 +96,14 @@ class MissionLoop:
     label_names: dict[int, str] = field(default_factory=dict)
     thumb_px: int = 128
     jpeg: Callable[[np.ndarray], bytes] | None = None
+    min_progress_m: float = 0.2  # a move shorter than this "went nowhere" (blocked at once)
+    blocked_radius_m: float = 0.5
+
+    def _known_blocked(self, blocked, pose: Pose, c: Candidate) -> bool:
+        here = pose.xyz
+        target = here + np.array([c.dx_m, c.dy_m, 0.0])
+        r = self.blocked_radius_m
+        return any(np.linalg.norm((here - a)[:2]) < r and np.linalg.norm((target - b)[:2]) < r for a, b in blocked)
 
     def run(self, mission_id: str, instruction: str, map_id: str, opts: MissionOptions) -> MissionOutcome:
         ablation = Ablation(anticipation=opts.anticipation, anticipation_hfov_deg=opts.anticipation_hfov_deg,
@@ -110,7 +119,11 @@ class MissionLoop:
         reference = np.asarray(opts.reference_path_m, float) if opts.reference_path_m else None
         oracle = (OracleInfo(goal_m=goal, reference_path_m=reference, geodesic=self.robot.geodesic_distance)
                   if goal is not None else None)
+        # (from, to) of moves that went nowhere: offering them again would loop forever.
+        blocked: list[tuple[np.ndarray, np.ndarray]] = []
+        t_obs = time.perf_counter()
         pano = self.robot.observe()
+        observe_s = time.perf_counter() - t_obs
         trajectory = [pano.pose.xyz]
         stop_called = False
         step = 0
@@ -123,7 +136,7 @@ class MissionLoop:
             t0 = time.perf_counter()
             timings: dict[str, float] = {}
             pose = pano.pose
-            waypoints = self.predictor.predict(pano)
+            waypoints = [c for c in self.predictor.predict(pano) if not self._known_blocked(blocked, pose, c)]
             t1 = time.perf_counter()
             timings["candidates_s"] = t1 - t0
             cands = with_stop_and_backtrack(waypoints, pose, visited[-1] if visited else None)
@@ -149,8 +162,10 @@ class MissionLoop:
                 ablation=ablation, mission_id=mission_id, max_steps=opts.max_steps, panorama=pano, oracle=oracle,
             )
             t4 = time.perf_counter()
-            timings["prompt_ready_s"] = t4 - t0
-            latencies.append(t4 - t0)
+            timings["observe_s"] = observe_s
+            # The paper's "global perception" plus the observation: what a step costs before the LLM.
+            timings["prompt_ready_s"] = t4 - t0 + observe_s
+            latencies.append(timings["prompt_ready_s"])
             decision = self.policy.decide(ctx)
             t5 = time.perf_counter()
             timings["decide_s"] = t5 - t4
@@ -163,21 +178,26 @@ class MissionLoop:
             history.record(step, pano.rgb[0], action_for(chosen.candidate))
             c = chosen.candidate
             result = self.robot.move_to(c.dx_m, c.dy_m)
-            if chosen.kind == CandidateKind.BACKTRACK:
+            moved = float(np.hypot(*(result.pose.xyz - pose.xyz)[:2]))
+            if moved < self.min_progress_m:
+                blocked.append((pose.xyz, pose.xyz + np.array([c.dx_m, c.dy_m, 0.0])))
+            elif chosen.kind == CandidateKind.BACKTRACK:
                 visited.pop()
             else:
                 visited.append(pose.position_m)
             trajectory.append(result.pose.xyz)
+            t_obs = time.perf_counter()
             pano = self.robot.observe()
+            observe_s = time.perf_counter() - t_obs
         state = MissionState.SUCCEEDED if stop_called else MissionState.FAILED
         reason = "" if stop_called else f"step budget of {opts.max_steps} exhausted without a stop"
-        metrics = None
+        m = None
         traj = np.asarray(trajectory)
         if goal is not None:
             m = episode_metrics(traj, goal, geodesic=self.robot.geodesic_distance, stop_called=stop_called,
                                 reference_path_m=reference)
-            metrics = m.to_dict()
-        return MissionOutcome(state, stop_called, len(decisions), traj, decisions, metrics, reason, latencies)
+        return MissionOutcome(state, stop_called, len(decisions), traj, decisions, m.to_dict() if m else None,
+                              reason, latencies, m)
 
     def _emit_step(self, step: int, pano: Panorama, ctx: StepContext, decision: Decision,
                    timings: dict[str, float], smap: SpatialMapResult | None) -> None:

@@ -7,6 +7,7 @@ from services.renderer.core.errors import (
     EmptyCloudError,
     RendererError,
 )
+from services.renderer.core.port import MapRenderer
 from services.renderer.core.spatial_map import (
     OccupancyGrid,
     SpatialMapConfig,
@@ -22,7 +23,7 @@ from services.renderer.core.splat import (
 )
 
 __all__ = [
-    "RENDERERS", "BackendUnavailableError", "CloudFormatError", "EmptyCloudError", "IndexedCloud",
+    "RENDERERS", "BackendUnavailableError", "CloudFormatError", "EmptyCloudError", "IndexedCloud", "MapRenderer",
     "OccupancyGrid", "PointCloud", "RenderedViews", "RendererError", "SpatialMapConfig",
     "SpatialMapImage", "SpatialMapper", "SplatConfig", "SplatRenderer", "TorchSplatConfig",
 ]
