@@ -3,7 +3,7 @@ PY := .venv/bin/python
 PYTEST := $(PY) -m pytest
 RENDERERS ?= 1
 
-.PHONY: setup demo test test-unit test-contract test-e2e bench clean
+.PHONY: setup demo test test-unit test-contract test-e2e bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
 
 setup:
 	@bash deploy/bootstrap.sh
@@ -26,5 +26,31 @@ test-e2e: setup
 bench: setup
 	$(PY) -m bench
 
+reliability: setup
+	$(PY) -m bench.reliability
+
 clean:
 	rm -rf runs .pytest_cache
+
+# Evaluation: `make eval` generates the evaluation set once (100 episodes, 5 houses, 1-2 floors), starts
+# the system, runs it and prints the table; interrupted runs resume. EPISODES=<R2R-CE .json.gz> runs any file.
+EVAL_SET := runs/eval/generated.json.gz
+EPISODES ?= $(EVAL_SET)
+POLICY ?= heuristic
+MAP_SOURCE ?= reconstructed
+EVAL_OUT ?= runs/eval
+EVAL_ARGS ?=
+
+$(EVAL_SET):
+	$(PY) -m evaluation generate --out $@ --houses 5 --per-house 20 --floors 1,2 --seed 0
+
+eval-set: setup $(EVAL_SET)
+
+eval: setup $(EPISODES)
+	$(PY) -m evaluation run --episodes $(EPISODES) --policy $(POLICY) --map-source $(MAP_SOURCE) --out $(EVAL_OUT)/$(POLICY)-$(MAP_SOURCE) --maps $(EVAL_OUT)/maps.json $(EVAL_ARGS)
+
+eval-presets: setup $(EPISODES)
+	$(PY) -m evaluation preset all --episodes $(EPISODES) --policy $(POLICY) --out $(EVAL_OUT)/presets-$(POLICY) --maps $(EVAL_OUT)/maps.json $(EVAL_ARGS)
+
+eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies: setup $(EPISODES)
+	$(PY) -m evaluation preset $(@:eval-preset-%=%) --episodes $(EPISODES) --policy $(POLICY) --out $(EVAL_OUT)/presets-$(POLICY) --maps $(EVAL_OUT)/maps.json $(EVAL_ARGS)

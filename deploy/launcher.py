@@ -165,7 +165,7 @@ class Launcher:
     def proc(self, name: str) -> Proc:
         return next(p for p in self.procs if p.name == name)
 
-    def stop(self, timeout_s: float = 10.0) -> dict[str, int | None]:
+    def stop(self, timeout_s: float = 20.0) -> dict[str, int | None]:
         self._stop.set()
         if self._monitor:
             self._monitor.join(2.0)

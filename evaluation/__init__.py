@@ -1,1 +1,4 @@
-"""Evaluation: VLN-CE metrics (and, later, the experiment runner)."""
+"""Evaluation: VLN-CE metrics, the experiment runner, the paper's presets and the generated episode set.
+
+``python -m evaluation run|preset|generate|summarize`` (see :mod:`evaluation.cli`).
+"""

@@ -20,7 +20,8 @@ import shared
 from services.gateway import errors
 from services.gateway.events import EventHub, EventIngest
 from services.gateway.limits import BodyLimit
-from services.gateway.routes import dashboard, explorations, health, maps, missions, status
+from services.gateway.reaper import JobReaper
+from services.gateway.routes import dashboard, explorations, health, maps, metrics, missions, status
 from services.gateway.settings import GatewaySettings
 from services.gateway.store import GatewayStore
 from shared.bus.base import Bus
@@ -64,10 +65,13 @@ def create_app(settings: GatewaySettings | None = None,
         app.state.hub = hub
         # Subscribed before the first request: every event published from now on is stored.
         app.state.ingest = EventIngest(running.node.bus, store, hub, settings.robot)
+        # A mission whose planner died can never finish: it ends as failed, with the reason.
+        app.state.reaper = JobReaper(bus, store, hub)
         log.info("gateway on %s:%d, database %s", settings.host, settings.port, settings.db_path)
         try:
             yield
         finally:
+            app.state.reaper.close()
             app.state.ingest.close()
             hub.close()
             running.close()
@@ -82,7 +86,7 @@ def create_app(settings: GatewaySettings | None = None,
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
                            allow_headers=["*"], expose_headers=["Location"])
     errors.install(app)
-    for module in (health, status, missions, explorations, maps, dashboard):
+    for module in (health, status, metrics, missions, explorations, maps, dashboard):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     return app

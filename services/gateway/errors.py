@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from shared.bus.typed import NoReplyError, RemoteError
@@ -63,6 +64,14 @@ def install(app: FastAPI) -> None:
     async def on_key(_request: Request, exc: KeyExprError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=422)
 
+    async def on_invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's default echoes the offending input, and a NaN/inf in it cannot be written as JSON
+        # (a 500 for bad input): answer with location, message and type only.
+        detail = [{"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")), "type": str(e.get("type", ""))}
+                  for e in exc.errors()]
+        return JSONResponse({"detail": detail}, status_code=422)
+
     app.add_exception_handler(RemoteError, on_remote)
+    app.add_exception_handler(RequestValidationError, on_invalid)
     app.add_exception_handler(GatewayError, on_gateway)
     app.add_exception_handler(KeyExprError, on_key)

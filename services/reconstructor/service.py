@@ -15,6 +15,7 @@ from collections import OrderedDict
 
 from pydantic import Field
 
+from services.renderer.core.errors import CloudFormatError
 from services.reconstructor.core import (
     DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig, Reconstructor, region_from_frames,
 )
@@ -121,7 +122,11 @@ class ReconstructorService(Service):
             raise NotFound(str(exc)) from None
 
     def import_map(self, req: MapImportRequest) -> MapInfo:
-        info = self.store.import_cloud(req.map_id, req.data, filename=req.filename)
+        try:
+            info = self.store.import_cloud(req.map_id, req.data, filename=req.filename)
+        except CloudFormatError as exc:
+            # An unreadable upload is the sender's fault: bad_request (HTTP 422), not internal (502).
+            raise ValueError(f"{req.filename}: {exc}") from exc
         self._announce(info)
         return info
 

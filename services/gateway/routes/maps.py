@@ -16,41 +16,13 @@ from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.routes.missions import SEGMENT
 from shared import keys
 from shared.bus.typed import RemoteError, TypedBus
+from shared import ply
 from shared.schemas import MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, Ping
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/maps", tags=["maps"])
 MapId = Annotated[str, Path(pattern=SEGMENT, description="map id")]
 Version = Annotated[int | None, Query(ge=1, description="a stored version (default: the latest)")]
-
-
-def ply_header(point_count: int, with_labels: bool, comment: str = "") -> bytes:
-    lines = ["ply", "format binary_little_endian 1.0"]
-    if comment:
-        lines.append(f"comment {comment}")
-    lines += [f"element vertex {point_count}", "property float x", "property float y", "property float z",
-              "property uchar red", "property uchar green", "property uchar blue"]
-    if with_labels:
-        lines.append("property int label")
-    lines.append("end_header")
-    return ("\n".join(lines) + "\n").encode("ascii")
-
-
-def ply_vertex_dtype(with_labels: bool) -> np.dtype:
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    if with_labels:
-        fields.append(("label", "<i4"))
-    return np.dtype(fields)
-
-
-def ply_body(chunk: MapChunk, with_labels: bool) -> bytes:
-    """The chunk's points as packed PLY vertex records (one vectorised copy)."""
-    out = np.empty(len(chunk.xyz_m), ply_vertex_dtype(with_labels))
-    out["x"], out["y"], out["z"] = chunk.xyz_m[:, 0], chunk.xyz_m[:, 1], chunk.xyz_m[:, 2]
-    out["red"], out["green"], out["blue"] = chunk.rgb[:, 0], chunk.rgb[:, 1], chunk.rgb[:, 2]
-    if with_labels:
-        out["label"] = chunk.labels if chunk.labels is not None else -1
-    return out.tobytes()
 
 
 def _ask(bus: TypedBus, what: str, fn):
@@ -94,17 +66,17 @@ def download_cloud(map_id: MapId, bus: BusDep, settings: SettingsDep, version: V
     # tells whether the cloud has labels; later chunks are pinned to its version.
     first = _ask(bus, f"map {map_id!r}", lambda: chunk(0, info.version))
     with_labels = first.labels is not None
-    header = ply_header(info.point_count, with_labels, f"SpatialAnt map {map_id} version {first.version}")
-    size = len(header) + info.point_count * ply_vertex_dtype(with_labels).itemsize
+    header = ply.header(info.point_count, with_labels, info.label_names, f"SpatialAnt map {map_id} version {first.version}")
+    size = len(header) + info.point_count * ply.vertex_dtype(with_labels).itemsize
 
     def body() -> Iterator[bytes]:
         yield header
         sent = len(first.xyz_m)
-        yield ply_body(first, with_labels)
+        yield ply.records(first.xyz_m, first.rgb, first.labels, with_labels)
         for i in range(1, first.count):
             c = chunk(i, first.version)  # an error here ends the stream short of Content-Length
             sent += len(c.xyz_m)
-            yield ply_body(c, with_labels)
+            yield ply.records(c.xyz_m, c.rgb, c.labels, with_labels)
         if sent != info.point_count:
             log.error("map %s v%d: chunks held %d points, info said %d", map_id, first.version, sent,
                       info.point_count)

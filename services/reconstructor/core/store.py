@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from shared import ply
+
 from services.renderer.core import PointCloud
 from services.renderer.core.errors import CloudFormatError
 from shared.keys import KeyExprError, validate_segment
@@ -335,6 +337,18 @@ def _fsync_dir(path: Path) -> None:
 def _read_cloud(path: Path, name: str) -> PointCloud:
     import open3d as o3d
 
+    if path.suffix.lower() == ".ply":
+        # Our own layout keeps semantic labels and their names, which open3d would drop.
+        try:
+            ours = ply.decode(path.read_bytes())
+        except ValueError as exc:
+            raise MapFormatError(f"{name}: {exc}") from None
+        if ours is not None:
+            xyz, rgb, labels, names = ours
+            finite = np.isfinite(xyz).all(axis=1)
+            if not finite.any():
+                raise MapFormatError(f"{name}: every point is non-finite")
+            return PointCloud(xyz[finite], rgb[finite], None if labels is None else labels[finite], names)
     pcd = o3d.io.read_point_cloud(str(path))
     xyz = np.asarray(pcd.points)
     if len(xyz) == 0:

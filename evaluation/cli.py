@@ -1,0 +1,219 @@
+"""``python -m evaluation {run,preset,generate,summarize}``: the experiment runner's command line.
+
+Without ``--gateway`` the runner starts the whole system itself (zenoh router and every service, via
+:class:`deploy.launcher.Launcher`, logs under ``<out>/system``) and stops it at the end; with
+``--gateway URL`` it uses a running one (add ``--zenoh-connect`` so it can switch robot-io's scene).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+
+from evaluation.errors import ConfigError, EvaluationError
+from evaluation.gateway_client import GatewayClient
+from evaluation.results import COLUMNS, ResultsLog, markdown_table, summary_row, write_tables
+from evaluation.runner import RESULTS_FILE, EvalRunner, MapCache, MapSource, RunConfig, SceneLoader
+
+log = logging.getLogger("evaluation")
+
+
+def _system_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("system")
+    g.add_argument("--gateway", help="use a running gateway at this URL (default: start the system)")
+    g.add_argument("--zenoh-connect", help="zenoh endpoint to reach robot-io for scene switching "
+                                           "(with --gateway), e.g. tcp/127.0.0.1:7447")
+    g.add_argument("--token", help="the gateway's API token (ANT_API_TOKEN)")
+    g.add_argument("--robot", default="robot0", help="robot id of the key expressions")
+    g.add_argument("--start-timeout-s", type=float, default=120.0, help="deadline for the system to come up")
+
+
+def _run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--episodes", required=True, type=Path, help="R2R-CE / RxR-CE episode file (.json.gz)")
+    p.add_argument("--gt", type=Path, help="ground-truth file (default: <episodes>_gt.json.gz when it exists)")
+    p.add_argument("--policy", default="heuristic")
+    p.add_argument("--policy-config", type=json.loads, default={}, help="JSON object")
+    p.add_argument("--limit", type=int)
+    p.add_argument("--scenes-dir", type=Path, help="where mesh scene ids (mp3d/X/X.glb) are looked up")
+    p.add_argument("--map-source", choices=[m.value for m in MapSource], default=MapSource.RECONSTRUCTED.value)
+    p.add_argument("--max-steps", type=int, default=40)
+    p.add_argument("--no-anticipation", action="store_true")
+    p.add_argument("--hfov-deg", type=float, default=90.0, help="anticipated-view HFOV")
+    p.add_argument("--no-spatial-map", action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--reference", choices=["auto", "gt", "episode"], default="auto", help="nDTW reference path")
+    p.add_argument("--mission-timeout-s", type=float, default=1800.0)
+    p.add_argument("--exploration-timeout-s", type=float, default=7200.0)
+    p.add_argument("--exploration-max-steps", type=int, default=400)
+    p.add_argument("--maps", type=Path, help="map-id cache shared between runs (default: <out>/maps.json)")
+    p.add_argument("--no-retry-errors", action="store_true", help="on resume, keep episodes that errored")
+    p.add_argument("--no-progress", action="store_true")
+    _system_args(p)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m evaluation", description=__doc__.split("\n")[0])
+    ap.add_argument("-v", "--verbose", action="store_true")
+    sub = ap.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run an episode file through the system (resumable)")
+    _run_args(run)
+    run.add_argument("--out", type=Path, default=Path("runs/eval/run"))
+    pre = sub.add_parser("preset", help="run one of the paper's comparisons (cloud, anticipation, hfov, "
+                                        "policies, all)")
+    pre.add_argument("name")
+    _run_args(pre)
+    pre.add_argument("--out", type=Path, default=Path("runs/eval/presets"))
+    gen = sub.add_parser("generate", help="write the generated evaluation set (R2R-CE format)")
+    gen.add_argument("--out", type=Path, required=True)
+    gen.add_argument("--houses", type=int, default=5)
+    gen.add_argument("--per-house", type=int, default=20)
+    gen.add_argument("--floors", default="1,2", help="floors per house, cycled (e.g. 1,2)")
+    gen.add_argument("--seed", type=int, default=0)
+    gen.add_argument("--area-m2", type=float)
+    gen.add_argument("--no-gt", action="store_true", help="skip the *_gt.json.gz ground-truth file")
+    summ = sub.add_parser("summarize", help="print (and rewrite) the summary of result folders")
+    summ.add_argument("dirs", nargs="+", type=Path)
+    summ.add_argument("--out", type=Path, help="also write the combined table to <out>.md / .csv")
+    return ap
+
+
+def run_config(a: argparse.Namespace) -> RunConfig:
+    return RunConfig(
+        policy=a.policy, policy_config=a.policy_config, max_steps=a.max_steps, anticipation=not a.no_anticipation,
+        anticipation_hfov_deg=a.hfov_deg, spatial_map=not a.no_spatial_map, map_source=MapSource(a.map_source),
+        seed=a.seed, reference=a.reference, limit=a.limit, scenes_dir=a.scenes_dir,
+        mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
+        exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors)
+
+
+def load_episodes(a: argparse.Namespace):
+    from evaluation.dataset import gt_path_for
+    from services.robot_io.core import read_episodes, read_ground_truth
+
+    ds = read_episodes(a.episodes)
+    gt_path = a.gt or gt_path_for(a.episodes)
+    gt = read_ground_truth(gt_path) if gt_path.is_file() else None
+    if a.gt and gt is None:
+        raise ConfigError(f"ground-truth file not found: {a.gt}")
+    log.info("%d episodes from %s%s", len(ds.episodes), a.episodes, f", ground truth {gt_path}" if gt else "")
+    return ds.episodes, gt
+
+
+@contextmanager
+def system(a: argparse.Namespace, out: Path) -> Iterator[tuple[GatewayClient, SceneLoader | None]]:
+    """The gateway client and the scene switcher: a running system's, or one started for this run."""
+    from shared.bus.typed import TypedBus
+    from shared.clients import RobotClient
+
+    with ExitStack() as stack:
+        if a.gateway:
+            gateway = stack.enter_context(GatewayClient.connect(a.gateway, token=a.token))
+            loader = None
+            if a.zenoh_connect:
+                from shared.bus.config import ZenohSettings
+                from shared.bus.zenoh_bus import ZenohBus
+
+                bus = ZenohBus(ZenohSettings(connect=[a.zenoh_connect]))
+                stack.callback(bus.close)
+                loader = RobotClient(TypedBus(bus, "evaluation"), a.robot)
+            yield gateway, loader
+            return
+        from deploy.launcher import Launcher
+
+        log.info("starting the system (logs in %s)", out / "system")
+        t0 = time.monotonic()
+        launcher = Launcher(out / "system")
+        stack.callback(launcher.stop)
+        launcher.start(a.start_timeout_s)
+        log.info("system up in %.1f s, gateway %s", time.monotonic() - t0, launcher.gateway_url)
+        gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
+        yield gateway, RobotClient(TypedBus(launcher.bus, "evaluation"), a.robot)
+
+
+def cmd_run(a: argparse.Namespace) -> int:
+    episodes, gt = load_episodes(a)
+    cfg = run_config(a)
+    t0 = time.monotonic()
+    with system(a, a.out) as (gateway, scenes):
+        cache = MapCache(a.maps or a.out / "maps.json")
+        label = f"{cfg.policy}/{cfg.map_source.value}"
+        report = EvalRunner(gateway, scenes, cfg, a.out, map_cache=cache, label=label,
+                            progress=not a.no_progress).run(episodes, gt)
+    print(markdown_table([report.row]))
+    print(f"{report.ran} episodes run, {report.resumed} resumed; results in {a.out / RESULTS_FILE}; "
+          f"wall time {time.monotonic() - t0:.0f} s")
+    return 0
+
+
+def cmd_preset(a: argparse.Namespace) -> int:
+    from evaluation.presets import presets, run_preset
+
+    names = list(presets()) if a.name == "all" else [a.name]
+    unknown = [n for n in names if n not in presets()]
+    if unknown:
+        raise ConfigError(f"unknown preset {unknown[0]!r}; known: {', '.join(presets())}, all")
+    episodes, gt = load_episodes(a)
+    base = run_config(a)
+    t0 = time.monotonic()
+    with system(a, a.out) as (gateway, scenes):
+        cache = MapCache(a.maps or a.out / "maps.json")
+        for name in names:
+            rep = run_preset(name, episodes, gt, base, a.out, gateway, scenes, map_cache=cache,
+                             progress=not a.no_progress)
+            print(f"\n## {rep.preset.title}\n")
+            print(markdown_table(rep.rows))
+            print(f"{rep.preset.paper}\ntable {rep.table_md}, plot {rep.plot_png}")
+    print(f"wall time {time.monotonic() - t0:.0f} s")
+    return 0
+
+
+def cmd_generate(a: argparse.Namespace) -> int:
+    from evaluation.dataset import SetSpec, generate_set, parse_floors, write_set
+
+    spec = SetSpec(houses=a.houses, per_house=a.per_house, floors=parse_floors(a.floors), seed=a.seed,
+                   area_m2=a.area_m2)
+    t0 = time.monotonic()
+    ds, gt = generate_set(spec, with_gt=not a.no_gt,
+                          progress=lambda i, n, s: print(f"[{i + 1}/{n}] {s}", file=sys.stderr))
+    paths = write_set(ds, gt, a.out)
+    print(f"{len(ds.episodes)} episodes over {spec.houses} houses -> {', '.join(map(str, paths))} "
+          f"({time.monotonic() - t0:.0f} s)")
+    return 0
+
+
+def cmd_summarize(a: argparse.Namespace) -> int:
+    rows = []
+    for d in a.dirs:
+        results = list(ResultsLog(d / RESULTS_FILE).load().values())
+        if not results:
+            raise ConfigError(f"{d}: no {RESULTS_FILE}")
+        rows.append(summary_row(results, d.name))
+    print(markdown_table(rows))
+    if a.out:
+        write_tables(rows, a.out, COLUMNS)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    from shared.logs import configure_logging
+
+    configure_logging("evaluation", "cli", "DEBUG" if a.verbose else "INFO", False)
+    # Request lines of the HTTP client would drown the progress bar.
+    for noisy in ("httpx", "httpx2", "httpcore"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    try:
+        return {"run": cmd_run, "preset": cmd_preset, "generate": cmd_generate, "summarize": cmd_summarize}[
+            a.command](a)
+    except (EvaluationError, FileNotFoundError) as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        log.warning("interrupted: finished episodes are saved; run the same command again to resume")
+        return 130

@@ -1,0 +1,451 @@
+"""The experiment runner: an R2R-CE-format episode file through the running system, via the gateway.
+
+For each scene (episodes grouped by ``scene_id``, in file order) it switches robot-io to the scene,
+obtains a map (``reconstructed``: ``POST /explorations``; ``curated``: a cloud sampled from the scene
+mesh uploaded with ``POST /maps``; either cached per scene and source), then runs every episode as a
+mission (start pose, goal and reference path in the options, a deterministic seed per episode), waits
+for its end and appends one JSON line to ``results.jsonl``. Episodes already ``done`` in that file are
+not run again, so an interrupted run resumes where it stopped. Episodes whose scene file is missing are
+recorded as ``skipped`` with the reason. The summary (Markdown + CSV) is recomputed from the log.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import re
+import threading
+import time
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from evaluation.errors import (
+    ConfigError, EvaluationError, GatewayError, MapUnavailable, MissionTimeout, SceneSwitchError,
+)
+from evaluation.gateway_client import GatewayClient
+from evaluation.metrics import MetricsError
+from evaluation.results import EpisodeResult, ResultsLog, metrics_from_dict, skipped_report, summary_row, write_tables
+from services.robot_io.core import Episode, GroundTruth, SceneNotFoundError
+from services.robot_io.core.scene import is_generated_spec
+from shared.schemas import MissionOptions, SceneSummary
+
+log = logging.getLogger(__name__)
+
+RESULTS_FILE = "results.jsonl"
+SUMMARY_STEM = "summary"
+RUN_FILE = "run.json"
+
+
+class MapSource(StrEnum):
+    """Where a scene's map comes from (the paper's ablation of Table 4)."""
+
+    RECONSTRUCTED = "reconstructed"  # the agent explores and reconstructs (the paper's method)
+    CURATED = "curated"  # a cloud sampled from the scene mesh (the dataset's human-curated scan)
+
+
+class RunConfig(BaseModel):
+    """Everything that defines an evaluation run. ``experiment_key()`` fields must not change on resume."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    policy: str = Field("heuristic", description="planner policy backend (heuristic, oracle, openai, replay)")
+    policy_config: dict[str, Any] = Field(default_factory=dict, description="the policy backend's typed config")
+    max_steps: int = Field(40, ge=1, le=500, description="decisions per episode before it counts as not stopped")
+    anticipation: bool = True
+    anticipation_hfov_deg: float = Field(90.0, ge=30.0, le=150.0)
+    spatial_map: bool = True
+    map_source: MapSource = MapSource.RECONSTRUCTED
+    seed: int = Field(0, description="run seed; each episode's mission seed derives from it and the episode id")
+    reference: Literal["auto", "gt", "episode"] = Field(
+        "auto", description="nDTW reference: gt = the dense *_gt.json.gz locations (VLN-CE), episode = "
+                            "reference_path; auto = gt when the file exists")
+    limit: int | None = Field(None, ge=1, description="only the first N episodes of the file")
+    scenes_dir: Path | None = Field(None, description="where mesh scene ids (e.g. mp3d/X/X.glb) are looked up")
+    mission_timeout_s: float = Field(1800.0, gt=0)
+    exploration_timeout_s: float = Field(7200.0, gt=0)
+    exploration_max_steps: int = Field(400, ge=1, le=10_000)
+    reconstruction: str = Field("rgbd", description="regional reconstruction backend of explorations")
+    curated_density_per_m2: float = Field(300.0, gt=0)
+    curated_max_points: int = Field(1_000_000, ge=1000)
+    poll_s: float = Field(0.5, gt=0, le=30)
+    retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")
+
+    def experiment_key(self) -> dict[str, Any]:
+        """The settings a results file is only valid for (resuming with others would mix experiments)."""
+        return self.model_dump(mode="json", include={
+            "policy", "policy_config", "max_steps", "anticipation", "anticipation_hfov_deg", "spatial_map",
+            "map_source", "seed", "reference"})
+
+
+def episode_seed(run_seed: int, episode_id: Any) -> int:
+    """A mission seed from the run seed and the episode id: stable across runs, machines and order."""
+    return zlib.crc32(f"{run_seed}:{episode_id}".encode()) & 0x7FFFFFFF
+
+
+def group_by_scene(episodes: Sequence[Episode]) -> dict[str, list[Episode]]:
+    """Episodes per scene id, scenes in order of first appearance, episodes in file order."""
+    groups: dict[str, list[Episode]] = {}
+    for e in episodes:
+        groups.setdefault(e.scene_id, []).append(e)
+    return groups
+
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.-]+")
+
+
+def map_id_for(scene_id: str, source: MapSource | str, prefix: str = "eval") -> str:
+    """A gateway-safe map id (``[A-Za-z0-9][A-Za-z0-9_.-]{0,63}``), readable and unique per scene+source."""
+    slug = _UNSAFE.sub("_", scene_id.rsplit("/", 1)[-1]).strip("_.-") or "scene"
+    digest = hashlib.sha1(f"{scene_id}|{source}".encode()).hexdigest()[:8]
+    head = f"{prefix}-{MapSource(source).value}-"
+    return f"{head}{slug[: 64 - len(head) - 9]}-{digest}"
+
+
+class SceneLoader(Protocol):
+    """Switches the robot's scene (``shared.clients.RobotClient`` satisfies it)."""
+
+    def load_scene(self, scene: str) -> SceneSummary: ...
+
+
+class MapCache:
+    """scene + map source -> map id, persisted as JSON (shared by the runs of a preset)."""
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        self._data: dict[str, str] = {}
+        if self.path.is_file():
+            try:
+                self._data = dict(json.loads(self.path.read_text(encoding="utf-8")))
+            except ValueError as exc:
+                raise ConfigError(f"{self.path}: not a map cache ({exc})") from None
+
+    @staticmethod
+    def _key(scene_id: str, source: MapSource | str) -> str:
+        return f"{MapSource(source).value}|{scene_id}"
+
+    def get(self, scene_id: str, source: MapSource | str) -> str | None:
+        return self._data.get(self._key(scene_id, source))
+
+    def put(self, scene_id: str, source: MapSource | str, map_id: str) -> None:
+        with self._lock:
+            self._data[self._key(scene_id, source)] = map_id
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self._data, indent=1, sort_keys=True), encoding="utf-8")
+            tmp.replace(self.path)
+
+
+@dataclass
+class RunReport:
+    """What one :meth:`EvalRunner.run` did and where it wrote it."""
+
+    out_dir: Path
+    results: list[EpisodeResult]  # latest result of every selected episode, in file order
+    row: dict[str, Any]  # the summary row (see :data:`evaluation.results.COLUMNS`)
+    ran: int = 0  # episodes run by this call
+    resumed: int = 0  # episodes found done in the log and not run again
+    wall_s: float = 0.0
+    tables: tuple[Path, Path] | None = None
+    maps: dict[str, str] = field(default_factory=dict)  # scene -> map id used
+
+
+class EvalRunner:
+    """Runs episodes through the gateway; see the module docstring.
+
+    Args:
+        gateway: the gateway's HTTP client.
+        scenes: switches robot-io's scene; None means the robot already holds the (single) scene.
+        config: the run's settings.
+        out_dir: ``results.jsonl``, ``summary.md/.csv``, ``run.json`` and (unless ``map_cache`` is given)
+            ``maps.json`` go here.
+        map_cache: shared map ids (presets pass one for all their runs).
+        label: the summary row's label.
+        progress: show a tqdm progress bar (stderr).
+        scene_builder: ``scene_builder(spec, scenes_dir) -> Scene`` for curated clouds (default: robot-io's
+            :func:`load_scene`, the same scenes the simulator loads).
+    """
+
+    def __init__(self, gateway: GatewayClient, scenes: SceneLoader | None, config: RunConfig, out_dir: Path | str,
+                 *, map_cache: MapCache | None = None, label: str = "all", progress: bool = True,
+                 scene_builder: Callable[[str, Path | None], Any] | None = None):
+        self.gateway, self.scenes, self.config = gateway, scenes, config
+        self.out_dir = Path(out_dir)
+        self.log = ResultsLog(self.out_dir / RESULTS_FILE)
+        self.maps = map_cache or MapCache(self.out_dir / "maps.json")
+        self.label, self.progress = label, progress
+        self.scene_builder = scene_builder
+
+    # --- the run -------------------------------------------------------------------------------------
+    def _check_resume(self) -> None:
+        path = self.out_dir / RUN_FILE
+        key = self.config.experiment_key()
+        if path.is_file():
+            old = json.loads(path.read_text(encoding="utf-8")).get("experiment", {})
+            if old != key:
+                diff = {k: (old.get(k), v) for k, v in key.items() if old.get(k) != v}
+                raise ConfigError(f"{self.out_dir} holds results of another experiment ({diff} as (old, new)); "
+                                  "use another --out")
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"experiment": key, "config": self.config.model_dump(mode="json")}, indent=1),
+                        encoding="utf-8")
+
+    def select(self, episodes: Sequence[Episode]) -> list[Episode]:
+        eps = list(episodes)
+        ids = [str(e.episode_id) for e in eps]
+        if len(set(ids)) != len(ids):
+            raise ConfigError("the episode file repeats episode ids; results are keyed by id")
+        return eps[: self.config.limit] if self.config.limit else eps
+
+    def pending(self, episodes: Sequence[Episode], prior: dict[str, EpisodeResult]) -> list[Episode]:
+        """Episodes still to run: not done, and not errored unless errors are retried."""
+        out = []
+        for e in episodes:
+            r = prior.get(str(e.episode_id))
+            if r is None or r.status == "skipped" or (r.status == "error" and self.config.retry_errors):
+                out.append(e)
+        return out
+
+    def run(self, episodes: Sequence[Episode], gt: dict[str, GroundTruth] | None = None) -> RunReport:
+        """Run (or resume) the episodes; returns the report and writes the summary tables."""
+        t0 = time.monotonic()
+        cfg = self.config
+        if cfg.reference == "gt" and not gt:
+            raise ConfigError("reference='gt' needs the episodes' ground-truth file (*_gt.json.gz)")
+        selected = self.select(episodes)
+        self._check_resume()
+        prior = self.log.load()
+        todo = self.pending(selected, prior)
+        groups = group_by_scene(todo)
+        if self.scenes is None and len(groups) > 1:
+            raise SceneSwitchError(f"{len(groups)} scenes to run but no way to switch scenes (give the runner a "
+                                   "bus connection to robot-io)")
+        resumed = len(selected) - len(todo)
+        if resumed:
+            log.info("resuming: %d of %d episodes already done", resumed, len(selected))
+        bar = _progress(len(todo), f"{self.label} ({resumed} done before)" if resumed else self.label,
+                        self.progress)
+        ran = 0
+        maps: dict[str, str] = {}
+        stats = {"done": 0, "success": 0}
+        try:
+            for scene_id, group in groups.items():
+                for result in self._run_scene(scene_id, group, gt or {}, maps):
+                    self.log.append(result)
+                    ran += 1
+                    if result.status == "done":
+                        stats["done"] += 1
+                        stats["success"] += bool(result.metrics and result.metrics.get("success"))
+                    bar.update(1)
+                    bar.set_postfix(SR=f"{100 * stats['success'] / max(1, stats['done']):.0f}%",
+                                    scene=scene_id[-24:], refresh=False)
+        finally:
+            bar.close()
+        latest = self.log.load()
+        results = [latest[str(e.episode_id)] for e in selected if str(e.episode_id) in latest]
+        row = summary_row(results, self.label)
+        tables = write_tables([row], self.out_dir / SUMMARY_STEM, title=f"Evaluation: {self.label}")
+        self._append_skipped(tables[0], results)
+        return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps)
+
+    @staticmethod
+    def _append_skipped(md: Path, results: Sequence[EpisodeResult]) -> None:
+        rows = skipped_report(results)
+        if not rows:
+            return
+        lines = ["", f"## Not evaluated ({len(rows)})", "", "| episode | scene | reason |", "|---|---|---|"]
+        lines += [f"| {e} | {s} | {r.replace('|', '/')} |" for e, s, r in rows]
+        with open(md, "a", encoding="utf-8") as f:
+            f.write("\n".join(lines) + "\n")
+
+    # --- one scene -----------------------------------------------------------------------------------
+    def _base(self, e: Episode, **kw) -> EpisodeResult:
+        return EpisodeResult(episode_id=str(e.episode_id), scene_id=e.scene_id, instruction=e.instruction,
+                             map_source=self.config.map_source.value, finished_at_s=time.time(), **kw)
+
+    def _run_scene(self, scene_id: str, group: list[Episode], gt: dict[str, GroundTruth], maps: dict[str, str]):
+        cfg = self.config
+        try:
+            spec = group[0].scene_path(cfg.scenes_dir)
+        except SceneNotFoundError as exc:
+            log.warning("scene %s missing: skipping %d episodes (%s)", scene_id, len(group), exc)
+            for e in group:
+                yield self._base(e, status="skipped", reason=str(exc))
+            return
+        if not is_generated_spec(spec):
+            # robot-io runs in another process, maybe in another directory: hand it an absolute path.
+            spec = str(Path(spec).resolve())
+        if self.scenes is not None:
+            try:
+                summary = self.scenes.load_scene(spec)
+                log.info("scene %s loaded (%d floors, %.0f m2 reachable)", spec, summary.floors,
+                         summary.reachable_area_m2)
+            except Exception as exc:  # noqa: BLE001 - any failure to load is reported per episode
+                log.warning("scene %s could not be loaded: %s", spec, exc)
+                for e in group:
+                    yield self._base(e, status="skipped", reason=f"scene could not be loaded: {exc}")
+                return
+        try:
+            map_id = self.ensure_map(scene_id, spec)
+        except (EvaluationError, MetricsError) as exc:
+            log.error("no map for %s: %s", scene_id, exc)
+            for e in group:
+                yield self._base(e, status="error", reason=f"no map: {exc}")
+            return
+        maps[scene_id] = map_id
+        for e in group:
+            yield self.run_episode(e, map_id, gt.get(str(e.episode_id)))
+
+    # --- maps ----------------------------------------------------------------------------------------
+    def ensure_map(self, scene_id: str, spec: str) -> str:
+        """The map of this scene and source: the cached one if the gateway still has it, else a new one."""
+        source = self.config.map_source
+        cached = self.maps.get(scene_id, source)
+        if cached and self.gateway.map_info(cached) is not None:
+            log.info("reusing map %s for %s (%s)", cached, scene_id, source.value)
+            return cached
+        map_id = map_id_for(scene_id, source)
+        if source is MapSource.CURATED:
+            self._upload_curated(spec, map_id)
+        else:
+            self._explore(map_id)
+        self.maps.put(scene_id, source, map_id)
+        return map_id
+
+    def _explore(self, map_id: str) -> None:
+        cfg = self.config
+        t0 = time.monotonic()
+        try:
+            xid = self.gateway.submit_exploration(map_id, max_steps=cfg.exploration_max_steps,
+                                                  reconstruction=cfg.reconstruction)
+            rec = self.gateway.wait(self.gateway.exploration, xid, cfg.exploration_timeout_s, cfg.poll_s)
+        except (GatewayError, MissionTimeout) as exc:
+            raise MapUnavailable(f"exploration for {map_id}: {exc}") from None
+        if rec["state"] != "succeeded":
+            raise MapUnavailable(f"exploration {xid} {rec['state']}: {rec.get('error') or rec.get('message') or ''}")
+        log.info("explored and reconstructed %s in %.0f s", map_id, time.monotonic() - t0)
+
+    def _upload_curated(self, spec: str, map_id: str) -> None:
+        from evaluation.clouds import cloud_ply_bytes, sample_scene_cloud
+
+        cfg = self.config
+        builder = self.scene_builder
+        if builder is None:
+            from services.robot_io.core import load_scene as builder
+        try:
+            scene = builder(spec, cfg.scenes_dir)
+        except Exception as exc:  # noqa: BLE001
+            raise MapUnavailable(f"cannot build scene {spec} for its curated cloud: {exc}") from None
+        cloud = sample_scene_cloud(scene, density_per_m2=cfg.curated_density_per_m2,
+                                   max_points=cfg.curated_max_points, seed=cfg.seed)
+        try:
+            info = self.gateway.upload_map(map_id, cloud_ply_bytes(cloud), filename=f"{map_id}.ply")
+        except GatewayError as exc:
+            raise MapUnavailable(f"upload of the curated cloud {map_id}: {exc}") from None
+        log.info("uploaded curated cloud %s: %d points", map_id, info.get("point_count", len(cloud)))
+
+    # --- one episode ---------------------------------------------------------------------------------
+    def reference_for(self, e: Episode, gt: GroundTruth | None) -> list[tuple[float, float, float]] | None:
+        use_gt = self.config.reference == "gt" or (self.config.reference == "auto" and gt is not None)
+        if use_gt:
+            if gt is None:
+                raise ConfigError(f"episode {e.episode_id} has no ground-truth record")
+            pts = gt.locations_m
+        else:
+            pts = e.reference_path_m
+        return [tuple(float(v) for v in p) for p in pts] if len(pts) else None
+
+    def mission_options(self, e: Episode, gt: GroundTruth | None) -> MissionOptions:
+        """The mission's options, validated by the shared schema (the planner's contract)."""
+        cfg = self.config
+        return MissionOptions(
+            policy=cfg.policy, policy_config=cfg.policy_config, max_steps=cfg.max_steps,
+            anticipation=cfg.anticipation, anticipation_hfov_deg=cfg.anticipation_hfov_deg,
+            spatial_map=cfg.spatial_map, goal_m=tuple(float(v) for v in e.goal_m),
+            reference_path_m=self.reference_for(e, gt), start_pose=e.start_pose,
+            seed=episode_seed(cfg.seed, e.episode_id))
+
+    def run_episode(self, e: Episode, map_id: str, gt: GroundTruth | None = None) -> EpisodeResult:
+        """One mission, start to end; never raises for a failure of the system (it becomes ``error``)."""
+        cfg = self.config
+        opts = self.mission_options(e, gt)
+        brief = {"policy": cfg.policy, "max_steps": cfg.max_steps, "anticipation": cfg.anticipation,
+                 "anticipation_hfov_deg": cfg.anticipation_hfov_deg, "spatial_map": cfg.spatial_map}
+        base = {"map_id": map_id, "seed": opts.seed, "options": brief}
+        t0 = time.monotonic()
+        try:
+            mid = self.gateway.submit_mission(e.instruction, map_id, opts.model_dump(mode="json"))
+        except GatewayError as exc:
+            return self._base(e, status="error", reason=f"mission refused: {exc}", **base)
+        try:
+            rec = self.gateway.wait(self.gateway.mission, mid, cfg.mission_timeout_s, cfg.poll_s)
+        except MissionTimeout as exc:
+            try:
+                self.gateway.cancel_mission(mid)
+            except GatewayError as cancel_exc:
+                log.warning("could not cancel %s: %s", mid, cancel_exc)
+            return self._base(e, status="error", reason=f"timeout: {exc}", mission_id=mid,
+                              wall_s=time.monotonic() - t0, **base)
+        except GatewayError as exc:
+            return self._base(e, status="error", reason=f"lost the mission: {exc}", mission_id=mid,
+                              wall_s=time.monotonic() - t0, **base)
+        return self._result(e, mid, rec, time.monotonic() - t0, base)
+
+    def _final_event(self, mid: str, rec: dict[str, Any]) -> dict[str, Any]:
+        try:
+            events = self.gateway.history(mid, after=max(-1, int(rec.get("last_seq", 0)) - 1), limit=10)
+        except GatewayError as exc:
+            log.warning("no history for %s: %s", mid, exc)
+            return {}
+        ends = [ev for ev in events if ev.get("kind") in ("finished", "error")]
+        return ends[-1].get("data", {}) if ends else {}
+
+    def _result(self, e: Episode, mid: str, rec: dict[str, Any], wall_s: float, base: dict) -> EpisodeResult:
+        data = self._final_event(mid, rec)
+        usage = data.get("usage") if isinstance(data.get("usage"), dict) else {}
+        common = dict(
+            mission_id=mid, state=rec["state"], wall_s=round(wall_s, 3),
+            trajectory_m=data.get("trajectory_m") or rec.get("trajectory") or [],
+            decisions=rec.get("decisions") or [],
+            step_latency_s=[float(x) for x in data.get("step_latency_s") or []],
+            prompt_tokens=int(usage.get("prompt_tokens", rec.get("prompt_tokens", 0))),
+            completion_tokens=int(usage.get("completion_tokens", rec.get("completion_tokens", 0))),
+            cost_usd=float(usage.get("cost_usd", rec.get("cost_usd", 0.0))), **base)
+        if rec["state"] == "cancelled":
+            return self._base(e, status="error", reason="the mission was cancelled", **common)
+        raw = data.get("metrics") if isinstance(data.get("metrics"), dict) else rec.get("metrics")
+        if not raw:
+            why = rec.get("error") or data.get("reason") or "the mission ended without metrics"
+            return self._base(e, status="error", reason=str(why), **common)
+        try:
+            metrics = metrics_from_dict(raw).to_dict()
+        except MetricsError as exc:
+            return self._base(e, status="error", reason=f"bad metrics from the planner: {exc}", **common)
+        # A failed mission with metrics ran out of steps: a VLN-CE failure, not a system error.
+        return self._base(e, status="done", reason=str(data.get("reason") or ""), metrics=metrics, **common)
+
+
+class _NoBar:
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix(self, *a, **kw) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="ep", dynamic_ncols=True, smoothing=0.1)

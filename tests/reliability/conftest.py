@@ -1,0 +1,95 @@
+"""Fixtures of the reliability suite: a real system (router + six service processes) and a tally.
+
+The tally is what ``python -m bench.reliability`` prints: every test adds what it injected and what
+survived (faults, fuzzed payloads, HTTP cases, 5xx answers, lost missions and events). Where
+``ANT_RELIABILITY_REPORT`` names a file, the session's tally is written there as JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import httpx
+import pytest
+
+SCENE = "generated:0"
+MAP_ID = "rel-house"
+
+
+class Tally:
+    """Counters shared by every reliability test of a session (thread-safe)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.counts: Counter[str] = Counter()
+        self.notes: list[str] = []
+
+    def add(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[name] += n
+
+    def note(self, text: str) -> None:
+        with self._lock:
+            self.notes.append(text)
+
+
+@pytest.fixture(scope="session")
+def tally():
+    t = Tally()
+    yield t
+    path = os.environ.get("ANT_RELIABILITY_REPORT")
+    if path:
+        Path(path).write_text(json.dumps({"counts": dict(t.counts), "notes": t.notes}, indent=1))
+
+
+def wait_until(pred, timeout_s: float, what: str, interval_s: float = 0.1):
+    """``pred()``'s first truthy value, or TimeoutError naming ``what`` - no test waits unbounded."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        try:
+            value = pred()
+        except (httpx.HTTPError, OSError):
+            value = None
+        if value:
+            return value
+        time.sleep(interval_s)
+    raise TimeoutError(f"{what} not within {timeout_s:.0f} s")
+
+
+def scene_ply(density_per_m2: float = 60.0) -> bytes:
+    """A PLY of points sampled from the scene robot-io simulates (the map a mission runs on)."""
+    from evaluation.clouds import cloud_ply_bytes, sample_scene_cloud
+    from services.robot_io.core import ROBOTS
+
+    with ROBOTS.create("sim", {"scene": SCENE}) as robot:
+        cloud = sample_scene_cloud(robot.scene, density_per_m2=density_per_m2, max_points=200_000)
+    return cloud_ply_bytes(cloud)
+
+
+@pytest.fixture(scope="session")
+def system(tmp_path_factory):
+    """The whole system as real processes over a real zenoh router, supervised (restart on crash),
+    with one map imported from the scene; shared by the suite so it starts once."""
+    from deploy.launcher import Launcher
+
+    run_dir = tmp_path_factory.mktemp("reliability")
+    env = {
+        "ANT_ROBOT_CONFIG": json.dumps({"scene": SCENE}),
+        "ANT_STORE_DIR": str(run_dir / "maps"),
+        "ANT_DB_PATH": str(run_dir / "gateway.sqlite3"),
+        "ANT_LOG_LEVEL": "WARNING",
+    }
+    launcher = Launcher(run_dir, extra_env=env, restart=True)
+    with launcher:
+        with httpx.Client(base_url=launcher.gateway_url, timeout=120) as http:
+            wait_until(lambda: http.get("/maps").status_code == 200, 60, "gateway reaches the reconstructor")
+            r = http.post("/maps", params={"map_id": MAP_ID, "filename": "scene.ply"}, content=scene_ply(),
+                          headers={"Content-Type": "application/octet-stream"})
+            assert r.status_code == 201, r.text
+        launcher.run_dir_path = run_dir
+        yield launcher

@@ -1,0 +1,93 @@
+"""Curated clouds sampled from meshes, and the generated evaluation set (determinism, format)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from conftest import box_scene
+from evaluation.clouds import cloud_ply_bytes, sample_scene_cloud
+from evaluation.dataset import SetSpec, generate_set, gt_path_for, parse_floors, write_set
+from evaluation.errors import ConfigError
+from services.robot_io.core import read_episodes, read_ground_truth
+
+
+def test_cloud_is_area_uniform_on_the_surface_with_labels_and_colours():
+    scene = box_scene()
+    cloud = sample_scene_cloud(scene, density_per_m2=400.0, seed=3)
+    total = 2 * (4 * 3 + 4 * 2.5 + 3 * 2.5)
+    assert len(cloud) == round(total * 400)
+    xyz = cloud.xyz_m.astype(np.float64)
+    # Every point lies on one of the six faces of the box.
+    on_face = (np.isclose(xyz[:, 0], 0, atol=1e-5) | np.isclose(xyz[:, 0], 4, atol=1e-5)
+               | np.isclose(xyz[:, 1], 0, atol=1e-5) | np.isclose(xyz[:, 1], 3, atol=1e-5)
+               | np.isclose(xyz[:, 2], 0, atol=1e-5) | np.isclose(xyz[:, 2], 2.5, atol=1e-5))
+    assert on_face.all()
+    # The floor (label 1) holds its share of the area, and is exactly the z = 0 points.
+    floor = cloud.labels == 1
+    assert floor.mean() == pytest.approx(12 / total, abs=0.01)
+    assert np.array_equal(floor, np.isclose(xyz[:, 2], 0, atol=1e-5) & (cloud.labels != 0))
+    # Uniform within a face: the floor's quadrants each get a quarter.
+    f = xyz[floor]
+    q = (f[:, 0] < 2).astype(int) * 2 + (f[:, 1] < 1.5).astype(int)
+    assert np.bincount(q, minlength=4) / len(f) == pytest.approx([0.25] * 4, abs=0.03)
+    assert (cloud.rgb == [204, 51, 26]).all()
+    assert np.array_equal(sample_scene_cloud(scene, density_per_m2=400.0, seed=3).xyz_m, cloud.xyz_m)
+    assert len(sample_scene_cloud(scene, density_per_m2=400.0, max_points=1000)) == 1000
+
+
+def test_ply_reads_back_with_open3d_and_keeps_labels(tmp_path):
+    cloud = sample_scene_cloud(box_scene(), density_per_m2=50.0, seed=1)
+    data = cloud_ply_bytes(cloud)
+    path = tmp_path / "c.ply"
+    path.write_bytes(data)
+    pcd = o3d.io.read_point_cloud(str(path))
+    assert np.allclose(np.asarray(pcd.points), cloud.xyz_m, atol=1e-6)
+    assert np.allclose(np.asarray(pcd.colors) * 255, cloud.rgb, atol=0.5)
+    head, _, body = data.partition(b"end_header\n")
+    names = next(ln for ln in head.decode().splitlines() if ln.startswith("comment label_names "))
+    assert json.loads(names.split(" ", 2)[2]) == {"0": "wall", "1": "floor"}
+    rec = np.frombuffer(body, np.dtype([("p", "<f4", 3), ("c", "u1", 3), ("label", "<i4")]))
+    assert np.array_equal(rec["label"], cloud.labels)
+
+
+def test_set_spec_houses_cycle_floors_and_validate():
+    spec = SetSpec(houses=3, per_house=1, floors=(1, 2), seed=2)
+    assert spec.scene_specs() == ["generated:2000", "generated:2001:floors=2", "generated:2002"]
+    assert parse_floors("1, 2") == (1, 2)
+    for bad in ({"floors": (3,)}, {"houses": 0}, {"min_geodesic_m": 9.0, "max_geodesic_m": 5.0}):
+        with pytest.raises(ConfigError):
+            SetSpec(**bad)
+    assert gt_path_for("a/b.json.gz").name == "b_gt.json.gz" and gt_path_for("b.json").name == "b_gt.json"
+
+
+@pytest.fixture(scope="module")
+def small_set():
+    return generate_set(SetSpec(houses=2, per_house=2, floors=(1, 2), seed=0), with_gt=True)
+
+
+def test_generated_set_is_deterministic_and_in_r2r_ce_format(small_set, tmp_path):
+    ds, gt = small_set
+    assert [e.episode_id for e in ds.episodes] == [1, 2, 3, 4]
+    assert [e.scene_id for e in ds.episodes] == ["generated:0"] * 2 + ["generated:1:floors=2"] * 2
+    vocab = ds.extra["instruction_vocab"]
+    for e in ds.episodes:
+        assert {"episode_id", "trajectory_id", "scene_id", "start_position", "start_rotation", "info", "goals",
+                "instruction", "reference_path"} <= set(e.raw)
+        assert 5.0 <= e.geodesic_distance_m <= 20.0
+        toks = [t for t in e.raw["instruction"]["instruction_tokens"] if t]
+        assert [vocab["itos"][t] for t in toks][:3] == [w.strip(".,").lower() for w in e.instruction.split()][:3]
+        # The dense ground truth starts at the start and ends near the goal (oracle stop radius 0.5 m).
+        locs = gt[str(e.episode_id)].locations_m
+        assert np.allclose(locs[0][:2], e.start_pose.xyz[:2]) and np.linalg.norm(locs[-1][:2] - e.goal_m[:2]) <= 0.5
+    paths = write_set(ds, gt, tmp_path / "set.json.gz")
+    again = read_episodes(paths[0])
+    assert [e.raw for e in again.episodes] == [e.raw for e in ds.episodes]
+    assert set(read_ground_truth(paths[1])) == {"1", "2", "3", "4"}
+    # Same spec, same bytes.
+    ds2, _ = generate_set(SetSpec(houses=2, per_house=2, floors=(1, 2), seed=0), with_gt=False)
+    paths2 = write_set(ds2, {}, tmp_path / "again.json.gz")
+    assert paths2[0].read_bytes() == paths[0].read_bytes() and len(paths2) == 1
