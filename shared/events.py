@@ -22,7 +22,14 @@ def jpeg(image_rgb: np.ndarray, quality: int = 85) -> bytes:
 
 
 class EventStream:
-    """``seq`` starts at 0 and increases by one per event, so a listener can detect a gap."""
+    """``seq`` starts at 0 and increases by one per event, so a listener can detect a gap.
+
+    Events are published with a publisher-side cache (``CACHE_EVENTS``): a gateway that was down
+    or restarted gets what it missed from the cache (zenoh-ext history/recovery), so a mission's
+    record is complete even across a gateway crash.
+    """
+
+    CACHE_EVENTS = 2000
 
     def __init__(self, bus: TypedBus, key: str, job_id: str):
         self.bus, self.key, self.job_id = bus, key, job_id
@@ -37,5 +44,5 @@ class EventStream:
                               data=data or {}, images=images or {})
             self._seq += 1
             self.state = state
-            self.bus.publish(self.key, ev)
+            self.bus.publish(self.key, ev, cache=self.CACHE_EVENTS)
         return ev

@@ -70,10 +70,12 @@ class EventIngest:
         self.stored = 0
         self.duplicates = 0
         self._subs: list[Closeable] = [
+            # history: events published while this gateway was down come back from the
+            # publishers' caches; the store ignores the ones it already has.
             bus.subscribe(keys.MISSION_EVENTS.pattern(robot=robot), MissionEvent,
-                          lambda _k, ev: self._on_event(JobKind.MISSION, ev)),
+                          lambda _k, ev: self._on_event(JobKind.MISSION, ev), history=True),
             bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=robot), MissionEvent,
-                          lambda _k, ev: self._on_event(JobKind.EXPLORATION, ev)),
+                          lambda _k, ev: self._on_event(JobKind.EXPLORATION, ev), history=True),
         ]
 
     def _on_event(self, kind: JobKind, event: MissionEvent) -> None:

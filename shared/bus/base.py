@@ -29,6 +29,9 @@ class Closeable(Protocol):
     def close(self) -> None: ...
 
 
+# What ``Bus.serve`` returns also carries its ``dispatcher`` (for the queue depth in metrics).
+
+
 @dataclass(frozen=True)
 class Reply:
     """One answer to a query: ``payload`` when ok, ``error`` when the replier reported an error."""
@@ -64,11 +67,21 @@ class Bus(ABC):
     """Publish/subscribe, queries, queryables and liveliness over key expressions."""
 
     @abstractmethod
-    def publish(self, key: str, payload: Payload) -> None: ...
+    def publish(self, key: str, payload: Payload, *, cache: int = 0) -> None:
+        """Publish a sample. ``cache > 0`` keeps the last ``cache`` samples of this key at the
+        publisher, so that a subscriber asking for ``history`` gets them even if it (re)started
+        after they were sent - the way mission events survive a gateway restart."""
 
     @abstractmethod
-    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 256) -> Closeable:
-        """Deliver every sample on ``key`` (may contain wildcards), in order, on a worker thread."""
+    def release(self, key: str) -> None:
+        """Drop the publisher cache of ``key`` (the job it belonged to is long over)."""
+
+    @abstractmethod
+    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 256,
+                  history: bool = False) -> Closeable:
+        """Deliver every sample on ``key`` (may contain wildcards), in order, on a worker thread;
+        with ``history``, first the samples that publishers still cache, and samples detected as
+        missed are recovered from them (duplicates are possible: receivers dedupe)."""
 
     @abstractmethod
     def query(

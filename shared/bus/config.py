@@ -10,7 +10,7 @@ import json
 import os
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, SecretStr
 
 
 class ZenohSettings(BaseModel):
@@ -20,6 +20,8 @@ class ZenohSettings(BaseModel):
     connect: list[str] = Field(default_factory=list, description="endpoints, e.g. tcp/127.0.0.1:7447")
     listen: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False  # off by default: explicit endpoints are predictable and test-safe
+    username: str | None = Field(None, description="usrpwd login at the router (with an ACL: the service name)")
+    password: SecretStr | None = Field(None, description="usrpwd password (ANT_ZENOH__PASSWORD)")
     config_file: str | None = Field(
         default_factory=lambda: os.environ.get("ZENOH_CONFIG") or None,
         description="a zenoh JSON5 config file (ZENOH_CONFIG); the fields above override it",
@@ -36,4 +38,7 @@ def zenoh_config(settings: ZenohSettings):
     if settings.listen:
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    if settings.username and settings.password:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(settings.username))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(settings.password.get_secret_value()))
     return conf

@@ -7,6 +7,7 @@ sharing a mutable buffer between sender and receiver.
 from __future__ import annotations
 
 import threading
+from collections import deque
 from concurrent.futures import Future, wait
 
 from shared.bus.base import (
@@ -17,8 +18,9 @@ from shared.bus.keyexpr import intersects
 
 
 class _Entity:
-    def __init__(self, on_close):
+    def __init__(self, on_close, dispatcher: Dispatcher | None = None):
         self._on_close = on_close
+        self.dispatcher = dispatcher
         self._closed = False
 
     def close(self) -> None:
@@ -39,8 +41,14 @@ class FakeBus(Bus):
         self._owned.append(entity)
         return entity
 
-    def publish(self, key: str, payload: Payload) -> None:
+    def publish(self, key: str, payload: Payload, *, cache: int = 0) -> None:
         data = bytes(payload)
+        if cache > 0:
+            with self.net.lock:
+                q = self.net.cache.get(key)
+                if q is None or q.maxlen != cache:
+                    q = self.net.cache[key] = deque(q or (), maxlen=cache)
+                q.append(data)
         for sub_key, disp, handler in list(self.net.subs):
             if intersects(sub_key, key):
                 try:
@@ -48,10 +56,20 @@ class FakeBus(Bus):
                 except Overloaded:
                     pass  # a slow subscriber drops samples, as zenoh's bounded channels do
 
-    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 256) -> Closeable:
+    def release(self, key: str) -> None:
+        with self.net.lock:
+            self.net.cache.pop(key, None)
+
+    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 256,
+                  history: bool = False) -> Closeable:
         disp = Dispatcher(f"sub:{key}", 1, max_queue)
         entry = (key, disp, handler)
         with self.net.lock:
+            if history:
+                for k, q in self.net.cache.items():
+                    if intersects(key, k):
+                        for data in q:
+                            disp.submit(lambda h=handler, k=k, d=data: h(k, d))
             self.net.subs.append(entry)
 
         def close():
@@ -99,7 +117,7 @@ class FakeBus(Bus):
                     self.net.queryables.remove(e)
             disp.close()
 
-        return self._track(_Entity(close))
+        return self._track(_Entity(close, disp))
 
     def liveliness_token(self, key: str) -> Closeable:
         with self.net.lock:
@@ -156,4 +174,5 @@ class FakeNetwork:
         self.queryables: list = []
         self.tokens: dict[str, int] = {}
         self.watchers: list = []
+        self.cache: dict[str, deque] = {}
         self.rr = 0

@@ -114,10 +114,11 @@ class TypedBus:
         self._replica_sets: dict[str, Replicas] = {}
 
     # --- publish / subscribe ---------------------------------------------------------------------
-    def publish(self, key: str, msg: Message) -> None:
-        self.raw.publish(key, encode(msg))
+    def publish(self, key: str, msg: Message, *, cache: int = 0) -> None:
+        self.raw.publish(key, encode(msg), cache=cache)
 
-    def subscribe(self, key: str, model: type[Rep], handler: Callable[[str, Rep], None]) -> Closeable:
+    def subscribe(self, key: str, model: type[Rep], handler: Callable[[str, Rep], None], *,
+                  history: bool = False) -> Closeable:
         def on_sample(k: str, data: bytes) -> None:
             try:
                 msg = decode(data, model, self.max_request_bytes)
@@ -137,7 +138,7 @@ class TypedBus:
             if self.telemetry:
                 self.telemetry.record(f"sub:{key}", time.perf_counter() - t0, ok)
 
-        return self.raw.subscribe(key, on_sample)
+        return self.raw.subscribe(key, on_sample, history=history)
 
     # --- queries ---------------------------------------------------------------------------------
     def serve(self, key: str, model: type[Req], handler: Callable[[Req], Message], *,
@@ -166,7 +167,11 @@ class TypedBus:
             return out
 
         routes = [key] if instance is None else [key, keys.routed(key, instance)]
-        return self.raw.serve(routes, on_query, workers=workers, max_queue=max_queue)
+        entity = self.raw.serve(routes, on_query, workers=workers, max_queue=max_queue)
+        disp = getattr(entity, "dispatcher", None)
+        if self.telemetry is not None and disp is not None:
+            self.telemetry.watch_depth(endpoint, lambda: disp.depth)
+        return entity
 
     def _decode_reply(self, key: str, reply: Reply, model: type[Rep]) -> Rep:
         data = reply.payload if reply.ok else reply.error

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections import OrderedDict
 
 import zenoh
+import zenoh.ext as zx
 
 from shared.bus.base import (
     Bus, Closeable, Dispatcher, LivelinessHandler, Overloaded, Payload, QueryHandler, QueryTarget,
@@ -19,8 +21,9 @@ _TARGETS = {QueryTarget.BEST: zenoh.QueryTarget.BEST_MATCHING, QueryTarget.ALL: 
 
 
 class _Declared:
-    def __init__(self, *undeclare):
+    def __init__(self, *undeclare, dispatcher: Dispatcher | None = None):
         self._undeclare = undeclare
+        self.dispatcher = dispatcher
         self._lock = threading.Lock()
         self._closed = False
 
@@ -41,6 +44,8 @@ class ZenohBus(Bus):
         self.settings = settings or ZenohSettings()
         self.session = session or zenoh.open(zenoh_config(self.settings))
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._durables: OrderedDict[str, zx.AdvancedPublisher] = OrderedDict()
+        self.max_durable_keys = 64  # job event streams kept queryable; older ones are released
         self._pub_lock = threading.Lock()
         self._owned: list[Closeable] = []
 
@@ -48,7 +53,10 @@ class ZenohBus(Bus):
         self._owned.append(d)
         return d
 
-    def publish(self, key: str, payload: Payload) -> None:
+    def publish(self, key: str, payload: Payload, *, cache: int = 0) -> None:
+        if cache > 0:
+            self._durable(key, cache).put(bytes(payload) if isinstance(payload, memoryview) else payload)
+            return
         # A declared publisher per key skips per-put key resolution on the hot path.
         pub = self._publishers.get(key)
         if pub is None:
@@ -61,7 +69,29 @@ class ZenohBus(Bus):
                     )
         pub.put(bytes(payload) if isinstance(payload, memoryview) else payload)
 
-    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 256) -> Closeable:
+    def _durable(self, key: str, cache: int):
+        """zenoh-ext's advanced publisher: a sample cache that late/restarted subscribers query."""
+        with self._pub_lock:
+            pub = self._durables.pop(key, None)
+            if pub is None:
+                pub = zx.declare_advanced_publisher(
+                    self.session, key, congestion_control=zenoh.CongestionControl.BLOCK,
+                    cache=zx.CacheConfig(max_samples=cache),
+                    sample_miss_detection=zx.MissDetectionConfig(heartbeat=1.0), publisher_detection=True)
+            self._durables[key] = pub  # most recently used last
+            while len(self._durables) > self.max_durable_keys:
+                _, old = self._durables.popitem(last=False)
+                old.undeclare()
+            return pub
+
+    def release(self, key: str) -> None:
+        with self._pub_lock:
+            pub = self._durables.pop(key, None)
+        if pub is not None:
+            pub.undeclare()
+
+    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 256,
+                  history: bool = False) -> Closeable:
         disp = Dispatcher(f"sub:{key}", 1, max_queue)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -71,7 +101,12 @@ class ZenohBus(Bus):
             except Overloaded:
                 log.warning("subscriber %s is behind: dropped a sample", key)
 
-        sub = self.session.declare_subscriber(key, on_sample)
+        if history:
+            sub = zx.declare_advanced_subscriber(
+                self.session, key, on_sample, history=zx.HistoryConfig(detect_late_publishers=True),
+                recovery=zx.RecoveryConfig(heartbeat=True), subscriber_detection=True)
+        else:
+            sub = self.session.declare_subscriber(key, on_sample)
         return self._track(_Declared(sub.undeclare, disp.close))
 
     def query(self, key, payload=None, *, timeout_s=5.0, target=QueryTarget.BEST) -> list[Reply]:
@@ -91,7 +126,8 @@ class ZenohBus(Bus):
     def serve(self, key, handler: QueryHandler, *, workers: int = 1, max_queue: int = 64) -> Closeable:
         all_keys = as_keys(key)
         disp = Dispatcher(f"q:{all_keys[0]}", workers, max_queue)
-        return self._track(_Declared(*[self._declare_queryable(k, handler, disp) for k in all_keys], disp.close))
+        return self._track(_Declared(*[self._declare_queryable(k, handler, disp) for k in all_keys], disp.close,
+                                     dispatcher=disp))
 
     def _declare_queryable(self, key: str, handler: QueryHandler, disp: Dispatcher):
         reply_key = None if "*" in key else key
@@ -143,12 +179,13 @@ class ZenohBus(Bus):
         for d in reversed(self._owned):
             d.close()
         self._owned.clear()
-        for pub in self._publishers.values():
+        for pub in [*self._publishers.values(), *self._durables.values()]:
             try:
                 pub.undeclare()
             except Exception:
                 pass
         self._publishers.clear()
+        self._durables.clear()
         try:
             self.session.close()
         except Exception:

@@ -77,3 +77,15 @@ def test_all_target_reaches_every_replica(peers):
     a.serve("ant/svc/r/a/info", lambda k, p: b"a")
     b.serve("ant/svc/r/b/info", lambda k, p: b"b")
     wait_until(lambda: len(b.query("ant/svc/r/*/info", target=QueryTarget.ALL, timeout_s=1)) == 2, what="both")
+
+
+def test_cached_events_reach_a_subscriber_that_starts_later(peers):
+    a, b = peers
+    for i in range(5):
+        a.publish("ant/r/missions/m1/events", bytes([i]), cache=100)
+    got = []
+    b.subscribe("ant/*/missions/*/events", lambda k, d: got.append(d[0]), history=True)
+    wait_until(lambda: len(got) >= 5, what="history delivered")
+    a.publish("ant/r/missions/m1/events", bytes([5]), cache=100)
+    wait_until(lambda: 5 in got, what="live sample")
+    assert sorted(set(got)) == list(range(6))

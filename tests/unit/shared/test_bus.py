@@ -157,3 +157,46 @@ def test_balanced_requests_spread_over_replicas_and_skip_dead_ones():
     assert served == {"r1": 10, "r2": 20}
     running[1].close()
     client.close()
+
+
+def test_history_subscribers_get_what_publishers_cache():
+    net = FakeNetwork()
+    pub, late = FakeBus(net), FakeBus(net)
+    for i in range(5):
+        pub.publish("ant/r/missions/m1/events", bytes([i]), cache=3)
+    pub.publish("ant/r/missions/m1/other", b"x")  # not cached
+    got = []
+    late.subscribe("ant/*/missions/*/events", lambda k, d: got.append(d[0]), history=True)
+    pub.publish("ant/r/missions/m1/events", bytes([5]), cache=3)
+    assert wait_until(lambda: len(got) == 4)
+    assert got == [2, 3, 4, 5]
+    pub.release("ant/r/missions/m1/events")
+    again = []
+    late.subscribe("ant/*/missions/*/events", lambda k, d: again.append(d), history=True)
+    time.sleep(0.05)
+    assert again == []
+
+
+def test_metrics_report_the_queue_depth_of_a_busy_endpoint():
+    net = FakeNetwork()
+    gate = threading.Event()
+
+    class Slow(Service):
+        name = "slow"
+
+        def start(self, node: Node) -> None:
+            node.serve("ant/slow/q", MoveRequest, lambda r: gate.wait(5) and PoseReply(pose=Pose(position_m=(0, 0, 0))),
+                       workers=1)
+
+    with RunningService(Slow(ServiceSettings(instance="s1")), FakeBus(net)):
+        client = TypedBus(FakeBus(net))
+        payload = bytes(encode(MoveRequest(dx_m=0, dy_m=0)))
+        threads = [threading.Thread(target=client.raw.query, args=("ant/slow/q", payload), kwargs={"timeout_s": 6})
+                   for _ in range(3)]
+        for t in threads:
+            t.start()
+        assert wait_until(lambda: client.request(keys.METRICS.format(service="slow", instance="s1"), Ping(),
+                                                 ServiceMetrics).endpoints["q"].queue_depth == 2)
+        gate.set()
+        for t in threads:
+            t.join()
