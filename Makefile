@@ -11,8 +11,9 @@ setup:
 demo: setup
 	$(PY) -m deploy.demo --renderers $(RENDERERS)
 
+# The long variants (marked slow: more fuzz cases, repeated kills) run in `make reliability`.
 test: setup
-	$(PYTEST) -q tests
+	$(PYTEST) -q -m "not slow" tests
 
 test-unit: setup
 	$(PYTEST) -q tests/unit

@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--scenes", nargs="+", default=["generated:0", "generated:1", "generated:2:floors=2"])
     ap.add_argument("--episodes", type=int, default=4, help="per scene")
     ap.add_argument("--policies", nargs="+", default=["oracle", "heuristic"])
-    args = ap.parse_args(argv or [])
+    args = ap.parse_args(argv)
     results: dict[str, list] = {p: [] for p in args.policies}
     latencies: list[float] = []
     t0 = time.time()

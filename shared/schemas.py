@@ -44,6 +44,19 @@ def _finite(values: tuple[float, ...] | float, what: str):
     return values
 
 
+def _finite_array(arr: np.ndarray | None, what: str, non_negative: bool = False) -> None:
+    """Refuse NaN/inf (and, for depths, negative values) in a float array payload: one bad value
+    would silently poison a map, a splat or a distance downstream."""
+    if arr is None or arr.dtype.kind != "f" or arr.size == 0:
+        return
+    bad = ~np.isfinite(arr)
+    if non_negative:
+        bad |= arr < 0
+    if bad.any():
+        rule = "finite and >= 0" if non_negative else "finite"
+        raise ValueError(f"{what} must be {rule}; {int(bad.sum())} of {arr.size} values are not")
+
+
 # --- geometry ------------------------------------------------------------------------------------
 
 
@@ -115,6 +128,9 @@ class Panorama(Message):
             )
         if self.semantic is not None and self.semantic.shape != (v, *hw):
             raise ValueError(f"semantic shape {self.semantic.shape} != {(v, *hw)}")
+        _finite_array(self.headings_rad, "headings_rad")
+        _finite_array(self.depth_m, "depth_m", non_negative=True)
+        _finite(self.timestamp_s, "timestamp_s")
         return self
 
 
@@ -130,6 +146,12 @@ class Frame(Message):
     rgb: Array("uint8", 3, 3)
     depth_m: Array("float32", 2) | None = None
     semantic: Array("int32", 2) | None = None
+
+    @model_validator(mode="after")
+    def _finite_values(self):
+        _finite((self.timestamp_s, self.pitch_rad, self.imu_heading_rad), "frame timestamp/pitch/IMU heading")
+        _finite_array(self.depth_m, "depth_m", non_negative=True)
+        return self
 
 
 class MoveStatus(StrEnum):
@@ -337,6 +359,11 @@ class MapChunk(Message):
     xyz_m: Array("float32", 2, 3)
     rgb: Array("uint8", 2, 3)
     labels: Array("int32", 1) | None = None
+
+    @model_validator(mode="after")
+    def _finite_points(self):
+        _finite_array(self.xyz_m, "xyz_m")
+        return self
 
 
 # --- renderer --------------------------------------------------------------------------------------

@@ -9,19 +9,22 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from collections.abc import Callable
 from contextlib import asynccontextmanager
 
+import anyio.to_thread
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
 import shared
 from services.gateway import errors
+from services.gateway.cache import RecordCache
 from services.gateway.events import EventHub, EventIngest
 from services.gateway.limits import BodyLimit
 from services.gateway.reaper import JobReaper
-from services.gateway.routes import dashboard, explorations, health, maps, metrics, missions, status
+from services.gateway.routes import dashboard, explorations, health, maps, metrics, missions, robot, status
 from services.gateway.settings import GatewaySettings
 from services.gateway.store import GatewayStore
 from shared.bus.base import Bus
@@ -55,6 +58,9 @@ def create_app(settings: GatewaySettings | None = None,
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        # Sync routes wait on the bus in threads (up to request_timeout_s each): anyio's default of
+        # 40 threads lets a burst of slow bus calls queue every other sync route behind them.
+        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.threadpool_workers
         store = GatewayStore(settings.db_path)
         hub = EventHub(asyncio.get_running_loop())
         bus = bus_factory(settings)
@@ -63,6 +69,9 @@ def create_app(settings: GatewaySettings | None = None,
         app.state.bus = running.node.bus
         app.state.store = store
         app.state.hub = hub
+        app.state.records = RecordCache(store, settings.record_cache_jobs)
+        # Held while the robot switches scenes: no mission or exploration may start meanwhile.
+        app.state.scene_lock = threading.Lock()
         # Subscribed before the first request: every event published from now on is stored.
         app.state.ingest = EventIngest(running.node.bus, store, hub, settings.robot)
         # A mission whose planner died can never finish: it ends as failed, with the reason.
@@ -86,7 +95,7 @@ def create_app(settings: GatewaySettings | None = None,
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
                            allow_headers=["*"], expose_headers=["Location"])
     errors.install(app)
-    for module in (health, status, metrics, missions, explorations, maps, dashboard):
+    for module in (health, status, metrics, missions, explorations, maps, robot, dashboard):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     return app

@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from services.gateway.cache import RecordCache
 from services.gateway.events import EventHub
 from services.gateway.settings import GatewaySettings
 from services.gateway.store import GatewayStore
@@ -32,6 +33,10 @@ def get_hub(request: Request) -> EventHub:
     return request.app.state.hub
 
 
+def get_cache(request: Request) -> RecordCache:
+    return request.app.state.records
+
+
 def require_token(request: Request,
                   credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
     """Routes that change something need ``Authorization: Bearer <token>`` when a token is configured."""
@@ -50,4 +55,5 @@ BusDep = Annotated[TypedBus, Depends(get_bus)]
 SettingsDep = Annotated[GatewaySettings, Depends(get_settings)]
 StoreDep = Annotated[GatewayStore, Depends(get_store)]
 HubDep = Annotated[EventHub, Depends(get_hub)]
+CacheDep = Annotated[RecordCache, Depends(get_cache)]
 Authorized = Depends(require_token)

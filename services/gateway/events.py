@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+from collections import OrderedDict
 from collections.abc import AsyncIterator
 
 from services.gateway.records import TERMINAL, JobKind
@@ -25,16 +26,23 @@ log = logging.getLogger(__name__)
 
 
 class EventHub:
-    """Wakes the SSE streams of a job when a new event of it is stored.
+    """Fan-out of stored events to the SSE streams, on the event loop.
 
-    Lives on the event loop; :meth:`notify` may be called from any thread. Each job has one
-    ``asyncio.Event`` that is swapped for a fresh one on every notification, so a waiter that took the
-    event before reading the database cannot miss a notification that lands in between.
+    The ingest encodes each stored event as an SSE frame once and :meth:`publish`-es it (from any
+    thread); the hub keeps the newest frames of the most recently active jobs and wakes that job's
+    streams, which then send the shared frames without touching the database. A stream that is
+    behind what the hub kept (a replay, or a seq that arrived out of order) reads the database.
+
+    Each job has one ``asyncio.Event`` that is swapped for a fresh one on every notification, so a
+    waiter that took the event before reading cannot miss a notification that lands in between.
     """
 
-    def __init__(self, loop: asyncio.AbstractEventLoop):
+    def __init__(self, loop: asyncio.AbstractEventLoop, *, tail_frames: int = 64, tail_jobs: int = 64):
         self._loop = loop
         self._events: dict[str, asyncio.Event] = {}
+        # job -> {seq: frame}; jobs in least-recently-published order, both bounded.
+        self._tails: OrderedDict[str, dict[int, str]] = OrderedDict()
+        self.tail_frames, self.tail_jobs = tail_frames, tail_jobs
         self._closed = False
 
     def token(self, job_id: str) -> asyncio.Event:
@@ -48,13 +56,46 @@ class EventHub:
         if ev is not None:
             ev.set()
 
-    def notify(self, job_id: str) -> None:
+    def _keep(self, job_id: str, seq: int, frame: str) -> None:
+        tail = self._tails.get(job_id)
+        if tail is None:
+            tail = self._tails[job_id] = {}
+            while len(self._tails) > self.tail_jobs:
+                self._tails.popitem(last=False)
+        else:
+            self._tails.move_to_end(job_id)
+        tail[seq] = frame
+        while len(tail) > self.tail_frames:
+            del tail[min(tail)]
+        self._wake(job_id)
+
+    def _call(self, fn, *args) -> None:
         if self._closed:
             return
         try:
-            self._loop.call_soon_threadsafe(self._wake, job_id)
+            self._loop.call_soon_threadsafe(fn, *args)
         except RuntimeError:  # the loop is closing: nobody is left to wake
             pass
+
+    def notify(self, job_id: str) -> None:
+        """The job changed (an event with no frame to share, or a state set by the gateway)."""
+        self._call(self._wake, job_id)
+
+    def publish(self, job_id: str, seq: int, frame: str) -> None:
+        """A new event of ``job_id`` was stored; ``frame`` is its encoded SSE message."""
+        self._call(self._keep, job_id, seq, frame)
+
+    def frames_after(self, job_id: str, after_seq: int, limit: int) -> list[tuple[int, str]]:
+        """The kept frames after ``after_seq`` while their seqs run on without a gap (loop thread only)."""
+        tail = self._tails.get(job_id)
+        out: list[tuple[int, str]] = []
+        if tail is None:
+            return out
+        seq = after_seq + 1
+        while len(out) < limit and (frame := tail.get(seq)) is not None:
+            out.append((seq, frame))
+            seq += 1
+        return out
 
     def close(self) -> None:
         self._closed = True
@@ -79,9 +120,11 @@ class EventIngest:
         ]
 
     def _on_event(self, kind: JobKind, event: MissionEvent) -> None:
-        if self.store.append_event(kind, event):
+        stored = self.store.append_event(kind, event)
+        if stored is not None:
             self.stored += 1
-            self.hub.notify(event.mission_id)
+            # Encoded once here, sent by every stream of the job.
+            self.hub.publish(event.mission_id, stored.seq, sse_frame(kind, stored))
         else:
             self.duplicates += 1
 
@@ -97,9 +140,17 @@ def event_json(kind: JobKind, ev: StoredEvent) -> dict:
             "images": {n: image_url(kind, ev.job_id, ev.seq, n) for n in ev.image_names}}
 
 
-def _frame(kind: JobKind, ev: StoredEvent) -> str:
-    # One SSE message; the id lets EventSource resume with Last-Event-ID after a reconnect.
-    return f"id: {ev.seq}\nevent: {ev.kind}\ndata: {json.dumps(event_json(kind, ev), separators=(',', ':'))}\n\n"
+def event_json_text(kind: JobKind, ev: StoredEvent) -> str:
+    """:func:`event_json` as compact JSON, splicing in the stored ``data`` text instead of re-encoding it."""
+    head = json.dumps({"mission_id": ev.job_id, "seq": ev.seq, "kind": ev.kind, "state": ev.state.value,
+                       "step": ev.step, "timestamp_s": ev.timestamp_s}, separators=(",", ":"))
+    images = json.dumps({n: image_url(kind, ev.job_id, ev.seq, n) for n in ev.image_names}, separators=(",", ":"))
+    return f'{head[:-1]},"data":{ev.data_json},"images":{images}}}'
+
+
+def sse_frame(kind: JobKind, ev: StoredEvent) -> str:
+    """One SSE message; the id lets EventSource resume with Last-Event-ID after a reconnect."""
+    return f"id: {ev.seq}\nevent: {ev.kind}\ndata: {event_json_text(kind, ev)}\n\n"
 
 
 def parse_last_event_id(header: str | None, query: int | None) -> int:
@@ -115,26 +166,33 @@ def parse_last_event_id(header: str | None, query: int | None) -> int:
 async def sse_stream(store: GatewayStore, hub: EventHub, kind: JobKind, job_id: str, after_seq: int, *,
                      keepalive_s: float, batch: int, retry_ms: int = 2000) -> AsyncIterator[str]:
     """Stored events after ``after_seq``, then live ones; ends with an ``end`` event once the job has
-    finished and everything was sent."""
+    finished and everything was sent. Live events come from the hub's shared frames; the database
+    only serves what the hub does not hold."""
     last = after_seq
     yield f"retry: {retry_ms}\n\n"
     while True:
-        wake = hub.token(job_id)  # taken before the read: see EventHub
-        events = store.events(job_id, last, batch)
-        for ev in events:
-            last = ev.seq
-            yield _frame(kind, ev)
-        if len(events) == batch:
-            continue
+        wake = hub.token(job_id)  # taken before the reads: see EventHub
         progress = store.job_progress(job_id)
         if progress is None:
             return
         state, last_seq = progress
+        if last < last_seq:
+            frames = hub.frames_after(job_id, last, batch)
+            if frames:
+                for seq, frame in frames:
+                    last = seq
+                    yield frame
+                continue
+            events = store.events(job_id, last, batch)
+            for ev in events:
+                last = ev.seq
+                yield sse_frame(kind, ev)
+            if events:
+                continue
         if state in TERMINAL:
-            if last >= last_seq:
-                yield f"event: end\ndata: {json.dumps({'state': state.value, 'last_seq': last_seq})}\n\n"
-                return
-            continue  # the final events were stored between the two reads
+            # Everything stored was sent (last_seq counts events, a gateway-set state adds none).
+            yield f"event: end\ndata: {json.dumps({'state': state.value, 'last_seq': last_seq})}\n\n"
+            return
         try:
             await asyncio.wait_for(wake.wait(), keepalive_s)
         except TimeoutError:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 
-from services.gateway.events import EventHub
+from services.gateway.events import EventHub, sse_frame
 from services.gateway.records import JobKind
 from services.gateway.store import GatewayStore
 from shared import keys
@@ -66,11 +66,13 @@ class JobReaper:
             for row in rows:
                 event = MissionEvent(mission_id=row.id, seq=row.last_seq + 1, kind=MissionEventKind.ERROR,
                                      state=MissionState.FAILED, step=row.step, data={"error": reason})
-                if self.store.append_event(kind, event):
+                stored = self.store.append_event(kind, event)
+                if stored is not None:
                     n += 1
-                    self.hub.notify(row.id)
+                    self.hub.publish(row.id, stored.seq, sse_frame(kind, stored))
                 else:  # the worker's own event took that seq in between: mark without an event
                     self.store.mark(row.id, MissionState.FAILED, reason)
+                    self.hub.notify(row.id)
         if n:
             log.warning("%d open %s(s) ended as failed: %s", n, kind.value, reason)
         self.reaped += n

@@ -26,4 +26,7 @@ class GatewaySettings(ServiceSettings):
     map_chunk_points: int = Field(500_000, ge=1000, le=10_000_000, description="points per MAP_CHUNK request")
     sse_keepalive_s: float = Field(15.0, gt=0, le=300, description="comment line sent on idle SSE streams")
     sse_batch: int = Field(200, ge=1, le=10_000, description="events read from the DB per SSE round")
+    threadpool_workers: int = Field(128, ge=4, le=1024, description="threads for sync routes (bus calls)")
+    record_cache_jobs: int = Field(512, ge=1, le=100_000, description="encoded job records kept for polling")
+    scene_timeout_s: float = Field(120.0, gt=0, le=600, description="loading a scene on robot-io (POST /robot/scene)")
     shutdown_grace_s: float = Field(3.0, ge=0, le=60, description="open streams get this long at shutdown")

@@ -7,6 +7,11 @@
 
 Writes go through one connection under a lock (SQLite has one writer anyway); reads use one
 connection per thread, which WAL lets run beside the writer without blocking.
+
+Every write also updates a small in-memory entry per job (revision, state, last seq), so the hot
+reads of a dashboard under load - "has this job changed since I encoded it?" and "how far has it
+got?" - cost a dict lookup instead of a query. This assumes that this process is the only writer
+of the file (one gateway per database), which is how the gateway is deployed.
 """
 
 from __future__ import annotations
@@ -18,6 +23,8 @@ import sqlite3
 import threading
 import time
 from dataclasses import dataclass
+from functools import cached_property
+from itertools import count
 from pathlib import Path
 from typing import Any
 
@@ -94,14 +101,29 @@ class JobRow:
 
 @dataclass(frozen=True)
 class StoredEvent:
+    """One stored event; ``data_json`` is the stored text, parsed into ``data`` only when asked."""
+
     job_id: str
     seq: int
     kind: str
     state: MissionState
     step: int
     timestamp_s: float
-    data: dict[str, Any]
+    data_json: str
     image_names: list[str]
+
+    @cached_property
+    def data(self) -> dict[str, Any]:
+        return json.loads(self.data_json)
+
+
+@dataclass(frozen=True)
+class JobMeta:
+    """What the store knows of a job without reading it: ``revision`` changes on every write."""
+
+    revision: int
+    state: MissionState
+    last_seq: int
 
 
 def _json(obj: Any) -> str:
@@ -121,6 +143,9 @@ class GatewayStore:
         self._readers: list[sqlite3.Connection] = []
         self._readers_lock = threading.Lock()
         self._closed = False
+        self._meta: dict[str, JobMeta] = {}
+        self._meta_lock = threading.Lock()
+        self._revisions = count(1)
         self._writer = self._connect()
         with self._write_lock, self._writer:
             self._writer.executescript(_SCHEMA)
@@ -145,6 +170,36 @@ class GatewayStore:
                 self._readers.append(conn)
         return conn
 
+    # --- in-memory job metadata ---------------------------------------------------------------------
+    def _set_meta(self, job_id: str, state: MissionState | str, last_seq: int) -> None:
+        # Called after COMMIT: a reader that sees the new revision also sees the new row.
+        with self._meta_lock:
+            self._meta[job_id] = JobMeta(next(self._revisions), MissionState(state), last_seq)
+
+    def _adopt(self, row: JobRow) -> int:
+        """Register a job read from the file; returns its revision, or -1 when a write raced the read
+        (then the caller must not cache what it read under any revision)."""
+        with self._meta_lock:
+            meta = self._meta.get(row.id)
+            if meta is None:
+                meta = self._meta[row.id] = JobMeta(next(self._revisions), row.state, row.last_seq)
+                return meta.revision
+        return -1
+
+    def revision(self, job_id: str) -> int | None:
+        """The job's current revision (None: not read or written by this process yet)."""
+        meta = self._meta.get(job_id)
+        return None if meta is None else meta.revision
+
+    def get_job_revision(self, job_id: str, kind: JobKind | None = None) -> tuple[JobRow | None, int]:
+        """A job and the revision it is at (-1: do not cache it). The revision is read first, so a
+        concurrent write can only make the pair look older than it is, never newer."""
+        rev = self.revision(job_id)
+        row = self.get_job(job_id, kind)
+        if row is None:
+            return None, -1
+        return row, self._adopt(row) if rev is None else rev
+
     # --- jobs --------------------------------------------------------------------------------------
     def create_job(self, kind: JobKind, job_id: str, request: dict[str, Any]) -> JobRow:
         now = time.time()
@@ -157,6 +212,7 @@ class GatewayStore:
                      now, now))
             except sqlite3.IntegrityError:
                 raise JobExists(f"{kind.value} {job_id!r} already exists") from None
+            self._set_meta(job_id, MissionState.QUEUED, -1)
         row = self.get_job(job_id)
         assert row is not None
         return row
@@ -172,11 +228,13 @@ class GatewayStore:
             except BaseException:
                 self._writer.execute("ROLLBACK")
                 raise
+            with self._meta_lock:
+                self._meta.pop(job_id, None)
 
     def mark(self, job_id: str, state: MissionState, error: str | None = None) -> None:
         """Set a job's state from the gateway itself (e.g. the planner lost it)."""
         with self._write_lock:
-            row = self._writer.execute("SELECT summary FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            row = self._writer.execute("SELECT summary, last_seq FROM jobs WHERE id = ?", (job_id,)).fetchone()
             if row is None:
                 return
             summary = json.loads(row[0])
@@ -184,6 +242,7 @@ class GatewayStore:
                 summary["error"] = error
             self._writer.execute("UPDATE jobs SET state = ?, summary = ?, updated_s = ? WHERE id = ?",
                                  (state.value, _json(summary), time.time(), job_id))
+            self._set_meta(job_id, state, row[1])
 
     @staticmethod
     def _row(r: tuple) -> JobRow:
@@ -199,9 +258,16 @@ class GatewayStore:
         return self._row(r)
 
     def job_progress(self, job_id: str) -> tuple[MissionState, int] | None:
-        """(state, last_seq) of a job: the cheap read an SSE stream polls."""
-        r = self._reader().execute("SELECT state, last_seq FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return None if r is None else (MissionState(r[0]), r[1])
+        """(state, last_seq) of a job: what an SSE stream checks on every wake-up (a dict lookup
+        once the job is known to this process)."""
+        meta = self._meta.get(job_id)
+        if meta is not None:
+            return meta.state, meta.last_seq
+        row = self.get_job(job_id)
+        if row is None:
+            return None
+        self._adopt(row)
+        return row.state, row.last_seq
 
     def list_jobs(self, kind: JobKind, *, states: list[MissionState] | None = None, limit: int = 50,
                   offset: int = 0) -> tuple[list[JobRow], int]:
@@ -217,8 +283,9 @@ class GatewayStore:
         return [self._row(r) for r in rows], total
 
     # --- events ------------------------------------------------------------------------------------
-    def append_event(self, kind: JobKind, event: MissionEvent) -> bool:
-        """Store one event, its images and the refolded record; False when it was already stored.
+    def append_event(self, kind: JobKind, event: MissionEvent) -> StoredEvent | None:
+        """Store one event, its images and the refolded record; returns the event as stored (what a
+        stream sends), or None when it was already stored.
 
         An event for a job the gateway did not submit (another client, or before a gateway restart
         lost nothing but the submission) creates that job's row, so nothing published is lost.
@@ -228,6 +295,7 @@ class GatewayStore:
             log.warning("event %s/%d: dropped images with invalid names %s", event.mission_id, event.seq,
                         sorted(set(event.images) - set(names)))
         urls = {n: image_url(kind, event.mission_id, event.seq, n) for n in names}
+        data_json = _json(event.data)
         with self._write_lock:
             db = self._writer
             db.execute("BEGIN IMMEDIATE")
@@ -236,10 +304,10 @@ class GatewayStore:
                     "INSERT OR IGNORE INTO events (job_id, seq, kind, state, step, timestamp_s, data, images)"
                     " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                     (event.mission_id, event.seq, event.kind.value, event.state.value, event.step,
-                     event.timestamp_s, _json(event.data), _json(names)))
+                     event.timestamp_s, data_json, _json(names)))
                 if cur.rowcount == 0:
                     db.execute("ROLLBACK")
-                    return False
+                    return None
                 db.executemany("INSERT OR REPLACE INTO images (job_id, seq, name, jpeg) VALUES (?, ?, ?, ?)",
                                [(event.mission_id, event.seq, n, bytes(event.images[n])) for n in names])
                 r = db.execute("SELECT state, last_seq, summary, kind FROM jobs WHERE id = ?",
@@ -264,14 +332,16 @@ class GatewayStore:
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
-        return True
+            self._set_meta(event.mission_id, state, max(r[1], event.seq))
+        return StoredEvent(job_id=event.mission_id, seq=event.seq, kind=event.kind.value, state=event.state,
+                           step=event.step, timestamp_s=event.timestamp_s, data_json=data_json, image_names=names)
 
     def events(self, job_id: str, after_seq: int = -1, limit: int = 1000) -> list[StoredEvent]:
         rows = self._reader().execute(
             "SELECT job_id, seq, kind, state, step, timestamp_s, data, images FROM events"
             " WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?", (job_id, after_seq, limit)).fetchall()
         return [StoredEvent(job_id=r[0], seq=r[1], kind=r[2], state=MissionState(r[3]), step=r[4],
-                            timestamp_s=r[5], data=json.loads(r[6]), image_names=json.loads(r[7])) for r in rows]
+                            timestamp_s=r[5], data_json=r[6], image_names=json.loads(r[7])) for r in rows]
 
     def image(self, job_id: str, seq: int, name: str) -> bytes | None:
         r = self._reader().execute("SELECT jpeg FROM images WHERE job_id = ? AND seq = ? AND name = ?",

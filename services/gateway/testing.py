@@ -7,6 +7,7 @@ events with small JPEG pictures (panorama, spatial map, each candidate's observe
 
 from __future__ import annotations
 
+import functools
 import io
 import math
 import threading
@@ -20,9 +21,9 @@ from shared import keys
 from shared.bus.base import Closeable
 from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
-    CancelRequest, Candidate, CandidateKind, Decision, ExplorationRequest, MapChunk, MapChunkRequest,
-    MapImportRequest, MapInfo, MapListReply, MapRequest, MissionAccepted, MissionEvent, MissionEventKind,
-    MissionRequest, MissionState, Ping,
+    CancelRequest, Candidate, CandidateKind, Decision, ExplorationRequest, LoadSceneRequest, MapChunk,
+    MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, MissionAccepted, MissionEvent,
+    MissionEventKind, MissionRequest, MissionState, Ping, Pose, RoomInfo, SceneSummary,
 )
 
 _PALETTE = np.array([[66, 135, 245], [245, 166, 35], [80, 200, 120], [220, 80, 90], [160, 110, 220],
@@ -54,6 +55,12 @@ def room_view(seed: int, size: int = 128, label: str = "", hole: bool = False) -
     if label:
         cv2.putText(img, label, (4, h - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
     return img
+
+
+@functools.lru_cache(maxsize=4096)
+def view_jpeg(seed: int, size: int, label: str = "", hole: bool = False) -> bytes:
+    """:func:`room_view` as JPEG, memoised: a bench's scripted planner must not eat the CPU it measures."""
+    return jpeg(room_view(seed, size, label, hole))
 
 
 def spatial_map(trajectory: list[tuple[float, float]], candidates: list[tuple[float, float]],
@@ -90,8 +97,10 @@ class ScriptedPlanner:
     """
 
     def __init__(self, bus: TypedBus, robot: str = "robot0", *, steps: int = 3, step_interval_s: float = 0.01,
-                 candidates: int = 3, image_px: int = 96):
+                 candidates: int = 3, image_px: int = 96, image_variants: int | None = None):
         self.bus, self.robot = bus, robot
+        # image_variants: reuse that many distinct pictures per slot (cheap events for benchmarks).
+        self.image_variants = image_variants
         self.steps, self.step_interval_s, self.n_candidates, self.image_px = steps, step_interval_s, candidates, image_px
         self.runs: dict[str, _Run] = {}
         self._entities: list[Closeable] = [
@@ -151,12 +160,7 @@ class ScriptedPlanner:
                                            if not final else "The goal room is in view: stop."),
                                 prompt_tokens=800 + 10 * step, completion_tokens=60, cost_usd=0.001)
             px = self.image_px
-            images = {"panorama": jpeg(np.concatenate([room_view(100 * step + v, px // 2) for v in range(12)], 1)),
-                      "map": jpeg(spatial_map(traj, [(pos[0] + c.dx_m, pos[1] + c.dy_m) for c in cands[:n]]))}
-            for c in cands[:n]:
-                images[f"cand_{c.index}_observed"] = jpeg(room_view(1000 * step + c.index, px, "observed"))
-                images[f"cand_{c.index}_anticipated"] = jpeg(room_view(1000 * step + c.index, px, "anticipated",
-                                                                       hole=True))
+            images = self._images(step, px, n, traj, pos, cands)
             if not final:
                 pos = pos + np.array([choice.dx_m, choice.dy_m, 0.0])
                 heading = math.atan2(choice.dy_m, choice.dx_m)
@@ -172,6 +176,22 @@ class ScriptedPlanner:
             data["metrics"] = {"ne_m": ne, "sr": float(ne <= 3.0), "osr": float(ne <= 3.0), "spl": 0.8 * (ne <= 3.0),
                                "tl_m": 1.5 * (steps - 1), "ndtw": 0.7}
         emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, steps, data)
+
+    def _images(self, step: int, px: int, n: int, traj, pos, cands) -> dict[str, bytes]:
+        if self.image_variants:
+            k = step % self.image_variants
+            images = {"panorama": view_jpeg(100_000 + k, px * 3), "map": view_jpeg(200_000 + k, px * 2)}
+            for c in cands[:n]:
+                images[f"cand_{c.index}_observed"] = view_jpeg(1000 * k + c.index, px, "observed")
+                images[f"cand_{c.index}_anticipated"] = view_jpeg(1000 * k + c.index, px, "anticipated", True)
+            return images
+        images = {"panorama": jpeg(np.concatenate([room_view(100 * step + v, px // 2) for v in range(12)], 1)),
+                  "map": jpeg(spatial_map(traj, [(pos[0] + c.dx_m, pos[1] + c.dy_m) for c in cands[:n]]))}
+        for c in cands[:n]:
+            images[f"cand_{c.index}_observed"] = jpeg(room_view(1000 * step + c.index, px, "observed"))
+            images[f"cand_{c.index}_anticipated"] = jpeg(room_view(1000 * step + c.index, px, "anticipated",
+                                                                   hole=True))
+        return images
 
     def close(self) -> None:
         for run in self.runs.values():
@@ -221,6 +241,58 @@ class ScriptedMapper:
             e.close()
         for t in self._threads:
             t.join(5.0)
+
+
+class ScriptedRobotIo:
+    """Serves IO_SCENE and IO_LOAD_SCENE like a simulator robot-io.
+
+    Specs ``generated:<seed>[:floors=N]`` load (after ``load_delay_s``); anything else is refused as
+    a bad request, as robot-io refuses a mesh it cannot read. ``loaded`` lists the loads in order.
+    """
+
+    def __init__(self, bus: TypedBus, robot: str = "robot0", *, scene: str = "generated:0",
+                 load_delay_s: float = 0.0):
+        self.load_delay_s = load_delay_s
+        self.loaded: list[str] = []
+        self._summary = self._summarise(scene)
+        self._lock = threading.Lock()
+        self._entities = [
+            bus.serve(keys.IO_SCENE.format(robot=robot), Ping, lambda _p: self._summary),
+            bus.serve(keys.IO_LOAD_SCENE.format(robot=robot), LoadSceneRequest, self._load),
+        ]
+
+    @staticmethod
+    def _summarise(spec: str) -> SceneSummary:
+        parts = spec.split(":")
+        if len(parts) < 2 or parts[0] != "generated" or not parts[1].isdigit():
+            raise ValueError(f"{spec!r}: not a scene this robot can load (generated:<seed>[:floors=N])")
+        floors = 1
+        for opt in parts[2:]:
+            name, _, value = opt.partition("=")
+            if name != "floors" or value not in ("1", "2"):
+                raise ValueError(f"{spec!r}: unknown option {opt!r}")
+            floors = int(value)
+        seed = int(parts[1])
+        size = 8.0 + seed % 5
+        rooms = [RoomInfo(name=f"room{i}", room_type=t, floor=0, bounds_min_m=(i * size / 3, 0.0, 0.0),
+                          bounds_max_m=((i + 1) * size / 3, size, 2.6))
+                 for i, t in enumerate(("kitchen", "living room", "bedroom"))]
+        return SceneSummary(scene=spec, bounds_min_m=(0.0, 0.0, 0.0), bounds_max_m=(size, size, 2.6 * floors),
+                            floors=floors, reachable_area_m2=0.7 * size * size * floors,
+                            label_names={0: "floor", 1: "wall"}, rooms=rooms,
+                            start_pose=Pose(position_m=(size / 2, size / 2, 0.0)))
+
+    def _load(self, req: LoadSceneRequest) -> SceneSummary:
+        summary = self._summarise(req.scene)  # a bad spec fails before anything changes
+        with self._lock:
+            time.sleep(self.load_delay_s)
+            self._summary = summary
+            self.loaded.append(req.scene)
+        return summary
+
+    def close(self) -> None:
+        for e in self._entities:
+            e.close()
 
 
 class ScriptedReconstructor:

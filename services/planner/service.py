@@ -133,7 +133,8 @@ class PlannerService(Service):
                     "usage": policy.usage.to_dict(),
                     "step_latency_s": [round(x, 4) for x in out.step_latency_s]}
             if out.reason:
-                data["error"] = out.reason
+                # A failed mission carries its cause as the error; a stop with a caveat as a reason.
+                data["error" if out.state == MissionState.FAILED else "reason"] = out.reason
             events.emit(MissionEventKind.FINISHED, out.state, step=out.steps, data=data)
         except MissionCancelled:
             events.emit(MissionEventKind.FINISHED, MissionState.CANCELLED, data={"message": "cancelled on request"})

@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from services.robot_io.core import ROBOTS, Robot
+from services.robot_io.core import ROBOTS, Robot, SceneError, SceneNotFoundError
+from shared.bus.typed import NotFound
 from shared import keys
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
@@ -183,7 +184,12 @@ class RobotIoService(Service):
         with self._lock:
             if self._recordings:
                 raise ValueError("cannot switch scenes while a recording is on")
-            robot = ROBOTS.create(s.robot_backend, {**s.robot_config, "scene": req.scene})  # fails before the swap
+            try:  # build the new robot first: a failure leaves the current scene in place
+                robot = ROBOTS.create(s.robot_backend, {**s.robot_config, "scene": req.scene})
+            except SceneNotFoundError as exc:
+                raise NotFound(str(exc)) from None
+            except SceneError as exc:
+                raise ValueError(str(exc)) from None
             old, self.robot = self.robot, robot
             old.close()
         self._publish_pose()

@@ -1,7 +1,7 @@
 """The dashboard in a real headless Chromium: submit a mission, watch its steps appear.
 
-The gateway runs under uvicorn on 127.0.0.1 over a real zenoh bus; a scripted planner and
-reconstructor answer on a second zenoh session. Needs Debian's ``chromium`` and the ``playwright``
+The gateway runs under uvicorn on 127.0.0.1 over a real zenoh bus; a scripted planner, mapper and
+reconstructor answer on a second zenoh session. A second test explores a new map from the dashboard. Needs Debian's ``chromium`` and the ``playwright``
 package (no downloaded browser); skipped where either is missing.
 """
 
@@ -18,7 +18,7 @@ import pytest
 from deploy.launcher import free_port
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from services.gateway.testing import ScriptedPlanner, ScriptedReconstructor
+from services.gateway.testing import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
 
@@ -50,6 +50,7 @@ def live_gateway(tmp_path):
     recon = ScriptedReconstructor(typed)
     recon.add_random("demo-house", 20_000)
     planner = ScriptedPlanner(typed, steps=6, step_interval_s=0.6, candidates=3, image_px=128)
+    mapper = ScriptedMapper(typed, stages=3, stage_interval_s=0.5, reconstructor=recon)
     settings = GatewaySettings(instance="gw-e2e", host="127.0.0.1", port=hport, db_path=tmp_path / "gw.sqlite3",
                                zenoh=ZenohSettings(connect=[f"tcp/127.0.0.1:{zport}"]), request_timeout_s=5.0)
     server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_config=None,
@@ -72,6 +73,7 @@ def live_gateway(tmp_path):
         server.should_exit = True
         thread.join(10)
         planner.close()
+        mapper.close()
         recon.close()
         services_bus.close()
 
@@ -116,3 +118,42 @@ def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_
     # And what the browser saw is what the API kept.
     record = httpx.get(f"{live_gateway}/missions?limit=1", timeout=5).json()["items"][0]
     assert record["state"] == "succeeded" and record["step"] == 6
+
+
+def test_dashboard_explores_a_new_map_with_progress(live_gateway):
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1440, "height": 1250})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(f"{live_gateway}/dashboard")
+            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+            page.fill("#explore-map", "explored-house")
+            page.click("#explore")
+            # Progress arrives over SSE while the exploration runs (stages 0.5 s apart) ...
+            page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'running'"
+                                   " && document.querySelector('#explore-progress').value > 0", timeout=15_000)
+            assert page.is_disabled("#explore")
+            # ... and at the end the new map is offered to the mission form.
+            page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'succeeded'",
+                                   timeout=20_000)
+            page.wait_for_selector("#map-select option[value='explored-house']", state="attached", timeout=10_000)
+            progress = page.eval_on_selector("#explore-progress", "e => e.value")
+            status = page.text_content("#explore-status")
+            selected = page.eval_on_selector("#map-select", "e => e.value")
+            enabled = not page.is_disabled("#explore")
+            shot = page.screenshot(full_page=True)
+        finally:
+            browser.close()
+    assert progress == 1 and status.startswith("succeeded 100%")
+    assert selected == "explored-house" and enabled
+    assert not errors, errors
+    out = REPO / "runs" / "screenshots"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "dashboard-explore.png").write_bytes(shot)
+    explorations = httpx.get(f"{live_gateway}/explorations", timeout=5).json()["items"]
+    assert [(x["map_id"], x["state"]) for x in explorations] == [("explored-house", "succeeded")]

@@ -5,14 +5,18 @@ from __future__ import annotations
 import uuid
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Header, Path, Query, Response, status
+from fastapi import APIRouter, Header, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.gateway.deps import Authorized, BusDep, HubDep, SettingsDep, StoreDep
+from services.gateway.cache import record_response
+from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.records import ExplorationPage, ExplorationRecord, JobCreated, JobKind
-from services.gateway.routes.missions import SEGMENT, SSE_DOC, events_response, image_response
+from services.gateway.routes.missions import (
+    RECORD_DOC, SEGMENT, SSE_DOC, IfNoneMatch, events_response, image_response,
+)
+from services.gateway.routes.robot import refuse_while_switching
 from services.gateway.store import JobRow
 from shared import keys
 from shared.bus.typed import RemoteError
@@ -53,13 +57,18 @@ def _get(store, job_id: str) -> JobRow:
 
 @router.post("", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED, dependencies=[Authorized],
              responses={401: {}, 409: {}, 422: {}, 503: {}})
-def submit(body: ExplorationCreate, bus: BusDep, store: StoreDep, settings: SettingsDep,
+def submit(body: ExplorationCreate, http_request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep,
            response: Response) -> JobCreated:
     """Start pre-exploration, tour recording and reconstruction of the robot's current scene."""
     job_id = f"x-{uuid.uuid4().hex[:16]}"
     map_id = body.map_id or f"map-{job_id[2:10]}"
     request = {**body.model_dump(mode="json"), "map_id": map_id}
     store.create_job(JobKind.EXPLORATION, job_id, request)
+    try:
+        refuse_while_switching(http_request, "exploration")
+    except GatewayError:
+        store.delete_job(job_id)
+        raise
     try:
         reply = bus.request(keys.MAPPER_EXPLORE.format(robot=settings.robot),
                             ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
@@ -80,16 +89,19 @@ def submit(body: ExplorationCreate, bus: BusDep, store: StoreDep, settings: Sett
 async def list_explorations(store: StoreDep,
                       state: Annotated[list[MissionState] | None, Query()] = None,
                       limit: Annotated[int, Query(ge=1, le=500)] = 50,
-                      offset: Annotated[int, Query(ge=0)] = 0) -> ExplorationPage:
+                      offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> ExplorationPage:
     """Explorations, newest first."""
     rows, total = store.list_jobs(JobKind.EXPLORATION, states=state, limit=limit, offset=offset)
     return ExplorationPage(items=[exploration_record(r) for r in rows], total=total, limit=limit, offset=offset)
 
 
-@router.get("/{exploration_id}", response_model=ExplorationRecord, responses={404: {}})
-async def get_exploration(exploration_id: JobId, store: StoreDep) -> ExplorationRecord:
-    """State, stage and progress (0-1); ``map_id`` names the map it builds."""
-    return exploration_record(_get(store, exploration_id))
+@router.get("/{exploration_id}", response_model=ExplorationRecord, responses=RECORD_DOC)
+async def get_exploration(exploration_id: JobId, cache: CacheDep, if_none_match: IfNoneMatch = None) -> Response:
+    """State, stage and progress (0-1); ``map_id`` names the map it builds. ETag / 304 as for missions."""
+    entry = cache.get(exploration_id, JobKind.EXPLORATION, exploration_record)
+    if entry is None:
+        raise GatewayError(f"no exploration {exploration_id!r}", 404)
+    return record_response(entry, if_none_match)
 
 
 @router.get("/{exploration_id}/events", response_class=StreamingResponse, responses=SSE_DOC)

@@ -6,16 +6,18 @@ import logging
 import uuid
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Path, Query, Response, status
+from fastapi import APIRouter, Header, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
-from services.gateway.deps import Authorized, BusDep, HubDep, SettingsDep, StoreDep
+from services.gateway.cache import record_response
+from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.events import event_json, parse_last_event_id, sse_stream
 from services.gateway.records import (
     EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary,
 )
+from services.gateway.routes.robot import refuse_while_switching
 from services.gateway.store import JobRow
 from shared import keys
 from shared.bus.typed import RemoteError
@@ -75,7 +77,8 @@ def _get(store, job_id: str) -> JobRow:
 
 @router.post("", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED, dependencies=[Authorized],
              responses={401: {}, 409: {}, 413: {}, 422: {}, 503: {}})
-def submit(body: MissionCreate, bus: BusDep, store: StoreDep, settings: SettingsDep, response: Response) -> JobCreated:
+def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep,
+           response: Response) -> JobCreated:
     """Start a navigation mission; follow it at ``url`` (poll) or ``events_url`` (SSE)."""
     if len(body.instruction) > settings.max_instruction_chars:
         raise GatewayError(f"instruction longer than {settings.max_instruction_chars} characters", 422)
@@ -88,9 +91,14 @@ def submit(body: MissionCreate, bus: BusDep, store: StoreDep, settings: Settings
                 raise GatewayError(f"unknown map {body.map_id!r} (see GET /maps)", 422) from None
             raise GatewayError(remote_detail(exc, "cannot check the map"), remote_status(exc)) from None
     job_id = f"m-{uuid.uuid4().hex[:16]}"
-    request = body.model_dump(mode="json")
+    request_json = body.model_dump(mode="json")
     # The row exists before the planner hears of the mission, so its first event has a home.
-    store.create_job(JobKind.MISSION, job_id, request)
+    store.create_job(JobKind.MISSION, job_id, request_json)
+    try:
+        refuse_while_switching(request, "mission")
+    except GatewayError:
+        store.delete_job(job_id)
+        raise
     try:
         reply = bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
                             MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
@@ -112,21 +120,31 @@ def submit(body: MissionCreate, bus: BusDep, store: StoreDep, settings: Settings
 async def list_missions(store: StoreDep,
                   state: Annotated[list[MissionState] | None, Query(description="keep these states")] = None,
                   limit: Annotated[int, Query(ge=1, le=500)] = 50,
-                  offset: Annotated[int, Query(ge=0)] = 0) -> MissionPage:
+                  offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> MissionPage:
     """Missions, newest first, paged and filterable by state (``?state=running&state=queued``)."""
     rows, total = store.list_jobs(JobKind.MISSION, states=state, limit=limit, offset=offset)
     return MissionPage(items=[_summary(r) for r in rows], total=total, limit=limit, offset=offset)
 
 
-@router.get("/{mission_id}", response_model=MissionRecord, responses={404: {}})
-async def get_mission(mission_id: JobId, store: StoreDep) -> MissionRecord:
-    """State, step, trajectory, decisions, metrics (when the episode has a goal), tokens and cost."""
-    return mission_record(_get(store, mission_id))
+RECORD_DOC = {304: {"description": "not modified since the ETag given in If-None-Match"}, 404: {}}
+IfNoneMatch = Annotated[str | None, Header(description="an ETag of this record already held: 304 if unchanged")]
+
+
+@router.get("/{mission_id}", response_model=MissionRecord, responses=RECORD_DOC)
+async def get_mission(mission_id: JobId, cache: CacheDep, if_none_match: IfNoneMatch = None) -> Response:
+    """State, step, trajectory, decisions, metrics (when the episode has a goal), tokens and cost.
+
+    Served encoded from a per-revision cache with an ``ETag``: poll with ``If-None-Match`` and an
+    unchanged record costs a bodiless 304."""
+    entry = cache.get(mission_id, JobKind.MISSION, mission_record)
+    if entry is None:
+        raise GatewayError(f"no mission {mission_id!r}", 404)
+    return record_response(entry, if_none_match)
 
 
 @router.post("/{mission_id}/cancel", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED,
              dependencies=[Authorized], responses={401: {}, 404: {}, 409: {}, 503: {}})
-def cancel(mission_id: JobId, bus: BusDep, store: StoreDep, settings: SettingsDep) -> JobCreated:
+def cancel(mission_id: JobId, bus: BusDep, store: StoreDep, hub: HubDep, settings: SettingsDep) -> JobCreated:
     """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream."""
     row = _get(store, mission_id)
     if row.terminal:
@@ -138,6 +156,7 @@ def cancel(mission_id: JobId, bus: BusDep, store: StoreDep, settings: SettingsDe
         if exc.code == ErrorCode.NOT_FOUND:
             # The planner no longer knows it (it restarted): the mission cannot finish any more.
             store.mark(mission_id, MissionState.CANCELLED, "cancelled; the planner no longer ran it")
+            hub.notify(mission_id)  # its streams end now
         else:
             raise GatewayError(remote_detail(exc, "cannot cancel"), remote_status(exc)) from None
     else:

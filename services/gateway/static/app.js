@@ -266,6 +266,82 @@ async function cancel() {
   catch (e) { $("#form-error").textContent = e.message; }
 }
 
+// --- explorations and uploads ----------------------------------------------------------------------
+let exploreStream = null;
+
+function showExploration(rec) {
+  const box = $("#explore-box");
+  box.hidden = false;
+  box.className = "job " + rec.state;
+  $("#explore-progress").value = rec.progress == null ? 0 : rec.progress;
+  const pct = rec.progress == null ? "" : ` ${Math.round(100 * rec.progress)}%`;
+  const what = rec.error ? `: ${rec.error}` : rec.stage ? ` · ${rec.stage}` : "";
+  $("#explore-status").textContent = `${rec.state}${pct}${what}`;
+  $("#explore-status").dataset.state = rec.state;
+}
+
+function followExploration(created, mapId) {
+  if (exploreStream) exploreStream.close();
+  const rec = { state: "queued", progress: 0, stage: null, error: null };
+  showExploration(rec);
+  exploreStream = new EventSource(created.events_url);
+  const handler = (msg) => {
+    const ev = JSON.parse(msg.data), data = ev.data || {};
+    rec.state = ev.state;
+    if (typeof data.progress === "number") rec.progress = Math.min(1, Math.max(0, data.progress));
+    if (typeof data.stage === "string") rec.stage = data.stage;
+    if (ev.kind === "error" || typeof data.error === "string") rec.error = data.error || data.message || "error";
+    if (ev.state === "succeeded") rec.progress = 1;
+    showExploration(rec);
+  };
+  for (const k of ["started", "step", "progress", "finished", "error"]) exploreStream.addEventListener(k, handler);
+  exploreStream.addEventListener("end", (msg) => {
+    exploreStream.close(); exploreStream = null;
+    rec.state = JSON.parse(msg.data).state;
+    showExploration(rec);
+    $("#explore").disabled = false;
+    // The new map is ready to navigate: offer it in the mission form.
+    refreshMaps().then(() => { if (rec.state === "succeeded") $("#map-select").value = mapId; });
+  });
+}
+
+async function explore(e) {
+  e.preventDefault();
+  const err = $("#explore-error"), btn = $("#explore"), mapId = $("#explore-map").value.trim();
+  err.textContent = "";
+  localStorage.setItem("ant-token", $("#token").value.trim());
+  btn.disabled = true;
+  try {
+    const created = await api("/explorations", { method: "POST", body: JSON.stringify({ map_id: mapId }) });
+    followExploration(created, mapId);
+  } catch (ex) { err.textContent = ex.message; btn.disabled = false; }
+}
+
+async function upload(e) {
+  e.preventDefault();
+  const err = $("#upload-error"), status = $("#upload-status"), btn = $("#upload");
+  const file = $("#upload-file").files[0], mapId = $("#upload-map").value.trim();
+  err.textContent = ""; status.textContent = "";
+  if (!file) { err.textContent = "choose a .ply or .pcd file"; return; }
+  localStorage.setItem("ant-token", $("#token").value.trim());
+  const headers = { "Content-Type": "application/octet-stream", "Accept": "application/json" };
+  if (token()) headers["Authorization"] = "Bearer " + token();
+  const url = `/maps?map_id=${encodeURIComponent(mapId)}&filename=${encodeURIComponent(file.name)}`;
+  btn.disabled = true;
+  status.textContent = `uploading ${(file.size / 1e6).toFixed(1)} MB ...`;
+  try {
+    const r = await fetch(url, { method: "POST", headers, body: file });
+    let body = null;
+    try { body = await r.json(); } catch (_) { /* not JSON */ }
+    if (!r.ok) throw new Error(`${r.status}: ${(body && JSON.stringify(body.detail)) || r.statusText}`);
+    status.textContent = `${body.map_id} v${body.version}: ${body.point_count} points`;
+    await refreshMaps();
+    $("#map-select").value = body.map_id;
+  } catch (ex) { status.textContent = ""; err.textContent = ex.message; } finally { btn.disabled = false; }
+}
+
+$("#explore-form").addEventListener("submit", explore);
+$("#upload-form").addEventListener("submit", upload);
 $("#mission-form").addEventListener("submit", submit);
 $("#cancel").addEventListener("click", cancel);
 $("#state-filter").addEventListener("change", refreshMissions);

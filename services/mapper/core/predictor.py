@@ -34,9 +34,21 @@ class Prediction:
 
     candidates: list[Candidate]
     heatmap: np.ndarray  # (angle_bins, distance_bins), scores in [0, 1]
+    doorways: list["Doorway"]  # openings found in the obstacle profile (approach points included)
     free_distance_m: np.ndarray  # (angle_bins,) obstacle-free travel distance per angle bin
     angles_rad: np.ndarray  # (angle_bins,) bin centres relative to the heading, positive left
     distances_m: np.ndarray  # (distance_bins,) bin centres
+
+
+@dataclass(frozen=True)
+class Doorway:
+    """An opening between two jambs, in the agent frame (x ahead, y left), metres."""
+
+    left_m: tuple[float, float]  # the jamb at the larger angle
+    right_m: tuple[float, float]
+    width_m: float
+    approach_m: tuple[float, float] | None  # where to stand to pass it straight; None: none reachable
+    direct: bool  # the body already passes it in a straight line from here
 
 
 @runtime_checkable
@@ -80,6 +92,18 @@ class GeometricPredictorConfig(BackendConfig):
     nms_angle_deg: float = Field(30.0, gt=0.0, le=180.0)
     min_score: float = Field(0.15, ge=0.0, le=1.0)
     distance_sigma_m: float = Field(0.4, gt=0.0)
+    # Doorways: an opening between two near edges of the obstacle profile (jambs) that the body cannot
+    # pass in a straight line from here gets an *approach* waypoint lined up with it, as a trained CWP
+    # puts waypoints in front of doors. Without it an agent beside a wall never sees a way through.
+    doorways: bool = True
+    door_min_width_m: float = Field(0.6, gt=0.0)  # between the jambs' nearest points
+    door_max_width_m: float = Field(1.8, gt=0.0)
+    door_depth_m: float = Field(0.5, gt=0.0)  # the opening must reach this far behind the jambs
+    door_approach_m: tuple[float, ...] = (0.6, 0.45, 0.8, 0.3)  # stand-off before the door, preferred first
+    door_through_m: float = Field(0.6, gt=0.0)  # the straight shot checked from the approach point
+    door_score: float = Field(0.9, gt=0.0, le=1.0)  # heatmap value of an approach waypoint
+    max_door_candidates: int = Field(2, ge=0, le=32)
+    nms_distance_m: float = Field(1.0, gt=0.0)  # a doorway waypoint suppresses only this near in distance
 
     @model_validator(mode="after")
     def _ranges(self):
@@ -87,6 +111,10 @@ class GeometricPredictorConfig(BackendConfig):
             raise ValueError("max_distance_m must exceed min_distance_m")
         if self.sensor_range_m < self.max_distance_m:
             raise ValueError("sensor_range_m must be at least max_distance_m")
+        if self.door_max_width_m <= self.door_min_width_m:
+            raise ValueError("door_max_width_m must exceed door_min_width_m")
+        if not self.door_approach_m or min(self.door_approach_m) <= 0.0:
+            raise ValueError("door_approach_m needs at least one positive stand-off")
         return self
 
     @property
@@ -118,10 +146,13 @@ class GeometricPredictor:
 
     def predict_full(self, panorama: Panorama) -> Prediction:
         """Candidates plus the heatmap and free-space profile they came from."""
-        free = self.free_distance(panorama)
+        obst = self.obstacle_distance(panorama)
+        free = self._free_from_obstacles(obst)
         heatmap = self.heatmap(free)
-        candidates = self._nms(heatmap, panorama.pose.heading_rad)
-        return Prediction(candidates, heatmap, free, self.angles_rad, self.distances_m)
+        doors = self.doorways(obst, free) if self.config.doorways else []
+        priority = self._door_peaks(heatmap, doors)
+        candidates = self._nms(heatmap, panorama.pose.heading_rad, priority)
+        return Prediction(candidates, heatmap, doors, free, self.angles_rad, self.distances_m)
 
     def obstacle_distance(self, panorama: Panorama) -> np.ndarray:
         """Horizontal distance to the nearest obstacle per angle bin (``inf``: none in range)."""
@@ -256,12 +287,115 @@ class GeometricPredictor:
 
     def free_distance(self, panorama: Panorama) -> np.ndarray:
         """How far the agent's body (radius + margin) can travel along each angle bin."""
+        return self._free_from_obstacles(self.obstacle_distance(panorama))
+
+    def _free_from_obstacles(self, obst: np.ndarray) -> np.ndarray:
         c = self.config
-        obst = self.obstacle_distance(panorama)
         unseen = np.isnan(obst)
         free = self.sweep(np.where(unseen, np.inf, obst), c.clearance_m, c.sensor_range_m)
         free[unseen] = 0.0
         return free
+
+    def doorways(self, obstacle_m: np.ndarray, free_m: np.ndarray) -> list[Doorway]:
+        """Openings between two near profile edges, each with a reachable approach point if any.
+
+        A doorway is a run of angle bins whose obstacles lie at least ``door_depth_m`` behind both
+        flanking bins (the jambs), the jambs ``door_min_width_m``..``door_max_width_m`` apart. Its
+        approach point stands ``door_approach_m`` before the opening's centre on its normal; it must be
+        reachable in a straight line (``free_m``) and the straight shot from it through the opening
+        must clear every obstacle point of the profile by the body clearance.
+        """
+        c = self.config
+        n = len(obstacle_m)
+        r = np.where(np.isnan(obstacle_m), 0.0, obstacle_m)  # unseen: treat as a near wall, never a gap
+        far = np.where(np.isfinite(r), r, c.sensor_range_m + c.door_depth_m)
+        pts = np.stack([np.cos(self.angles_rad), np.sin(self.angles_rad)], axis=1) * np.where(
+            np.isfinite(r), r, np.nan)[:, None]
+        known = np.isfinite(pts[:, 0]) & (r > 0.0)
+        # Rising edges: bin i near, bin i+1 far behind it. The run then ends at the first bin j that
+        # is near again; spans are short (a door seen from 0.3 m spans < 180 deg), so loop the edges.
+        nxt = np.roll(far, -1)
+        rising = np.flatnonzero(known & (nxt > far + c.door_depth_m))
+        max_span = n // 2
+        out: list[Doorway] = []
+        for i in rising:
+            ri = far[i]
+            j = -1
+            run_min = far[(i + 1) % n]
+            for step in range(2, max_span):
+                k = (i + step) % n
+                if not known[k] and not np.isinf(r[k]):
+                    break  # an unseen direction: the run's far side is unknown
+                if known[k] and far[k] + c.door_depth_m <= run_min:
+                    j = k  # falling edge: the other jamb
+                    break
+                run_min = min(run_min, far[k])
+            if j < 0:
+                continue
+            inner = (i + 1 + np.arange(step - 1)) % n
+            if np.any(far[inner] < max(ri, far[j]) + c.door_depth_m):
+                continue
+            p_right, p_left = pts[i], pts[j]  # angles grow to the left
+            width = float(np.linalg.norm(p_left - p_right))
+            if not (c.door_min_width_m <= width <= c.door_max_width_m):
+                continue
+            # Obstacles the straight shot must clear: everything seen except what lies beyond the opening.
+            others = known.copy()
+            others[inner] = False
+            out.append(self._door(p_left, p_right, width, free_m, pts[others]))
+        return out
+
+    def _door(self, p_left: np.ndarray, p_right: np.ndarray, width: float, free_m: np.ndarray,
+              obstacles: np.ndarray) -> Doorway:
+        c = self.config
+        mid = 0.5 * (p_left + p_right)
+        t = (p_left - p_right) / width
+        normal = np.array([t[1], -t[0]])
+        if normal @ mid < 0.0:
+            normal = -normal
+        through = mid + c.door_through_m * normal
+        # Already passable straight from here: the regular heatmap offers it.
+        direct = self._reachable(through, free_m)
+        approach = None
+        if not direct:
+            for stand_off in c.door_approach_m:
+                a = mid - stand_off * normal
+                dist = float(np.hypot(*a))
+                if dist < c.min_distance_m or dist > c.max_distance_m:
+                    continue
+                if self._reachable(a, free_m) and self._segment_clear(a, through, obstacles):
+                    approach = a
+                    break
+        return Doorway(tuple(map(float, p_left)), tuple(map(float, p_right)), width,
+                       None if approach is None else (float(approach[0]), float(approach[1])), direct)
+
+    def _reachable(self, point: np.ndarray, free_m: np.ndarray) -> bool:
+        step = 2.0 * math.pi / self.config.angle_bins
+        k = int(round(math.atan2(point[1], point[0]) / step)) % self.config.angle_bins
+        return bool(free_m[k] + 1e-9 >= math.hypot(point[0], point[1]))
+
+    def _segment_clear(self, a: np.ndarray, b: np.ndarray, points: np.ndarray) -> bool:
+        """Does a disc of the body clearance pass from ``a`` to ``b`` without touching ``points``?"""
+        ab = b - a
+        t = np.clip(((points - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        d = np.linalg.norm(points - (a + t[:, None] * ab), axis=1)
+        return bool(np.all(d >= self.config.clearance_m))
+
+    def _door_peaks(self, heatmap: np.ndarray, doors: list[Doorway]) -> list[tuple[int, int]]:
+        """Write the doorway approach points into the heatmap; their bins, nearest door first."""
+        c = self.config
+        step = 2.0 * math.pi / c.angle_bins
+        peaks: list[tuple[float, int, int]] = []
+        for d in doors:
+            if d.approach_m is None:
+                continue
+            ax, ay = d.approach_m
+            ai = int(round(math.atan2(ay, ax) / step)) % c.angle_bins
+            di = int(np.argmin(np.abs(self.distances_m - math.hypot(ax, ay))))
+            heatmap[ai, di] = max(heatmap[ai, di], c.door_score)
+            peaks.append((float(np.hypot(*np.add(d.left_m, d.right_m))), ai, di))
+        peaks.sort()
+        return [(ai, di) for _, ai, di in peaks[: c.max_door_candidates]]
 
     def sweep(self, obstacle_m: np.ndarray, radius_m: float, cap_m: float) -> np.ndarray:
         """Travel distance of a disc of ``radius_m`` per direction before touching an obstacle."""
@@ -311,35 +445,39 @@ class GeometricPredictor:
             self._column_cache[key] = (xn, yn, np.arctan(xn))
         return self._column_cache[key]
 
-    def _nms(self, heatmap: np.ndarray, heading_rad: float) -> list[Candidate]:
+    def _nms(self, heatmap: np.ndarray, heading_rad: float,
+             priority: list[tuple[int, int]] | None = None) -> list[Candidate]:
         c = self.config
         h = heatmap.copy()
         na = c.angle_bins
         half = int(round(c.nms_angle_deg / (360.0 / na)))
         out: list[Candidate] = []
+        # Doorway approaches first: they suppress only nearby distances of nearby angles, so the long
+        # move past the door in the same direction survives.
+        near_d = np.abs(self.distances_m[:, None] - self.distances_m[None, :]) <= c.nms_distance_m + 1e-9
+        for ai, di in priority or []:
+            if len(out) >= c.max_candidates or h[ai, di] < c.min_score:
+                continue
+            out.append(self._candidate(len(out), ai, di, float(h[ai, di]), heading_rad))
+            rows = (np.arange(ai - half, ai + half + 1)) % na
+            h[np.ix_(rows, np.flatnonzero(near_d[di]))] = 0.0
         while len(out) < c.max_candidates:
             k = int(np.argmax(h))
             ai, di = divmod(k, h.shape[1])
             score = float(h[ai, di])
             if score < c.min_score or score <= 0.0:
                 break
-            angle = float(self.angles_rad[ai])
-            dist = float(self.distances_m[di])
-            world = heading_rad + angle
-            out.append(
-                Candidate(
-                    index=len(out),
-                    kind=CandidateKind.WAYPOINT,
-                    dx_m=dist * math.cos(world),
-                    dy_m=dist * math.sin(world),
-                    angle_rad=angle,
-                    distance_m=dist,
-                    score=score,
-                )
-            )
+            out.append(self._candidate(len(out), ai, di, score, heading_rad))
             rows = (np.arange(ai - half, ai + half + 1)) % na
             h[rows, :] = 0.0
         return out
+
+    def _candidate(self, index: int, ai: int, di: int, score: float, heading_rad: float) -> Candidate:
+        angle = float(self.angles_rad[ai])
+        dist = float(self.distances_m[di])
+        world = heading_rad + angle
+        return Candidate(index=index, kind=CandidateKind.WAYPOINT, dx_m=dist * math.cos(world),
+                         dy_m=dist * math.sin(world), angle_rad=angle, distance_m=dist, score=score)
 
 
 def create_predictor(name: str = DEFAULT_PREDICTOR, config=None) -> WaypointPredictor:

@@ -80,6 +80,7 @@ _DISTANCE = re.compile(
     r"\b(\d+(?:\.\d+)?|a|one|two|three|four|five|six|seven|eight|nine|ten|few|couple|several|half)"
     r"(?:\s+of)?\s*(?:a\s+)?(m|meters?|metres?|feet|foot|ft|steps?|paces?|yards?)\b"
 )
+_LEAVE = re.compile(r"\b(exit|exits|leave|leaving|out of)\b")
 _STOP = re.compile(r"\b(stop|wait|halt|you(?:'re| are) done)\b")
 _CLAUSE_SPLIT = re.compile(r"[.;!?]|,|\band then\b|\bthen\b|\bafter that\b|\bonce\b|\buntil\b|\band\b")
 
@@ -155,10 +156,12 @@ class SubGoal:
     rooms: list[str] = field(default_factory=list)
     landmarks: list[str] = field(default_factory=list)
     stop: bool = False
+    leave: bool = False  # "exit the kitchen": done once the agent is out of ``rooms``
 
     @property
     def targets(self) -> list[str]:
-        return self.landmarks + self.rooms
+        """What to look for: a room being left is not sought."""
+        return self.landmarks + ([] if self.leave else self.rooms)
 
     @property
     def is_empty(self) -> bool:
@@ -205,6 +208,7 @@ def parse_instruction(text: str) -> ParsedInstruction:
             landmarks=_find_ordered(clause, _LANDMARK_PATTERNS),
             stop=bool(_STOP.search(clause)),
         )
+        sg.leave = bool(sg.rooms) and bool(_LEAVE.search(clause)) and not sg.stop
         if sg.is_empty:
             continue
         # "stop" alone ("... and stop") belongs to the previous clause's target.

@@ -127,6 +127,7 @@ class MissionLoop:
         trajectory = [pano.pose.xyz]
         stop_called = False
         step = 0
+        boxed_in_at: int | None = None  # last step at which stop was the only action left
         self.emit(MissionEventKind.STARTED, MissionState.RUNNING, step=0,
                   data={"pose": _pose(pano.pose), "instruction": instruction, "map_id": map_id,
                         "options": opts.model_dump(mode="json")})
@@ -139,7 +140,12 @@ class MissionLoop:
             waypoints = [c for c in self.predictor.predict(pano) if not self._known_blocked(blocked, pose, c)]
             t1 = time.perf_counter()
             timings["candidates_s"] = t1 - t0
-            cands = with_stop_and_backtrack(waypoints, pose, visited[-1] if visited else None)
+            previous = visited[-1] if visited else None
+            if previous is not None and self._known_blocked(blocked, pose, _towards(pose, previous)):
+                previous = None  # the way back went nowhere already; offering it again would loop
+            cands = with_stop_and_backtrack(waypoints, pose, previous)
+            if len(cands) == 1:
+                boxed_in_at = step
             movable = [c for c in cands if c.kind != CandidateKind.STOP]
             render = None
             if ablation.anticipation and self.renderer is not None and movable:
@@ -191,6 +197,11 @@ class MissionLoop:
             observe_s = time.perf_counter() - t_obs
         state = MissionState.SUCCEEDED if stop_called else MissionState.FAILED
         reason = "" if stop_called else f"step budget of {opts.max_steps} exhausted without a stop"
+        if stop_called and boxed_in_at == len(decisions) - 1:
+            # The policy had no other choice: say so, the stop is not a judgement that the goal is here.
+            reason = (f"boxed in: no way forward or back at step {boxed_in_at} (the waypoint predictor found "
+                      "no reachable candidate), so the mission stopped where it was")
+            log.warning("mission %s: %s", mission_id, reason)
         m = None
         traj = np.asarray(trajectory)
         if goal is not None:
@@ -219,6 +230,12 @@ class MissionLoop:
             "timings_s": {k: round(v, 4) for k, v in timings.items()},
             "usage": self.policy.usage.to_dict(),
         })
+
+
+def _towards(pose: Pose, target_m) -> Candidate:
+    """A candidate from ``pose`` to the floor point ``target_m`` (for the blocked-move check)."""
+    return Candidate(index=0, kind=CandidateKind.BACKTRACK, dx_m=float(target_m[0]) - pose.position_m[0],
+                     dy_m=float(target_m[1]) - pose.position_m[1])
 
 
 def _pose(p: Pose) -> dict[str, Any]:

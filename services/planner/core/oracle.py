@@ -26,6 +26,10 @@ class OracleConfig(BackendConfig):
     reference_weight: float = 0.5  # cost per metre of lateral deviation from the reference path
     lookahead_m: float = 3.0  # aim at the reference point this far ahead of the agent's progress
     allow_euclidean: bool = False  # use straight-line distances when the context has no geodesic
+    success_radius_m: float = 3.0  # VLN-CE success: stopping within this geodesic distance
+    safety_margin_m: float = 0.5  # never trust a stop closer to the success radius than this
+    tabu_radius_m: float = 0.6  # a move ending this near an earlier position revisits it
+    tabu_penalty_m: float = 2.0  # added cost per earlier visit near a candidate's end point
 
 
 def point_to_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,12 +115,24 @@ class OraclePolicy(Policy):
             aim = point_at_arc_length(ref, self._progress_m + self.config.lookahead_m)
             lateral, _ = point_to_polyline(targets, ref)
             cost = np.array([geo(t, aim) for t in targets]) + self.config.reference_weight * lateral
+        # Tabu: a move back to where the agent already stood is what makes an oracle oscillate
+        # (forward, backtrack, forward...). Each earlier visit near the end point costs tabu_penalty_m.
+        past = np.asarray(ctx.trajectory_m, dtype=np.float64)[:-1, :2] if len(ctx.trajectory_m) > 1 else None
+        if past is not None and len(past):
+            near = np.linalg.norm(targets[:, None, :2] - past[None], axis=2) < self.config.tabu_radius_m
+            cost = cost + self.config.tabu_penalty_m * near.sum(axis=1)
         best = int(np.argmin(cost))
         gain = d_here - d_goal[best]
-        if stop is not None and d_here <= self.config.stop_radius_m and gain < self.config.min_gain_m:
-            return self._decision(ctx, stop.index, f"at the goal ({d_here:.2f} m)")
-        if stop is not None and d_here < 3.0 and d_goal[best] >= d_here:
-            return self._decision(ctx, stop.index, f"within the success radius ({d_here:.2f} m); no move gets closer")
+        safe = self.config.success_radius_m - self.config.safety_margin_m
+        if stop is not None:
+            if d_here <= self.config.stop_radius_m and gain < self.config.min_gain_m:
+                return self._decision(ctx, stop.index, f"at the goal ({d_here:.2f} m)")
+            if d_here <= safe and gain < self.config.min_gain_m:
+                return self._decision(ctx, stop.index,
+                                      f"within the success radius ({d_here:.2f} m); no move gets closer")
+            # The last step of the budget: a stop inside the radius beats a move that cannot be scored.
+            if d_here <= safe and ctx.max_steps and ctx.step >= ctx.max_steps - 1:
+                return self._decision(ctx, stop.index, f"step budget ending; {d_here:.2f} m from the goal")
         v = movable[best]
         return self._decision(
             ctx, v.index, f"{d_goal[best]:.2f} m from the goal after this move (now {d_here:.2f} m)"

@@ -18,7 +18,7 @@ from shared.geometry import DEFAULT_CAMERA_HEIGHT_M
 
 from .align import AlignmentConfig, AlignmentReport, MetricAligner, to_world
 from .depth import DEFAULT_METRIC_DEPTH, METRIC_DEPTH, MetricDepth
-from .errors import EmptyRecordingError, ReconstructorError
+from .errors import AlignmentError, EmptyRecordingError, ReconstructorError
 from .frames import RecordingLike, RegionInput, region_from_recording
 from .regional import DEFAULT_RECONSTRUCTOR, RECONSTRUCTORS, RegionalCloud, RegionalReconstructor
 from .voxel import voxel_downsample
@@ -176,7 +176,19 @@ class Reconstructor:
         t0 = time.perf_counter()
         regional: RegionalCloud = self.backend.reconstruct(region, label_names)
         t1 = time.perf_counter()
-        report = self.aligner.align(region, regional)
+        note = None
+        try:
+            report = self.aligner.align(region, regional)
+        except AlignmentError as exc:
+            if not regional.metric:
+                raise
+            # A metric cloud needs no grounding (delta is only measured, never applied): when the
+            # check cannot run - the start view faces a wall too close to render, say - the
+            # region is integrated as it is, and the report says why it was not checked.
+            log.warning("region %d: alignment check skipped: %s", region.region, exc)
+            note = f"alignment check skipped: {exc}"
+            report = AlignmentReport(region.region, -1, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0, self.depth.name,
+                                     0.0, 0.0, 0.0)
         t2 = time.perf_counter()
         world = to_world(regional, report, region)
         t3 = time.perf_counter()
@@ -189,6 +201,7 @@ class Reconstructor:
             alignment=report,
             timings_s={**regional.timings_s, "regional": t1 - t0, "align": t2 - t1, "integrate": t3 - t2},
             true_scale=regional.true_scale,
+            error=note,
         )
         if rep.scale_error is not None:
             log.info("region %d: scale error %.2f %%", region.region, 100.0 * rep.scale_error)

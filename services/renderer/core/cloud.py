@@ -94,6 +94,9 @@ class PointCloud:
         parts = sorted(chunks, key=lambda c: c.index)
         if not parts:
             raise EmptyCloudError("no chunks")
+        if not any(len(c.xyz_m) for c in parts):
+            first = parts[0]
+            raise EmptyCloudError(f"map {first.map_id!r} version {first.version} has no points")
         labelled = all(c.labels is not None for c in parts)
         return cls(
             np.concatenate([c.xyz_m for c in parts]),

@@ -7,8 +7,11 @@ class RendererError(Exception):
     """Base of every error raised by the renderer core."""
 
 
-class EmptyCloudError(RendererError):
-    """The cloud has no points, so there is nothing to render or map."""
+class EmptyCloudError(RendererError, ValueError):
+    """The cloud has no points, so there is nothing to render or map.
+
+    Also a ``ValueError``: a map with no points is bad input, so the bus answers ``bad_request``
+    (naming the map) rather than ``internal``."""
 
 
 class CloudFormatError(RendererError):

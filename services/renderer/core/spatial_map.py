@@ -112,13 +112,17 @@ class SpatialMapper:
         on_floor = (dz >= cfg.floor_band_m[0]) & (dz <= cfg.floor_band_m[1])
         obstacle = (dz >= cfg.obstacle_band_m[0]) & (dz <= cfg.obstacle_band_m[1])
         relevant = on_floor | obstacle
-        if not relevant.any():
-            raise EmptyCloudError(f"no points near the floor at z={floor_z:.2f} m")
         xy = xyz[relevant, :2].astype(np.float64)
-        lo = xy.min(axis=0) - cfg.margin_m
-        hi = xy.max(axis=0) + cfg.margin_m
-        cols = int(math.ceil((hi[0] - lo[0]) / cfg.cell_m))
-        rows = int(math.ceil((hi[1] - lo[1]) / cfg.cell_m))
+        # Nothing at this floor's height (a tiny map, or an agent on a storey the map does not
+        # cover): the grid spans the map's footprint and every cell is unknown - all the agent knows.
+        extent = xy if len(xy) else xyz[:, :2].astype(np.float64)
+        if not len(xy):
+            log.debug("no points near the floor at z=%.2f m: the spatial map is all unknown", floor_z)
+        lo = extent.min(axis=0) - cfg.margin_m
+        hi = extent.max(axis=0) + cfg.margin_m
+        # At least one cell: a single point with margin_m = 0 spans no area.
+        cols = max(1, int(math.ceil((hi[0] - lo[0]) / cfg.cell_m)))
+        rows = max(1, int(math.ceil((hi[1] - lo[1]) / cfg.cell_m)))
         col = np.clip(((xy[:, 0] - lo[0]) / cfg.cell_m).astype(np.int64), 0, cols - 1)
         row = np.clip(((hi[1] - xy[:, 1]) / cfg.cell_m).astype(np.int64), 0, rows - 1)
         flat = row * cols + col

@@ -34,6 +34,12 @@ class NavigationError(RobotIOError):
     """A navigation query cannot be answered (e.g. a point far from any walkable surface)."""
 
 
+class NoWalkableAreaError(SceneError, NavigationError, ValueError):
+    """A scene has nowhere this agent can stand (only a ceiling or walls, a floor smaller than the
+    agent, no headroom). Also a ``ValueError``: the caller named an unusable scene, so the bus
+    answers ``bad_request`` rather than ``internal``."""
+
+
 class EpisodeFormatError(RobotIOError):
     """An episode file does not follow the R2R-CE / RxR-CE format."""
 

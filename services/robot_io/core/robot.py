@@ -44,7 +44,7 @@ from shared.geometry import panorama_headings, wrap_angle
 from shared.registry import BackendConfig, Registry
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose
 
-from .errors import NavigationError, RobotIOError
+from .errors import NoWalkableAreaError, RobotIOError
 from .info import SceneInfo
 from .navgrid import AgentShape, NavGrid
 from .render import SceneRenderer
@@ -157,7 +157,10 @@ class SimRobot(Robot):
         self.agent = AgentShape(self.config.agent_radius_m, self.config.agent_height_m, self.config.max_climb_m)
         self.nav = NavGrid(self.scene, self.agent, self.config.nav_cell_m, self.renderer.raycasting_scene)
         if len(self.nav.nodes_m) == 0:
-            raise NavigationError(f"scene {self.scene.name!r} has no walkable floor for this agent")
+            a = self.agent
+            raise NoWalkableAreaError(
+                f"scene {self.scene.name!r} has no walkable floor for this agent (radius {a.radius_m:.2f} m, "
+                f"height {a.height_m:.2f} m): no upward floor with that headroom is wider than the agent")
         self.noise = SensorNoise(self.config.noise)
         self._sinks: list[tuple[FrameSink, float]] = []
         self._clock_s = 0.0

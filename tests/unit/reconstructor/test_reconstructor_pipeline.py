@@ -125,3 +125,19 @@ def test_build_is_stored_and_reloads_identically(tmp_path, rgbd_build):
     assert m.info.scale_factors == pytest.approx(b.scale_factors)
     assert [r["region"] for r in m.details["regions"]] == [r.region for r in b.regions]
     assert m.details["regions"][0]["alignment"]["matched_index"] == b.regions[0].alignment.matched_index
+
+
+def test_a_metric_region_whose_alignment_check_cannot_run_is_still_integrated(house, monkeypatch):
+    from services.reconstructor.core import AlignmentError, MetricAligner, ReconstructionConfig, Reconstructor
+
+    def fail(self, region, regional):
+        raise AlignmentError(f"region {region.region}: only 0.0% of the forward view has depth")
+
+    monkeypatch.setattr(MetricAligner, "align", fail)
+    with Reconstructor(ReconstructionConfig(backend="rgbd")) as r:
+        b = r.build_from_recordings(house.recordings[:1], house.label_names)
+    assert len(b.cloud) > 1000 and b.scale_factors == [1.0]
+    assert "alignment check skipped" in b.regions[0].error
+    # A non-metric (mono) cloud cannot be grounded without it: that stays an error.
+    with Reconstructor(ReconstructionConfig(backend="mono-sim")) as r, pytest.raises(AlignmentError):
+        r.build_from_recordings(house.recordings[:1], house.label_names)
