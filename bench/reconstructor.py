@@ -8,7 +8,8 @@
 * accuracy of the merged cloud against the scene mesh: exact point-to-mesh distance (mean, p95),
   completeness (mesh surface samples -> cloud) and their Chamfer mean; completeness counts every
   mesh face, seen or not (outer wall faces, under furniture), so it is an upper bound;
-* ``rgbd`` throughput in frames/s at 256x256 (fusion + voxels + outlier removal, one process);
+* ``rgbd`` throughput in frames/s at 256x256 (fusion + voxels + outlier removal, one process, the
+  compiled kernels warmed up first; ``--throughput-kernels auto numpy`` adds the array code);
 * the same pipeline on the Replica office (frames ray-cast from its scanned mesh along ``traj.txt``),
   when ../shared/data is present.
 """
@@ -106,19 +107,25 @@ def run_house(spec: str, size_px: int, seeds: list[int]) -> dict:
     return out
 
 
-def throughput(spec: str, size_px: int) -> dict:
+def throughput(spec: str, size_px: int, kernels: tuple[str, ...] = ("auto",)) -> dict:
+    """rgbd frames/s (wall) and CPU seconds, full resolution and stride 2; kernels warmed up first
+    (a service does it at start), the one-off compile/cache load is reported apart."""
     _, recs = tour_house(spec, size_px)
     regions = [region_from_recording(r) for r in recs]
     rows = {}
-    for stride in (1, 2):
-        backend = RECONSTRUCTORS.create("rgbd", {"pixel_stride": stride})
-        t0 = time.perf_counter()
-        pts = 0
-        for reg in regions:
-            pts += len(backend.reconstruct(reg).cloud)
-        dt = time.perf_counter() - t0
-        n = sum(len(r.images) for r in regions)
-        rows[f"stride{stride}"] = {"frames": n, "seconds": round(dt, 2), "frames_per_s": round(n / dt, 1), "points": pts}
+    for kernel in kernels:
+        for stride in (1, 2):
+            backend = RECONSTRUCTORS.create("rgbd", {"pixel_stride": stride, "kernel": kernel})
+            warm = backend.warm_up()
+            t0, c0 = time.perf_counter(), time.process_time()
+            pts = 0
+            for reg in regions:
+                pts += len(backend.reconstruct(reg).cloud)
+            dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+            n = sum(len(r.images) for r in regions)
+            name = f"stride{stride}" if kernel == "auto" else f"{kernel}_stride{stride}"
+            rows[name] = {"kernel": backend.kernel, "frames": n, "seconds": round(dt, 2), "cpu_s": round(cpu, 2),
+                          "frames_per_s": round(n / dt, 1), "points": pts, "warm_up_s": round(warm, 2)}
     return {"scene": spec, "size_px": size_px, **rows}
 
 
@@ -176,6 +183,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="mono-sim seeds per house")
     ap.add_argument("--throughput-scene", default="generated:3:area=50")
     ap.add_argument("--throughput-size", type=int, default=256)
+    ap.add_argument("--throughput-kernels", nargs="+", default=["auto"], choices=["auto", "numba", "numpy"],
+                    help="fusion kernels to time (numpy: the array code, for a before/after)")
     ap.add_argument("--replica-frames", type=int, default=1000)
     ap.add_argument("--no-replica", action="store_true")
     ap.add_argument("--json", default=None)
@@ -200,7 +209,7 @@ def main(argv: list[str] | None = None) -> None:
             "target_median_pct": 2.0,
         }
         print(json.dumps({"grounding_all_houses": report["grounding"]}), flush=True)
-    report["throughput"] = throughput(args.throughput_scene, args.throughput_size)
+    report["throughput"] = throughput(args.throughput_scene, args.throughput_size, tuple(args.throughput_kernels))
     print(json.dumps({"rgbd_throughput": report["throughput"], "target_frames_per_s": 200}), flush=True)
     if not args.no_replica:
         rep = replica(args.throughput_size, args.replica_frames, 250, args.seeds)

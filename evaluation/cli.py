@@ -2,7 +2,7 @@
 
 Without ``--gateway`` the runner starts the whole system itself (zenoh router and every service, via
 :class:`deploy.launcher.Launcher`, logs under ``<out>/system``) and stops it at the end; with
-``--gateway URL`` it uses a running one (add ``--zenoh-connect`` so it can switch robot-io's scene).
+``--gateway URL`` it uses a running one (scenes are switched through the gateway's ``POST /robot/scene``).
 """
 
 from __future__ import annotations
@@ -27,8 +27,6 @@ log = logging.getLogger("evaluation")
 def _system_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("system")
     g.add_argument("--gateway", help="use a running gateway at this URL (default: start the system)")
-    g.add_argument("--zenoh-connect", help="zenoh endpoint to reach robot-io for scene switching "
-                                           "(with --gateway), e.g. tcp/127.0.0.1:7447")
     g.add_argument("--token", help="the gateway's API token (ANT_API_TOKEN)")
     g.add_argument("--robot", default="robot0", help="robot id of the key expressions")
     g.add_argument("--start-timeout-s", type=float, default=120.0, help="deadline for the system to come up")
@@ -108,21 +106,11 @@ def load_episodes(a: argparse.Namespace):
 @contextmanager
 def system(a: argparse.Namespace, out: Path) -> Iterator[tuple[GatewayClient, SceneLoader | None]]:
     """The gateway client and the scene switcher: a running system's, or one started for this run."""
-    from shared.bus.typed import TypedBus
-    from shared.clients import RobotClient
-
     with ExitStack() as stack:
         if a.gateway:
+            # The gateway switches robot-io's scene too (POST /robot/scene): HTTP is all a run needs.
             gateway = stack.enter_context(GatewayClient.connect(a.gateway, token=a.token))
-            loader = None
-            if a.zenoh_connect:
-                from shared.bus.config import ZenohSettings
-                from shared.bus.zenoh_bus import ZenohBus
-
-                bus = ZenohBus(ZenohSettings(connect=[a.zenoh_connect]))
-                stack.callback(bus.close)
-                loader = RobotClient(TypedBus(bus, "evaluation"), a.robot)
-            yield gateway, loader
+            yield gateway, gateway
             return
         from deploy.launcher import Launcher
 
@@ -133,7 +121,7 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[tuple[GatewayClient, Sc
         launcher.start(a.start_timeout_s)
         log.info("system up in %.1f s, gateway %s", time.monotonic() - t0, launcher.gateway_url)
         gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
-        yield gateway, RobotClient(TypedBus(launcher.bus, "evaluation"), a.robot)
+        yield gateway, gateway
 
 
 def cmd_run(a: argparse.Namespace) -> int:

@@ -12,6 +12,8 @@ from typing import Any
 
 import httpx
 
+from shared.schemas import SceneSummary
+
 from evaluation.errors import GatewayError, MissionTimeout
 
 log = logging.getLogger(__name__)
@@ -71,6 +73,10 @@ class GatewayClient:
     # --- API -------------------------------------------------------------------------------------------
     def health(self) -> dict[str, Any]:
         return self._call("GET", "/health")
+
+    def load_scene(self, scene: str) -> SceneSummary:
+        """Switch robot-io's scene through the gateway (``POST /robot/scene``)."""
+        return SceneSummary.model_validate(self._call("POST", "/robot/scene", json={"scene": scene}))
 
     def submit_mission(self, instruction: str, map_id: str, options: dict[str, Any]) -> str:
         """POST /missions; returns the mission id."""

@@ -95,6 +95,10 @@ class ReconstructorService(Service):
 
     def start(self, node: Node) -> None:
         self._node = node
+        # Load (or compile) the fusion kernels now rather than inside the first map build.
+        from services.reconstructor.core.kernels import warm_up
+
+        warm_up()
         node.own(node.bus.subscribe(keys.IO_FRAMES.pattern(), Frame, self._on_frame))
         node.serve(keys.MAP_LIST.format(), Ping, self.list_maps)
         node.serve(keys.MAP_INFO.pattern(), MapRequest, self.info)

@@ -32,6 +32,7 @@ from .regional import (
 )
 from .slam3r import Slam3rConfig
 from .store import MapStore, StoredMap
+from . import kernels
 from .voxel import VoxelAccumulator, voxel_downsample
 
 __all__ = [

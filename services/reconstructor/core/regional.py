@@ -25,7 +25,9 @@ import logging
 import math
 import time
 from abc import ABC, abstractmethod
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -34,7 +36,8 @@ from services.renderer.core import PointCloud
 from shared.geometry import camera_rotation, rot_z
 from shared.registry import BackendConfig, Registry
 
-from .errors import EmptyRecordingError, MissingDepthError
+from . import kernels
+from .errors import BackendUnavailableError, EmptyRecordingError, InputError, MissingDepthError
 from .frames import PosedImage, RegionInput
 from .voxel import VoxelAccumulator
 
@@ -95,11 +98,19 @@ class RgbdConfig(BackendConfig):
     # Every n-th pixel in each direction: 2 quarters the work; the voxel grid still fills up close by.
     pixel_stride: int = Field(1, ge=1, le=16)
     min_points_per_voxel: int = Field(1, ge=1)
-    batch_frames: int = Field(96, ge=1, le=4096)
+    # Frames are fused in batches of at most this many (split evenly), each reduced to its voxels
+    # on its own and merged in order: the batches are what the threads share out, and the result
+    # depends on the batching (float rounding of the sums), never on the number of threads.
+    batch_frames: int = Field(32, ge=1, le=4096)
     remove_outliers: bool = True
     outlier_neighbors: int = Field(16, ge=2, le=256)
     outlier_std_ratio: float = Field(2.5, gt=0.0)
     keep_labels: bool = True
+    # Fusion and outlier search run as compiled loops (numba) when it is installed ("auto"),
+    # always ("numba": an error without it) or never ("numpy": array code and open3d). Both give
+    # the same voxels; the outlier test keeps the same points up to float rounding of its mean.
+    kernel: Literal["auto", "numba", "numpy"] = "auto"
+    threads: int = Field(2, ge=1, le=64)
 
     @model_validator(mode="after")
     def _range(self):
@@ -118,6 +129,18 @@ class RgbdReconstructor(RegionalReconstructor):
     def __init__(self, config: RgbdConfig | None = None):
         self.config = config or RgbdConfig()
         self._rays: dict[tuple, np.ndarray] = {}
+        if self.config.kernel == "numba" and not kernels.AVAILABLE:
+            raise BackendUnavailableError("kernel 'numba' requested but numba is not installed")
+        self._use_kernel = self.config.kernel != "numpy" and kernels.AVAILABLE
+
+    @property
+    def kernel(self) -> str:
+        """``"numba"`` when fusion and outlier search run compiled, else ``"numpy"``."""
+        return "numba" if self._use_kernel else "numpy"
+
+    def warm_up(self) -> float:
+        """Compile (or load from numba's cache) the kernels now; returns the seconds it took."""
+        return kernels.warm_up() if self._use_kernel else 0.0
 
     def reconstruct(self, region: RegionInput, label_names: dict[int, str] | None = None) -> RegionalCloud:
         cfg = self.config
@@ -133,16 +156,33 @@ class RgbdReconstructor(RegionalReconstructor):
         labelled = cfg.keep_labels and all(im.semantic is not None for im in with_depth)
         local = region.local_from_world()
         acc = VoxelAccumulator(cfg.voxel_m, cfg.min_points_per_voxel)
-        for b in range(0, len(with_depth), cfg.batch_frames):
-            xyz, rgb, lab = self._backproject(with_depth[b : b + cfg.batch_frames], local, labelled)
-            acc.add(xyz, rgb, lab)
+        nb = -(-len(with_depth) // cfg.batch_frames)
+        batches = [with_depth[i * len(with_depth) // nb : (i + 1) * len(with_depth) // nb] for i in range(nb)]
+        if self._use_kernel:
+            for im in with_depth:  # fill the ray cache before the threads read it
+                self._pixel_rays(im.camera)
+            threads = min(cfg.threads, len(batches))
+            if threads > 1:
+                with ThreadPoolExecutor(threads) as pool:
+                    for part, votes, pts in pool.map(lambda b: self._fuse_compiled(b, local, labelled), batches):
+                        acc.add_reduced(part, votes, pts)
+            else:
+                for b in batches:
+                    acc.add_reduced(*self._fuse_compiled(b, local, labelled))
+        else:
+            for b in batches:
+                xyz, rgb, lab = self._backproject(b, local, labelled)
+                acc.add(xyz, rgb, lab)
         t1 = time.perf_counter()
         cloud = acc.cloud(label_names)
         if len(cloud) == 0:
             raise EmptyRecordingError(f"region {region.region}: no valid depth in {len(with_depth)} frames")
         t2 = time.perf_counter()
         if cfg.remove_outliers and len(cloud) > cfg.outlier_neighbors:
-            cloud = remove_statistical_outliers(cloud, cfg.outlier_neighbors, cfg.outlier_std_ratio)
+            cloud = remove_statistical_outliers(
+                cloud, cfg.outlier_neighbors, cfg.outlier_std_ratio,
+                cell_m=cfg.voxel_m if self._use_kernel else None, threads=cfg.threads,
+            )
         t3 = time.perf_counter()
         log.info("region %d: %d frames -> %d points (%d in)", region.region, len(with_depth), len(cloud), acc.points_in)
         return RegionalCloud(
@@ -164,12 +204,28 @@ class RgbdReconstructor(RegionalReconstructor):
             self._rays[key] = np.ascontiguousarray(cam.pixel_rays()[::s, ::s].reshape(-1, 3), dtype=np.float32)
         return self._rays[key]
 
+    def _fuse_compiled(self, images: list[PosedImage], local: np.ndarray, labelled: bool):
+        """One batch through :class:`kernels.FrameFuser`: the voxels of ``_backproject`` + ``_reduce_dense``."""
+        cfg, s = self.config, self.config.pixel_stride
+        fuser = kernels.FrameFuser(cfg.voxel_m, cfg.min_depth_m, cfg.max_depth_m, labelled)
+        for im in images:
+            m = np.ascontiguousarray((local @ im.world_from_camera)[:3], np.float32)
+            ok = fuser.add(np.asarray(im.depth_m, np.float32), np.asarray(im.rgb, np.uint8),
+                           im.semantic if labelled else None, m, self._pixel_rays(im.camera), s)
+            if not ok:
+                raise InputError(
+                    f"frame {im.index}: points span more than +-{kernels.AXIS_HALF * cfg.voxel_m:.0f} m "
+                    f"from the origin at voxel {cfg.voxel_m} m"
+                )
+        part, votes = fuser.result()
+        return part, votes, fuser.points
+
     def _backproject(self, images: list[PosedImage], local: np.ndarray, labelled: bool):
         cfg, s = self.config, self.config.pixel_stride
         xyz_parts, rgb_parts, lab_parts = [], [], []
         for im in images:
             rays = self._pixel_rays(im.camera)
-            d = im.depth_m[::s, ::s].reshape(-1)
+            d = np.asarray(im.depth_m, np.float32)[::s, ::s].reshape(-1)
             ok = np.flatnonzero((d > cfg.min_depth_m) & (d < cfg.max_depth_m))  # NaN compares False
             if len(ok) == 0:
                 continue
@@ -195,13 +251,36 @@ class RgbdReconstructor(RegionalReconstructor):
         )
 
 
-def remove_statistical_outliers(cloud: PointCloud, neighbors: int, std_ratio: float) -> PointCloud:
-    """Drop points whose mean distance to their ``neighbors`` nearest is unusually large (open3d)."""
+def remove_statistical_outliers(
+    cloud: PointCloud, neighbors: int, std_ratio: float, cell_m: float | None = None, threads: int = 1,
+) -> PointCloud:
+    """Drop points whose mean distance to their ``neighbors`` nearest is unusually large.
+
+    open3d's test (the point itself counts among its neighbours; kept: mean distance above zero and
+    below the mean of them all plus ``std_ratio`` standard deviations). With ``cell_m`` (about the
+    point spacing) and numba installed, the neighbours come from the compiled grid search on
+    ``threads`` threads; otherwise from open3d's k-d tree."""
+    if cell_m is not None and kernels.AVAILABLE and len(cloud) > 1:
+        return cloud.subset(statistical_inliers(cloud.xyz, neighbors, std_ratio, cell_m, threads))
     import open3d as o3d
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.xyz.astype(np.float64)))
     _, keep = pcd.remove_statistical_outlier(nb_neighbors=neighbors, std_ratio=std_ratio)
     return cloud.subset(np.sort(np.asarray(keep, dtype=np.int64)))
+
+
+def statistical_inliers(xyz: np.ndarray, neighbors: int, std_ratio: float, cell_m: float,
+                        threads: int = 1) -> np.ndarray:
+    """Ascending indices of the inliers of open3d's statistical test (compiled neighbour search)."""
+    avg = kernels.knn_mean_distances(xyz, neighbors, cell_m, threads)
+    n = len(avg)
+    if n < 2:
+        return np.arange(n, dtype=np.int64)
+    pos = avg > 0
+    # As open3d: the mean divides by every point, the deviation sums only positive means.
+    mean = float(avg[pos].sum()) / n
+    std = math.sqrt(float(((avg[pos] - mean) ** 2).sum()) / (n - 1))
+    return np.flatnonzero(pos & (avg < mean + std_ratio * std))
 
 
 class MonoSimConfig(BackendConfig):

@@ -12,18 +12,23 @@ import numpy as np
 from services.renderer.core import PointCloud
 
 from .errors import InputError
+from .kernels import AXIS_BITS as _AXIS_BITS
+from .kernels import AXIS_HALF as _AXIS_HALF
+from .kernels import LABEL_BITS as _LABEL_BITS
+from .kernels import LABEL_MAX as _LABEL_MAX
 
 # A voxel key packs three 15-bit signed coordinates (+-16384 voxels per axis from the origin; +-490 m
 # at 3 cm) so that a (voxel, label) pair still fits an int64 with 16 bits for the label.
-_AXIS_BITS = 15
-_AXIS_HALF = 1 << (_AXIS_BITS - 1)
-_LABEL_BITS = 16
-_LABEL_MAX = (1 << _LABEL_BITS) - 2  # labels 0..65534; the label field stores label + 1
+
+
+def voxel_cells(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(N, 3) int64 voxel coordinates: float32 binning, the same in every path (array and compiled)."""
+    return np.floor(np.asarray(xyz, np.float32) * np.float32(1.0 / voxel_m)).astype(np.int64)
 
 
 def voxel_keys(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     """Integer key of the voxel of each point (int64); raises when a point is out of range."""
-    cells = np.floor(np.asarray(xyz, dtype=np.float64) / voxel_m).astype(np.int64) + _AXIS_HALF
+    cells = voxel_cells(xyz, voxel_m) + _AXIS_HALF
     if cells.size and (cells.min() < 0 or cells.max() >= (1 << _AXIS_BITS)):
         raise InputError(
             f"points span more than +-{_AXIS_HALF * voxel_m:.0f} m from the origin at voxel {voxel_m} m"
@@ -73,7 +78,29 @@ class VoxelAccumulator:
         if len(self._parts) >= 16:
             self._compact()
 
+    def add_reduced(self, part: tuple[np.ndarray, ...], votes: tuple[np.ndarray, np.ndarray] | None,
+                    points: int) -> None:
+        """Add a batch already reduced to its voxels (what ``kernels.FrameFuser.result`` gives).
+
+        ``part`` is (keys ascending, position sums (K, 3), colour sums (K, 3), counts (K,)) and
+        ``votes`` (packed voxel-label keys ascending, counts), or None for an unlabelled batch."""
+        if points == 0:
+            return
+        labelled = votes is not None
+        if self._labelled is None:
+            self._labelled = labelled
+        elif self._labelled != labelled:
+            self._labelled = False
+        self.points_in += int(points)
+        self._parts.append(part)
+        if labelled:
+            self._votes.append(votes)
+        if len(self._parts) >= 16:
+            self._compact()
+
     def _compact(self) -> None:
+        if len(self._parts) == 1 and len(self._votes) <= 1:
+            return  # one reduced batch is already sorted and unique
         keys = np.concatenate([p[0] for p in self._parts])
         sxyz = np.concatenate([p[1] for p in self._parts])
         srgb = np.concatenate([p[2] for p in self._parts])
@@ -125,7 +152,7 @@ def _reduce_dense(xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None, v
     A batch of frames covers a few metres, so its voxel box is small enough for dense counters;
     this is several times faster than sorting millions of keys. None when the box is too large.
     """
-    cells = np.floor(np.asarray(xyz, np.float32) * np.float32(1.0 / voxel_m)).astype(np.int64)
+    cells = voxel_cells(xyz, voxel_m)
     lo = cells.min(axis=0)
     hi = cells.max(axis=0)
     dims = hi - lo + 1

@@ -8,7 +8,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from conftest import box_scene
+from tests.unit.evaluation.conftest import box_scene
 from evaluation.clouds import cloud_ply_bytes, sample_scene_cloud
 from evaluation.dataset import SetSpec, generate_set, gt_path_for, parse_floors, write_set
 from evaluation.errors import ConfigError

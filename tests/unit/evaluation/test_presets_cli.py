@@ -7,7 +7,7 @@ import csv
 import pytest
 from PIL import Image
 
-from conftest import box_scene
+from tests.unit.evaluation.conftest import box_scene
 from evaluation.cli import build_parser, main, run_config
 from evaluation.errors import ConfigError
 from evaluation.presets import presets, run_preset

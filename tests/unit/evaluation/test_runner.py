@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from conftest import box_scene, make_episode
+from tests.unit.evaluation.conftest import box_scene, make_episode
 from evaluation.errors import ConfigError, SceneSwitchError
 from evaluation.metrics import episode_metrics, euclidean_geodesic
 from evaluation.results import ResultsLog

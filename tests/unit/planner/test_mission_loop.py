@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_planner_openai import FakeChatServer
+from tests.unit.planner.test_planner_openai import FakeChatServer
 
 from evaluation.clouds import sample_scene_cloud
 from services.mapper.core import PREDICTORS

@@ -8,7 +8,7 @@ import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
-from planner_toyworld import ToyWorld, run_episode
+from tests.unit.planner.planner_toyworld import ToyWorld, run_episode
 
 from services.planner.core import POLICIES, OpenAIConfig, PolicyBackendError
 

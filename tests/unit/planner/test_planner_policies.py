@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from planner_toyworld import ToyWorld, run_episode
+from tests.unit.planner.planner_toyworld import ToyWorld, run_episode
 
 from evaluation.metrics import episode_metrics, euclidean_geodesic
 from services.planner.core import (

@@ -179,3 +179,24 @@ def test_killed_writer_never_leaves_a_broken_map(tmp_path):
         assert len(m.cloud) == 300_000
     # Killed mid-write at least once in three tries is near certain: the leftovers are ignored.
     assert [i.version for i in store.list(all_versions=True)] == versions
+
+
+@pytest.mark.parametrize("ascii_ply", [False, True])
+def test_truncated_or_garbage_clouds_raise_map_format_error(tmp_path, ascii_ply):
+    store = MapStore(tmp_path / "store")
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).uniform(0, 3, (300, 3))))
+    path = tmp_path / "scan.ply"
+    o3d.io.write_point_cloud(str(path), pcd, write_ascii=ascii_ply)
+    data = path.read_bytes()
+    ours = _cloud(300).save(tmp_path / "ours.ply") or (tmp_path / "ours.ply").read_bytes()
+    for blob in (data[: len(data) // 2], data[: data.find(b"end_header") + 11], ours[:-9], data[:30]):
+        with pytest.raises(MapFormatError):
+            store.import_cloud("bad", blob, filename="scan.ply")
+    # Values that only overflow as float32 are garbage too, reported as a map error (not the
+    # renderer's CloudFormatError).
+    huge = np.full((10, 3), 1e300)
+    o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(huge)))
+    with pytest.raises(MapFormatError):
+        store.import_cloud("bad", path)
+    assert store.list() == []
+    assert store.import_cloud("good", data, filename="scan.ply").point_count == 300

@@ -82,7 +82,8 @@ def test_bad_inputs_give_typed_errors():
     with pytest.raises(InvalidFrameError):
         region_from_frames(0, start, [nan_pose])
     with pytest.raises(InvalidFrameError):
-        region_from_frames(0, start, [_frame(pitch_rad=math.inf)])
+        # The schema now rejects it on construction; a producer using model_construct does not.
+        region_from_frames(0, start, [_frame().model_copy(update={"pitch_rad": math.inf})])
     with pytest.raises(InvalidFrameError):
         region_from_frames(0, start, [_frame().model_copy(update={"depth_m": np.ones((8, 8), np.float32)})])
     no_depth = region_from_frames(0, start, [_frame(depth=False)])
