@@ -19,18 +19,17 @@ from evaluation.clouds import sample_scene_cloud
 from evaluation.metrics import summarize
 from services.mapper.core import PREDICTORS
 from services.planner.core.local import LocalStack, episode_options
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, PointCloud, SpatialMapper
+from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS, generate_episodes
 
 
 def stack_for(scene: str) -> tuple[LocalStack, object]:
     robot = ROBOTS.create("sim", {"scene": scene})
-    c = sample_scene_cloud(robot.scene, density_per_m2=300.0, max_points=1_000_000)
-    cloud = PointCloud(c.xyz_m, c.rgb, c.labels, c.label_names)
+    cloud = sample_scene_cloud(robot.scene, density_per_m2=300.0, max_points=1_000_000)
     renderer = RENDERERS.create("numpy")
     renderer.warm_up()
     port = MapRenderer(IndexedCloud(cloud), renderer, SpatialMapper())
-    return LocalStack(robot, PREDICTORS.create("geometric"), port, c.label_names), robot
+    return LocalStack(robot, PREDICTORS.create("geometric"), port, cloud.label_names), robot
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -38,13 +37,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--scenes", nargs="+", default=["generated:0", "generated:1", "generated:2:floors=2"])
     ap.add_argument("--episodes", type=int, default=4, help="per scene")
     ap.add_argument("--policies", nargs="+", default=["oracle", "heuristic"])
+    ap.add_argument("--seed", type=int, default=11, help="episode generator seed")
     args = ap.parse_args(argv)
     results: dict[str, list] = {p: [] for p in args.policies}
     latencies: list[float] = []
     t0 = time.time()
     for scene in args.scenes:
         stack, robot = stack_for(scene)
-        eps = generate_episodes(robot.scene, robot.nav, args.episodes, seed=11).episodes
+        eps = generate_episodes(robot.scene, robot.nav, args.episodes, seed=args.seed).episodes
         for ep in eps:
             for policy in args.policies:
                 out = stack.run(ep.instruction, episode_options(ep, policy, max_steps=30))
@@ -55,7 +55,8 @@ def main(argv: list[str] | None = None) -> dict:
     for policy, ms in results.items():
         s = summarize(ms)
         rows.append((policy, s.episodes, 100 * s.sr, 100 * s.osr, 100 * s.spl, 100 * s.ndtw, s.ne_m, s.tl_m))
-    table(f"planner: generated episodes ({len(args.scenes)} houses x {args.episodes}), sampled-mesh maps",
+    table(f"planner: generated episodes ({len(args.scenes)} houses x {args.episodes}, seed {args.seed}), "
+          "sampled-mesh maps",
           rows, ("policy", "episodes", "SR %", "OSR %", "SPL %", "nDTW %", "NE m", "TL m"))
     p = percentiles_ms(latencies, (50, 95))
     table("planner: non-LLM step latency (observe -> prompt ready), 256x256, 1e6-point maps",

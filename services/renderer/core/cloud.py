@@ -145,6 +145,52 @@ class PointCloud:
         return cls(xyz, rgb, labels, names)
 
 
+def sample_mesh(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray,
+                triangle_labels: np.ndarray | None = None, *, n_points: int, seed: int = 0, texture=None,
+                label_names: dict[int, str] | None = None) -> PointCloud:
+    """``n_points`` samples spread uniformly by area over a triangle mesh, with interpolated colours
+    (or the texel under the sample) and their triangle's label - a cloud with no pose, scale or depth
+    error: the paper's "human-curated" cloud, and the ground truth of renderer tests.
+
+    Args:
+        vertices: (V, 3) positions; triangles: (T, 3) vertex indices; vertex_colors: (V, 3) in [0, 1].
+        triangle_labels: (T,) label per triangle (-1: unknown); None: the cloud has no labels.
+        texture: optional ``services.robot_io.core.scene.Texture`` (per-triangle material and UVs).
+    """
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
+        raise CloudFormatError(f"need (V, 3) vertices and (T, 3) triangles, got {v.shape} and {t.shape}")
+    if n_points < 1:
+        raise CloudFormatError("n_points must be positive")
+    corners = v[t]  # (T, 3, 3)
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    total = float(area.sum())
+    if total <= 0:
+        raise CloudFormatError("the mesh has no surface area")
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(t), size=n_points, p=area / total)
+    # Uniform barycentrics by the square-root trick (Osada et al. 2002).
+    r1, r2 = np.sqrt(rng.random(n_points)), rng.random(n_points)
+    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+    xyz = np.einsum("nk,nkd->nd", bary, corners[tri])
+    rgb = np.einsum("nk,nkd->nd", bary, np.asarray(vertex_colors, np.float64)[t[tri]])
+    if texture is not None:
+        mids = np.asarray(texture.material_ids)[tri]
+        for m in np.unique(mids[mids >= 0]):
+            sel = np.flatnonzero(mids == m)
+            img = texture.images[int(m)]
+            uv = np.einsum("nk,nkd->nd", bary[sel], np.asarray(texture.triangle_uvs, np.float64)[tri[sel]])
+            h, w = img.shape[:2]
+            # Texture v runs upwards, image rows downwards.
+            px = np.clip((uv[:, 0] % 1.0) * w, 0, w - 1).astype(np.int64)
+            py = np.clip((1.0 - uv[:, 1] % 1.0) * h, 0, h - 1).astype(np.int64)
+            rgb[sel] = img[py, px, :3] / 255.0
+    labels = None if triangle_labels is None else np.asarray(triangle_labels, np.int32)[tri]
+    return PointCloud(xyz.astype(np.float32), np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8), labels,
+                      dict(label_names or {}))
+
+
 @dataclass(frozen=True)
 class Frustum:
     """Half-spaces ``n . p_cam + d <= 0`` that together contain every point that can reach a pixel."""

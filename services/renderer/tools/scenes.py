@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from services.renderer.core.cloud import PointCloud
+from services.renderer.core.cloud import sample_mesh as core_sample_mesh
 from shared.geometry import PinholeCamera, camera_pose, depth_to_points
 
 
@@ -121,18 +122,9 @@ def replica_poses(data_dir: Path) -> np.ndarray:
 
 def sample_mesh(mesh: LabelledMesh, n_points: int, seed: int = 0) -> PointCloud:
     """Area-uniform samples of the mesh with interpolated colours and their triangle's label."""
-    rng = np.random.default_rng(seed)
-    tri = mesh.vertices[mesh.triangles]  # (T, 3, 3)
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    choice = rng.choice(len(tri), size=n_points, p=area / area.sum())
-    r1 = np.sqrt(rng.random(n_points, dtype=np.float32))[:, None]
-    r2 = rng.random(n_points, dtype=np.float32)[:, None]
-    bary = np.concatenate([1 - r1, r1 * (1 - r2), r1 * r2], axis=1).astype(np.float32)
-    t = mesh.triangles[choice]
-    xyz = np.einsum("nk,nkd->nd", bary, mesh.vertices[t].astype(np.float32))
-    rgb = np.einsum("nk,nkd->nd", bary, mesh.colors[t].astype(np.float32))
-    labels = mesh.tri_labels[choice] if (mesh.tri_labels >= 0).any() else None
-    return PointCloud(xyz, np.rint(np.clip(rgb, 0, 1) * 255).astype(np.uint8), labels, dict(mesh.label_names))
+    labels = mesh.tri_labels if (mesh.tri_labels >= 0).any() else None
+    return core_sample_mesh(mesh.vertices, mesh.triangles, mesh.colors, labels, n_points=n_points, seed=seed,
+                            label_names=mesh.label_names)
 
 
 class RaycastCamera:

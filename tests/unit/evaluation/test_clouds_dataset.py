@@ -20,7 +20,7 @@ def test_cloud_is_area_uniform_on_the_surface_with_labels_and_colours():
     cloud = sample_scene_cloud(scene, density_per_m2=400.0, seed=3)
     total = 2 * (4 * 3 + 4 * 2.5 + 3 * 2.5)
     assert len(cloud) == round(total * 400)
-    xyz = cloud.xyz_m.astype(np.float64)
+    xyz = cloud.xyz.astype(np.float64)
     # Every point lies on one of the six faces of the box.
     on_face = (np.isclose(xyz[:, 0], 0, atol=1e-5) | np.isclose(xyz[:, 0], 4, atol=1e-5)
                | np.isclose(xyz[:, 1], 0, atol=1e-5) | np.isclose(xyz[:, 1], 3, atol=1e-5)
@@ -35,7 +35,7 @@ def test_cloud_is_area_uniform_on_the_surface_with_labels_and_colours():
     q = (f[:, 0] < 2).astype(int) * 2 + (f[:, 1] < 1.5).astype(int)
     assert np.bincount(q, minlength=4) / len(f) == pytest.approx([0.25] * 4, abs=0.03)
     assert (cloud.rgb == [204, 51, 26]).all()
-    assert np.array_equal(sample_scene_cloud(scene, density_per_m2=400.0, seed=3).xyz_m, cloud.xyz_m)
+    assert np.array_equal(sample_scene_cloud(scene, density_per_m2=400.0, seed=3).xyz, cloud.xyz)
     assert len(sample_scene_cloud(scene, density_per_m2=400.0, max_points=1000)) == 1000
 
 
@@ -45,7 +45,7 @@ def test_ply_reads_back_with_open3d_and_keeps_labels(tmp_path):
     path = tmp_path / "c.ply"
     path.write_bytes(data)
     pcd = o3d.io.read_point_cloud(str(path))
-    assert np.allclose(np.asarray(pcd.points), cloud.xyz_m, atol=1e-6)
+    assert np.allclose(np.asarray(pcd.points), cloud.xyz, atol=1e-6)
     assert np.allclose(np.asarray(pcd.colors) * 255, cloud.rgb, atol=0.5)
     head, _, body = data.partition(b"end_header\n")
     names = next(ln for ln in head.decode().splitlines() if ln.startswith("comment label_names "))
