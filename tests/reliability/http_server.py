@@ -12,7 +12,9 @@ import httpx
 from deploy.launcher import free_port
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
+from services.gateway.testing import ScriptedRobotIo
 from shared.bus import FakeBus, FakeNetwork
+from shared.bus.typed import TypedBus
 from tests.unit.gateway.conftest import World
 
 
@@ -23,6 +25,8 @@ def live_gateway(tmp_path, **overrides):
 
     net = FakeNetwork()
     world = World(net, steps=2, step_interval_s=0.005)
+    # Every backing service is there (robot-io too), so a 5xx can only be the gateway's fault.
+    robot_io = ScriptedRobotIo(TypedBus(world.bus, "scripted-io"))
     port = free_port()
     settings = GatewaySettings(instance="gw-rel", host="127.0.0.1", port=port, db_path=tmp_path / "gw.sqlite3",
                                request_timeout_s=1.0, sse_keepalive_s=0.2, **overrides)
@@ -47,4 +51,5 @@ def live_gateway(tmp_path, **overrides):
     finally:
         server.should_exit = True
         thread.join(10)
+        robot_io.close()
         world.close()
