@@ -30,6 +30,12 @@ class OracleConfig(BackendConfig):
     safety_margin_m: float = 0.5  # never trust a stop closer to the success radius than this
     tabu_radius_m: float = 0.6  # a move ending this near an earlier position revisits it
     tabu_penalty_m: float = 2.0  # added cost per earlier visit near a candidate's end point
+    # Where a move ends in height: a candidate is (dx, dy) only, so on stairs its floor point is not at the
+    # agent's height. Heights within max_slope * distance (+ margin) are tried, every z_step_m.
+    max_slope: float = 0.8  # rise per metre of the steepest walkable ramp or stair (generated: 0.19 / 0.27)
+    z_margin_m: float = 0.3
+    z_step_m: float = 0.25  # at most twice the geodesic's height tolerance, so no walkable floor is skipped
+    snap_tolerance_m: float = 0.15  # a point this near (in plan) to the walkable surface is on it
 
 
 def point_to_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -52,6 +58,47 @@ def point_to_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndar
     cum = np.concatenate([[0.0], np.cumsum(seg_len)])
     rows = np.arange(len(pts))
     return d[rows, j], cum[j] + t[rows, j] * seg_len[j]
+
+
+def end_heights(here_m: np.ndarray, targets_xy_m: np.ndarray, geo, config: OracleConfig) -> np.ndarray:
+    """The floor height each straight move from ``here_m`` to ``targets_xy_m`` (M, 2) most likely ends at.
+
+    A candidate carries no height; on stairs its floor point lies above or below the agent, and a geodesic
+    query at the agent's height snaps to whatever walkable point is nearest in 3-D (a lower tread, the
+    floor under a landing), which made the move up the stairs look like a detour and sent the oracle
+    down and up the flight until its budget ran out. A height is *on the floor* when the geodesic from
+    the point to itself is ~0 (a snapped point pays its snap offset twice). The agent's own height is
+    kept when it is on the floor; otherwise heights within reach of the slope are tried and, among
+    those on the floor, the one reachable most directly from ``here_m`` wins (ties: the smallest change
+    of height). Where none is on the floor (a target inside furniture) the agent's height is kept.
+    """
+    here = np.asarray(here_m, dtype=np.float64)
+    xy = np.asarray(targets_xy_m, dtype=np.float64).reshape(-1, 2)
+    r = np.linalg.norm(xy - here[:2], axis=1)
+    z = np.full(len(xy), here[2])
+
+    def on_floor(p: np.ndarray) -> bool:
+        return geo(p, p) <= 2.0 * config.snap_tolerance_m
+
+    for i in range(len(xy)):
+        if on_floor(np.array([xy[i, 0], xy[i, 1], here[2]])):
+            continue
+        n = int(math.ceil((config.max_slope * r[i] + config.z_margin_m) / config.z_step_m))
+        dz = config.z_step_m * np.arange(-n, n + 1)
+        dz = dz[np.argsort(np.abs(dz), kind="stable")]
+        pts = np.column_stack([np.full((len(dz), 2), xy[i]), here[2] + dz])
+        # The walk back is cheap (one shortest-path field from here, cached); the on-floor test costs a
+        # field per point, so it runs in order of the walk back and stops at the first success.
+        back = np.array([geo(p, here) for p in pts])
+        seen: set[float] = set()
+        for k in np.argsort(back, kind="stable"):
+            if not np.isfinite(back[k]) or round(float(back[k]), 6) in seen:
+                continue  # the same snapped point as a height already rejected
+            seen.add(round(float(back[k]), 6))
+            if on_floor(pts[k]):
+                z[i] = pts[k, 2]
+                break
+    return z
 
 
 def point_at_arc_length(polyline: np.ndarray, s_m: float) -> np.ndarray:
@@ -104,6 +151,7 @@ class OraclePolicy(Policy):
             return self._decision(ctx, stop.index, f"no move possible; {d_here:.2f} m from the goal")
 
         targets = np.stack([ctx.target_m(v) for v in movable])
+        targets[:, 2] = end_heights(here, targets[:, :2], geo, self.config)
         d_goal = np.array([geo(t, goal) for t in targets])
         cost = d_goal.copy()
         ref = ctx.oracle.reference_path_m

@@ -13,7 +13,7 @@ from services.mapper.core import PREDICTORS
 from services.planner.core import POLICIES, OpenAIConfig
 from services.planner.core.mission import MissionLoop, MissionOutcome
 from services.planner.core.policy import Policy
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, PointCloud, SpatialMapper
+from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
 from shared.schemas import CandidateKind, MissionEventKind, MissionOptions, MissionState, MoveResult, MoveStatus
 
@@ -28,7 +28,7 @@ def world():
     robot = ROBOTS.create("sim", {"scene": "generated:0", "camera": CAM})
     c = sample_scene_cloud(robot.scene, density_per_m2=60.0, max_points=100_000)
     renderer = RENDERERS.create("numpy")
-    port = MapRenderer(IndexedCloud(PointCloud(c.xyz_m, c.rgb, c.labels, c.label_names)), renderer, SpatialMapper())
+    port = MapRenderer(IndexedCloud(c), renderer, SpatialMapper())
     yield robot, port, c.label_names
     robot.close()
 
