@@ -339,12 +339,12 @@ class MapListReply(Message):
 
 class MapRequest(Message):
     map_id: str
-    version: int | None = None  # None: latest
+    version: int | None = Field(None, ge=1, le=2**31 - 1)  # None: latest
 
 
 class MapChunkRequest(Message):
     map_id: str
-    version: int | None = None
+    version: int | None = Field(None, ge=1, le=2**31 - 1)
     index: int = Field(0, ge=0)
     max_points: int = Field(1_000_000, ge=1, le=10_000_000)
 
@@ -373,7 +373,7 @@ class RenderRequest(Message):
     """Anticipated views of one step: every candidate's view in one request."""
 
     map_id: str
-    version: int | None = None
+    version: int | None = Field(None, ge=1, le=2**31 - 1)
     views: list[ViewPose] = Field(min_length=1, max_length=64)
     camera: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
     camera_height_m: float = Field(1.25, ge=0.0, le=3.0)
@@ -392,7 +392,7 @@ class RenderResult(Message):
 
 class SpatialMapRequest(Message):
     map_id: str
-    version: int | None = None
+    version: int | None = Field(None, ge=1, le=2**31 - 1)
     pose: Pose
     trajectory_m: Array("float64", 2) | None = None  # (T, 3)
     candidates: list[Candidate] = Field(default_factory=list)

@@ -190,7 +190,7 @@ class TypedBus:
         """Ask one queryable on ``key``. With ``balance=<service>``, spread requests over that
         service's live replicas in turn; an instance that is gone, silent or overloaded is skipped
         for the next one, so a dying replica costs a retry, not a failed request."""
-        payload = encode(msg)
+        payload = self._encode_request(key, msg)
         if balance:
             for instance in self._replicas(balance).order():
                 route = keys.routed(key, instance)
@@ -206,6 +206,15 @@ class TypedBus:
         if not replies:
             raise NoReplyError(key, timeout_s)
         return self._decode_reply(key, replies[0], model)
+
+    @staticmethod
+    def _encode_request(key: str, msg: Message) -> bytes:
+        # A request that cannot be encoded (an integer beyond 64 bits in a free-form dict, say) is
+        # the asker's bad request, reported like the replier would report it.
+        try:
+            return encode(msg)
+        except CodecError as exc:
+            raise RemoteError(ErrorCode.BAD_REQUEST, f"the request cannot be sent: {exc}", "local", key) from None
 
     def _replicas(self, service: str) -> Replicas:
         with self._replicas_lock:
@@ -224,7 +233,7 @@ class TypedBus:
                     timeout_s: float = 2.0) -> list[Rep | RemoteError]:
         """Ask every matching queryable; each answer is a result or the RemoteError it sent."""
         out: list[Rep | RemoteError] = []
-        for r in self.raw.query(key, encode(msg), timeout_s=timeout_s, target=QueryTarget.ALL):
+        for r in self.raw.query(key, self._encode_request(key, msg), timeout_s=timeout_s, target=QueryTarget.ALL):
             try:
                 out.append(self._decode_reply(key, r, model))
             except RemoteError as exc:

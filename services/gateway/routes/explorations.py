@@ -107,13 +107,13 @@ async def get_exploration(exploration_id: JobId, cache: CacheDep, if_none_match:
 @router.get("/{exploration_id}/events", response_class=StreamingResponse, responses=SSE_DOC)
 async def exploration_events(exploration_id: JobId, store: StoreDep, hub: HubDep, settings: SettingsDep,
                              last_event_id: Annotated[str | None, Header()] = None,
-                             after: Annotated[int | None, Query(ge=-1)] = None):
+                             after: Annotated[int | None, Query(ge=-1, le=2**31 - 1)] = None):
     """Server-Sent Events of the exploration, resumable with ``Last-Event-ID``."""
     return events_response(JobKind.EXPLORATION, exploration_id, store, hub, settings, last_event_id, after)
 
 
 @router.get("/{exploration_id}/events/{seq}/images/{name}.jpg", response_class=Response,
             responses={200: {"content": {"image/jpeg": {}}}, 404: {}})
-async def exploration_image(exploration_id: JobId, seq: Annotated[int, Path(ge=0)],
+async def exploration_image(exploration_id: JobId, seq: Annotated[int, Path(ge=0, le=2**31 - 1)],
                       name: Annotated[str, Path(pattern=SEGMENT)], store: StoreDep) -> Response:
     return image_response(store, exploration_id, seq, name)

@@ -22,7 +22,7 @@ from shared.schemas import MapChunk, MapChunkRequest, MapImportRequest, MapInfo,
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/maps", tags=["maps"])
 MapId = Annotated[str, Path(pattern=SEGMENT, description="map id")]
-Version = Annotated[int | None, Query(ge=1, description="a stored version (default: the latest)")]
+Version = Annotated[int | None, Query(ge=1, le=2**31 - 1, description="a stored version (default: the latest)")]
 
 
 def _ask(bus: TypedBus, what: str, fn):

@@ -190,14 +190,14 @@ SSE_DOC = {200: {"content": {"text/event-stream": {}},
 @router.get("/{mission_id}/events", response_class=StreamingResponse, responses=SSE_DOC)
 async def mission_events(mission_id: JobId, store: StoreDep, hub: HubDep, settings: SettingsDep,
                          last_event_id: Annotated[str | None, Header()] = None,
-                         after: Annotated[int | None, Query(ge=-1, description="resume after this seq")] = None):
+                         after: Annotated[int | None, Query(ge=-1, le=2**31 - 1, description="resume after this seq")] = None):
     """Server-Sent Events: the stored events after ``Last-Event-ID`` (or ``?after=``), then live ones."""
     return events_response(JobKind.MISSION, mission_id, store, hub, settings, last_event_id, after)
 
 
 @router.get("/{mission_id}/history", response_model=list[EventRecord], responses={404: {}})
 async def mission_history(mission_id: JobId, store: StoreDep,
-                    after: Annotated[int, Query(ge=-1)] = -1,
+                    after: Annotated[int, Query(ge=-1, le=2**31 - 1)] = -1,
                     limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> list[EventRecord]:
     """The stored events as JSON (for clients that do not speak SSE), images by URL."""
     _get(store, mission_id)
@@ -214,6 +214,6 @@ def image_response(store, job_id: str, seq: int, name: str) -> Response:
 
 @router.get("/{mission_id}/events/{seq}/images/{name}.jpg", response_class=Response,
             responses={200: {"content": {"image/jpeg": {}}}, 404: {}})
-async def mission_image(mission_id: JobId, seq: Annotated[int, Path(ge=0)], name: ImageName, store: StoreDep) -> Response:
+async def mission_image(mission_id: JobId, seq: Annotated[int, Path(ge=0, le=2**31 - 1)], name: ImageName, store: StoreDep) -> Response:
     """One JPEG of one event (panorama, map, cand_<i>_observed, cand_<i>_anticipated, ...)."""
     return image_response(store, mission_id, seq, name)

@@ -200,3 +200,13 @@ def test_metrics_report_the_queue_depth_of_a_busy_endpoint():
         gate.set()
         for t in threads:
             t.join()
+
+
+def test_a_request_that_cannot_be_encoded_is_a_bad_request_not_a_crash():
+    from shared.schemas import ExplorationRequest
+
+    client = TypedBus(FakeBus())
+    with pytest.raises(RemoteError) as e:
+        client.request("ant/r/mapper/explorations/submit",
+                       ExplorationRequest(exploration_id="x", map_id="m", options={"n": 2**80}), PoseReply)
+    assert e.value.code == ErrorCode.BAD_REQUEST and "cannot be sent" in e.value.message
