@@ -23,7 +23,12 @@ def main(argv: list[str]) -> int:
             raise
         print(f"\n# {name}  ({time.strftime('%H:%M:%S')})", flush=True)
         try:
-            mod.main()
+            # Each bench parses its own flags: give it none of ours.
+            saved, sys.argv = sys.argv, [name]
+            try:
+                mod.main()
+            finally:
+                sys.argv = saved
         except Exception as exc:  # one broken bench must not hide the others' figures
             failed.append(name)
             print(f"{name} FAILED: {type(exc).__name__}: {exc}", flush=True)

@@ -13,6 +13,7 @@ from shared.bus.base import (
     Bus, Closeable, Dispatcher, LivelinessHandler, Overloaded, Payload, QueryHandler, QueryTarget,
     Reply, SampleHandler, as_keys, run_query_handler,
 )
+from shared.allocator import tune_for_large_messages
 from shared.bus.config import ZenohSettings, zenoh_config
 
 log = logging.getLogger(__name__)
@@ -41,6 +42,7 @@ class _Declared:
 
 class ZenohBus(Bus):
     def __init__(self, settings: ZenohSettings | None = None, *, session: zenoh.Session | None = None):
+        tune_for_large_messages()
         self.settings = settings or ZenohSettings()
         self.session = session or zenoh.open(zenoh_config(self.settings))
         self._publishers: dict[str, zenoh.Publisher] = {}
