@@ -123,7 +123,16 @@ class MapperService(Service):
                     return robot.recording(sink, rate_hz, max_width_px=s.tour_frame_px,
                                            recording=f"{req.exploration_id}-r{len(recordings)}")
 
-            execute_tours(_Recorder(), disc.tours, disc.scene, rate_hz=s.tour_rate_hz, on_recording=on_recording)
+            skipped: list[int] = []
+
+            def on_skip(pt, exc) -> None:
+                skipped.append(pt.tour.region)
+                events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
+                    "stage": "touring", "progress": 0.3 + 0.5 * (len(recordings) + len(skipped)) / max(1, len(disc.tours)),
+                    "message": f"region {pt.tour.region} skipped: {exc}"})
+
+            execute_tours(_Recorder(), disc.tours, disc.scene, rate_hz=s.tour_rate_hz, on_recording=on_recording,
+                          on_skip=on_skip)
             events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
                 "stage": "reconstructing", "progress": 0.85,
                 "message": f"reconstructing {len(recordings)} regions"})
@@ -134,7 +143,8 @@ class MapperService(Service):
                 label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene}"))
             events.emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, data={
                 "stage": "done", "progress": 1.0, "map_id": info.map_id, "version": info.version, "points": info.point_count,
-                "regions": len(recordings), "wall_s": round(time.perf_counter() - t0, 2),
+                "regions": len(recordings), "skipped_regions": skipped,
+                "wall_s": round(time.perf_counter() - t0, 2),
                 "exploration": explored,
             })
         except (RemoteError, Exception) as exc:  # a failed job ends with a reason, never silently

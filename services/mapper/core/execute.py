@@ -66,14 +66,28 @@ def execute_tours(
     scene: SceneMap | None = None,
     rate_hz: float = 5.0,
     on_recording: Callable[[RegionRecording], None] | None = None,
+    on_skip: Callable[[PlannedTour, TourExecutionError], None] | None = None,
 ) -> list[RegionRecording]:
-    """Drive every tour in order; returns one recording per tour (skipping none)."""
+    """Drive every tour in order; returns one recording per tour that could be driven.
+
+    A tour whose start cannot be reached (a doorway the planner thought wider, say) is skipped
+    and reported through ``on_skip``: one region short is a smaller map, not a failed exploration.
+    Only when no tour at all can be driven is that an error.
+    """
     out = []
     for pt in tours:
-        rec = execute_tour(robot, pt, scene, rate_hz)
+        try:
+            rec = execute_tour(robot, pt, scene, rate_hz)
+        except TourExecutionError as exc:
+            log.warning("skipping region %d: %s", pt.tour.region, exc)
+            if on_skip is not None:
+                on_skip(pt, exc)
+            continue
         out.append(rec)
         if on_recording is not None:
             on_recording(rec)
+    if tours and not out:
+        raise TourExecutionError(f"none of the {len(tours)} tours could be driven")
     return out
 
 

@@ -102,3 +102,30 @@ def test_build_occupancy_from_a_ray_scan():
     assert occ.cells[wall[0], wall[1]] == OCCUPIED
     outside = occ.to_index(np.array([[3.0, 0.0]]))[0]
     assert occ.cells[outside[0], outside[1]] == 0
+
+
+def test_a_tour_that_cannot_start_is_skipped_not_fatal(monkeypatch):
+    from services.mapper.core import execute as ex
+    from services.mapper.core.errors import TourExecutionError
+
+    class T:
+        def __init__(self, region):
+            self.tour = type("Tour", (), {"region": region})()
+
+    calls = []
+
+    def fake_execute(robot, pt, scene, rate_hz):
+        if pt.tour.region == 1:
+            raise TourExecutionError("region 1: could not reach the tour start (0.68 m)")
+        calls.append(pt.tour.region)
+        return pt.tour.region
+
+    monkeypatch.setattr(ex, "execute_tour", fake_execute)
+    skipped = []
+    out = ex.execute_tours(None, [T(0), T(1), T(2)], on_skip=lambda pt, e: skipped.append(pt.tour.region))
+    assert out == [0, 2] and skipped == [1]
+    monkeypatch.setattr(ex, "execute_tour", lambda *a: (_ for _ in ()).throw(TourExecutionError("no")))
+    import pytest
+
+    with pytest.raises(TourExecutionError, match="none of the 2 tours"):
+        ex.execute_tours(None, [T(0), T(1)])
