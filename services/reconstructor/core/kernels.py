@@ -26,13 +26,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-try:  # pragma: no cover - exercised by whichever environment runs the tests
-    import numba
-
-    AVAILABLE = True
-except ImportError:  # pragma: no cover
-    numba = None
-    AVAILABLE = False
+from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
 
 # Packing of voxel keys, shared with voxel.py (which imports these).
 AXIS_BITS = 15

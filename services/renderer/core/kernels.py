@@ -28,13 +28,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-try:  # pragma: no cover - exercised by whichever environment runs the tests
-    import numba
-
-    AVAILABLE = True
-except ImportError:  # pragma: no cover
-    numba = None
-    AVAILABLE = False
+from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
 
 
 # A pixel's colour sums share one int64 (21 bits each) and its offset sums another (32 bits

@@ -155,17 +155,22 @@ class EpisodeDataset:
         return {e.episode_id: e for e in self.episodes}
 
 
-def read_episodes(path: Path | str) -> EpisodeDataset:
-    """Read an R2R-CE / RxR-CE ``.json.gz`` (or plain ``.json``) episode file."""
-    path = Path(path)
+def _read_json(path: Path, what: str):
+    """A ``.json.gz`` or ``.json`` document; a missing file or bad JSON is a clear error."""
     if not path.is_file():
-        raise FileNotFoundError(f"episode file not found: {path}")
+        raise FileNotFoundError(f"{what} not found: {path}")
     opener = gzip.open if path.suffix == ".gz" else open
     with opener(path, "rt", encoding="utf-8") as f:
         try:
-            doc = json.load(f)
+            return json.load(f)
         except json.JSONDecodeError as exc:
             raise EpisodeFormatError(f"{path}: not JSON ({exc})") from None
+
+
+def read_episodes(path: Path | str) -> EpisodeDataset:
+    """Read an R2R-CE / RxR-CE ``.json.gz`` (or plain ``.json``) episode file."""
+    path = Path(path)
+    doc = _read_json(path, "episode file")
     if not isinstance(doc, dict) or not isinstance(doc.get("episodes"), list):
         raise EpisodeFormatError(f"{path}: expected an object with an 'episodes' list")
     episodes = [Episode(e) for e in doc["episodes"]]
@@ -228,14 +233,7 @@ class GroundTruth:
 def read_ground_truth(path: Path | str) -> dict[str, GroundTruth]:
     """Read a VLN-CE ground-truth file, keyed by ``str(episode_id)`` in file order."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ground-truth file not found: {path}")
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rt", encoding="utf-8") as f:
-        try:
-            doc = json.load(f)
-        except json.JSONDecodeError as exc:
-            raise EpisodeFormatError(f"{path}: not JSON ({exc})") from None
+    doc = _read_json(path, "ground-truth file")
     if not isinstance(doc, dict):
         raise EpisodeFormatError(f"{path}: expected an object keyed by episode id")
     return {k: GroundTruth(v) for k, v in doc.items()}

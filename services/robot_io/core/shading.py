@@ -28,13 +28,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-try:  # pragma: no cover - which branch runs depends on the environment
-    import numba
-
-    AVAILABLE = True
-except ImportError:  # pragma: no cover
-    numba = None
-    AVAILABLE = False
+from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
 
 
 @dataclass
