@@ -185,3 +185,4 @@ def test_repeated_kills_during_missions(system, http, tally, round_):
         rec = finished(http, mission)
         tally.add("missions_under_fault")
         assert rec["state"] == "succeeded" or rec["error"], rec
+        tally.add("missions_resumed" if rec["state"] == "succeeded" else "missions_failed_cleanly")
