@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
 
 from bench.common import percentiles_ms, table
 from evaluation.clouds import sample_scene_cloud

@@ -2,24 +2,17 @@
 
 from __future__ import annotations
 
-import time
 
 import pytest
 
 from deploy.launcher import free_port
 from shared.bus.config import ZenohSettings
 from shared.bus.zenoh_bus import ZenohBus
+from tests.waiting import wait_until
+
+__all__ = ["wait_until"]
 
 
-def wait_until(pred, timeout_s: float = 10.0, what: str = "condition"):
-    """Readiness by a polled deadline, never a bare sleep."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise TimeoutError(f"{what} not met within {timeout_s} s")
 
 
 @pytest.fixture

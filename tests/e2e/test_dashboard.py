@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import shutil
 import threading
-import time
 from pathlib import Path
 
 import httpx
 import pytest
+
+from tests.waiting import wait_until
 
 from deploy.launcher import free_port
 from services.gateway.app import create_app
@@ -30,13 +31,6 @@ LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backgro
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _wait(pred, timeout_s: float, what: str):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return
-        time.sleep(0.05)
-    raise TimeoutError(f"{what} not within {timeout_s} s")
 
 
 @pytest.fixture
@@ -67,7 +61,7 @@ def live_gateway(tmp_path):
             return False
 
     try:
-        _wait(ready, 30, "gateway up and connected")
+        wait_until(ready, 30, "gateway up and connected")
         yield url
     finally:
         server.should_exit = True

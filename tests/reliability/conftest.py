@@ -10,12 +10,13 @@ from __future__ import annotations
 import json
 import os
 import threading
-import time
 from collections import Counter
 from pathlib import Path
 
 import httpx
 import pytest
+
+from tests import waiting
 
 SCENE = "generated:0"
 MAP_ID = "rel-house"
@@ -48,17 +49,8 @@ def tally():
 
 
 def wait_until(pred, timeout_s: float, what: str, interval_s: float = 0.1):
-    """``pred()``'s first truthy value, or TimeoutError naming ``what`` - no test waits unbounded."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        try:
-            value = pred()
-        except (httpx.HTTPError, OSError):
-            value = None
-        if value:
-            return value
-        time.sleep(interval_s)
-    raise TimeoutError(f"{what} not within {timeout_s:.0f} s")
+    """tests.waiting.wait_until, where a gateway that is down or restarting means "not yet"."""
+    return waiting.wait_until(pred, timeout_s, what, interval_s=interval_s, ignore=(httpx.HTTPError, OSError))
 
 
 def scene_ply(density_per_m2: float = 60.0) -> bytes:

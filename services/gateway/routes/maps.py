@@ -6,7 +6,6 @@ import logging
 from collections.abc import Iterator
 from typing import Annotated
 
-import numpy as np
 from fastapi import APIRouter, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool

@@ -32,7 +32,7 @@ from .regional import (
 )
 from .slam3r import Slam3rConfig
 from .store import MapStore, StoredMap
-from . import kernels
+from . import kernels  # noqa: F401  (services warm the fusion kernels up through it)
 from .voxel import VoxelAccumulator, voxel_downsample
 
 __all__ = [

@@ -555,7 +555,6 @@ class SplatRenderer:
     def _layered(self, cnt, s_z, s_rgb, s_u, s_v, zpad, thr, h, w):
         """Splat the per-pixel front-layer surfels over their 3x3 neighbourhoods (image space)."""
         chans, gx, gy = self._surfels(cnt, s_z, s_rgb, s_u, s_v, h, w)
-        ops = self._ops
         acc = None
         for oy, ox in _OFFSETS:
             r0, c0 = 1 - oy, 1 - ox

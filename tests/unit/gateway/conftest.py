@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import time
 from contextlib import contextmanager
 
 import pytest
+
+from tests.waiting import wait_until
 from fastapi.testclient import TestClient
 
 from services.gateway.app import create_app
@@ -59,16 +60,8 @@ def gateway(net, tmp_path):
     return make
 
 
-def wait_for(pred, timeout_s: float = 10.0, what: str = "condition"):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise TimeoutError(f"{what} not met within {timeout_s} s")
 
 
 def wait_state(client, mission_id: str, states=("succeeded", "failed", "cancelled"), timeout_s: float = 10.0):
-    return wait_for(lambda: (r := client.get(f"/missions/{mission_id}").json())["state"] in states and r,
+    return wait_until(lambda: (r := client.get(f"/missions/{mission_id}").json())["state"] in states and r,
                     timeout_s, f"mission {mission_id} in {states}")

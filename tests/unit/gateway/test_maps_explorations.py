@@ -6,7 +6,7 @@ import numpy as np
 import open3d as o3d
 
 from services.gateway.testing import ply_bytes
-from tests.unit.gateway.conftest import wait_for
+from tests.waiting import wait_until
 
 
 def test_list_and_info(world, gateway):
@@ -66,7 +66,7 @@ def test_exploration_reports_progress_and_builds_a_map(world, gateway):
         r = client.post("/explorations", json={"map_id": "new-house", "max_steps": 50})
         assert r.status_code == 202
         xid = r.json()["id"]
-        rec = wait_for(lambda: (x := client.get(f"/explorations/{xid}").json())["state"] == "succeeded" and x)
+        rec = wait_until(lambda: (x := client.get(f"/explorations/{xid}").json())["state"] == "succeeded" and x)
         assert rec["progress"] == 1.0 and rec["map_id"] == "new-house" and rec["stage"] == "reconstruction"
         assert rec["images"]["map"].startswith(f"/explorations/{xid}/events/")
         assert client.get(rec["images"]["map"]).status_code == 200

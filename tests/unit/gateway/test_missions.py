@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from tests.unit.gateway.conftest import wait_for, wait_state
+from tests.unit.gateway.conftest import wait_state
+from tests.waiting import wait_until
 
 
 def submit(client, **over):
@@ -121,7 +122,7 @@ def test_cancel_a_running_mission(net, gateway):
     try:
         with gateway() as client:
             mid = submit(client).json()["id"]
-            wait_for(lambda: client.get(f"/missions/{mid}").json()["step"] >= 1, what="first step")
+            wait_until(lambda: client.get(f"/missions/{mid}").json()["step"] >= 1, what="first step")
             r = client.post(f"/missions/{mid}/cancel")
             assert r.status_code == 202
             rec = wait_state(client, mid)

@@ -9,7 +9,8 @@ import pytest
 from services.gateway.testing import ScriptedRobotIo
 from shared.bus import FakeBus
 from shared.bus.typed import TypedBus
-from tests.unit.gateway.conftest import World, wait_for, wait_state
+from tests.unit.gateway.conftest import World, wait_state
+from tests.waiting import wait_until
 
 
 @pytest.fixture
@@ -112,7 +113,7 @@ def test_jobs_and_a_second_switch_are_refused_while_a_scene_loads(net, gateway):
             t = threading.Thread(target=lambda: result.update(
                 r=client.post("/robot/scene", json={"scene": "generated:9"})))
             t.start()
-            wait_for(lambda: client.app.state.scene_lock.locked(), 5.0, "the switch to start")
+            wait_until(lambda: client.app.state.scene_lock.locked(), 5.0, "the switch to start")
             assert client.post("/robot/scene", json={"scene": "generated:8"}).status_code == 409
             m = client.post("/missions", json={"instruction": "go to the kitchen", "map_id": "house"})
             assert m.status_code == 409 and "switching scenes" in m.json()["detail"]

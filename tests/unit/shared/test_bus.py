@@ -10,16 +10,10 @@ from shared.bus import FakeBus, FakeNetwork, QueryTarget
 from shared.bus.typed import NoReplyError, NotFound, RemoteError, TypedBus
 from shared.codec import encode
 from shared.runner import Node, RunningService, Service, ServiceSettings
+from tests.waiting import wait_until
 from shared.schemas import ErrorCode, MoveRequest, Ping, Pose, PoseReply, ServiceInfo, ServiceMetrics
 
 
-def wait_until(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def test_pub_sub_wildcards_and_order():
