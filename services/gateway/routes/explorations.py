@@ -11,15 +11,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
-from services.gateway.errors import GatewayError, remote_detail, remote_status
+from services.gateway.errors import GatewayError
 from services.gateway.records import ExplorationPage, ExplorationRecord, JobCreated, JobKind
 from services.gateway.routes.missions import (
-    RECORD_DOC, SEGMENT, SSE_DOC, IfNoneMatch, events_response, image_response,
+    RECORD_DOC, SEGMENT, SSE_DOC, IfNoneMatch, events_response, image_response, start_job,
 )
-from services.gateway.routes.robot import refuse_while_switching
 from services.gateway.store import JobRow
 from shared import keys
-from shared.bus.typed import RemoteError
 from shared.schemas import ExplorationRequest, MissionAccepted, MissionState
 
 router = APIRouter(prefix="/explorations", tags=["explorations"])
@@ -62,24 +60,12 @@ def submit(body: ExplorationCreate, http_request: Request, bus: BusDep, store: S
     """Start pre-exploration, tour recording and reconstruction of the robot's current scene."""
     job_id = f"x-{uuid.uuid4().hex[:16]}"
     map_id = body.map_id or f"map-{job_id[2:10]}"
-    request = {**body.model_dump(mode="json"), "map_id": map_id}
-    store.create_job(JobKind.EXPLORATION, job_id, request)
-    try:
-        refuse_while_switching(http_request, "exploration")
-    except GatewayError:
-        store.delete_job(job_id)
-        raise
-    try:
-        reply = bus.request(keys.MAPPER_EXPLORE.format(robot=settings.robot),
-                            ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
-                                               reconstruction=body.reconstruction, options=body.options),
-                            MissionAccepted, timeout_s=settings.request_timeout_s)
-    except RemoteError as exc:
-        store.delete_job(job_id)
-        raise GatewayError(remote_detail(exc, "the mapper refused the exploration"), remote_status(exc)) from None
-    if not reply.accepted:
-        store.delete_job(job_id)
-        raise GatewayError(f"the mapper refused the exploration: {reply.reason or 'no reason given'}", 409)
+    start_job(store, JobKind.EXPLORATION, job_id, {**body.model_dump(mode="json"), "map_id": map_id}, http_request,
+              "exploration", "mapper",
+              lambda: bus.request(keys.MAPPER_EXPLORE.format(robot=settings.robot),
+                                  ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
+                                                     reconstruction=body.reconstruction, options=body.options),
+                                  MissionAccepted, timeout_s=settings.request_timeout_s))
     response.headers["Location"] = f"/explorations/{job_id}"
     return JobCreated(id=job_id, state=MissionState.QUEUED, url=f"/explorations/{job_id}",
                       events_url=f"/explorations/{job_id}/events")

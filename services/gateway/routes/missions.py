@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import uuid
+from collections.abc import Callable
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Path, Query, Request, Response, status
@@ -75,6 +76,28 @@ def _get(store, job_id: str) -> JobRow:
     return row
 
 
+def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_request: Request, noun: str,
+              service: str, send: Callable[[], MissionAccepted]) -> None:
+    """Create the job's row, then hand the job to its service (``send``).
+
+    The row exists before the service hears of the job, so its first event has a home; it is
+    removed again when the job cannot start (a scene switch under way, the service absent or
+    refusing), so a refused request leaves nothing behind.
+    """
+    store.create_job(kind, job_id, request_json)
+    try:
+        refuse_while_switching(http_request, noun)
+        try:
+            reply = send()
+        except RemoteError as exc:
+            raise GatewayError(remote_detail(exc, f"the {service} refused the {noun}"), remote_status(exc)) from None
+        if not reply.accepted:
+            raise GatewayError(f"the {service} refused the {noun}: {reply.reason or 'no reason given'}", 409)
+    except BaseException:
+        store.delete_job(job_id)
+        raise
+
+
 @router.post("", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED, dependencies=[Authorized],
              responses={401: {}, 409: {}, 413: {}, 422: {}, 503: {}})
 def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep,
@@ -91,25 +114,11 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
                 raise GatewayError(f"unknown map {body.map_id!r} (see GET /maps)", 422) from None
             raise GatewayError(remote_detail(exc, "cannot check the map"), remote_status(exc)) from None
     job_id = f"m-{uuid.uuid4().hex[:16]}"
-    request_json = body.model_dump(mode="json")
-    # The row exists before the planner hears of the mission, so its first event has a home.
-    store.create_job(JobKind.MISSION, job_id, request_json)
-    try:
-        refuse_while_switching(request, "mission")
-    except GatewayError:
-        store.delete_job(job_id)
-        raise
-    try:
-        reply = bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
-                            MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
-                                           options=body.options),
-                            MissionAccepted, timeout_s=settings.request_timeout_s)
-    except RemoteError as exc:
-        store.delete_job(job_id)
-        raise GatewayError(remote_detail(exc, "the planner refused the mission"), remote_status(exc)) from None
-    if not reply.accepted:
-        store.delete_job(job_id)
-        raise GatewayError(f"the planner refused the mission: {reply.reason or 'no reason given'}", 409)
+    start_job(store, JobKind.MISSION, job_id, body.model_dump(mode="json"), request, "mission", "planner",
+              lambda: bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
+                                  MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
+                                                 options=body.options),
+                                  MissionAccepted, timeout_s=settings.request_timeout_s))
     url, events_url = _links(job_id)
     response.headers["Location"] = url
     row = store.get_job(job_id)
