@@ -1,5 +1,6 @@
 """Renderer core: anticipated views and the spatial map from a coloured point cloud (no bus here)."""
 
+from services.renderer.core import visibility
 from services.renderer.core.cloud import IndexedCloud, PointCloud, sample_mesh
 from services.renderer.core.errors import (
     BackendUnavailableError,
@@ -25,5 +26,5 @@ from services.renderer.core.splat import (
 __all__ = [
     "RENDERERS", "BackendUnavailableError", "CloudFormatError", "EmptyCloudError", "IndexedCloud", "MapRenderer",
     "OccupancyGrid", "PointCloud", "RenderedViews", "RendererError", "SpatialMapConfig",
-    "SpatialMapImage", "SpatialMapper", "sample_mesh", "SplatConfig", "SplatRenderer", "TorchSplatConfig",
+    "SpatialMapImage", "SpatialMapper", "sample_mesh", "SplatConfig", "SplatRenderer", "TorchSplatConfig", "visibility",
 ]

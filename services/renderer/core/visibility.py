@@ -99,7 +99,7 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     visible = has & (zmin <= cover * p.tol_rel1 + p.tol_abs_m)
 
     # 2. Pull: the pyramid of visible surfels, each cell averaging its front-band children.
-    weight = ops.where(visible, 1.0, 0.0)
+    weight = ops.as_f32(visible)
     pyr = [_Level(weight, zmean * weight, [c * weight for c in rgb], ops.where(visible, zmean, inf),
                   ops.where(visible, zmean, -inf), None if label is None else ops.where(visible, label, -1))]
     for _ in range(levels):
@@ -173,7 +173,7 @@ def _pull(ops, lev: _Level, p: VisibilityParams) -> _Level:
     sum_rgb = [None, None, None]
     for (dy, dx), m in zip(_CHILDREN, means):
         keep = m <= thr
-        k = ops.where(keep, 1.0, 0.0)
+        k = ops.as_f32(keep)
         cw, cz = child(lev.weight, dy, dx) * k, child(lev.sum_z, dy, dx) * k
         c_lo = ops.where(keep, child(lev.zlo, dy, dx), inf)
         c_hi = ops.where(keep, child(lev.zhi, dy, dx), -inf)
