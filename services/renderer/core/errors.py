@@ -20,3 +20,7 @@ class CloudFormatError(RendererError):
 
 class BackendUnavailableError(RendererError):
     """A backend was asked for a device it cannot use (e.g. ``cuda`` without a GPU)."""
+
+
+class MapMismatchError(RendererError, LookupError):
+    """A map renderer bound to one map was asked for another."""
