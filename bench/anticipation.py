@@ -102,6 +102,28 @@ def free_poses(robot, n: int, seed: int) -> list[np.ndarray]:
     return [camera_pose(p, float(h), 0.0, robot.config.camera_height_m) for p, h in zip(pts, heads)]
 
 
+def candidate_poses(robot, index: IndexedCloud, n_agents: int, seed: int) -> list[np.ndarray]:
+    """Camera poses at the candidates the waypoint predictor really proposes from random agent
+    poses, facing away from the agent, at the candidate's own floor (as the renderer places it)."""
+    from services.mapper.core import PREDICTORS, DEFAULT_PREDICTOR
+    from services.renderer.core import MapRenderer, SpatialMapper
+    from shared.schemas import Pose, ViewPose
+
+    predictor = PREDICTORS.create(DEFAULT_PREDICTOR)
+    port = MapRenderer(index, None, SpatialMapper())
+    rng = np.random.default_rng(seed)
+    poses = []
+    for p in robot.nav.sample_navigable(rng, n_agents):
+        robot.reset(Pose(position_m=tuple(float(v) for v in p), heading_rad=float(rng.uniform(-math.pi, math.pi))))
+        pano = robot.observe(CameraIntrinsics(width_px=96, height_px=96), with_semantic=False)
+        a = pano.pose.position_m
+        views = [ViewPose(position_m=(a[0] + c.dx_m, a[1] + c.dy_m, a[2]), heading_rad=math.atan2(c.dy_m, c.dx_m))
+                 for c in predictor.predict(pano)]
+        for v in port.on_floor(views, 1.5):
+            poses.append(camera_pose(v.position_m, v.heading_rad, 0.0, robot.config.camera_height_m))
+    return poses
+
+
 def depth_ahead(depth: np.ndarray) -> float:
     h, w = depth.shape
     c = depth[h // 2 - 4 : h // 2 + 5, w // 2 - 4 : w // 2 + 5]
@@ -187,30 +209,90 @@ def report(title: str, rows: dict[str, dict[str, Scores]]) -> None:
     print("targets: leak <= 1 %, holes <= 2 %, SSIM >= 0.80 (< 1 m) / 0.85, label >= 95 % ('+' met, '-' missed)")
 
 
-def run(spec: str, backend: str, modes: list[str], n_views: int, noisy: bool = False, seed: int = 7) -> None:
+def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, noisy: bool = False,
+        seed: int = 7) -> None:
     robot, cloud = build_map(spec, backend, noisy)
     index = IndexedCloud(cloud)
     cam = PinholeCamera(256, 256, 90.0)
-    poses = free_poses(robot, n_views, seed)
-    gt = GroundTruth(robot, cloud, poses, cam, MAPPED_M)
-    rows = {}
+    sets = {"free poses": free_poses(robot, n_views, seed)}
+    if n_agents:
+        sets["candidates"] = candidate_poses(robot, index, n_agents, seed + 1)
+    for name, poses in sets.items():
+        gt = GroundTruth(robot, cloud, poses, cam, MAPPED_M)
+        rows = {}
+        for mode in modes:
+            renderer = RENDERERS.create("numpy", {"mode": mode})
+            renderer.warm_up()
+            for region in ("all", "mapped"):
+                rows[(mode, region)] = score(renderer, index, gt, poses, cam, region == "mapped")
+        report(f"{spec}, {backend}{' + sensor noise' if noisy else ''} map ({len(cloud)} points), "
+               f"{len(poses)} {name}, 256x256 HFOV 90", rows)
+
+
+def speed(modes: list[str], n_points: int, reps: int) -> None:
+    """Time per view of each mode against the one-pass floor, and global perception per step
+    (spatial map + 6 views), on the built flat (bench.renderer's cloud), one process."""
+    from bench.renderer import CAM, _floor_ms, _views
+    from services.renderer.core import SpatialMapper
+    from services.renderer.tools import scenes
+    from shared.geometry import rot_z
+    from shared.schemas import Candidate, Pose
+
+    cloud = scenes.sample_mesh(scenes.built_room(), n_points)
+    index = IndexedCloud(cloud)
+    floor = _floor_ms(cloud.xyz, rot_z(0.3).astype(np.float32))
+    views = _views(6)
+    mapper = SpatialMapper()
+    pose = Pose(position_m=(1.5, 3.0, 0.0), heading_rad=0.0)
+    cands = [Candidate(index=i, dx_m=v.position_m[0] - 1.5, dy_m=v.position_m[1] - 3.0) for i, v in enumerate(views)]
+    traj = np.array([[0.8, 2.0, 0.0], [1.2, 2.6, 0.0], [1.5, 3.0, 0.0]])
+    mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)
+    print(f"\n== speed, {n_points:.0e} points, 256x256 HFOV 90, numpy backend, 2 workers; floor (one pass over the "
+          f"cloud) {floor:.2f} ms ==")
+    print(f"{'mode':<10} {'view ms':>8} {'x floor':>8} {'step ms':>8}   (target: <= 3x floor, step <= 20 ms)")
     for mode in modes:
-        renderer = RENDERERS.create("numpy", {"mode": mode})
-        renderer.warm_up()
-        for region in ("all", "mapped"):
-            rows[(mode, region)] = score(renderer, index, gt, poses, cam, region == "mapped")
-    report(f"{spec}, {backend}{' + sensor noise' if noisy else ''} map ({len(cloud)} points), "
-           f"{n_views} free poses, 256x256 HFOV 90", rows)
+        r = RENDERERS.create("numpy", {"mode": mode})
+        r.warm_up()
+        t0 = time.perf_counter()
+        r.render(index, views[:1], CAM)  # per-map arrays (and the spacing of visibility) once per map
+        first_s = time.perf_counter() - t0
+        per_view, steps = [], []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            r.render(index, views, CAM)
+            per_view.append((time.perf_counter() - t0) / len(views))
+            t0 = time.perf_counter()
+            mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)
+            r.render(index, views, CAM)
+            steps.append(time.perf_counter() - t0)
+        v_ms, s_ms = 1e3 * float(np.median(per_view)), 1e3 * float(np.median(steps))
+        print(f"{mode:<10} {v_ms:>8.2f} {v_ms / floor:>8.2f} {s_ms:>8.1f}   (first render of the map {first_s:.2f} s)")
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--full", action="store_true")
-    ap.add_argument("--views", type=int, default=48)
+    ap.add_argument("--full", action="store_true", help="every map kind, 2-floor house and Replica; more views")
+    ap.add_argument("--views", type=int, default=None, help="free poses per map (default 48, --full 96)")
+    ap.add_argument("--agents", type=int, default=None, help="agent poses whose candidates are rendered (6, --full 16)")
     ap.add_argument("--modes", nargs="+", default=["paper", "visibility"])
+    ap.add_argument("--no-speed", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    run("generated:0", "rgbd", args.modes, args.views)
+    views = args.views or (96 if args.full else 48)
+    agents = args.agents if args.agents is not None else (16 if args.full else 6)
+    run("generated:0", "rgbd", args.modes, views, agents)
+    if args.full:
+        run("generated:0", "rgbd", args.modes, views, agents, noisy=True)
+        run("generated:0", "mono-sim", args.modes, views, agents)
+        run("generated:0", "curated", args.modes, views, agents)
+        run("generated:1:floors=2", "rgbd", args.modes, views, agents)
+        replica = DATA / "replica_office0" / "office0_mesh.ply"
+        if replica.exists():
+            run(str(replica), "rgbd", args.modes, views, 0)
+        else:
+            print("(Replica office0 skipped: ../shared/data/replica_office0 not present)")
+    if not args.no_speed:
+        speed(args.modes, 1_000_000, reps=3 if args.full else 2)
 
 
 if __name__ == "__main__":

@@ -140,10 +140,6 @@ class _CloudArrays:
     rgb_u32: object | None = None  # numpy only: r | g << 8 | b << 16 as int32, for the kernels
 
 
-_SQUARE = np.ones((3, 3), np.uint8)
-_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
-
-
 def point_spacing_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
     """Per-point local spacing (float32 m, in the index's point order), cached on the index."""
     key = ("point-spacing", neighbours)
@@ -262,13 +258,28 @@ class _NumpyOps:
     def pad2(self, a, dh: int, dw: int, value):
         return np.pad(a, ((0, dh), (0, dw)), constant_values=value) if dh or dw else a
 
-    def erode3(self, x, cross: bool):
-        # OpenCV's min filter is exact (and ~50x faster than nine shifted minima); outside the
-        # image it reads +inf-like values, as the torch version does.
-        return cv2.erode(x, _CROSS if cross else _SQUARE, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+    def ceil(self, x):
+        return np.ceil(x)
 
-    def up(self, a, s: int):
-        return np.repeat(np.repeat(a, s, axis=0), s, axis=1)
+    def erode(self, x, r: int):
+        # OpenCV's square min filter is exact and O(1) per pixel for any size; outside the image
+        # it reads +inf, as the torch version does.
+        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        return cv2.erode(x, k, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+
+    def nonzero2(self, mask):
+        return np.nonzero(mask)
+
+    def lookup(self, table: np.ndarray, index):
+        return table[index.astype(np.int64)]
+
+    def unique_values(self, x) -> list[float]:
+        return np.unique(x).tolist()
+
+    def children(self, a):
+        """(H, W) -> (4, H/2, W/2): the 2x2 children of each cell, in (0,0), (0,1), (1,0), (1,1) order."""
+        h, w = a.shape
+        return a.reshape(h // 2, 2, w // 2, 2).transpose(1, 3, 0, 2).reshape(4, h // 2, w // 2)
 
 
     def cloud_arrays(self, index: IndexedCloud) -> _CloudArrays:
@@ -401,17 +412,26 @@ class _TorchOps:
         out[: a.shape[0], : a.shape[1]] = a
         return out
 
-    def erode3(self, x, cross: bool):
-        f = self.torch.nn.functional
-        neg = -x[None, None]
-        if cross:  # the min of a horizontal and a vertical 3-pixel min is the cross-shaped min
-            m = self.torch.maximum(f.max_pool2d(neg, (1, 3), 1, (0, 1)), f.max_pool2d(neg, (3, 1), 1, (1, 0)))
-        else:
-            m = f.max_pool2d(neg, 3, 1, 1)
-        return -m[0, 0]
+    def ceil(self, x):
+        return self.torch.ceil(x)
 
-    def up(self, a, s: int):
-        return a.repeat_interleave(s, dim=0).repeat_interleave(s, dim=1)
+    def erode(self, x, r: int):
+        f = self.torch.nn.functional
+        return -f.max_pool2d(-x[None, None], 2 * r + 1, 1, r)[0, 0]
+
+    def nonzero2(self, mask):
+        r, c = self.torch.nonzero(mask, as_tuple=True)
+        return r, c
+
+    def lookup(self, table: np.ndarray, index):
+        return self.asarray(table)[index.to(self.torch.int64)]
+
+    def unique_values(self, x) -> list[float]:
+        return self.torch.unique(x).tolist()
+
+    def children(self, a):
+        h, w = a.shape
+        return a.reshape(h // 2, 2, w // 2, 2).permute(1, 3, 0, 2).reshape(4, h // 2, w // 2)
 
 
     def cloud_arrays(self, index: IndexedCloud) -> _CloudArrays:

@@ -12,11 +12,11 @@ with **pull-push hole filling**:
    pixels follows its points' local spacing and its depth, ``r = footprint_scale * f * spacing / z``
    (so a wall 0.5 m away gets wide footprints, a far wall narrow ones). The nearest depth of the
    footprints that cover each pixel (the coverage depth) is computed as a min-dilation with a
-   radius per source, done in ``max_radius_px`` exact 3x3 min-filter steps: the sources of radius
-   ``k`` enter at step ``max - k`` and grow by one pixel per step (square and cross kernels
-   alternate, so the footprint is an octagon close to the disk). A surfel farther than the depth
-   tolerance behind the coverage depth of its own pixel is background seen through a gap and is
-   removed.
+   radius per source: radii are rounded up to a few classes, and the dilation runs from the
+   largest class down, the sources of each class joining when the dilation left to do equals
+   their radius (exact square min filters, so the footprint is a square of half-width r). A
+   surfel farther than the depth tolerance behind the coverage depth of its own pixel is
+   background seen through a gap and is removed.
 2. *Hole filling* (pull-push, Marroquim, Kraus and Cavalcanti 2007, "Efficient point-based
    rendering using image reconstruction"; Grossman and Dally 1998): the visible surfels are pulled
    into an image pyramid in which each coarse cell averages only the children in the front depth
@@ -87,15 +87,23 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
 
     # 1. Visibility: the coverage depth from per-source footprints, then the test against it.
     spacing = pad(front.sum_spacing, 0.0) / count
-    radius = ops.clamp(ops.floor(spacing * (p.footprint_scale * p.focal_px) / ops.where(has, zmin, 1.0) + 0.5),
-                       float(p.min_radius_px), float(p.max_radius_px))
-    radius = ops.where(has, radius, -1.0)
-    top = int(ops.max_value(radius)) if bool(ops.any(has)) else -1
+    radius = ops.ceil(spacing * (p.footprint_scale * p.focal_px) / ops.where(has, zmin, 1.0) - 0.5)
+    radius = ops.where(has, ops.clamp(radius, float(p.min_radius_px), float(p.max_radius_px)), -1.0)
+    # Radii are rounded up to a few classes so that the dilation costs a handful of exact
+    # square min filters (van Herk / Gil-Werman: O(1) per pixel whatever the size): the sources
+    # of class k join at the step after which the remaining dilation is k pixels.
+    classes = [k for k in RADIUS_CLASSES if p.min_radius_px <= k < p.max_radius_px] + [p.max_radius_px]
+    lut = np.full(p.max_radius_px + 2, -1.0, np.float32)  # radius + 1 -> its class; -1 -> no source
+    for r in range(p.max_radius_px, -1, -1):
+        lut[r + 1] = min(k for k in classes if k >= r)
+    cls = ops.lookup(lut, radius + 1.0)
+    present = sorted(int(k) for k in ops.unique_values(cls) if k >= 0)
     cover = ops.full2(hq, wq, inf)
-    for k in range(top, 0, -1):
-        cover = ops.minimum(cover, ops.where(radius == float(k), zmin, inf))
-        cover = ops.erode3(cover, cross=(k % 2 == 0))
-    cover = ops.minimum(cover, ops.where(radius == 0.0, zmin, inf))
+    for i, k in enumerate(reversed(present)):
+        cover = ops.minimum(cover, ops.where(cls == float(k), zmin, inf))
+        nxt = present[-2 - i] if i + 1 < len(present) else 0
+        if k > nxt:
+            cover = ops.erode(cover, k - nxt)
     visible = has & (zmin <= cover * p.tol_rel1 + p.tol_abs_m)
 
     # 2. Pull: the pyramid of visible surfels, each cell averaging its front-band children.
@@ -105,39 +113,58 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     for _ in range(levels):
         pyr.append(_pull(ops, pyr[-1], p))
 
-    # Push: each pixel without a visible surfel takes its finest acceptable ancestor.
+    # Push: each pixel without a visible surfel takes its finest acceptable ancestor. Only the
+    # pixels still open are visited (few, on a good map).
     out_z = ops.where(visible, zmean, 0.0)
     out_rgb = [ops.where(visible, c, 0.0) for c in rgb]
     out_lab = None if label is None else ops.where(visible, label, -1)
     done = visible
-    covered = cover < inf
-    ref = ops.where(covered, cover, 0.0)
+    rows, cols = ops.nonzero2(~visible[crop_of(h, w)])
+    rows, cols = rows + 1, cols + 1  # padded coordinates
+    ref = cover[rows, cols]
+    covered = ref < inf
     tol_rel = p.tol_rel1 - 1.0
     for lev in range(1, levels + 1):
+        if rows.shape[0] == 0:
+            break
         q = pyr[lev]
-        s = 1 << lev
-        wgt = ops.up(q.weight, s)
+        pr, pc = rows >> lev, cols >> lev
+        wgt = q.weight[pr, pc]
         safe = ops.where(wgt > 0, wgt, 1.0)
-        mz = ops.up(q.sum_z, s) / safe
+        mz = q.sum_z[pr, pc] / safe
         take = None
         if lev <= p.fill_levels:  # covered by a footprint: the ancestor must agree with the coverage depth
             take = covered & (wgt > 0) & (ops.abs(mz - ref) <= ref * tol_rel + p.tol_abs_m)
-        if lev <= p.gap_levels:  # a gap no footprint covers: only inside one surface
-            lo, hi = ops.up(q.zlo, s), ops.up(q.zhi, s)
+        if lev <= p.gap_levels:  # a gap no footprint covers: only inside one surface, and a narrow one
+            lo, hi = q.zlo[pr, pc], q.zhi[pr, pc]
             gap = ~covered & (wgt > 0) & (hi - lo <= lo * tol_rel + p.tol_abs_m)
-            gap = gap & (lo * (s / p.focal_px) <= p.gap_max_m)
+            gap = gap & (lo * ((1 << lev) / p.focal_px) <= p.gap_max_m)
             take = gap if take is None else take | gap
-        take = take & ~done
-        out_z = ops.where(take, mz, out_z)
-        out_rgb = [ops.where(take, ops.up(c, s) / safe, o) for c, o in zip(q.sum_rgb, out_rgb)]
+        if take is None:
+            break
+        r, c = rows[take], cols[take]
+        out_z[r, c] = mz[take]
+        for o, sc in zip(out_rgb, q.sum_rgb):
+            o[r, c] = sc[pr[take], pc[take]] / safe[take]
         if out_lab is not None:
-            out_lab = ops.where(take, ops.up(q.label, s), out_lab)
-        done = done | take
+            out_lab[r, c] = q.label[pr[take], pc[take]]
+        done[r, c] = True
+        keep = ~take
+        rows, cols, ref, covered = rows[keep], cols[keep], ref[keep], covered[keep]
 
-    crop = (slice(1, 1 + h), slice(1, 1 + w))
+    crop = crop_of(h, w)
     hole = ~done[crop]
     rgb_img = ops.stack([c[crop] for c in out_rgb])
     return rgb_img, out_z[crop], hole, None if out_lab is None else out_lab[crop]
+
+
+# Footprint radii (px) are rounded up to these classes (plus the configured maximum).
+RADIUS_CLASSES = (0, 1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48)
+
+
+def crop_of(h: int, w: int):
+    """The image inside the padded (and pyramid-padded) grid."""
+    return slice(1, 1 + h), slice(1, 1 + w)
 
 
 @dataclass
@@ -150,47 +177,35 @@ class _Level:
     label: object | None  # label of the nearest kept child
 
 
-_CHILDREN = ((0, 0), (0, 1), (1, 0), (1, 1))
-
-
 def _pull(ops, lev: _Level, p: VisibilityParams) -> _Level:
     """One coarser level: each cell keeps the children within the depth tolerance of its nearest
-    child (by mean depth), summed in a fixed order so that every backend rounds alike."""
+    child (by mean depth). The four children are stacked on a leading axis (order (0, 0), (0, 1),
+    (1, 0), (1, 1)) and summed one by one in that order, so that every backend rounds alike."""
     inf = float("inf")
+    w4 = ops.children(lev.weight)
+    mean = ops.where(w4 > 0, ops.children(lev.sum_z) / ops.where(w4 > 0, w4, 1.0), inf)
+    front = ops.minimum(ops.minimum(mean[0], mean[1]), ops.minimum(mean[2], mean[3]))
+    keep = mean <= (front * p.tol_rel1 + p.tol_abs_m)[None]
+    k = ops.as_f32(keep)
 
-    def child(a, dy, dx):
-        return a[dy::2, dx::2]
+    def total(a4):
+        return a4[0] + a4[1] + a4[2] + a4[3]
 
-    means = []
-    for dy, dx in _CHILDREN:
-        wgt = child(lev.weight, dy, dx)
-        means.append(ops.where(wgt > 0, child(lev.sum_z, dy, dx) / ops.where(wgt > 0, wgt, 1.0), inf))
-    front = means[0]
-    for m in means[1:]:
-        front = ops.minimum(front, m)
-    thr = front * p.tol_rel1 + p.tol_abs_m
-    weight = sum_z = zlo = zhi = label = assigned = None
-    sum_rgb = [None, None, None]
-    for (dy, dx), m in zip(_CHILDREN, means):
-        keep = m <= thr
-        k = ops.as_f32(keep)
-        cw, cz = child(lev.weight, dy, dx) * k, child(lev.sum_z, dy, dx) * k
-        c_lo = ops.where(keep, child(lev.zlo, dy, dx), inf)
-        c_hi = ops.where(keep, child(lev.zhi, dy, dx), -inf)
-        c_rgb = [child(c, dy, dx) * k for c in lev.sum_rgb]
-        # The label of the nearest child (the first one in the fixed order on ties).
-        nearest = keep & (m == front)
-        if weight is None:
-            weight, sum_z, zlo, zhi, sum_rgb = cw, cz, c_lo, c_hi, c_rgb
-            if lev.label is not None:
-                label, assigned = ops.where(nearest, child(lev.label, dy, dx), -1), nearest
-        else:
-            weight, sum_z = weight + cw, sum_z + cz
-            zlo, zhi = ops.minimum(zlo, c_lo), ops.maximum(zhi, c_hi)
-            sum_rgb = [a + c for a, c in zip(sum_rgb, c_rgb)]
-            if lev.label is not None:
-                label = ops.where(nearest & ~assigned, child(lev.label, dy, dx), label)
-                assigned = assigned | nearest
+    weight = total(w4 * k)
+    sum_z = total(ops.children(lev.sum_z) * k)
+    sum_rgb = [total(ops.children(c) * k) for c in lev.sum_rgb]
+    lo4 = ops.where(keep, ops.children(lev.zlo), inf)
+    hi4 = ops.where(keep, ops.children(lev.zhi), -inf)
+    zlo = ops.minimum(ops.minimum(lo4[0], lo4[1]), ops.minimum(lo4[2], lo4[3]))
+    zhi = ops.maximum(ops.maximum(hi4[0], hi4[1]), ops.maximum(hi4[2], hi4[3]))
+    label = None
+    if lev.label is not None:
+        # The label of the nearest kept child (the first one in the fixed order on ties).
+        l4 = ops.children(lev.label)
+        nearest = keep & (mean == front[None])
+        label = ops.where(nearest[3], l4[3], -1)
+        for i in (2, 1, 0):
+            label = ops.where(nearest[i], l4[i], label)
     return _Level(weight, sum_z, sum_rgb, zlo, zhi, label)
 
 
