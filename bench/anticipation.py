@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from services.renderer.core import RENDERERS, IndexedCloud, PointCloud
+from services.renderer.core import RENDERERS, IndexedCloud
+from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera, camera_pose
 from shared.schemas import CameraIntrinsics
 

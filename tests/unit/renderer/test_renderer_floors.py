@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, PointCloud, SpatialMapper
+from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
+from shared.cloud import PointCloud
 from services.renderer.core.errors import MapMismatchError
 from services.renderer.core.floors import FloorHeights
 from shared.schemas import CameraIntrinsics, ViewPose

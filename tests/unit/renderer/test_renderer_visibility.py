@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.renderer.core import RENDERERS, IndexedCloud, PointCloud, visibility
+from services.renderer.core import RENDERERS, IndexedCloud, visibility
+from shared.cloud import PointCloud
 from services.renderer.tools import scenes
 from shared.geometry import PinholeCamera
 from shared.schemas import ViewPose
