@@ -1,15 +1,24 @@
 """Anticipation fidelity benchmark (issue 20): anticipated views of agent-built maps against the
 simulator's ray-cast view at the same camera pose, for each renderer mode.
 
-    python -m bench.anticipation            # generated:0, rgbd map, 48 free poses (a few minutes)
-    python -m bench.anticipation --full     # + 2-floor house, mono-sim, noisy rgbd, curated, Replica
+    python -m bench.anticipation            # generated:0 rgbd map: 48 free poses, the candidates of
+                                            # 6 agent poses, speed at 1e6 points (~5 min, + 1 min
+                                            # per map built the first time)
+    python -m bench.anticipation --full     # + noisy rgbd, mono-sim, curated, 2-floor house, Replica
 
 Maps are built the way the system builds them: explore (frontier DFS, hubs, tours), recorded tours,
 then the reconstructor (``rgbd``, ``mono-sim``, or ``rgbd`` on a robot with sensor noise on); the
 "curated" cloud is the sampled mesh (evaluation/clouds.py). Built maps are cached under
 ``runs/anticipation/maps`` (delete to rebuild).
 
-Metrics per view, grouped by the true depth straight ahead (median of the central 9x9 pixels):
+Views: random free poses, and the candidates the waypoint predictor proposes from random agent
+poses (facing away from the agent, at the candidate's own floor as the renderer places them).
+Each mode is scored twice: over every pixel the ray cast hits ("all"), and over the pixels whose
+true surface has a map point within 6 cm ("mapped": what any renderer can show; the rest of the
+house was never seen on the tours, and the "mapped %" column says how much that is).
+
+Metrics per view (means over views), grouped by the true depth straight ahead (median of the
+central 9x9 pixels):
 
 * leak: rendered depth > true depth + 0.25 m, over pixels valid in both (something behind the true
   surface shows through);
@@ -31,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from skimage.metrics import structural_similarity
 
 from services.renderer.core import RENDERERS, IndexedCloud
 from shared.cloud import PointCloud
