@@ -253,6 +253,7 @@ class EvalRunner:
         row = summary_row(results, self.label)
         tables = write_tables([row], self.out_dir / SUMMARY_STEM, title=f"Evaluation: {self.label}")
         self._append_skipped(tables[0], results)
+        self._write_pictures_and_predictions(selected, results, gt or {}, tables[0])
         return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps)
 
     @staticmethod
@@ -264,6 +265,31 @@ class EvalRunner:
         lines += [f"| {e} | {s} | {r.replace('|', '/')} |" for e, s, r in rows]
         with open(md, "a", encoding="utf-8") as f:
             f.write("\n".join(lines) + "\n")
+
+    def _write_pictures_and_predictions(self, selected: Sequence[Episode], results: Sequence[EpisodeResult],
+                                        gt: dict[str, GroundTruth], md: Path) -> None:
+        """A top-down plot per episode in ``plots/`` (linked from summary.md) and the VLN-CE prediction file."""
+        import numpy as np
+
+        from evaluation.plots import EpisodeGeometry, plots_markdown, write_episode_plots
+        from evaluation.predictions import PREDICTIONS_FILE, write_predictions
+
+        geometry: dict[str, EpisodeGeometry] = {}
+        for e in selected:
+            try:
+                ref = self.reference_for(e, gt.get(str(e.episode_id)))
+            except ConfigError:
+                ref = None
+            geometry[str(e.episode_id)] = EpisodeGeometry(np.asarray(e.start_pose.position_m), np.asarray(e.goal_m),
+                                                          None if ref is None else np.asarray(ref))
+        rows = write_episode_plots(results, geometry, self.out_dir)
+        path, written, left_out = write_predictions(
+            results, self.out_dir / PREDICTIONS_FILE, {str(e.episode_id): e.start_pose.heading_rad for e in selected})
+        with open(md, "a", encoding="utf-8") as f:
+            f.write(f"\nVLN-CE prediction file: [{PREDICTIONS_FILE}]({PREDICTIONS_FILE}) ({written} episodes"
+                    + (f"; {left_out} not run are left out" if left_out else "") + ")\n")
+            f.write(plots_markdown(rows))
+        log.info("%d episode plots in %s, predictions in %s", len(rows), self.out_dir / "plots", path)
 
     # --- one scene -----------------------------------------------------------------------------------
     def _base(self, e: Episode, **kw) -> EpisodeResult:
