@@ -24,6 +24,7 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
+from pydantic import BaseModel
 
 from services.gateway.deps import BusDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError, remote_detail, remote_status
@@ -216,6 +217,51 @@ def _recording_response(kind: JobKind, job_id: str, request: Request, store: Gat
             if not path.is_file():
                 write_job_recording(store, bus, settings, row)
     return FileResponse(path, media_type="application/octet-stream", filename=f"{job_id}.rrd")
+
+
+class Download(BaseModel):
+    name: str
+    url: str
+    media_type: str
+    available: bool
+    reason: str = ""
+
+
+class DownloadList(BaseModel):
+    """What can be downloaded of one job, for the dashboard's download area."""
+
+    items: list[Download]
+
+
+def _job_downloads(kind: JobKind, job_id: str, store: GatewayStore, settings: GatewaySettings) -> DownloadList:
+    row = store.get_job(job_id, kind)
+    if row is None:
+        raise GatewayError(f"no {kind.value} {job_id!r}", 404)
+    base = f"/{kind.value}s/{job_id}"
+    if not recorded(row, settings):
+        why = "not recorded (submit with record: true, or set ANT_RECORD_JOBS=true)"
+    elif not row.terminal and not recording_path(settings, job_id).is_file():
+        why = f"written when the {kind.value} ends"
+    else:
+        why = ""
+    items = [Download(name="Rerun recording (.rrd)", url=f"{base}/recording.rrd", media_type="application/octet-stream",
+                      available=not why, reason=why)]
+    if kind == JobKind.MISSION:
+        items.append(Download(name="trajectory (.csv)", url=f"{base}/trajectory.csv", media_type="text/csv",
+                              available=True))
+    return DownloadList(items=items)
+
+
+@router.get("/missions/{mission_id}/downloads", response_model=DownloadList, responses={404: {}})
+def mission_downloads(mission_id: JobId, store: StoreDep, settings: SettingsDep) -> DownloadList:
+    """The mission's downloads (recording, trajectory) and whether each is available yet."""
+    return _job_downloads(JobKind.MISSION, mission_id, store, settings)
+
+
+@router.get("/explorations/{exploration_id}/downloads", response_model=DownloadList, responses={404: {}})
+def exploration_downloads(exploration_id: JobId, store: StoreDep, settings: SettingsDep) -> DownloadList:
+    """The exploration's downloads (its recording) and whether each is available yet."""
+    return _job_downloads(JobKind.EXPLORATION, exploration_id, store, settings)
 
 
 @router.get("/missions/{mission_id}/recording.rrd", response_class=FileResponse, responses=_RRD)

@@ -164,3 +164,15 @@ def test_map_as_pcd_and_nav2(gateway, tmp_path):
     img = read_pgm(files.read("house-v1.pgm"))
     assert img.shape == (round((3 + 1.0) / 0.1), round((4 + 1.0) / 0.1))  # the room plus a 0.5 m margin
     assert set(np.unique(img)) == {0, 205, 254}
+
+
+def test_download_list_says_what_is_available(gateway):
+    with gateway() as (client, _):
+        plain = run_mission(client)
+        rec = run_mission(client, record=True)
+        items = {d["url"].rsplit("/", 1)[1]: d for d in client.get(f"/missions/{plain}/downloads").json()["items"]}
+        assert items["trajectory.csv"]["available"] and not items["recording.rrd"]["available"]
+        assert "not recorded" in items["recording.rrd"]["reason"]
+        items = {d["url"].rsplit("/", 1)[1]: d for d in client.get(f"/missions/{rec}/downloads").json()["items"]}
+        assert items["recording.rrd"]["available"]
+        assert client.get("/missions/m-none/downloads").status_code == 404
