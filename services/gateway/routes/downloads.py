@@ -113,7 +113,8 @@ def recorded(row: JobRow, settings: GatewaySettings) -> bool:
 
 
 def recording_path(settings: GatewaySettings, job_id: str) -> FsPath:
-    return FsPath(settings.recordings_dir) / f"{job_id}.rrd"
+    folder = settings.recordings_dir or FsPath(settings.db_path).parent / "recordings"
+    return FsPath(folder) / f"{job_id}.rrd"
 
 
 def write_job_recording(store: GatewayStore, bus: TypedBus, settings: GatewaySettings, row: JobRow) -> FsPath:
