@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.schemas import MissionEvent, MissionEventKind
+from shared.schemas import MissionEvent, MissionEventKind, MissionState
 
 log = logging.getLogger(__name__)
 
@@ -51,13 +51,34 @@ _GOAL = (220, 40, 40)
 _REFERENCE = (90, 90, 90)
 
 
+@dataclass(frozen=True)
+class JobEvent:
+    """One event of a job as the gateway stores it: the payload as JSON values (``MissionEvent.data_json``).
+
+    Recordings read this form, not the typed message, so that events stored by an older version of a
+    service (whose payload the current schema might refuse) still make a recording.
+    """
+
+    seq: int
+    kind: MissionEventKind
+    state: MissionState
+    step: int
+    timestamp_s: float
+    data: dict[str, Any]
+    images: dict[str, bytes] = field(default_factory=dict)
+
+    @classmethod
+    def from_message(cls, ev: MissionEvent) -> JobEvent:
+        return cls(ev.seq, ev.kind, ev.state, ev.step, ev.timestamp_s, ev.data_json(), dict(ev.images))
+
+
 @dataclass
 class RecordingInput:
     """What a recording is made of: the job's events (in seq order) and optionally the map cloud."""
 
     job_id: str
     job_kind: str  # "mission" or "exploration"
-    events: list[MissionEvent]
+    events: list[JobEvent]
     cloud_xyz_m: np.ndarray | None = None
     cloud_rgb: np.ndarray | None = None
     map_id: str = ""
@@ -117,7 +138,7 @@ def _log_static(rr, rec, inp: RecordingInput, max_points: int, seed: int) -> Non
         rec.log("world/reference", rr.LineStrips3D([np.asarray(ref)], colors=[_REFERENCE], radii=0.03), static=True)
 
 
-def _log_event(rr, rec, inp: RecordingInput, ev: MissionEvent, trajectory: list[np.ndarray]) -> None:
+def _log_event(rr, rec, inp: RecordingInput, ev: JobEvent, trajectory: list[np.ndarray]) -> None:
     step = ev.step if inp.job_kind == "mission" else ev.seq
     rec.set_time("step", sequence=int(step))
     rec.set_time("time", timestamp=float(ev.timestamp_s))
@@ -151,7 +172,7 @@ def _log_event(rr, rec, inp: RecordingInput, ev: MissionEvent, trajectory: list[
                     rec.log(f"metrics/{k}", rr.Scalars(float(v)))
 
 
-def _log_step(rr, rec, ev: MissionEvent, d: dict, trajectory: list[np.ndarray]) -> None:
+def _log_step(rr, rec, ev: JobEvent, d: dict, trajectory: list[np.ndarray]) -> None:
     pose = d.get("pose") or {}
     here = _xyz(pose.get("position_m"))
     heading = float(pose.get("heading_rad", 0.0) or 0.0)

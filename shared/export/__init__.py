@@ -1,7 +1,7 @@
 """Writers of the formats robotics tools read: Nav2 maps, PCD clouds, trajectory CSV.
 
 Pure functions of numpy arrays (no bus, no service): the gateway streams them as downloads, the
-evaluation and the tools write them to files. The PLY layout lives in :mod:`shared.ply`; Rerun
+evaluation and the tools write them to files. The PLY layout lives in :mod:`shared.cloud`; Rerun
 recordings in :mod:`shared.recording`.
 """
 

@@ -39,7 +39,7 @@ from shared.export import OccupancyConfig, nav2_files, occupancy_from_cloud
 from shared.export.nav2 import EmptyMapError
 from shared.export.pcd import pcd_header, pcd_records, record_size
 from shared.export.trajectory import trajectory_csv
-from shared.recording import RecordingInput, write_recording
+from shared.recording import JobEvent, RecordingInput, write_recording
 from shared.schemas import MapChunk, MapChunkRequest, MapInfo, MapRequest, MissionEvent, MissionEventKind
 
 log = logging.getLogger(__name__)
@@ -54,9 +54,9 @@ _RRD = {200: {"content": {"application/octet-stream": {}}, "description": "Rerun
 # --- gathering ---------------------------------------------------------------------------------------
 
 
-def job_events(store: GatewayStore, job_id: str, with_images: bool = True, batch: int = 500) -> list[MissionEvent]:
-    """Every stored event of a job as the bus message it arrived as (images included)."""
-    out: list[MissionEvent] = []
+def job_events(store: GatewayStore, job_id: str, with_images: bool = True, batch: int = 500) -> list[JobEvent]:
+    """Every stored event of a job, payloads as stored (JSON), images included."""
+    out: list[JobEvent] = []
     after = -1
     while True:
         rows = store.events(job_id, after, batch)
@@ -67,8 +67,7 @@ def job_events(store: GatewayStore, job_id: str, with_images: bool = True, batch
                     data = store.image(job_id, ev.seq, name)
                     if data is not None:
                         images[name] = data
-            out.append(MissionEvent(mission_id=job_id, seq=ev.seq, kind=MissionEventKind(ev.kind), state=ev.state,
-                                    step=ev.step, timestamp_s=ev.timestamp_s, data=ev.data, images=images))
+            out.append(JobEvent(ev.seq, MissionEventKind(ev.kind), ev.state, ev.step, ev.timestamp_s, ev.data, images))
         if len(rows) < batch:
             return out
         after = rows[-1].seq
