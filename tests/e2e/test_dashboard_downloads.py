@@ -58,3 +58,23 @@ def test_dashboard_downloads_a_recorded_mission_and_a_map(live_gateway, tmp_path
     out = REPO / "runs" / "screenshots"
     out.mkdir(parents=True, exist_ok=True)
     (out / "dashboard-downloads.png").write_bytes(shot)
+
+
+def test_recording_cli_fetches_and_summarises(live_gateway, tmp_path, capsys):  # noqa: F811
+    import httpx
+
+    from shared.recording import main
+    from tests.waiting import wait_until
+
+    r = httpx.post(f"{live_gateway}/missions", json={"instruction": "go", "map_id": "demo-house",
+                                                    "options": {"record": True}}, timeout=10)
+    assert r.status_code == 202, r.text
+    mid = r.json()["id"]
+    wait_until(lambda: httpx.get(f"{live_gateway}/missions/{mid}", timeout=5).json()["state"] == "succeeded", 30)
+    out = tmp_path / "fetched.rrd"
+    assert main(["fetch", "--gateway", live_gateway, "--mission", mid, "--out", str(out)]) == 0
+    assert main(["summary", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert str(out) in printed and "views/panorama" in printed and "decisions" in printed
+    with pytest.raises(SystemExit, match="404"):
+        main(["fetch", "--gateway", live_gateway, "--mission", "m-unknown", "--out", str(tmp_path / "x.rrd")])
