@@ -142,12 +142,14 @@ def plots_markdown(rows: list[tuple[EpisodeResult, str]]) -> str:
     """The summary.md section linking every plot."""
     if not rows:
         return ""
-    lines = ["", f"## Episodes ({len(rows)})", "", "| episode | success | NE (m) | nDTW | steps | backtracks | plot |",
-             "|---|---|---:|---:|---:|---:|---|"]
+    lines = ["", f"## Episodes ({len(rows)})", "",
+             "| episode | success | NE (m) | nDTW | steps | backtracks | plot | recording |",
+             "|---|---|---:|---:|---:|---:|---|---|"]
     for r, rel in rows:
         m = r.metrics or {}
         ne = "-" if m.get("ne_m") is None else f"{m['ne_m']:.2f}"
         nd = "-" if m.get("ndtw") is None else f"{m['ndtw']:.2f}"
         lines.append(f"| {r.episode_id} | {'yes' if m.get('success') else 'no'} | {ne} | {nd} | {m.get('steps', '-')} "
-                     f"| {len(backtrack_segments(r))} | [{Path(rel).name}]({rel}) |")
+                     f"| {len(backtrack_segments(r))} | [{Path(rel).name}]({rel}) | "
+                     + (f"[{Path(r.recording).name}]({r.recording}) |" if r.recording else "- |"))
     return "\n".join(lines) + "\n"

@@ -76,6 +76,7 @@ class RunConfig(BaseModel):
     curated_max_points: int = Field(1_000_000, ge=1000)
     poll_s: float = Field(0.5, gt=0, le=30)
     retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")
+    record: bool = Field(False, description="record every mission (.rrd) and keep a copy in <run>/recordings/")
 
     def experiment_key(self) -> dict[str, Any]:
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
@@ -397,7 +398,7 @@ class EvalRunner:
             anticipation=cfg.anticipation, anticipation_hfov_deg=cfg.anticipation_hfov_deg,
             spatial_map=cfg.spatial_map, goal_m=tuple(float(v) for v in e.goal_m),
             reference_path_m=self.reference_for(e, gt), start_pose=e.start_pose,
-            seed=episode_seed(cfg.seed, e.episode_id))
+            seed=episode_seed(cfg.seed, e.episode_id), record=True if cfg.record else None)
 
     def run_episode(self, e: Episode, map_id: str, gt: GroundTruth | None = None) -> EpisodeResult:
         """One mission, start to end; never raises for a failure of the system (it becomes ``error``)."""
@@ -423,7 +424,25 @@ class EvalRunner:
         except GatewayError as exc:
             return self._base(e, status="error", reason=f"lost the mission: {exc}", mission_id=mid,
                               wall_s=time.monotonic() - t0, **base)
-        return self._result(e, mid, rec, time.monotonic() - t0, base)
+        result = self._result(e, mid, rec, time.monotonic() - t0, base)
+        if cfg.record:
+            result.recording = self._keep_recording(e, mid)
+        return result
+
+    def _keep_recording(self, e: Episode, mid: str) -> str | None:
+        """Copy the mission's .rrd into ``<run>/recordings/`` (a missing one is logged, not an error)."""
+        from evaluation.plots import plot_name
+
+        rel = f"recordings/{plot_name(e.episode_id)[:-4]}.rrd"
+        try:
+            data = self.gateway.recording(mid)
+        except GatewayError as exc:
+            log.warning("no recording of %s (episode %s): %s", mid, e.episode_id, exc)
+            return None
+        path = self.out_dir / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+        return rel
 
     def _final_event(self, mid: str, rec: dict[str, Any]) -> MissionFinished | None:
         """The mission's typed end (None when it ended without one: failed, cancelled, reaped)."""

@@ -93,3 +93,19 @@ def test_a_run_writes_the_prediction_file_and_linked_plots(world, gateway, tmp_p
         assert img.size[0] >= 600 and img.size[1] >= 600
         px = np.asarray(img.convert("RGB")).reshape(-1, 3)
         assert len(np.unique(px, axis=0)) > 20  # a drawn picture, not a blank canvas
+
+
+def test_a_recorded_run_keeps_each_missions_rrd_and_links_it(world, gateway, tmp_path):
+    import rerun as rr
+
+    out = tmp_path / "run"
+    episodes = [make_episode(1, "generated:1", goal=(3.0, 0.0, 0.0))]
+    with gateway() as gw:
+        report = EvalRunner(gw, world.robot, RunConfig(max_steps=5, poll_s=0.02, record=True), out,
+                            progress=False).run(episodes)
+    (r,) = report.results
+    assert world.planner.requests[-1].options.record is True
+    assert r.recording == "recordings/1.rrd"
+    entities = {c.entity_path.lstrip("/") for c in rr.chunk.RrdReader(str(out / r.recording)).stream()}
+    assert {"world/map", "world/goal", "events"} <= entities
+    assert "[1.rrd](recordings/1.rrd)" in (out / "summary.md").read_text()
