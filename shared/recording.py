@@ -11,7 +11,7 @@ the gateway stores and the dashboard shows) plus, when given, the map's cloud. E
 | ``world/candidates`` | every candidate's target point, labelled ``#i kind`` | per step |
 | ``world/chosen`` | the chosen candidate's target | per step |
 | ``world/goal`` | the goal and the reference path, when the job has them | static |
-| ``views/panorama``, ``views/spatial_map`` | the observed panorama and the spatial map (JPEG) | per step |
+| ``views/panorama``, ``views/spatial_map`` | the observed panorama and the spatial map (JPEG) | per step (an exploration: per progress event with a map) |
 | ``views/candidates/<i>/observed`` / ``anticipated`` | each candidate's observed and anticipated view | per step |
 | ``decisions`` | the decision and its reasoning (TextLog) | per step |
 | ``timings/<name>`` | per-step timings in seconds (Scalars) | per step |
@@ -143,6 +143,8 @@ def _log_event(rr, rec, inp: RecordingInput, ev: JobEvent, trajectory: list[np.n
     rec.set_time("step", sequence=int(step))
     rec.set_time("time", timestamp=float(ev.timestamp_s))
     d = ev.data or {}
+    for name, data in (ev.images or {}).items():  # a step's views, an exploration's map so far
+        rec.log(_image_entity(name), rr.EncodedImage(contents=data, media_type="image/jpeg"))
     if ev.kind == MissionEventKind.STEP:
         _log_step(rr, rec, ev, d, trajectory)
         return
@@ -201,8 +203,6 @@ def _log_step(rr, rec, ev: JobEvent, d: dict, trajectory: list[np.ndarray]) -> N
         rec.log("world/candidates", rr.Points3D(pts, colors=colours, radii=0.1, labels=labels))
         if chosen_pt is not None:
             rec.log("world/chosen", rr.Points3D([chosen_pt], colors=[_CHOSEN], radii=0.16))
-    for name, data in (ev.images or {}).items():
-        rec.log(_image_entity(name), rr.EncodedImage(contents=data, media_type="image/jpeg"))
     kind = decision.get("kind", "?")
     reasoning = d.get("reasoning") or decision.get("reasoning") or ""
     rec.log("decisions", rr.TextLog(f"step {ev.step}: {kind} #{chosen} - {reasoning}".strip(" -"), level="INFO"))

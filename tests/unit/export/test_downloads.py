@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from services.gateway.testing import ScriptedPlanner, ScriptedReconstructor
+from services.gateway.testing import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.typed import TypedBus
 from tests.unit.export.test_nav2 import read_pgm, room_cloud
@@ -35,7 +35,9 @@ def net():
     xyz = room_cloud()
     recon.add("house", xyz, np.full((len(xyz), 3), 180), labels=np.zeros(len(xyz), np.int32))
     planner = ScriptedPlanner(typed, steps=STEPS, step_interval_s=0.01, candidates=3, image_px=32)
+    mapper = ScriptedMapper(typed, stages=3, reconstructor=recon)
     yield net
+    mapper.close()
     planner.close()
     recon.close()
     bus.close()
@@ -176,3 +178,18 @@ def test_download_list_says_what_is_available(gateway):
         items = {d["url"].rsplit("/", 1)[1]: d for d in client.get(f"/missions/{rec}/downloads").json()["items"]}
         assert items["recording.rrd"]["available"]
         assert client.get("/missions/m-none/downloads").status_code == 404
+
+
+def test_recorded_exploration_holds_its_progress_and_the_map_it_built(gateway, tmp_path):
+    with gateway() as (client, _):
+        r = client.post("/explorations", json={"map_id": "built", "record": True})
+        assert r.status_code == 202, r.text
+        xid = r.json()["id"]
+        wait_until(lambda: client.get(f"/explorations/{xid}").json()["state"] == "succeeded", timeout_s=20)
+        got = client.get(f"/explorations/{xid}/recording.rrd")
+        assert client.get(f"/explorations/{xid}/downloads").json()["items"][0]["available"]
+    assert got.status_code == 200
+    (tmp_path / "x.rrd").write_bytes(got.content)
+    c = rrd_contents(tmp_path / "x.rrd")
+    assert c["progress"]["rows"] == 3 and c["events"]["rows"] == 5 and c["views/spatial_map"]["rows"] == 3
+    assert len(c["world/map"]["batches"][0].column("Points3D:positions")[0]) == 2000  # the map it built
