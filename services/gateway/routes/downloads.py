@@ -182,6 +182,8 @@ class RecordingWriter:
                 row = self.store.get_job(job_id)
             if row is None or not row.terminal or not recorded(row, self.settings):
                 continue
+            if recording_path(self.settings, job_id).is_file():
+                continue  # a terminal event again (replayed from a publisher's cache after a restart)
             try:
                 with self.job_lock(job_id):
                     write_job_recording(self.store, self.bus, self.settings, row)
