@@ -22,8 +22,8 @@ from bench.common import Timer, table
 from shared.cloud import PointCloud, encode
 from shared.events import jpeg
 from shared.export import encode_pcd, nav2_files, occupancy_from_cloud
-from shared.recording import JobEvent, RecordingInput, write_recording
-from shared.schemas import MissionEventKind, MissionState
+from shared.recording import RecordedEvent, RecordingInput, write_recording
+from shared.schemas import JobEventKind, JobState
 
 
 def room_cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -41,10 +41,10 @@ def room_cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return xyz, rng.integers(0, 256, (n, 3), dtype=np.uint8)
 
 
-def mission_events(steps: int, seed: int = 0) -> list[JobEvent]:
+def mission_events(steps: int, seed: int = 0) -> list[RecordedEvent]:
     rng = np.random.default_rng(seed)
     img = lambda w, h: jpeg(rng.integers(0, 256, (h, w, 3), dtype=np.uint8), 80)  # noqa: E731
-    out = [JobEvent(0, MissionEventKind.STARTED, MissionState.RUNNING, 0, time.time(),
+    out = [RecordedEvent(0, JobEventKind.STARTED, JobState.RUNNING, 0, time.time(),
                     {"pose": {"position_m": [0, 0, 0], "heading_rad": 0.0}, "options": {"goal_m": [5, 5, 0]}})]
     pos = np.zeros(3)
     for s in range(steps):
@@ -54,12 +54,12 @@ def mission_events(steps: int, seed: int = 0) -> list[JobEvent]:
         for i in range(7):
             images[f"cand_{i}_observed"] = img(128, 128)
             images[f"cand_{i}_anticipated"] = img(128, 128)
-        out.append(JobEvent(s + 1, MissionEventKind.STEP, MissionState.RUNNING, s, time.time(), {
+        out.append(RecordedEvent(s + 1, JobEventKind.STEP, JobState.RUNNING, s, time.time(), {
             "pose": {"position_m": pos.tolist(), "heading_rad": 0.3 * s}, "candidates": cands,
             "decision": {"candidate_index": s % 6, "kind": "waypoint", "reasoning": "the doorway ahead " * 10},
             "timings_s": {"observe_s": 0.1, "anticipation_s": 0.2, "decide_s": 0.01}}, images))
         pos = pos + np.array([0.5, 0.2, 0.0])
-    out.append(JobEvent(steps + 1, MissionEventKind.FINISHED, MissionState.SUCCEEDED, steps, time.time(),
+    out.append(RecordedEvent(steps + 1, JobEventKind.FINISHED, JobState.SUCCEEDED, steps, time.time(),
                         {"trajectory_m": [[0.5 * i, 0.2 * i, 0.0] for i in range(steps + 1)], "stop_called": True}))
     return out
 

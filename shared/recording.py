@@ -1,6 +1,6 @@
 """Rerun (``.rrd``) recordings of missions and explorations, for inspection in the Rerun viewer.
 
-A recording is written from a job's event stream (the same :class:`~shared.schemas.MissionEvent`\\ s
+A recording is written from a job's event stream (the same :class:`~shared.schemas.JobEvent`\\ s
 the gateway stores and the dashboard shows) plus, when given, the map's cloud. Entities:
 
 | entity | what | when |
@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.schemas import MissionEvent, MissionEventKind, MissionState
+from shared.schemas import JobEvent, JobEventKind, JobState
 
 log = logging.getLogger(__name__)
 
@@ -52,23 +52,23 @@ _REFERENCE = (90, 90, 90)
 
 
 @dataclass(frozen=True)
-class JobEvent:
-    """One event of a job as the gateway stores it: the payload as JSON values (``MissionEvent.data_json``).
+class RecordedEvent:
+    """One event of a job as the gateway stores it: the payload as JSON values (``JobEvent.data_json``).
 
     Recordings read this form, not the typed message, so that events stored by an older version of a
     service (whose payload the current schema might refuse) still make a recording.
     """
 
     seq: int
-    kind: MissionEventKind
-    state: MissionState
+    kind: JobEventKind
+    state: JobState
     step: int
     timestamp_s: float
     data: dict[str, Any]
     images: dict[str, bytes] = field(default_factory=dict)
 
     @classmethod
-    def from_message(cls, ev: MissionEvent) -> JobEvent:
+    def from_message(cls, ev: JobEvent) -> RecordedEvent:
         return cls(ev.seq, ev.kind, ev.state, ev.step, ev.timestamp_s, ev.data_json(), dict(ev.images))
 
 
@@ -78,7 +78,7 @@ class RecordingInput:
 
     job_id: str
     job_kind: str  # "mission" or "exploration"
-    events: list[JobEvent]
+    events: list[RecordedEvent]
     cloud_xyz_m: np.ndarray | None = None
     cloud_rgb: np.ndarray | None = None
     map_id: str = ""
@@ -128,7 +128,7 @@ def _log_static(rr, rec, inp: RecordingInput, max_points: int, seed: int) -> Non
             xyz, rgb = xyz[keep], (rgb[keep] if rgb is not None else None)
         rec.log("world/map", rr.Points3D(xyz, colors=rgb, radii=0.015), static=True)
     # The goal and reference path: in the started event's options (the planner's), else the request's.
-    started = next((ev.data.get("options") for ev in inp.events if ev.kind == MissionEventKind.STARTED), None)
+    started = next((ev.data.get("options") for ev in inp.events if ev.kind == JobEventKind.STARTED), None)
     opts = started or inp.options
     goal = _xyz(opts.get("goal_m"))
     if goal is not None:
@@ -138,26 +138,26 @@ def _log_static(rr, rec, inp: RecordingInput, max_points: int, seed: int) -> Non
         rec.log("world/reference", rr.LineStrips3D([np.asarray(ref)], colors=[_REFERENCE], radii=0.03), static=True)
 
 
-def _log_event(rr, rec, inp: RecordingInput, ev: JobEvent, trajectory: list[np.ndarray]) -> None:
+def _log_event(rr, rec, inp: RecordingInput, ev: RecordedEvent, trajectory: list[np.ndarray]) -> None:
     step = ev.step if inp.job_kind == "mission" else ev.seq
     rec.set_time("step", sequence=int(step))
     rec.set_time("time", timestamp=float(ev.timestamp_s))
     d = ev.data or {}
     for name, data in (ev.images or {}).items():  # a step's views, an exploration's map so far
         rec.log(_image_entity(name), rr.EncodedImage(contents=data, media_type="image/jpeg"))
-    if ev.kind == MissionEventKind.STEP:
+    if ev.kind == JobEventKind.STEP:
         _log_step(rr, rec, ev, d, trajectory)
         return
-    level = "ERROR" if ev.kind == MissionEventKind.ERROR else "INFO"
+    level = "ERROR" if ev.kind == JobEventKind.ERROR else "INFO"
     text = d.get("message") or d.get("error") or d.get("reason") or ""
     rec.log("events", rr.TextLog(f"{ev.kind.value} ({ev.state.value}) {text}".strip(), level=level))
-    if ev.kind == MissionEventKind.PROGRESS and isinstance(d.get("progress"), (int, float)):
+    if ev.kind == JobEventKind.PROGRESS and isinstance(d.get("progress"), (int, float)):
         rec.log("progress", rr.Scalars(float(d["progress"])))
-    if ev.kind == MissionEventKind.STARTED:
+    if ev.kind == JobEventKind.STARTED:
         p = _xyz((d.get("pose") or {}).get("position_m"))
         if p is not None:
             trajectory.append(p)
-    if ev.kind == MissionEventKind.FINISHED:
+    if ev.kind == JobEventKind.FINISHED:
         # The final pose after the last move is only in the finished event (the whole path, or the pose).
         pts = [q for q in (_xyz(p) for p in d.get("trajectory_m") or []) if q is not None]
         end = _xyz((d.get("pose") or {}).get("position_m"))
@@ -174,7 +174,7 @@ def _log_event(rr, rec, inp: RecordingInput, ev: JobEvent, trajectory: list[np.n
                     rec.log(f"metrics/{k}", rr.Scalars(float(v)))
 
 
-def _log_step(rr, rec, ev: JobEvent, d: dict, trajectory: list[np.ndarray]) -> None:
+def _log_step(rr, rec, ev: RecordedEvent, d: dict, trajectory: list[np.ndarray]) -> None:
     pose = d.get("pose") or {}
     here = _xyz(pose.get("position_m"))
     heading = float(pose.get("heading_rad", 0.0) or 0.0)

@@ -39,8 +39,8 @@ from shared.export import OccupancyConfig, nav2_files, occupancy_from_cloud
 from shared.export.nav2 import EmptyMapError
 from shared.export.pcd import pcd_header, pcd_records, record_size
 from shared.export.trajectory import trajectory_csv
-from shared.recording import JobEvent, RecordingInput, write_recording
-from shared.schemas import MapChunk, MapChunkRequest, MapInfo, MapRequest, MissionEvent, MissionEventKind
+from shared.recording import RecordedEvent, RecordingInput, write_recording
+from shared.schemas import MapChunk, MapChunkRequest, MapInfo, MapRequest, JobEvent, JobEventKind
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["downloads"])
@@ -54,9 +54,9 @@ _RRD = {200: {"content": {"application/octet-stream": {}}, "description": "Rerun
 # --- gathering ---------------------------------------------------------------------------------------
 
 
-def job_events(store: GatewayStore, job_id: str, with_images: bool = True, batch: int = 500) -> list[JobEvent]:
+def job_events(store: GatewayStore, job_id: str, with_images: bool = True, batch: int = 500) -> list[RecordedEvent]:
     """Every stored event of a job, payloads as stored (JSON), images included."""
-    out: list[JobEvent] = []
+    out: list[RecordedEvent] = []
     after = -1
     while True:
         rows = store.events(job_id, after, batch)
@@ -67,7 +67,7 @@ def job_events(store: GatewayStore, job_id: str, with_images: bool = True, batch
                     data = store.image(job_id, ev.seq, name)
                     if data is not None:
                         images[name] = data
-            out.append(JobEvent(ev.seq, MissionEventKind(ev.kind), ev.state, ev.step, ev.timestamp_s, ev.data, images))
+            out.append(RecordedEvent(ev.seq, JobEventKind(ev.kind), ev.state, ev.step, ev.timestamp_s, ev.data, images))
         if len(rows) < batch:
             return out
         after = rows[-1].seq
@@ -155,18 +155,18 @@ class RecordingWriter:
         self._locks: dict[str, threading.Lock] = {}
         self._lock = threading.Lock()
         self._subs: list[Closeable] = [
-            bus.subscribe(keys.MISSION_EVENTS.pattern(robot=settings.robot), MissionEvent, self._on_event),
-            bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=settings.robot), MissionEvent, self._on_event),
+            bus.subscribe(keys.MISSION_EVENTS.pattern(robot=settings.robot), JobEvent, self._on_event),
+            bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=settings.robot), JobEvent, self._on_event),
         ]
         self._worker = threading.Thread(target=self._work, name="recordings", daemon=True)
         self._worker.start()
 
-    def _on_event(self, _key: str, ev: MissionEvent) -> None:
+    def _on_event(self, _key: str, ev: JobEvent) -> None:
         if ev.state in TERMINAL:
             try:
-                self._queue.put_nowait((ev.mission_id, ev.seq))
+                self._queue.put_nowait((ev.job_id, ev.seq))
             except queue.Full:  # written on the first GET instead
-                log.warning("recording queue full: %s will be recorded when first downloaded", ev.mission_id)
+                log.warning("recording queue full: %s will be recorded when first downloaded", ev.job_id)
 
     def job_lock(self, job_id: str) -> threading.Lock:
         with self._lock:
@@ -294,19 +294,19 @@ def mission_trajectory(mission_id: JobId, store: StoreDep) -> Response:
         d = ev.data
         pose = d.get("pose") or {}
         at = pose.get("position_m")
-        if ev.kind == MissionEventKind.FINISHED and d.get("trajectory_m"):
+        if ev.kind == JobEventKind.FINISHED and d.get("trajectory_m"):
             at = d["trajectory_m"][-1]  # the pose after the last move
-        if at is None or ev.kind not in (MissionEventKind.STARTED, MissionEventKind.STEP, MissionEventKind.FINISHED):
+        if at is None or ev.kind not in (JobEventKind.STARTED, JobEventKind.STEP, JobEventKind.FINISHED):
             continue
         row = {"step": ev.step, "position_m": at, "heading_rad": pose.get("heading_rad"), "timestamp_s": ev.timestamp_s,
-               "action": (d.get("decision") or {}).get("kind", "") if ev.kind == MissionEventKind.STEP else ""}
+               "action": (d.get("decision") or {}).get("kind", "") if ev.kind == JobEventKind.STEP else ""}
         last = poses[-1] if poses else None
-        if last is not None and list(last["position_m"]) == list(at) and ev.kind != MissionEventKind.STEP:
+        if last is not None and list(last["position_m"]) == list(at) and ev.kind != JobEventKind.STEP:
             continue  # the end where the last step stopped: no new pose
         if last is not None and list(last["position_m"]) == list(at) and last.get("started"):
             poses[-1] = row  # the first step observed where the mission started: one row, with its action
             continue
-        poses.append({**row, "started": ev.kind == MissionEventKind.STARTED})
+        poses.append({**row, "started": ev.kind == JobEventKind.STARTED})
     return Response(trajectory_csv(poses), media_type="text/csv",
                     headers={"Content-Disposition": f'attachment; filename="{mission_id}-trajectory.csv"'})
 
