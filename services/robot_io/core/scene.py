@@ -26,7 +26,7 @@ import open3d as o3d
 from shared.schemas import Pose
 
 from .errors import SceneFormatError, SceneNotFoundError
-from .scene_files import SceneFrame, read_mesh_file, resolve_frame, split_scene_spec
+from .scene_files import SceneFrame, read_mesh_file, resolve_frame, scan_name, split_scene_spec
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +237,7 @@ def load_mesh_scene(path: Path | str, frame: Mapping[str, Any] | SceneFrame | No
              path, len(vertices), len(data.triangles), data.materials, texture is not None, resolved.source,
              sem.source if sem else None)
     return Scene(
-        name=path.name.split(".")[0],
+        name=scan_name(path),
         vertices=vertices,
         triangles=data.triangles,
         vertex_colors=data.vertex_colors,

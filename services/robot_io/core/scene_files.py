@@ -178,9 +178,15 @@ def resolve_frame(path: Path | str, override: Mapping[str, Any] | SceneFrame | N
     return base
 
 
+def scan_name(path: Path) -> str:
+    """The scan a file belongs to: its stem without HM3D's ``.basis`` (``abc.basis.glb`` -> ``abc``)."""
+    stem = path.stem
+    return stem[: -len(".basis")] if stem.lower().endswith(".basis") else stem
+
+
 def find_stage_config(path: Path) -> Path | None:
     """A Habitat stage config for ``path`` in its folder: by name first, then by ``render_asset``."""
-    names = [path.name.split(".")[0] + STAGE_CONFIG_SUFFIX, path.stem + STAGE_CONFIG_SUFFIX]
+    names = [path.stem + STAGE_CONFIG_SUFFIX, scan_name(path) + STAGE_CONFIG_SUFFIX]
     for n in dict.fromkeys(names):
         c = path.with_name(n)
         if c.is_file():

@@ -32,7 +32,7 @@ import open3d as o3d
 
 from .errors import SceneFormatError
 from .scene import Room, SceneObject
-from .scene_files import read_mesh_file
+from .scene_files import read_mesh_file, scan_name
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ class SceneSemantics:
 
 def load_semantics(path: Path, to_world: np.ndarray, vertices_w: np.ndarray, triangles: np.ndarray) -> SceneSemantics | None:
     """The semantics shipped beside ``path``, or None when there are none."""
-    scan = path.name.split(".")[0]
+    scan = scan_name(path)
     house = path.with_name(scan + ".house")
     if house.is_file():
         return _mp3d(house, path.with_name(scan + "_semantic.ply"), to_world, vertices_w, triangles)
