@@ -19,10 +19,10 @@ The frame becomes a matrix with :func:`shared.geometry.scene_file_to_world`, whi
 ``habitat_to_world`` after Habitat's own transform of the file; so R2R-CE positions (Habitat frame)
 land where Habitat puts them relative to the mesh.
 
-**Colours** (:func:`read_mesh_file`): glTF / OBJ files are read with open3d's ``read_triangle_model``
-(node transforms, one mesh per material): a material's base-colour texture with the mesh's UVs, its
-base-colour factor (multiplied into the texture, as glTF specifies), vertex colours where the file has
-them; ``.ply`` keeps its vertex colours. Several materials per scene are fine: the simulator's shading
+**Colours** (:func:`read_mesh_file`): glTF files through :mod:`.gltf` (node transforms, every
+primitive), OBJ / FBX / DAE through open3d's ``read_triangle_model``: a material's base-colour
+texture with the mesh's UVs, its base-colour factor (multiplied into the texture, as glTF specifies),
+vertex colours where the file has them; ``.ply`` keeps its vertex colours. Several materials per scene are fine: the simulator's shading
 tables index one image per material.
 """
 
@@ -45,6 +45,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from shared.geometry import habitat_alignment, scene_file_to_world
 
 from .errors import SceneFormatError
+from .gltf import Part, read_gltf
 
 log = logging.getLogger(__name__)
 
@@ -328,16 +329,25 @@ class MeshData:
     materials: int = 0
 
 
-MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".fbx", ".dae")  # formats with materials (assimp)
+GLTF_SUFFIXES = (".glb", ".gltf")  # our own reader (fast; see .gltf)
+MODEL_SUFFIXES = (".obj", ".fbx", ".dae")  # formats with materials, through assimp
 
 
 def read_mesh_file(path: Path | str) -> MeshData:
     """Read a mesh with its colours (see the module docstring); SceneFormatError if it holds none."""
     path = Path(path)
-    data = _read_model(path) if path.suffix.lower() in MODEL_SUFFIXES else None
-    if data is None:
-        data = _read_plain(path)
-    return data
+    suffix = path.suffix.lower()
+    if suffix in GLTF_SUFFIXES:
+        parts, materials = read_gltf(path)
+        if not parts:
+            raise SceneFormatError(f"{path} holds no triangles")
+        return _assemble(path, parts, materials)
+    if suffix in MODEL_SUFFIXES:
+        model = o3d.io.read_triangle_model(str(path))
+        parts = [_o3d_part(model, m) for m in model.meshes if len(m.mesh.triangles) > 0]
+        if parts:
+            return _assemble(path, parts, len(model.materials))
+    return _read_plain(path)
 
 
 def _read_plain(path: Path) -> MeshData:
@@ -350,39 +360,50 @@ def _read_plain(path: Path) -> MeshData:
     return MeshData(v, np.asarray(mesh.triangles, dtype=np.int32), colors)
 
 
-def _read_model(path: Path) -> MeshData | None:
-    model = o3d.io.read_triangle_model(str(path))
-    parts = [m for m in model.meshes if len(m.mesh.triangles) > 0]
-    if not parts:
-        return None
+def _o3d_part(model, part) -> Part:
+    """An open3d (assimp) mesh as a Part: per-corner UVs become per-vertex by unsharing the corners."""
+    mesh = part.mesh
+    mat = model.materials[part.material_idx] if 0 <= part.material_idx < len(model.materials) else None
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    t = np.asarray(mesh.triangles, dtype=np.int32)
+    colors = np.asarray(mesh.vertex_colors, dtype=np.float32) if mesh.has_vertex_colors() else None
+    factor = np.clip(np.asarray(mat.base_color[:3], np.float32), 0, 1) if mat is not None else np.ones(3, np.float32)
+    image, uvs = None, None
+    if mat is not None and mat.albedo_img is not None and mesh.has_triangle_uvs() and np.asarray(mat.albedo_img).size:
+        image = _image_rgb(np.asarray(mat.albedo_img))
+        uvs = np.asarray(mesh.triangle_uvs, dtype=np.float32).reshape(-1, 2)
+        v, colors = v[t.reshape(-1)], None if colors is None else colors[t.reshape(-1)]
+        t = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+    return Part(v, t, colors, uvs, factor, image, part.material_idx)
+
+
+def _assemble(path: Path, parts: list[Part], materials: int) -> MeshData:
+    """One mesh from several parts: vertex colours = COLOR_0 x factor, one image per material
+    (factor baked in, as glTF multiplies them), per-corner UVs and per-triangle image ids."""
     verts, tris, cols, uvs, mids = [], [], [], [], []
     images: list[np.ndarray] = []
-    image_of_material: dict[int, int] = {}
+    image_of: dict[tuple[int, int], int] = {}
     offset = 0
     for part in parts:
-        mesh = part.mesh
-        mat = model.materials[part.material_idx] if 0 <= part.material_idx < len(model.materials) else None
-        factor = np.clip(np.asarray(mat.base_color[:3], dtype=np.float32), 0, 1) if mat is not None else np.ones(3, np.float32)
-        v = np.asarray(mesh.vertices, dtype=np.float64)
-        t = np.asarray(mesh.triangles, dtype=np.int32)
-        c = np.asarray(mesh.vertex_colors, dtype=np.float32) if mesh.has_vertex_colors() else np.ones_like(v, dtype=np.float32)
-        c = c * factor
+        v, t = part.vertices, part.triangles
+        c = part.colors if part.colors is not None else np.ones((len(v), 3), np.float32)
+        c = c * part.factor
         uv = np.zeros((len(t), 3, 2), np.float32)
         mid = np.full(len(t), -1, np.int32)
-        albedo = mat.albedo_img if mat is not None else None
-        if albedo is not None and mesh.has_triangle_uvs() and np.asarray(albedo).size > 0:
-            if part.material_idx not in image_of_material:
-                img = _image_rgb(np.asarray(albedo))
-                if np.any(factor < 1.0):
+        if part.image is not None and part.uvs is not None:
+            key = (part.material, id(part.image))
+            if key not in image_of:
+                img = part.image
+                if np.any(part.factor < 1.0):
                     # glTF: base colour = texel x factor; baked once so the shading stays a lookup.
-                    img = np.clip(img.astype(np.float32) * factor + 0.5, 0, 255).astype(np.uint8)
-                image_of_material[part.material_idx] = len(images)
+                    img = np.clip(img.astype(np.float32) * part.factor + 0.5, 0, 255).astype(np.uint8)
+                image_of[key] = len(images)
                 images.append(img)
-            k = image_of_material[part.material_idx]
-            uv = np.asarray(mesh.triangle_uvs, dtype=np.float32).reshape(-1, 3, 2)
+            k = image_of[key]
+            uv = part.uvs[t]
             mid[:] = k
             # Vertex colours from the texels under each corner: what views that do not sample the
-            # texture (top views, colour means, coarse clouds) show instead of white.
+            # texture (colour means, coarse clouds) show instead of white.
             c = _texel_colors(images[k], uv, t, len(v))
         verts.append(v)
         tris.append(t + offset)
@@ -391,11 +412,11 @@ def _read_model(path: Path) -> MeshData | None:
         mids.append(mid)
         offset += len(v)
     textured = bool(images)
-    log.info("%s: %d meshes, %d materials, %d texture images", path.name, len(parts), len(model.materials), len(images))
+    log.info("%s: %d primitives, %d materials, %d texture images", path.name, len(parts), materials, len(images))
     return MeshData(
-        np.concatenate(verts), np.concatenate(tris), np.concatenate(cols).astype(np.float32),
+        np.concatenate(verts), np.concatenate(tris).astype(np.int32), np.concatenate(cols).astype(np.float32),
         np.concatenate(uvs) if textured else None, np.concatenate(mids) if textured else None,
-        images if textured else None, len(model.materials),
+        images if textured else None, materials,
     )
 
 
