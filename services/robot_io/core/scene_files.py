@@ -95,11 +95,11 @@ class SceneFrame(BaseModel):
         if override is None:
             return self
         fields = override.model_dump(exclude_unset=True) if isinstance(override, SceneFrame) else dict(override)
-        if "up" in fields and "front" not in fields:
-            up = SceneFrame(up=fields["up"], front=_default_front(fields["up"])).up
-            if abs(float(np.dot(_unit(up), _unit(self.front)))) > 1e-6:
-                fields["front"] = _default_front(up)
         try:
+            if "up" in fields and "front" not in fields:
+                up = SceneFrame(up=fields["up"], front=_default_front(fields["up"])).up
+                if abs(float(np.dot(_unit(up), _unit(self.front)))) > 1e-6:
+                    fields["front"] = _default_front(up)
             return SceneFrame(**{**self.model_dump(), **fields})
         except ValidationError as exc:
             raise SceneFormatError(f"bad scene frame override {fields}: {exc.errors()[0]['msg']}") from None

@@ -230,3 +230,21 @@ def test_malformed_semantics_are_typed_errors(tmp_path):
     d.with_name("tiny1.house").write_text("not a house\n")
     with pytest.raises(SceneFormatError, match="house"):
         load_scene(str(d))
+
+
+@pytest.mark.parametrize("opt", ["up=0,0,0", "scale=-1", "scale=1,2", "units_to_meters=0", "units_to_meters=x", "front=nan,0,1"])
+def test_bad_frame_options_are_scene_format_errors(tmp_path, opt):
+    path = write_glb(tmp_path / "r.glb", _room_y_up())
+    with pytest.raises(SceneFormatError):
+        load_scene(f"{path}:{opt}")
+
+
+def test_explicit_stage_config_is_honoured(tmp_path):
+    path = write_glb(tmp_path / "r.glb", _room_y_up())
+    cfg = tmp_path / "elsewhere" / "mine.stage_config.json"
+    cfg.parent.mkdir()
+    cfg.write_text(json.dumps({"up": [0, 1, 0], "front": [0, 0, -1], "scale": [2, 2, 2], "units_to_meters": 0.5}))
+    lo, hi = load_scene(f"{path}:stage_config={cfg}").bounds_m
+    assert hi[0] - lo[0] == pytest.approx(6.0) and hi[2] - lo[2] == pytest.approx(2.0)  # scale 2 x 0.5 m per unit
+    with pytest.raises(SceneFormatError, match="does not exist"):
+        load_scene(f"{path}:stage_config={tmp_path / 'nope.json'}")

@@ -134,7 +134,8 @@ def test_r2r_ce_episode_in_habitat_coordinates_lands_on_stage_floor1(assets, tmp
     }
     path = write_episodes(EpisodeDataset([Episode(ep)]), tmp_path / "ep.json.gz")
     episode = read_episodes(path).episodes[0]
-    robot = SimRobot(SimConfig(scene=episode.scene_path(assets), camera={"width_px": 16, "height_px": 16}))
+    # A 40 x 40 m stage: a 0.1 m grid keeps the test quick and is still finer than the 0.25 m steps.
+    robot = SimRobot(SimConfig(scene=episode.scene_path(assets), camera={"width_px": 16, "height_px": 16}, nav_cell_m=0.1))
     s = episode.start_pose.xyz
     assert robot.nav.is_navigable(s), f"start {s} is not on walkable ground"
     node = robot.nav.nodes_m[robot.nav.nearest_node(s)]
