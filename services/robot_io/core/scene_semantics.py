@@ -332,12 +332,20 @@ def read_ply_faces(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np.nda
         fields = []
         for p in props:
             if p[0] == "list":
-                # Semantic meshes are triangle meshes: a fixed-length list lets numpy read the element in one go.
-                fields += [(p[3] + "_n", end + _PLY_TYPES[p[1]]), (p[3], end + _PLY_TYPES[p[2]], (3,))]
+                # Semantic meshes are all triangles (or all quads, as Habitat accepts): a fixed-length list
+                # lets numpy read the element in one go. The first count tells which.
+                at = offset + (np.dtype(fields).itemsize if fields else 0)
+                k = int(np.frombuffer(body, end + _PLY_TYPES[p[1]], count=1, offset=at)[0]) if count and at < len(body) else 3
+                if k not in (3, 4):
+                    raise SceneFormatError(f"{path}: faces of {k} vertices (only triangles and quads)")
+                fields += [(p[3] + "_n", end + _PLY_TYPES[p[1]]), (p[3], end + _PLY_TYPES[p[2]], (k,))]
             else:
                 fields.append((p[1], end + _PLY_TYPES[p[0]]))
         dt = np.dtype(fields)
-        arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
+        try:
+            arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
+        except ValueError:
+            raise SceneFormatError(f"{path}: PLY body shorter than its header says") from None
         offset += dt.itemsize * count
         out[name] = arr
     try:
@@ -345,20 +353,29 @@ def read_ply_faces(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np.nda
         face = out["face"]
         v = np.stack([np.asarray(vert[k], np.float64) for k in ("x", "y", "z")], axis=1)
         key = "vertex_indices" if "vertex_indices" in face.dtype.names else "vertex_index"
-        if np.any(face[key + "_n"] != 3):
-            raise SceneFormatError(f"{path}: only triangle faces are supported")
-        tris = np.asarray(face[key], np.int32).reshape(-1, 3)
+        idx = np.asarray(face[key], np.int64)
+        k = idx.shape[1]
+        if np.any(face[key + "_n"] != k):
+            raise SceneFormatError(f"{path}: faces mix triangles and quads")
     except (KeyError, TypeError, ValueError) as exc:
         raise SceneFormatError(f"{path}: PLY lacks vertex x/y/z or face vertex_indices ({exc})") from None
-    props = {k: np.asarray(face[k]) for k in face.dtype.names if k not in (key, key + "_n")}
+    props = {n: np.asarray(face[n]) for n in face.dtype.names if n not in (key, key + "_n")}
+    if k == 4:  # quad [0, 1, 2, 3] -> triangles [0, 1, 2], [0, 2, 3], each keeping the quad's properties
+        idx = np.stack([idx[:, [0, 1, 2]], idx[:, [0, 2, 3]]], axis=1).reshape(-1, 3)
+        props = {n: np.repeat(a, 2) for n, a in props.items()}
+    tris = idx.astype(np.int32)
+    if len(tris) and (tris.min() < 0 or tris.max() >= len(v)):
+        raise SceneFormatError(f"{path}: face indices out of range")
     return v, tris, props
 
 
 def _ascii_element(props, rows, path) -> np.ndarray:
-    fields, cols = [], []
+    fields = []
     for p in props:
         if p[0] == "list":
-            fields += [(p[3] + "_n", "i8"), (p[3], "i8", (3,))]
+            before = props.index(p)  # the scalars before the list, one token each
+            k = int(rows[0][before]) if rows and len(rows[0]) > before else 3
+            fields += [(p[3] + "_n", "i8"), (p[3], "i8", (k,))]
         else:
             fields.append((p[1], _PLY_TYPES[p[0]]))
     arr = np.zeros(len(rows), dtype=np.dtype(fields))
@@ -369,7 +386,8 @@ def _ascii_element(props, rows, path) -> np.ndarray:
                 if p[0] == "list":
                     n = int(r[j])
                     arr[i][p[3] + "_n"] = n
-                    arr[i][p[3]] = [int(x) for x in r[j + 1 : j + 1 + min(n, 3)]] + [0] * (3 - min(n, 3))
+                    k = arr.dtype[p[3]].shape[0]
+                    arr[i][p[3]] = [int(x) for x in r[j + 1 : j + 1 + min(n, k)]] + [0] * (k - min(n, k))
                     j += 1 + n
                 else:
                     arr[i][p[1]] = float(r[j])

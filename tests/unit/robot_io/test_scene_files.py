@@ -248,3 +248,25 @@ def test_explicit_stage_config_is_honoured(tmp_path):
     assert hi[0] - lo[0] == pytest.approx(6.0) and hi[2] - lo[2] == pytest.approx(2.0)  # scale 2 x 0.5 m per unit
     with pytest.raises(SceneFormatError, match="does not exist"):
         load_scene(f"{path}:stage_config={tmp_path / 'nope.json'}")
+
+
+def test_semantic_ply_reader_quads_ascii_and_errors(tmp_path):
+    from services.robot_io.core.scene_semantics import read_ply_faces
+
+    quad = tmp_path / "q.ply"
+    quad.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nproperty ushort object_id\nend_header\n"
+                    "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3 7\n")
+    v, t, props = read_ply_faces(quad)
+    assert v.shape == (4, 3) and t.tolist() == [[0, 1, 2], [0, 2, 3]] and props["object_id"].tolist() == [7, 7]
+    bv, bt = box((0, 0, 0), (1, 1, 1))
+    b = write_ply_with_face_ids(tmp_path / "b.ply", bv, bt, object_id=np.arange(12))
+    v, t, props = read_ply_faces(b)
+    assert np.array_equal(t, bt) and props["object_id"].tolist() == list(range(12))
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b.read_bytes().replace(b"element vertex 8", b"element vertex 5"))
+    with pytest.raises(SceneFormatError):
+        read_ply_faces(bad)
+    (tmp_path / "not.ply").write_text("hello")
+    with pytest.raises(SceneFormatError, match="not a PLY"):
+        read_ply_faces(tmp_path / "not.ply")
