@@ -233,6 +233,10 @@ def read_dataset_stage_defaults(path: Path | str) -> SceneFrame | None:
 
 
 def _frame_from_attributes(attrs: dict, source) -> SceneFrame:
+    origin = attrs.get("origin")
+    if isinstance(origin, list) and any(float(c) != 0.0 for c in origin if isinstance(c, (int, float))):
+        # Habitat offsets the stage by it; episode positions in such a dataset already include it.
+        log.warning("%s: stage origin %s is not applied (only up, front, scale, units_to_meters are)", source, origin)
     fields = {k: attrs[k] for k in FRAME_KEYS if k in attrs}
     if "up" in fields and "front" not in fields:
         fields["front"] = _default_front(fields["up"])

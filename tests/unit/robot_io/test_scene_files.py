@@ -270,3 +270,29 @@ def test_semantic_ply_reader_quads_ascii_and_errors(tmp_path):
     (tmp_path / "not.ply").write_text("hello")
     with pytest.raises(SceneFormatError, match="not a PLY"):
         read_ply_faces(tmp_path / "not.ply")
+
+
+def test_gltf_json_with_external_buffer_and_image(tmp_path):
+    """The text flavour of glTF: JSON, an external .bin and an external .png (relative URIs)."""
+    import struct as _struct
+
+    tex = np.zeros((4, 4, 3), np.uint8)
+    tex[:] = (20, 200, 40)
+    v, t = box((0, 0, 0), (1, 1, 1))
+    glb = write_glb(tmp_path / "a.glb", [Primitive(v, t, uvs=np.tile([[0.5, 0.5]], (8, 1)), texture=tex)])
+    data = glb.read_bytes()
+    jlen = _struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20 : 20 + jlen])
+    blob = data[20 + jlen + 8 :]
+    (tmp_path / "a data.bin").write_bytes(blob)
+    doc["buffers"] = [{"byteLength": len(blob), "uri": "a%20data.bin"}]
+    view = doc["bufferViews"][doc["images"][0].pop("bufferView")]
+    (tmp_path / "tex.png").write_bytes(blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]])
+    doc["images"][0] = {"uri": "tex.png"}
+    (tmp_path / "a.gltf").write_text(json.dumps(doc))
+    scene = load_scene(str(tmp_path / "a.gltf"))
+    assert scene.texture is not None and scene.texture.images[0][0, 0].tolist() == [20, 200, 40]
+    assert scene.bounds_m[1] == pytest.approx([1.0, 0.0, 1.0])  # y-up: file z=1 -> world y=-1..0, file y -> world z
+    (tmp_path / "tex.png").unlink()
+    with pytest.raises(SceneFormatError, match="missing"):
+        load_scene(str(tmp_path / "a.gltf"))
