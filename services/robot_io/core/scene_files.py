@@ -112,7 +112,8 @@ Z_UP = SceneFrame(up=(0.0, 0.0, 1.0), front=(0.0, 1.0, 0.0))  # maps to the worl
 @dataclass(frozen=True)
 class FrameRule:
     """Files whose lower-cased name matches ``name_glob`` (and, if given, that lie under a folder
-    named ``under``) are in ``frame``; ``why`` is the convention it follows."""
+    whose name starts with ``under``: ``mp3d``, ``mp3d_example``, ``mp3d_habitat``) are in ``frame``;
+    ``why`` is the convention it follows."""
 
     name_glob: str
     frame: SceneFrame
@@ -122,7 +123,7 @@ class FrameRule:
     def matches(self, path: Path) -> bool:
         if not fnmatch.fnmatchcase(path.name.lower(), self.name_glob):
             return False
-        return self.under is None or self.under in (p.lower() for p in path.parent.parts)
+        return self.under is None or any(p.lower().startswith(self.under) for p in path.parent.parts)
 
 
 FRAME_RULES: tuple[FrameRule, ...] = (

@@ -54,6 +54,7 @@ def test_spec_options_parse_and_reject_typos(tmp_path):
     ("rel", "frame"),
     [
         ("mp3d/17DRP5sb8fy/17DRP5sb8fy.glb", Z_UP),
+        ("scene_datasets/mp3d_example/17DRP5sb8fy/17DRP5sb8fy.glb", Z_UP),
         ("hm3d/val/00800-TEEsavR23oF/TEEsavR23oF.glb", Z_UP),
         ("x/TEEsavR23oF.basis.glb", Z_UP),
         ("objects/chair.glb", GLTF_Y_UP),
