@@ -186,8 +186,9 @@ def score(renderer, index: IndexedCloud, gt: GroundTruth, poses, cam: PinholeCam
         _, smap = structural_similarity(g_rgb, out.rgb[i], channel_axis=2, full=True)
         smap = smap.mean(axis=2)
         s.ssim.append(float(smap[region].mean()) if region.any() else float(smap.mean()))
-        diff = (g_rgb.astype(np.float64) - out.rgb[i])[region] if region.any() else np.zeros(1)
-        s.psnr.append(float(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-10))))
+        if region.any():  # a view with no pixel of the region has no PSNR (not a perfect one)
+            diff = (g_rgb.astype(np.float64) - out.rgb[i])[region]
+            s.psnr.append(float(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-10))))
         if out.labels is not None and gt.out.semantic is not None:
             s.label.append(float((out.labels[i][both] == gt.out.semantic[i][both]).sum()) / nb)
     return bands
@@ -215,7 +216,7 @@ def report(title: str, rows: dict[str, dict[str, Scores]]) -> None:
             flags = "".join("+" if m else "-" for m in met)
             print(f"{mode:<10} {region:<7} {band:<6} {len(s.leak):>5} {_fmt(s.coverage, True):>7} "
                   f"{_fmt(s.leak, True):>7} {p90:6.1f} {_fmt(s.holes, True):>7} {_fmt(s.ssim, False):>6} "
-                  f"{np.mean(s.psnr):6.2f} {_fmt(s.label, True):>7}  {flags}")
+                  f"{np.mean(s.psnr) if s.psnr else float('nan'):6.2f} {_fmt(s.label, True):>7}  {flags}")
     print("targets: leak <= 1 %, holes <= 2 %, SSIM >= 0.80 (< 1 m) / 0.85, label >= 95 % ('+' met, '-' missed)")
 
 
