@@ -7,6 +7,7 @@ errors), parse the answer; an invalid answer gets exactly one corrective re-ask,
 
 from __future__ import annotations
 
+import email.utils
 import json
 import logging
 import os
@@ -53,6 +54,8 @@ class OpenAIConfig(BackendConfig):
     retries: int = Field(2, ge=0, le=10)
     backoff_initial_s: float = Field(1.0, ge=0)
     backoff_max_s: float = Field(20.0, ge=0)
+    # A 429's Retry-After is waited (at least the backoff, at most this): the server knows its window.
+    retry_after_max_s: float = Field(60.0, ge=0)
     image_format: Literal["png", "jpeg"] = "jpeg"
     jpeg_quality: int = Field(90, ge=10, le=100)
     image_detail: Literal["auto", "low", "high"] = "auto"
@@ -71,6 +74,29 @@ class OpenAIConfig(BackendConfig):
 
 
 _TRANSIENT = (openai.APITimeoutError, openai.APIConnectionError, openai.RateLimitError, openai.InternalServerError)
+
+
+def retry_after_s(exc: Exception) -> float | None:
+    """The server's ``Retry-After`` (seconds or an HTTP date) or ``retry-after-ms``, if it sent one."""
+    response = getattr(exc, "response", None)
+    headers = getattr(response, "headers", None)
+    if headers is None:
+        return None
+    ms = headers.get("retry-after-ms")
+    try:
+        if ms is not None:
+            return max(0.0, float(ms) / 1000.0)
+        value = headers.get("retry-after")
+        if value is None:
+            return None
+        return max(0.0, float(value))
+    except ValueError:
+        pass
+    try:
+        when = email.utils.parsedate_to_datetime(headers.get("retry-after"))
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, when.timestamp() - time.time())
 
 
 @POLICIES.register("openai", OpenAIConfig)
@@ -128,6 +154,9 @@ class OpenAIPolicy(Policy):
                         f"{cfg.model}: {type(exc).__name__} after {attempt + 1} attempts: {exc}"
                     ) from exc
                 sleep = min(delay, cfg.backoff_max_s) * (0.5 + self._rng.random())
+                hinted = retry_after_s(exc)
+                if hinted is not None:
+                    sleep = max(sleep, min(hinted, cfg.retry_after_max_s))
                 log.warning(
                     "%s: %s, retrying in %.2f s (%d/%d)", cfg.model, type(exc).__name__, sleep, attempt + 1, cfg.retries
                 )
