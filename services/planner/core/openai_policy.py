@@ -19,6 +19,7 @@ from typing import Literal
 import openai
 from pydantic import Field, field_validator
 
+from shared.pricing import PriceTable
 from shared.registry import BackendConfig
 from shared.schemas import Decision
 
@@ -29,15 +30,8 @@ from .prompt import PromptBuilder, corrective_message, parse_answer
 
 log = logging.getLogger(__name__)
 
-# USD per 1M tokens (input, output); used when the config gives no price. Unknown models cost 0.
-PRICES_PER_1M_USD: dict[str, tuple[float, float]] = {
-    "gpt-5.1": (1.25, 10.0),
-    "gpt-5": (1.25, 10.0),
-    "gpt-5-mini": (0.25, 2.0),
-    "gpt-4o": (2.5, 10.0),
-    "gpt-4o-mini": (0.15, 0.6),
-    "gpt-4.1": (2.0, 8.0),
-}
+# Prices come from the table in shared/pricing.py (the evaluation's estimates use the same one)
+# unless the config gives them. Unknown models cost 0.
 
 
 class OpenAIConfig(BackendConfig):
@@ -128,12 +122,10 @@ class OpenAIPolicy(Policy):
     # --- one request ---------------------------------------------------------------------------------
 
     def _price(self) -> tuple[float, float]:
-        base = PRICES_PER_1M_USD.get(self.config.model)
-        if base is None:
-            base = next((p for m, p in PRICES_PER_1M_USD.items() if self.config.model.startswith(m + "-")), (0.0, 0.0))
+        base = PriceTable().price(self.config.model)
         pin = self.config.price_input_per_1m_usd
         pout = self.config.price_output_per_1m_usd
-        return (base[0] if pin is None else pin, base[1] if pout is None else pout)
+        return (base.input_per_1m_usd if pin is None else pin, base.output_per_1m_usd if pout is None else pout)
 
     def _complete(self, messages: list[dict], usage: Usage) -> str:
         cfg = self.config

@@ -9,12 +9,8 @@ planner's retries and fleet benchmarks are exercised end to end without an API k
 
 - **Latency**: ``fixed``, ``uniform`` (latency * [1 - spread, 1 + spread]) or ``lognormal`` (median
   latency, sigma = spread); draws come from a seeded generator.
-- **Tokens** come from the real request: tiktoken needs BPE files downloaded at first use (no network
-  here), so text is counted with a deterministic approximation of the o200k/cl100k tokenizers (a word
-  piece of n characters counts ceil(n / 4) tokens, every other non-space character one token, plus the
-  cookbook's 3 tokens per message and 3 for the reply) and images with OpenAI's published tile rule
-  (``detail=low``: 85; otherwise scaled to fit 2048 px, short side to 768 px, 85 + 170 per 512 px tile).
-  Counts are within ~15 % of tiktoken on English prompts; the point is that they scale with the prompt.
+- **Tokens** come from the real request, counted by :mod:`services.planner.core.tokens` (a documented
+  deterministic approximation: tiktoken needs a BPE download; images by OpenAI's exact tile rule).
 - **Answers** come from a named deterministic policy (:data:`STANDIN_POLICIES`). ``heuristic`` rebuilds a
   planner :class:`StepContext` from the prompt text alone (instruction, step, each candidate's action
   text, the history's actions, dead-reckoned into poses) and asks the planner's own heuristic policy, so
@@ -33,7 +29,6 @@ depends on it.
 from __future__ import annotations
 
 import argparse
-import base64
 import json
 import logging
 import math
@@ -46,12 +41,12 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Literal
 
-import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.planner.core.context import CandidateView, StepContext
 from services.planner.core.heuristic import HeuristicConfig, HeuristicPolicy
+from services.planner.core.tokens import message_tokens, text_tokens
 from shared.schemas import Candidate, CandidateKind, Pose
 
 log = logging.getLogger(__name__)
@@ -77,58 +72,6 @@ class StandinConfig(BaseModel):
     fault_script: list[Fault] = Field(default_factory=list)  # the first requests' outcomes, in order
     seed: int = 0
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024)
-
-
-# --- tokens ---------------------------------------------------------------------------------------------
-
-_PIECE = re.compile(r"[A-Za-z0-9]+|[^\sA-Za-z0-9]")
-
-
-def text_tokens(text: str) -> int:
-    """Deterministic approximation of a BPE token count (see the module docstring)."""
-    return sum(math.ceil(len(p) / 4) if p[0].isalnum() else 1 for p in _PIECE.findall(text))
-
-
-def image_tokens(width_px: int, height_px: int, detail: str = "auto") -> int:
-    """OpenAI's published image cost: 85 base tokens + 170 per 512 px tile after scaling."""
-    if detail == "low":
-        return 85
-    w, h = float(width_px), float(height_px)
-    if max(w, h) > 2048:
-        s = 2048 / max(w, h)
-        w, h = w * s, h * s
-    if min(w, h) > 768:
-        s = 768 / min(w, h)
-        w, h = w * s, h * s
-    return 85 + 170 * math.ceil(w / 512) * math.ceil(h / 512)
-
-
-def _data_url_size(url: str) -> tuple[int, int]:
-    if not url.startswith("data:") or "," not in url:
-        return 512, 512  # a remote URL: count one tile, as a server that cannot fetch it would guess
-    raw = base64.b64decode(url.split(",", 1)[1])
-    img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError("an image_url carries no decodable image")
-    return img.shape[1], img.shape[0]
-
-
-def prompt_tokens(messages: list[dict]) -> int:
-    """Tokens of a chat request: 3 per message + its text and images, + 3 priming the reply."""
-    total = 3
-    for m in messages:
-        total += 3
-        content = m.get("content")
-        if isinstance(content, str):
-            total += text_tokens(content)
-            continue
-        for part in content or []:
-            if part.get("type") == "text":
-                total += text_tokens(part.get("text", ""))
-            elif part.get("type") == "image_url":
-                img = part.get("image_url") or {}
-                total += image_tokens(*_data_url_size(img.get("url", "")), img.get("detail", "auto"))
-    return total
 
 
 # --- the prompt, read back ----------------------------------------------------------------------------
@@ -436,7 +379,7 @@ def _handler(server: StandinServer) -> type[BaseHTTPRequestHandler]:
                 model = str(body.get("model", "standin"))
                 if not isinstance(messages, list) or not messages:
                     raise ValueError("messages must be a non-empty list")
-                n_in = prompt_tokens(messages)
+                n_in = message_tokens(messages)
             except (ValueError, KeyError, TypeError) as exc:
                 self._error(400, f"bad request: {exc}", "invalid_request_error")
                 return
