@@ -52,6 +52,15 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps", type=Path, help="map-id cache shared between runs (default: <out>/maps.json)")
     p.add_argument("--no-retry-errors", action="store_true", help="on resume, keep episodes that errored")
     p.add_argument("--no-progress", action="store_true")
+    g = p.add_argument_group("cost")
+    g.add_argument("--prices", type=Path, help="price table (JSON or TOML: model -> input_per_1m_usd, "
+                                               "output_per_1m_usd) over the defaults of shared/pricing.py")
+    g.add_argument("--budget-usd", type=float, help="stop starting episodes once the run has spent this")
+    g.add_argument("--estimate", action="store_true",
+                   help="print the run's expected tokens and dollars from the prompt sizes, call nothing, exit")
+    g.add_argument("--estimate-waypoints", type=int, default=4, help="waypoints per step the estimate assumes")
+    g.add_argument("--estimate-step-m", type=float, default=2.0, help="metres per step the estimate assumes")
+    g.add_argument("--estimate-completion-tokens", type=int, default=60, help="answer tokens per call")
     _system_args(p)
 
 
@@ -81,9 +90,37 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _model(a: argparse.Namespace) -> str:
+    from services.planner.core.openai_policy import OpenAIConfig
+
+    return str(a.policy_config.get("model") or OpenAIConfig.model_fields["model"].default)
+
+
+def _prices(a: argparse.Namespace):
+    from shared.pricing import PriceTable, PriceTableError
+
+    try:
+        return PriceTable.load(a.prices)
+    except PriceTableError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _policy_config(a: argparse.Namespace) -> dict:
+    """The policy config, with the price table's prices for the openai model when --prices is given (so
+    the planner prices calls as the estimate does; explicit prices in --policy-config win)."""
+    cfg = dict(a.policy_config)
+    if a.prices and a.policy == "openai":
+        price = _prices(a).lookup(_model(a))
+        if price is None:
+            raise ConfigError(f"{a.prices}: no price for model {_model(a)!r}")
+        cfg.setdefault("price_input_per_1m_usd", price.input_per_1m_usd)
+        cfg.setdefault("price_output_per_1m_usd", price.output_per_1m_usd)
+    return cfg
+
+
 def run_config(a: argparse.Namespace) -> RunConfig:
     return RunConfig(
-        policy=a.policy, policy_config=a.policy_config, max_steps=a.max_steps, anticipation=not a.no_anticipation,
+        policy=a.policy, policy_config=_policy_config(a), budget_usd=getattr(a, "budget_usd", None), max_steps=a.max_steps, anticipation=not a.no_anticipation,
         anticipation_hfov_deg=a.hfov_deg, spatial_map=not a.no_spatial_map, map_source=MapSource(a.map_source),
         seed=a.seed, reference=a.reference, limit=a.limit, scenes_dir=a.scenes_dir,
         mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
@@ -124,8 +161,27 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[tuple[GatewayClient, Sc
         yield gateway, gateway
 
 
+def cmd_estimate(a: argparse.Namespace, episodes) -> int:
+    from evaluation.ledger import estimate_run
+
+    selected = episodes[: a.limit] if a.limit else episodes
+    est = estimate_run(selected, model=_model(a), prices=_prices(a), max_steps=a.max_steps,
+                       anticipation=not a.no_anticipation, spatial_map=not a.no_spatial_map,
+                       waypoints=a.estimate_waypoints, step_m=a.estimate_step_m,
+                       completion_tokens_per_call=a.estimate_completion_tokens,
+                       detail=str(a.policy_config.get("image_detail", "auto")))
+    if a.policy != "openai":
+        print(f"policy {a.policy} makes no LLM calls (it costs $0); as openai:{est.model} the run would cost:")
+    print("\n".join(est.lines()))
+    if a.budget_usd is not None:
+        print(f"  budget            {a.budget_usd:>12.2f}  ({'enough' if est.cost_usd <= a.budget_usd else 'short'})")
+    return 0
+
+
 def cmd_run(a: argparse.Namespace) -> int:
     episodes, gt = load_episodes(a)
+    if a.estimate:
+        return cmd_estimate(a, episodes)
     cfg = run_config(a)
     t0 = time.monotonic()
     with system(a, a.out) as (gateway, scenes):
@@ -136,6 +192,8 @@ def cmd_run(a: argparse.Namespace) -> int:
     print(markdown_table([report.row]))
     print(f"{report.ran} episodes run, {report.resumed} resumed; results in {a.out / RESULTS_FILE}; "
           f"wall time {time.monotonic() - t0:.0f} s")
+    if report.stopped:
+        print(f"stopped early: {report.stopped}")
     return 0
 
 

@@ -30,6 +30,7 @@ from evaluation.errors import (
     ConfigError, EvaluationError, GatewayError, MapUnavailable, MissionTimeout, SceneSwitchError,
 )
 from evaluation.gateway_client import GatewayClient
+from evaluation.ledger import Budget, ledger_markdown, stage_totals, step_ledger
 from shared.vln_metrics import MetricsError
 from evaluation.results import EpisodeResult, ResultsLog, metrics_from_dict, skipped_report, summary_row, write_tables
 from services.robot_io.core import Episode, GroundTruth, SceneNotFoundError
@@ -76,6 +77,8 @@ class RunConfig(BaseModel):
     curated_max_points: int = Field(1_000_000, ge=1000)
     poll_s: float = Field(0.5, gt=0, le=30)
     retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")
+    budget_usd: float | None = Field(None, gt=0, allow_inf_nan=False,
+                                     description="stop starting episodes once the run's dollars reach this")
 
     def experiment_key(self) -> dict[str, Any]:
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
@@ -156,6 +159,7 @@ class RunReport:
     wall_s: float = 0.0
     tables: tuple[Path, Path] | None = None
     maps: dict[str, str] = field(default_factory=dict)  # scene -> map id used
+    stopped: str = ""  # why the run stopped before its last episode (the budget), "" when it did not
 
 
 class EvalRunner:
@@ -236,17 +240,32 @@ class EvalRunner:
         ran = 0
         maps: dict[str, str] = {}
         stats = {"done": 0, "success": 0}
+        pending_ids = {str(e.episode_id) for e in todo}
+        budget = Budget(cfg.budget_usd, sum(r.cost_usd for k, r in prior.items() if k not in pending_ids
+                                            and k in {str(e.episode_id) for e in selected}))
+        stopped = ""
         try:
             for scene_id, group in groups.items():
-                for result in self._run_scene(scene_id, group, gt or {}, maps):
+                if budget.reached:
+                    stopped = budget.reason(len(todo) - ran)
+                    break
+                scene_run = self._run_scene(scene_id, group, gt or {}, maps)
+                for result in scene_run:
                     self.log.append(result)
                     ran += 1
+                    budget.add(result.cost_usd)
+                    if budget.reached and ran < len(todo):
+                        stopped = budget.reason(len(todo) - ran)
+                        scene_run.close()  # the next episode is never started
+                        break
                     if result.status == "done":
                         stats["done"] += 1
                         stats["success"] += bool(result.metrics and result.metrics.get("success"))
                     bar.update(1)
                     bar.set_postfix(SR=f"{100 * stats['success'] / max(1, stats['done']):.0f}%",
                                     scene=scene_id[-24:], refresh=False)
+                if stopped:
+                    break
         finally:
             bar.close()
         latest = self.log.load()
@@ -254,7 +273,11 @@ class EvalRunner:
         row = summary_row(results, self.label)
         tables = write_tables([row], self.out_dir / SUMMARY_STEM, title=f"Evaluation: {self.label}")
         self._append_skipped(tables[0], results)
-        return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps)
+        if stopped:
+            log.warning("run stopped: %s", stopped)
+        with open(tables[0], "a", encoding="utf-8") as f:
+            f.write(ledger_markdown([r for r in results if r.status == "done" and r.metrics is not None], stopped))
+        return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps, stopped)
 
     @staticmethod
     def _append_skipped(md: Path, results: Sequence[EpisodeResult]) -> None:
@@ -416,8 +439,18 @@ class EvalRunner:
             log.warning("mission %s: unreadable final event: %s", mid, exc)
             return None
 
+    def _ledger(self, mid: str) -> list[dict[str, Any]]:
+        """The mission's per-step ledger from its step events ([] when the history is unavailable)."""
+        try:
+            events = self.gateway.history(mid, after=-1, limit=min(1000, 2 * self.config.max_steps + 10))
+        except GatewayError as exc:
+            log.warning("no step ledger for %s: %s", mid, exc)
+            return []
+        return step_ledger(events)
+
     def _result(self, e: Episode, mid: str, rec: dict[str, Any], wall_s: float, base: dict) -> EpisodeResult:
         end = self._final_event(mid, rec)
+        steps = self._ledger(mid)
         # The record's running totals stand in when the mission never sent its end (e.g. it failed).
         usage = end.usage if end is not None else UsageData(
             prompt_tokens=int(rec.get("prompt_tokens", 0)), completion_tokens=int(rec.get("completion_tokens", 0)),
@@ -428,7 +461,7 @@ class EvalRunner:
             decisions=rec.get("decisions") or [],
             step_latency_s=list(end.step_latency_s) if end is not None else [],
             prompt_tokens=usage.prompt_tokens, completion_tokens=usage.completion_tokens, cost_usd=usage.cost_usd,
-            **base)
+            ledger=steps, stage_s=stage_totals(steps), **base)
         if rec["state"] == "cancelled":
             return self._base(e, status="error", reason="the mission was cancelled", **common)
         if end is None or end.metrics is None:
