@@ -17,9 +17,8 @@ import pytest
 from tests.unit.planner.planner_toyworld import ToyWorld, run_episode
 
 from services.planner.core import POLICIES, OpenAIConfig
-from services.planner.tools.llm_standin import (
-    StandinConfig, StandinServer, image_tokens, read_action, text_tokens,
-)
+from services.planner.core.tokens import image_tokens, text_tokens
+from services.planner.tools.llm_standin import StandinConfig, StandinServer, read_action
 from shared.schemas import CandidateKind
 
 pytestmark = pytest.mark.timeout(90)
