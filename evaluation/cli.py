@@ -19,14 +19,18 @@ from pathlib import Path
 from evaluation.errors import ConfigError, EvaluationError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, ResultsLog, markdown_table, summary_row, write_tables
-from evaluation.runner import RESULTS_FILE, EvalRunner, SceneMapIndex, MapSource, RunConfig, SceneLoader
+from evaluation.runner import RESULTS_FILE, EvalRunner, Lane, SceneMapIndex, MapSource, RunConfig
 
 log = logging.getLogger("evaluation")
 
 
 def _system_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("system")
-    g.add_argument("--gateway", help="use a running gateway at this URL (default: start the system)")
+    g.add_argument("--gateway", action="append",
+                   help="use a running gateway at this URL (default: start the system); repeat it for more "
+                        "robots (one system per robot, on any host): scenes are sharded over them")
+    g.add_argument("--robots", type=int, default=1,
+                   help="without --gateway: start this many systems, robot0..robotN-1, and shard over them")
     g.add_argument("--token", help="the gateway's API token (ANT_API_TOKEN)")
     g.add_argument("--robot", default="robot0", help="robot id of the key expressions")
     g.add_argument("--start-timeout-s", type=float, default=120.0, help="deadline for the system to come up")
@@ -141,24 +145,31 @@ def load_episodes(a: argparse.Namespace):
 
 
 @contextmanager
-def system(a: argparse.Namespace, out: Path) -> Iterator[tuple[GatewayClient, SceneLoader | None]]:
-    """The gateway client and the scene switcher: a running system's, or one started for this run."""
+def system(a: argparse.Namespace, out: Path) -> Iterator[list[Lane]]:
+    """One lane (gateway client and scene switcher) per robot: running systems', or systems started for
+    this run (one per robot, robot ids robot0..robotN-1, logs under ``<out>/system[-robotK]``)."""
     with ExitStack() as stack:
         if a.gateway:
             # The gateway switches robot-io's scene too (POST /robot/scene): HTTP is all a run needs.
-            gateway = stack.enter_context(GatewayClient.connect(a.gateway, token=a.token))
-            yield gateway, gateway
+            gateways = [stack.enter_context(GatewayClient.connect(url, token=a.token)) for url in a.gateway]
+            yield [Lane(g, g) for g in gateways]
             return
         from deploy.launcher import Launcher
 
-        log.info("starting the system (logs in %s)", out / "system")
-        t0 = time.monotonic()
-        launcher = Launcher(out / "system")
-        stack.callback(launcher.stop)
-        launcher.start(a.start_timeout_s)
-        log.info("system up in %.1f s, gateway %s", time.monotonic() - t0, launcher.gateway_url)
-        gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
-        yield gateway, gateway
+        if a.robots < 1:
+            raise ConfigError(f"--robots must be >= 1, got {a.robots}")
+        lanes = []
+        for k in range(a.robots):
+            run_dir = out / ("system" if a.robots == 1 else f"system-robot{k}")
+            log.info("starting the system of robot%d (logs in %s)", k, run_dir)
+            t0 = time.monotonic()
+            launcher = Launcher(run_dir, extra_env={"ANT_ROBOT": f"robot{k}"})
+            stack.callback(launcher.stop)
+            launcher.start(a.start_timeout_s)
+            log.info("system up in %.1f s, gateway %s", time.monotonic() - t0, launcher.gateway_url)
+            gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
+            lanes.append(Lane(gateway, gateway))
+        yield lanes
 
 
 def cmd_estimate(a: argparse.Namespace, episodes) -> int:
@@ -184,11 +195,11 @@ def cmd_run(a: argparse.Namespace) -> int:
         return cmd_estimate(a, episodes)
     cfg = run_config(a)
     t0 = time.monotonic()
-    with system(a, a.out) as (gateway, scenes):
+    with system(a, a.out) as lanes:
         cache = SceneMapIndex(a.maps or a.out / "maps.json")
         label = f"{cfg.policy}/{cfg.map_source.value}"
-        report = EvalRunner(gateway, scenes, cfg, a.out, map_cache=cache, label=label,
-                            progress=not a.no_progress).run(episodes, gt)
+        report = EvalRunner(lanes[0].gateway, lanes[0].scenes, cfg, a.out, map_cache=cache, label=label,
+                            progress=not a.no_progress, lanes=lanes[1:]).run(episodes, gt)
     print(markdown_table([report.row]))
     print(f"{report.ran} episodes run, {report.resumed} resumed; results in {a.out / RESULTS_FILE}; "
           f"wall time {time.monotonic() - t0:.0f} s")
@@ -207,11 +218,12 @@ def cmd_preset(a: argparse.Namespace) -> int:
     episodes, gt = load_episodes(a)
     base = run_config(a)
     t0 = time.monotonic()
-    with system(a, a.out) as (gateway, scenes):
+    with system(a, a.out) as lanes:
+        gateway, scenes = lanes[0].gateway, lanes[0].scenes
         cache = SceneMapIndex(a.maps or a.out / "maps.json")
         for name in names:
             rep = run_preset(name, episodes, gt, base, a.out, gateway, scenes, map_cache=cache,
-                             progress=not a.no_progress)
+                             progress=not a.no_progress, lanes=lanes[1:])
             print(f"\n## {rep.preset.title}\n")
             print(markdown_table(rep.rows))
             print(f"{rep.preset.paper}\ntable {rep.table_md}, plot {rep.plot_png}")

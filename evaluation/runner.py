@@ -11,9 +11,11 @@ recorded as ``skipped`` with the reason. The summary (Markdown + CSV) is recompu
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import logging
+import queue
 import re
 import threading
 import time
@@ -162,6 +164,26 @@ class RunReport:
     stopped: str = ""  # why the run stopped before its last episode (the budget), "" when it did not
 
 
+def shard_scenes(groups: dict[str, list[Episode]], lanes: int) -> list[list[str]]:
+    """Scenes per robot: whole scenes only (a robot loads a scene once), the largest first to the robot
+    with the fewest episodes so far (ties: the lowest robot). Deterministic in the groups' order."""
+    shards: list[list[str]] = [[] for _ in range(max(1, lanes))]
+    load = [0] * len(shards)
+    for scene in sorted(groups, key=lambda k: -len(groups[k])):  # stable: file order among equals
+        i = min(range(len(shards)), key=lambda j: (load[j], j))
+        shards[i].append(scene)
+        load[i] += len(groups[scene])
+    return [[sc for sc in groups if sc in set(sh)] for sh in shards]  # each robot keeps file order
+
+
+@dataclass
+class Lane:
+    """One robot the runner drives concurrently with the others: its gateway and scene switcher."""
+
+    gateway: GatewayClient
+    scenes: SceneLoader | None
+
+
 class EvalRunner:
     """Runs episodes through the gateway; see the module docstring.
 
@@ -176,12 +198,18 @@ class EvalRunner:
         progress: show a tqdm progress bar (stderr).
         scene_builder: ``scene_builder(spec, scenes_dir) -> Scene`` for curated clouds (default: robot-io's
             :func:`load_scene`, the same scenes the simulator loads).
+        lanes: more robots (each a gateway and scene switcher, e.g. one system per robot, on any host);
+            the scenes are sharded over ``gateway`` + these (:func:`shard_scenes`) and run concurrently.
+            Every result is the same whatever the number of robots: each episode runs alone on its robot
+            with its own seed.
     """
 
     def __init__(self, gateway: GatewayClient, scenes: SceneLoader | None, config: RunConfig, out_dir: Path | str,
                  *, map_cache: SceneMapIndex | None = None, label: str = "all", progress: bool = True,
-                 scene_builder: Callable[[str, Path | None], Any] | None = None):
+                 scene_builder: Callable[[str, Path | None], Any] | None = None, lanes: Sequence[Lane] = ()):
         self.gateway, self.scenes, self.config = gateway, scenes, config
+        self.lanes = [Lane(gateway, scenes), *lanes]
+        self._stop = threading.Event()  # set: no robot starts another episode
         self.out_dir = Path(out_dir)
         self.log = ResultsLog(self.out_dir / RESULTS_FILE)
         self.maps = map_cache or SceneMapIndex(self.out_dir / "maps.json")
@@ -229,7 +257,7 @@ class EvalRunner:
         prior = self.log.load()
         todo = self.pending(selected, prior)
         groups = group_by_scene(todo)
-        if self.scenes is None and len(groups) > 1:
+        if any(lane.scenes is None for lane in self.lanes) and len(groups) > 1:
             raise SceneSwitchError(f"{len(groups)} scenes to run but no way to switch scenes (give the runner a "
                                    "bus connection to robot-io)")
         resumed = len(selected) - len(todo)
@@ -243,31 +271,27 @@ class EvalRunner:
         pending_ids = {str(e.episode_id) for e in todo}
         budget = Budget(cfg.budget_usd, sum(r.cost_usd for k, r in prior.items() if k not in pending_ids
                                             and k in {str(e.episode_id) for e in selected}))
-        stopped = ""
+        stopped = budget.reason(len(todo)) if budget.reached and todo else ""
         try:
-            for scene_id, group in groups.items():
-                if budget.reached:
+            for scene_id, result in ([] if stopped else self._concurrent(groups, gt or {}, maps)):
+                self.log.append(result)
+                ran += 1
+                budget.add(result.cost_usd)
+                if result.status == "done":
+                    stats["done"] += 1
+                    stats["success"] += bool(result.metrics and result.metrics.get("success"))
+                bar.update(1)
+                bar.set_postfix(SR=f"{100 * stats['success'] / max(1, stats['done']):.0f}%",
+                                scene=scene_id[-24:], refresh=False)
+                if budget.reached and ran < len(todo):
+                    # No robot starts another episode; those running finish and are kept.
                     stopped = budget.reason(len(todo) - ran)
-                    break
-                scene_run = self._run_scene(scene_id, group, gt or {}, maps)
-                for result in scene_run:
-                    self.log.append(result)
-                    ran += 1
-                    budget.add(result.cost_usd)
-                    if budget.reached and ran < len(todo):
-                        stopped = budget.reason(len(todo) - ran)
-                        scene_run.close()  # the next episode is never started
-                        break
-                    if result.status == "done":
-                        stats["done"] += 1
-                        stats["success"] += bool(result.metrics and result.metrics.get("success"))
-                    bar.update(1)
-                    bar.set_postfix(SR=f"{100 * stats['success'] / max(1, stats['done']):.0f}%",
-                                    scene=scene_id[-24:], refresh=False)
-                if stopped:
-                    break
+                    self._stop.set()
         finally:
+            self._stop.set()
             bar.close()
+        if stopped:
+            stopped = budget.reason(len(todo) - ran)  # the count once every robot has finished
         latest = self.log.load()
         results = [latest[str(e.episode_id)] for e in selected if str(e.episode_id) in latest]
         row = summary_row(results, self.label)
@@ -278,6 +302,57 @@ class EvalRunner:
         with open(tables[0], "a", encoding="utf-8") as f:
             f.write(ledger_markdown([r for r in results if r.status == "done" and r.metrics is not None], stopped))
         return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps, stopped)
+
+    def _concurrent(self, groups: dict[str, list[Episode]], gt: dict[str, GroundTruth], maps: dict[str, str]):
+        """(scene, result) of every pending episode, one worker thread per robot over its shard of scenes.
+
+        A worker hands each result over and waits until it is logged before it starts the next episode,
+        so a stop (the budget) is seen before any robot begins another one; the log is written by the
+        caller's thread only."""
+        self._stop = threading.Event()
+        shards = shard_scenes(groups, len(self.lanes))
+        handoff: queue.Queue = queue.Queue()
+
+        def work(lane: Lane, scenes: list[str]) -> None:
+            runner = copy.copy(self)  # the same settings, log and map index; this robot's gateway
+            runner.gateway, runner.scenes = lane.gateway, lane.scenes
+            try:
+                for scene_id in scenes:
+                    if self._stop.is_set():
+                        break
+                    scene_run = runner._run_scene(scene_id, groups[scene_id], gt, maps)
+                    for result in scene_run:
+                        logged = threading.Event()
+                        handoff.put((scene_id, result, logged))
+                        logged.wait()
+                        if self._stop.is_set():
+                            scene_run.close()  # the next episode is never started
+                            break
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+                handoff.put((None, exc, None))
+            finally:
+                handoff.put(None)
+
+        workers = [threading.Thread(target=work, args=(lane, shard), name=f"eval-robot{i}", daemon=True)
+                   for i, (lane, shard) in enumerate(zip(self.lanes, shards)) if shard]
+        for w in workers:
+            w.start()
+        running = len(workers)
+        try:
+            while running:
+                item = handoff.get()
+                if item is None:
+                    running -= 1
+                    continue
+                scene_id, result, logged = item
+                if logged is None:
+                    raise result
+                try:
+                    yield scene_id, result
+                finally:
+                    logged.set()
+        finally:
+            self._stop.set()
 
     @staticmethod
     def _append_skipped(md: Path, results: Sequence[EpisodeResult]) -> None:
