@@ -149,6 +149,8 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[list[Lane]]:
     """One lane (gateway client and scene switcher) per robot: running systems', or systems started for
     this run (one per robot, robot ids robot0..robotN-1, logs under ``<out>/system[-robotK]``)."""
     with ExitStack() as stack:
+        if a.gateway and a.robots != 1:
+            raise ConfigError("--robots starts systems; with --gateway, give one --gateway per robot instead")
         if a.gateway:
             # The gateway switches robot-io's scene too (POST /robot/scene): HTTP is all a run needs.
             gateways = [stack.enter_context(GatewayClient.connect(url, token=a.token)) for url in a.gateway]
