@@ -13,6 +13,7 @@ import logging
 import sys
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
@@ -160,15 +161,22 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[list[Lane]]:
 
         if a.robots < 1:
             raise ConfigError(f"--robots must be >= 1, got {a.robots}")
-        lanes = []
+        launchers = []
         for k in range(a.robots):
             run_dir = out / ("system" if a.robots == 1 else f"system-robot{k}")
             log.info("starting the system of robot%d (logs in %s)", k, run_dir)
-            t0 = time.monotonic()
             launcher = Launcher(run_dir, extra_env={"ANT_ROBOT": f"robot{k}"})
             stack.callback(launcher.stop)
-            launcher.start(a.start_timeout_s)
-            log.info("system up in %.1f s, gateway %s", time.monotonic() - t0, launcher.gateway_url)
+            launchers.append(launcher)
+        t0 = time.monotonic()
+        # The systems come up side by side (each waits on its own services' liveliness).
+        with ThreadPoolExecutor(max_workers=len(launchers)) as pool:
+            for future in [pool.submit(lc.start, a.start_timeout_s) for lc in launchers]:
+                future.result()
+        log.info("%d system(s) up in %.1f s, gateways %s", len(launchers), time.monotonic() - t0,
+                 ", ".join(lc.gateway_url for lc in launchers))
+        lanes = []
+        for launcher in launchers:
             gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
             lanes.append(Lane(gateway, gateway))
         yield lanes
