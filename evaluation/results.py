@@ -61,6 +61,7 @@ class EpisodeResult(BaseModel):
     stage_s: dict[str, float] = Field(default_factory=dict)  # seconds per stage over the episode
     wall_s: float = 0.0
     finished_at_s: float = 0.0
+    recording: str | None = None  # the mission's .rrd, relative to the run folder (runs with --record)
 
     def episode_metrics(self) -> EpisodeMetrics | None:
         return None if self.metrics is None else metrics_from_dict(self.metrics)
