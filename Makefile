@@ -41,12 +41,14 @@ clean:
 
 # Evaluation: `make eval` generates the evaluation set once (100 episodes, 5 houses, 1-2 floors), starts
 # the system, runs it and prints the table; interrupted runs resume. EPISODES=<R2R-CE .json.gz> runs any file.
+# ROBOTS=N starts N systems (robot0..robotN-1) and runs their shards of scenes concurrently.
 EVAL_SET := runs/eval/generated.json.gz
 EPISODES ?= $(EVAL_SET)
 POLICY ?= heuristic
 MAP_SOURCE ?= reconstructed
 EVAL_OUT ?= runs/eval
 EVAL_ARGS ?=
+ROBOTS ?= 1
 
 $(EVAL_SET):
 	$(PY) -m evaluation generate --out $@ --houses 5 --per-house 20 --floors 1,2 --seed 0
@@ -54,10 +56,10 @@ $(EVAL_SET):
 eval-set: setup $(EVAL_SET)
 
 eval: setup $(EPISODES)
-	$(PY) -m evaluation run --episodes $(EPISODES) --policy $(POLICY) --map-source $(MAP_SOURCE) --out $(EVAL_OUT)/$(POLICY)-$(MAP_SOURCE) --maps $(EVAL_OUT)/maps.json $(EVAL_ARGS)
+	$(PY) -m evaluation run --episodes $(EPISODES) --policy $(POLICY) --map-source $(MAP_SOURCE) --out $(EVAL_OUT)/$(POLICY)-$(MAP_SOURCE) --maps $(EVAL_OUT)/maps.json --robots $(ROBOTS) $(EVAL_ARGS)
 
 eval-presets: setup $(EPISODES)
-	$(PY) -m evaluation preset all --episodes $(EPISODES) --policy $(POLICY) --out $(EVAL_OUT)/presets-$(POLICY) --maps $(EVAL_OUT)/maps.json $(EVAL_ARGS)
+	$(PY) -m evaluation preset all --episodes $(EPISODES) --policy $(POLICY) --out $(EVAL_OUT)/presets-$(POLICY) --maps $(EVAL_OUT)/maps.json --robots $(ROBOTS) $(EVAL_ARGS)
 
 eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies: setup $(EPISODES)
-	$(PY) -m evaluation preset $(@:eval-preset-%=%) --episodes $(EPISODES) --policy $(POLICY) --out $(EVAL_OUT)/presets-$(POLICY) --maps $(EVAL_OUT)/maps.json $(EVAL_ARGS)
+	$(PY) -m evaluation preset $(@:eval-preset-%=%) --episodes $(EPISODES) --policy $(POLICY) --out $(EVAL_OUT)/presets-$(POLICY) --maps $(EVAL_OUT)/maps.json --robots $(ROBOTS) $(EVAL_ARGS)

@@ -13,20 +13,25 @@ import logging
 import sys
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from evaluation.errors import ConfigError, EvaluationError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, ResultsLog, markdown_table, summary_row, write_tables
-from evaluation.runner import RESULTS_FILE, EvalRunner, SceneMapIndex, MapSource, RunConfig, SceneLoader
+from evaluation.runner import RESULTS_FILE, EvalRunner, Lane, SceneMapIndex, MapSource, RunConfig
 
 log = logging.getLogger("evaluation")
 
 
 def _system_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("system")
-    g.add_argument("--gateway", help="use a running gateway at this URL (default: start the system)")
+    g.add_argument("--gateway", action="append",
+                   help="use a running gateway at this URL (default: start the system); repeat it for more "
+                        "robots (one system per robot, on any host): scenes are sharded over them")
+    g.add_argument("--robots", type=int, default=1,
+                   help="without --gateway: start this many systems, robot0..robotN-1, and shard over them")
     g.add_argument("--token", help="the gateway's API token (ANT_API_TOKEN)")
     g.add_argument("--robot", default="robot0", help="robot id of the key expressions")
     g.add_argument("--start-timeout-s", type=float, default=120.0, help="deadline for the system to come up")
@@ -53,6 +58,15 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-retry-errors", action="store_true", help="on resume, keep episodes that errored")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--record", action="store_true", help="record every mission (.rrd) into <out>/recordings/")
+    g = p.add_argument_group("cost")
+    g.add_argument("--prices", type=Path, help="price table (JSON or TOML: model -> input_per_1m_usd, "
+                                               "output_per_1m_usd) over the defaults of shared/pricing.py")
+    g.add_argument("--budget-usd", type=float, help="stop starting episodes once the run has spent this")
+    g.add_argument("--estimate", action="store_true",
+                   help="print the run's expected tokens and dollars from the prompt sizes, call nothing, exit")
+    g.add_argument("--estimate-waypoints", type=int, default=4, help="waypoints per step the estimate assumes")
+    g.add_argument("--estimate-step-m", type=float, default=2.0, help="metres per step the estimate assumes")
+    g.add_argument("--estimate-completion-tokens", type=int, default=60, help="answer tokens per call")
     _system_args(p)
 
 
@@ -82,9 +96,37 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _model(a: argparse.Namespace) -> str:
+    from services.planner.core.openai_policy import OpenAIConfig
+
+    return str(a.policy_config.get("model") or OpenAIConfig.model_fields["model"].default)
+
+
+def _prices(a: argparse.Namespace):
+    from shared.pricing import PriceTable, PriceTableError
+
+    try:
+        return PriceTable.load(a.prices)
+    except PriceTableError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _policy_config(a: argparse.Namespace) -> dict:
+    """The policy config, with the price table's prices for the openai model when --prices is given (so
+    the planner prices calls as the estimate does; explicit prices in --policy-config win)."""
+    cfg = dict(a.policy_config)
+    if a.prices and a.policy == "openai":
+        price = _prices(a).lookup(_model(a))
+        if price is None:
+            raise ConfigError(f"{a.prices}: no price for model {_model(a)!r}")
+        cfg.setdefault("price_input_per_1m_usd", price.input_per_1m_usd)
+        cfg.setdefault("price_output_per_1m_usd", price.output_per_1m_usd)
+    return cfg
+
+
 def run_config(a: argparse.Namespace) -> RunConfig:
     return RunConfig(
-        policy=a.policy, policy_config=a.policy_config, max_steps=a.max_steps, anticipation=not a.no_anticipation,
+        policy=a.policy, policy_config=_policy_config(a), budget_usd=getattr(a, "budget_usd", None), max_steps=a.max_steps, anticipation=not a.no_anticipation,
         anticipation_hfov_deg=a.hfov_deg, spatial_map=not a.no_spatial_map, map_source=MapSource(a.map_source),
         seed=a.seed, reference=a.reference, limit=a.limit, scenes_dir=a.scenes_dir,
         mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
@@ -105,38 +147,75 @@ def load_episodes(a: argparse.Namespace):
 
 
 @contextmanager
-def system(a: argparse.Namespace, out: Path) -> Iterator[tuple[GatewayClient, SceneLoader | None]]:
-    """The gateway client and the scene switcher: a running system's, or one started for this run."""
+def system(a: argparse.Namespace, out: Path) -> Iterator[list[Lane]]:
+    """One lane (gateway client and scene switcher) per robot: running systems', or systems started for
+    this run (one per robot, robot ids robot0..robotN-1, logs under ``<out>/system[-robotK]``)."""
     with ExitStack() as stack:
+        if a.gateway and a.robots != 1:
+            raise ConfigError("--robots starts systems; with --gateway, give one --gateway per robot instead")
         if a.gateway:
             # The gateway switches robot-io's scene too (POST /robot/scene): HTTP is all a run needs.
-            gateway = stack.enter_context(GatewayClient.connect(a.gateway, token=a.token))
-            yield gateway, gateway
+            gateways = [stack.enter_context(GatewayClient.connect(url, token=a.token)) for url in a.gateway]
+            yield [Lane(g, g) for g in gateways]
             return
         from deploy.launcher import Launcher
 
-        log.info("starting the system (logs in %s)", out / "system")
+        if a.robots < 1:
+            raise ConfigError(f"--robots must be >= 1, got {a.robots}")
+        launchers = []
+        for k in range(a.robots):
+            run_dir = out / ("system" if a.robots == 1 else f"system-robot{k}")
+            log.info("starting the system of robot%d (logs in %s)", k, run_dir)
+            launcher = Launcher(run_dir, extra_env={"ANT_ROBOT": f"robot{k}"})
+            stack.callback(launcher.stop)
+            launchers.append(launcher)
         t0 = time.monotonic()
-        launcher = Launcher(out / "system")
-        stack.callback(launcher.stop)
-        launcher.start(a.start_timeout_s)
-        log.info("system up in %.1f s, gateway %s", time.monotonic() - t0, launcher.gateway_url)
-        gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
-        yield gateway, gateway
+        # The systems come up side by side (each waits on its own services' liveliness).
+        with ThreadPoolExecutor(max_workers=len(launchers)) as pool:
+            for future in [pool.submit(lc.start, a.start_timeout_s) for lc in launchers]:
+                future.result()
+        log.info("%d system(s) up in %.1f s, gateways %s", len(launchers), time.monotonic() - t0,
+                 ", ".join(lc.gateway_url for lc in launchers))
+        lanes = []
+        for launcher in launchers:
+            gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
+            lanes.append(Lane(gateway, gateway))
+        yield lanes
+
+
+def cmd_estimate(a: argparse.Namespace, episodes) -> int:
+    from evaluation.ledger import estimate_run
+
+    selected = episodes[: a.limit] if a.limit else episodes
+    est = estimate_run(selected, model=_model(a), prices=_prices(a), max_steps=a.max_steps,
+                       anticipation=not a.no_anticipation, spatial_map=not a.no_spatial_map,
+                       waypoints=a.estimate_waypoints, step_m=a.estimate_step_m,
+                       completion_tokens_per_call=a.estimate_completion_tokens,
+                       detail=str(a.policy_config.get("image_detail", "auto")))
+    if a.policy != "openai":
+        print(f"policy {a.policy} makes no LLM calls (it costs $0); as openai:{est.model} the run would cost:")
+    print("\n".join(est.lines()))
+    if a.budget_usd is not None:
+        print(f"  budget            {a.budget_usd:>12.2f}  ({'enough' if est.cost_usd <= a.budget_usd else 'short'})")
+    return 0
 
 
 def cmd_run(a: argparse.Namespace) -> int:
     episodes, gt = load_episodes(a)
+    if a.estimate:
+        return cmd_estimate(a, episodes)
     cfg = run_config(a)
     t0 = time.monotonic()
-    with system(a, a.out) as (gateway, scenes):
+    with system(a, a.out) as lanes:
         cache = SceneMapIndex(a.maps or a.out / "maps.json")
         label = f"{cfg.policy}/{cfg.map_source.value}"
-        report = EvalRunner(gateway, scenes, cfg, a.out, map_cache=cache, label=label,
-                            progress=not a.no_progress).run(episodes, gt)
+        report = EvalRunner(lanes[0].gateway, lanes[0].scenes, cfg, a.out, map_cache=cache, label=label,
+                            progress=not a.no_progress, lanes=lanes[1:]).run(episodes, gt)
     print(markdown_table([report.row]))
     print(f"{report.ran} episodes run, {report.resumed} resumed; results in {a.out / RESULTS_FILE}; "
           f"wall time {time.monotonic() - t0:.0f} s")
+    if report.stopped:
+        print(f"stopped early: {report.stopped}")
     return 0
 
 
@@ -150,11 +229,12 @@ def cmd_preset(a: argparse.Namespace) -> int:
     episodes, gt = load_episodes(a)
     base = run_config(a)
     t0 = time.monotonic()
-    with system(a, a.out) as (gateway, scenes):
+    with system(a, a.out) as lanes:
+        gateway, scenes = lanes[0].gateway, lanes[0].scenes
         cache = SceneMapIndex(a.maps or a.out / "maps.json")
         for name in names:
             rep = run_preset(name, episodes, gt, base, a.out, gateway, scenes, map_cache=cache,
-                             progress=not a.no_progress)
+                             progress=not a.no_progress, lanes=lanes[1:])
             print(f"\n## {rep.preset.title}\n")
             print(markdown_table(rep.rows))
             print(f"{rep.preset.paper}\ntable {rep.table_md}, plot {rep.plot_png}")

@@ -18,7 +18,7 @@ from typing import Any
 from evaluation.errors import ConfigError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, write_tables
-from evaluation.runner import EvalRunner, SceneMapIndex, RunConfig, RunReport, SceneLoader
+from evaluation.runner import EvalRunner, Lane, SceneMapIndex, RunConfig, RunReport, SceneLoader
 from services.robot_io.core import Episode, GroundTruth
 
 log = logging.getLogger(__name__)
@@ -86,8 +86,10 @@ class PresetReport:
 
 def run_preset(name: str, episodes: Sequence[Episode], gt: dict[str, GroundTruth] | None, base: RunConfig,
                out_dir: Path | str, gateway: GatewayClient, scenes: SceneLoader | None, *,
-               map_cache: SceneMapIndex | None = None, progress: bool = True) -> PresetReport:
-    """Run every variant of preset ``name`` into ``out_dir/<name>/<variant>`` and write its table and plot."""
+               map_cache: SceneMapIndex | None = None, progress: bool = True,
+               lanes: Sequence[Lane] = ()) -> PresetReport:
+    """Run every variant of preset ``name`` into ``out_dir/<name>/<variant>`` and write its table and plot
+    (``lanes``: more robots, see :class:`EvalRunner`)."""
     table = presets()
     if name not in table:
         raise ConfigError(f"unknown preset {name!r}; known: {', '.join(table)}")
@@ -98,7 +100,8 @@ def run_preset(name: str, episodes: Sequence[Episode], gt: dict[str, GroundTruth
     for v in preset.variants:
         cfg = RunConfig.model_validate({**base.model_dump(), **v.overrides})  # overrides validated too
         log.info("preset %s: variant %s", name, v.label)
-        runner = EvalRunner(gateway, scenes, cfg, root / v.slug, map_cache=cache, label=v.label, progress=progress)
+        runner = EvalRunner(gateway, scenes, cfg, root / v.slug, map_cache=cache, label=v.label, progress=progress,
+                            lanes=lanes)
         reports.append(runner.run(episodes, gt))
     rows = [r.row for r in reports]
     md, csv = write_tables(rows, root / "table", COLUMNS, title=preset.title)

@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from evaluation.errors import ResultsFormatError
+from evaluation.ledger import LEDGER_COLUMNS, ledger_row
 from shared.vln_metrics import EpisodeMetrics, MetricsError, summarize
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,8 @@ class EpisodeResult(BaseModel):
     prompt_tokens: int = 0
     completion_tokens: int = 0
     cost_usd: float = 0.0
+    ledger: list[dict[str, Any]] = Field(default_factory=list)  # per step (evaluation.ledger.step_ledger)
+    stage_s: dict[str, float] = Field(default_factory=dict)  # seconds per stage over the episode
     wall_s: float = 0.0
     finished_at_s: float = 0.0
     recording: str | None = None  # the mission's .rrd, relative to the run folder (runs with --record)
@@ -145,9 +148,9 @@ class ResultsLog:
 # --- summary tables ----------------------------------------------------------------------------------
 
 COLUMNS = ["label", "count", "skipped", "errors", "NE", "OSR", "SR", "SPL", "nDTW", "SDTW", "TL", "steps",
-           "unreachable", "step_s", "tokens", "cost_usd"]
+           "unreachable", "step_s", "tokens", "cost_usd", *LEDGER_COLUMNS]
 """Summary columns: NE/TL in metres, rates in percent, ``step_s`` the mean step latency, ``tokens`` the
-mean LLM tokens per episode, ``cost_usd`` the total."""
+mean LLM tokens per episode, ``cost_usd`` the total; then the cost ledger's (:data:`LEDGER_COLUMNS`)."""
 
 
 def summary_row(results: Iterable[EpisodeResult], label: str = "all") -> dict[str, Any]:
@@ -171,10 +174,12 @@ def summary_row(results: Iterable[EpisodeResult], label: str = "all") -> dict[st
         row["step_s"] = round(float(np.mean(lat)), 3) if lat else None
         row["tokens"] = round(float(np.mean([r.prompt_tokens + r.completion_tokens for r in done])), 1)
         row["cost_usd"] = round(float(sum(r.cost_usd for r in done)), 4)
+        row.update(ledger_row(done))
     return row
 
 
-_DIGITS = {"NE": 2, "TL": 2, "steps": 1, "step_s": 3, "tokens": 0, "cost_usd": 4}
+_DIGITS = {"NE": 2, "TL": 2, "steps": 1, "step_s": 3, "tokens": 0, "cost_usd": 4, "cost_usd_ep": 5,
+           **{c: 4 for c in LEDGER_COLUMNS if c.endswith("_s")}}
 
 
 def _cell(v: Any, column: str = "") -> str:

@@ -11,9 +11,11 @@ recorded as ``skipped`` with the reason. The summary (Markdown + CSV) is recompu
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import logging
+import queue
 import re
 import threading
 import time
@@ -30,6 +32,7 @@ from evaluation.errors import (
     ConfigError, EvaluationError, GatewayError, MapUnavailable, MissionTimeout, SceneSwitchError,
 )
 from evaluation.gateway_client import GatewayClient
+from evaluation.ledger import Budget, ledger_markdown, stage_totals, step_ledger
 from shared.vln_metrics import MetricsError
 from evaluation.results import EpisodeResult, ResultsLog, metrics_from_dict, skipped_report, summary_row, write_tables
 from services.robot_io.core import Episode, GroundTruth, SceneNotFoundError
@@ -77,6 +80,8 @@ class RunConfig(BaseModel):
     poll_s: float = Field(0.5, gt=0, le=30)
     retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")
     record: bool = Field(False, description="record every mission (.rrd) and keep a copy in <run>/recordings/")
+    budget_usd: float | None = Field(None, gt=0, allow_inf_nan=False,
+                                     description="stop starting episodes once the run's dollars reach this")
 
     def experiment_key(self) -> dict[str, Any]:
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
@@ -157,6 +162,27 @@ class RunReport:
     wall_s: float = 0.0
     tables: tuple[Path, Path] | None = None
     maps: dict[str, str] = field(default_factory=dict)  # scene -> map id used
+    stopped: str = ""  # why the run stopped before its last episode (the budget), "" when it did not
+
+
+def shard_scenes(groups: dict[str, list[Episode]], lanes: int) -> list[list[str]]:
+    """Scenes per robot: whole scenes only (a robot loads a scene once), the largest first to the robot
+    with the fewest episodes so far (ties: the lowest robot). Deterministic in the groups' order."""
+    shards: list[list[str]] = [[] for _ in range(max(1, lanes))]
+    load = [0] * len(shards)
+    for scene in sorted(groups, key=lambda k: -len(groups[k])):  # stable: file order among equals
+        i = min(range(len(shards)), key=lambda j: (load[j], j))
+        shards[i].append(scene)
+        load[i] += len(groups[scene])
+    return [[sc for sc in groups if sc in set(sh)] for sh in shards]  # each robot keeps file order
+
+
+@dataclass
+class Lane:
+    """One robot the runner drives concurrently with the others: its gateway and scene switcher."""
+
+    gateway: GatewayClient
+    scenes: SceneLoader | None
 
 
 class EvalRunner:
@@ -173,12 +199,18 @@ class EvalRunner:
         progress: show a tqdm progress bar (stderr).
         scene_builder: ``scene_builder(spec, scenes_dir) -> Scene`` for curated clouds (default: robot-io's
             :func:`load_scene`, the same scenes the simulator loads).
+        lanes: more robots (each a gateway and scene switcher, e.g. one system per robot, on any host);
+            the scenes are sharded over ``gateway`` + these (:func:`shard_scenes`) and run concurrently.
+            Every result is the same whatever the number of robots: each episode runs alone on its robot
+            with its own seed.
     """
 
     def __init__(self, gateway: GatewayClient, scenes: SceneLoader | None, config: RunConfig, out_dir: Path | str,
                  *, map_cache: SceneMapIndex | None = None, label: str = "all", progress: bool = True,
-                 scene_builder: Callable[[str, Path | None], Any] | None = None):
+                 scene_builder: Callable[[str, Path | None], Any] | None = None, lanes: Sequence[Lane] = ()):
         self.gateway, self.scenes, self.config = gateway, scenes, config
+        self.lanes = [Lane(gateway, scenes), *lanes]
+        self._stop = threading.Event()  # set: no robot starts another episode
         self.out_dir = Path(out_dir)
         self.log = ResultsLog(self.out_dir / RESULTS_FILE)
         self.maps = map_cache or SceneMapIndex(self.out_dir / "maps.json")
@@ -226,7 +258,7 @@ class EvalRunner:
         prior = self.log.load()
         todo = self.pending(selected, prior)
         groups = group_by_scene(todo)
-        if self.scenes is None and len(groups) > 1:
+        if any(lane.scenes is None for lane in self.lanes) and len(groups) > 1:
             raise SceneSwitchError(f"{len(groups)} scenes to run but no way to switch scenes (give the runner a "
                                    "bus connection to robot-io)")
         resumed = len(selected) - len(todo)
@@ -237,26 +269,92 @@ class EvalRunner:
         ran = 0
         maps: dict[str, str] = {}
         stats = {"done": 0, "success": 0}
+        pending_ids = {str(e.episode_id) for e in todo}
+        budget = Budget(cfg.budget_usd, sum(r.cost_usd for k, r in prior.items() if k not in pending_ids
+                                            and k in {str(e.episode_id) for e in selected}))
+        stopped = budget.reason(len(todo)) if budget.reached and todo else ""
         try:
-            for scene_id, group in groups.items():
-                for result in self._run_scene(scene_id, group, gt or {}, maps):
-                    self.log.append(result)
-                    ran += 1
-                    if result.status == "done":
-                        stats["done"] += 1
-                        stats["success"] += bool(result.metrics and result.metrics.get("success"))
-                    bar.update(1)
-                    bar.set_postfix(SR=f"{100 * stats['success'] / max(1, stats['done']):.0f}%",
-                                    scene=scene_id[-24:], refresh=False)
+            for scene_id, result in ([] if stopped else self._concurrent(groups, gt or {}, maps)):
+                self.log.append(result)
+                ran += 1
+                budget.add(result.cost_usd)
+                if result.status == "done":
+                    stats["done"] += 1
+                    stats["success"] += bool(result.metrics and result.metrics.get("success"))
+                bar.update(1)
+                bar.set_postfix(SR=f"{100 * stats['success'] / max(1, stats['done']):.0f}%",
+                                scene=scene_id[-24:], refresh=False)
+                if budget.reached and ran < len(todo):
+                    # No robot starts another episode; those running finish and are kept.
+                    stopped = budget.reason(len(todo) - ran)
+                    self._stop.set()
         finally:
+            self._stop.set()
             bar.close()
+        if stopped:
+            stopped = budget.reason(len(todo) - ran)  # the count once every robot has finished
         latest = self.log.load()
         results = [latest[str(e.episode_id)] for e in selected if str(e.episode_id) in latest]
         row = summary_row(results, self.label)
         tables = write_tables([row], self.out_dir / SUMMARY_STEM, title=f"Evaluation: {self.label}")
         self._append_skipped(tables[0], results)
+        if stopped:
+            log.warning("run stopped: %s", stopped)
+        with open(tables[0], "a", encoding="utf-8") as f:
+            f.write(ledger_markdown([r for r in results if r.status == "done" and r.metrics is not None], stopped))
         self._write_pictures_and_predictions(selected, results, gt or {}, tables[0])
-        return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps)
+        return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps, stopped)
+
+    def _concurrent(self, groups: dict[str, list[Episode]], gt: dict[str, GroundTruth], maps: dict[str, str]):
+        """(scene, result) of every pending episode, one worker thread per robot over its shard of scenes.
+
+        A worker hands each result over and waits until it is logged before it starts the next episode,
+        so a stop (the budget) is seen before any robot begins another one; the log is written by the
+        caller's thread only."""
+        self._stop = threading.Event()
+        shards = shard_scenes(groups, len(self.lanes))
+        handoff: queue.Queue = queue.Queue()
+
+        def work(lane: Lane, scenes: list[str]) -> None:
+            runner = copy.copy(self)  # the same settings, log and map index; this robot's gateway
+            runner.gateway, runner.scenes = lane.gateway, lane.scenes
+            try:
+                for scene_id in scenes:
+                    if self._stop.is_set():
+                        break
+                    scene_run = runner._run_scene(scene_id, groups[scene_id], gt, maps)
+                    for result in scene_run:
+                        logged = threading.Event()
+                        handoff.put((scene_id, result, logged))
+                        logged.wait()
+                        if self._stop.is_set():
+                            scene_run.close()  # the next episode is never started
+                            break
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+                handoff.put((None, exc, None))
+            finally:
+                handoff.put(None)
+
+        workers = [threading.Thread(target=work, args=(lane, shard), name=f"eval-robot{i}", daemon=True)
+                   for i, (lane, shard) in enumerate(zip(self.lanes, shards)) if shard]
+        for w in workers:
+            w.start()
+        running = len(workers)
+        try:
+            while running:
+                item = handoff.get()
+                if item is None:
+                    running -= 1
+                    continue
+                scene_id, result, logged = item
+                if logged is None:
+                    raise result
+                try:
+                    yield scene_id, result
+                finally:
+                    logged.set()
+        finally:
+            self._stop.set()
 
     @staticmethod
     def _append_skipped(md: Path, results: Sequence[EpisodeResult]) -> None:
@@ -461,8 +559,18 @@ class EvalRunner:
             log.warning("mission %s: unreadable final event: %s", mid, exc)
             return None
 
+    def _ledger(self, mid: str) -> list[dict[str, Any]]:
+        """The mission's per-step ledger from its step events ([] when the history is unavailable)."""
+        try:
+            events = self.gateway.history(mid, after=-1, limit=min(1000, 2 * self.config.max_steps + 10))
+        except GatewayError as exc:
+            log.warning("no step ledger for %s: %s", mid, exc)
+            return []
+        return step_ledger(events)
+
     def _result(self, e: Episode, mid: str, rec: dict[str, Any], wall_s: float, base: dict) -> EpisodeResult:
         end = self._final_event(mid, rec)
+        steps = self._ledger(mid)
         # The record's running totals stand in when the mission never sent its end (e.g. it failed).
         usage = end.usage if end is not None else UsageData(
             prompt_tokens=int(rec.get("prompt_tokens", 0)), completion_tokens=int(rec.get("completion_tokens", 0)),
@@ -473,7 +581,7 @@ class EvalRunner:
             decisions=rec.get("decisions") or [],
             step_latency_s=list(end.step_latency_s) if end is not None else [],
             prompt_tokens=usage.prompt_tokens, completion_tokens=usage.completion_tokens, cost_usd=usage.cost_usd,
-            **base)
+            ledger=steps, stage_s=stage_totals(steps), **base)
         if rec["state"] == "cancelled":
             return self._base(e, status="error", reason="the mission was cancelled", **common)
         if end is None or end.metrics is None:

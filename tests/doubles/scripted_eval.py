@@ -24,6 +24,11 @@ from shared.schemas import (
 )
 
 
+# Fixed per-step stage timings, so the evaluation's cost ledger can be checked exactly.
+SCRIPTED_TIMINGS_S = {"observe_s": 0.01, "candidates_s": 0.02, "anticipation_s": 0.03, "spatial_map_s": 0.04,
+                      "decide_s": 0.05, "move_s": 0.06, "prompt_ready_s": 0.1}
+
+
 class ScriptedRobotIo:
     """Serves ``IO_LOAD_SCENE``; ``loaded`` lists the scenes in the order they were loaded."""
 
@@ -113,7 +118,8 @@ class ScriptedNavPlanner:
                  MissionStep(pose=Pose(position_m=tuple(pos.tolist())), candidates=[], decision=Decision(
                      candidate_index=0, kind="stop" if stop else "waypoint", backend=opts.policy,
                      reasoning="stop at the goal" if stop else "towards the goal",
-                     prompt_tokens=100, completion_tokens=10, cost_usd=0.0005)))
+                     prompt_tokens=100, completion_tokens=10, cost_usd=0.0005),
+                 timings_s=dict(SCRIPTED_TIMINGS_S)))
             if stop:
                 break
         m = episode_metrics(np.array(traj), goal, geodesic=euclidean_geodesic, stop_called=stop,

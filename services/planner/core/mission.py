@@ -126,6 +126,7 @@ class MissionLoop:
         t_obs = time.perf_counter()
         pano = self.robot.observe()
         observe_s = time.perf_counter() - t_obs
+        move_s = 0.0  # a step's timings hold the move and observation that led to it (none before step 0)
         trajectory = [pano.pose.xyz]
         stop_called = False
         step = 0
@@ -170,6 +171,7 @@ class MissionLoop:
             )
             t4 = time.perf_counter()
             timings["observe_s"] = observe_s
+            timings["move_s"] = move_s
             # The paper's "global perception" plus the observation: what a step costs before the LLM.
             timings["prompt_ready_s"] = t4 - t0 + observe_s
             latencies.append(timings["prompt_ready_s"])
@@ -184,7 +186,9 @@ class MissionLoop:
                 break
             history.record(step, pano.rgb[0], action_for(chosen.candidate))
             c = chosen.candidate
+            t_move = time.perf_counter()
             result = self.robot.move_to(c.dx_m, c.dy_m)
+            move_s = time.perf_counter() - t_move
             moved = float(np.hypot(*(result.pose.xyz - pose.xyz)[:2]))
             if moved < self.min_progress_m:
                 blocked.append((pose.xyz, pose.xyz + np.array([c.dx_m, c.dy_m, 0.0])))

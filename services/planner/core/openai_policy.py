@@ -7,6 +7,7 @@ errors), parse the answer; an invalid answer gets exactly one corrective re-ask,
 
 from __future__ import annotations
 
+import email.utils
 import json
 import logging
 import os
@@ -18,6 +19,7 @@ from typing import Literal
 import openai
 from pydantic import Field, field_validator
 
+from shared.pricing import PriceTable
 from shared.registry import BackendConfig
 from shared.schemas import Decision
 
@@ -28,15 +30,8 @@ from .prompt import PromptBuilder, corrective_message, parse_answer
 
 log = logging.getLogger(__name__)
 
-# USD per 1M tokens (input, output); used when the config gives no price. Unknown models cost 0.
-PRICES_PER_1M_USD: dict[str, tuple[float, float]] = {
-    "gpt-5.1": (1.25, 10.0),
-    "gpt-5": (1.25, 10.0),
-    "gpt-5-mini": (0.25, 2.0),
-    "gpt-4o": (2.5, 10.0),
-    "gpt-4o-mini": (0.15, 0.6),
-    "gpt-4.1": (2.0, 8.0),
-}
+# Prices come from the table in shared/pricing.py (the evaluation's estimates use the same one)
+# unless the config gives them. Unknown models cost 0.
 
 
 class OpenAIConfig(BackendConfig):
@@ -53,6 +48,8 @@ class OpenAIConfig(BackendConfig):
     retries: int = Field(2, ge=0, le=10)
     backoff_initial_s: float = Field(1.0, ge=0)
     backoff_max_s: float = Field(20.0, ge=0)
+    # A 429's Retry-After is waited (at least the backoff, at most this): the server knows its window.
+    retry_after_max_s: float = Field(60.0, ge=0)
     image_format: Literal["png", "jpeg"] = "jpeg"
     jpeg_quality: int = Field(90, ge=10, le=100)
     image_detail: Literal["auto", "low", "high"] = "auto"
@@ -71,6 +68,29 @@ class OpenAIConfig(BackendConfig):
 
 
 _TRANSIENT = (openai.APITimeoutError, openai.APIConnectionError, openai.RateLimitError, openai.InternalServerError)
+
+
+def retry_after_s(exc: Exception) -> float | None:
+    """The server's ``Retry-After`` (seconds or an HTTP date) or ``retry-after-ms``, if it sent one."""
+    response = getattr(exc, "response", None)
+    headers = getattr(response, "headers", None)
+    if headers is None:
+        return None
+    ms = headers.get("retry-after-ms")
+    try:
+        if ms is not None:
+            return max(0.0, float(ms) / 1000.0)
+        value = headers.get("retry-after")
+        if value is None:
+            return None
+        return max(0.0, float(value))
+    except ValueError:
+        pass
+    try:
+        when = email.utils.parsedate_to_datetime(headers.get("retry-after"))
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, when.timestamp() - time.time())
 
 
 @POLICIES.register("openai", OpenAIConfig)
@@ -102,12 +122,10 @@ class OpenAIPolicy(Policy):
     # --- one request ---------------------------------------------------------------------------------
 
     def _price(self) -> tuple[float, float]:
-        base = PRICES_PER_1M_USD.get(self.config.model)
-        if base is None:
-            base = next((p for m, p in PRICES_PER_1M_USD.items() if self.config.model.startswith(m + "-")), (0.0, 0.0))
+        base = PriceTable().price(self.config.model)
         pin = self.config.price_input_per_1m_usd
         pout = self.config.price_output_per_1m_usd
-        return (base[0] if pin is None else pin, base[1] if pout is None else pout)
+        return (base.input_per_1m_usd if pin is None else pin, base.output_per_1m_usd if pout is None else pout)
 
     def _complete(self, messages: list[dict], usage: Usage) -> str:
         cfg = self.config
@@ -128,6 +146,9 @@ class OpenAIPolicy(Policy):
                         f"{cfg.model}: {type(exc).__name__} after {attempt + 1} attempts: {exc}"
                     ) from exc
                 sleep = min(delay, cfg.backoff_max_s) * (0.5 + self._rng.random())
+                hinted = retry_after_s(exc)
+                if hinted is not None:
+                    sleep = max(sleep, min(hinted, cfg.retry_after_max_s))
                 log.warning(
                     "%s: %s, retrying in %.2f s (%d/%d)", cfg.model, type(exc).__name__, sleep, attempt + 1, cfg.retries
                 )

@@ -1,0 +1,452 @@
+"""An OpenAI-compatible chat-completions stand-in for benchmarks and tests (never for real results).
+
+A real HTTP server (stdlib ``ThreadingHTTPServer`` on 127.0.0.1) speaking ``POST /v1/chat/completions``
+with the latency, token counts, answers and failures of a hosted MLLM, so that evaluation runs, the
+planner's retries and fleet benchmarks are exercised end to end without an API key or a bill:
+
+    .venv/bin/python -m services.planner.tools.llm_standin --port 8088 --latency-s 2 \
+        --latency-dist lognormal --policy heuristic --error-rate-429 0.05 --error-rate-500 0.02
+
+- **Latency**: ``fixed``, ``uniform`` (latency * [1 - spread, 1 + spread]) or ``lognormal`` (median
+  latency, sigma = spread); draws come from a seeded generator.
+- **Tokens** come from the real request, counted by :mod:`services.planner.core.tokens` (a documented
+  deterministic approximation: tiktoken needs a BPE download; images by OpenAI's exact tile rule).
+- **Answers** come from a named deterministic policy (:data:`STANDIN_POLICIES`). ``heuristic`` rebuilds a
+  planner :class:`StepContext` from the prompt text alone (instruction, step, each candidate's action
+  text, the history's actions, dead-reckoned into poses) and asks the planner's own heuristic policy, so
+  a run with the stand-in navigates by the instruction's turns and distances (the prompt carries images,
+  not labels). ``straight`` takes the candidate nearest straight ahead and stops after ``--stop-after``
+  steps. There is no ``oracle``: a prompt carries no ground truth (goal, geodesic), by design; use the
+  planner's ``oracle`` policy directly for an upper bound.
+- **Failures**: 429 with ``Retry-After``, 500, and timeouts (the reply is held ``--timeout-sleep-s``,
+  longer than the client waits), each drawn per request at its rate, or scripted in order
+  (``--fault-script 429,500,timeout``) for tests.
+
+The stand-in is a planner tool (it imports the planner core to reuse the heuristic's logic); no service
+depends on it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import random
+import re
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.planner.core.context import CandidateView, StepContext
+from services.planner.core.heuristic import HeuristicConfig, HeuristicPolicy
+from services.planner.core.tokens import message_tokens, text_tokens
+from shared.schemas import Candidate, CandidateKind, Pose
+
+log = logging.getLogger(__name__)
+
+Fault = Literal["429", "500", "timeout", "ok"]
+
+
+class StandinConfig(BaseModel):
+    """How the stand-in behaves; every rate is a probability per request."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    latency_s: float = Field(2.0, ge=0.0, le=600.0)
+    latency_dist: Literal["fixed", "uniform", "lognormal"] = "fixed"
+    latency_spread: float = Field(0.3, ge=0.0, le=3.0)  # uniform: +-fraction; lognormal: sigma
+    policy: str = "heuristic"
+    stop_after: int = Field(6, ge=1, le=1000)  # the ``straight`` policy stops at this step
+    error_rate_429: float = Field(0.0, ge=0.0, le=1.0)
+    error_rate_500: float = Field(0.0, ge=0.0, le=1.0)
+    timeout_rate: float = Field(0.0, ge=0.0, le=1.0)
+    retry_after_s: float = Field(1.0, ge=0.0, le=3600.0)
+    timeout_sleep_s: float = Field(120.0, ge=0.0, le=3600.0)
+    fault_script: list[Fault] = Field(default_factory=list)  # the first requests' outcomes, in order
+    seed: int = 0
+    max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024)
+
+
+# --- the prompt, read back ----------------------------------------------------------------------------
+
+_INSTRUCTION = re.compile(r"Instruction: (.*?)\n\n", re.S)
+_STEP = re.compile(r"Step (\d+) of at most (\d+)\. Candidate sub-paths:")
+_CANDIDATE = re.compile(r"Candidate (\d+): [^\n]*?\[action: ([^\]]*)\]")
+_HISTORY_ACTION = re.compile(r"\[step (\d+)\] <image> -> (.*?) ->")
+_NUM = r"(\d+(?:\.\d+)?)"
+_TURN = re.compile(rf"turn (left|right) (\d+) degrees and move (?:forward )?{_NUM} m")
+_AROUND = re.compile(rf"turn around and move (?:forward )?{_NUM} m")
+_STRAIGHT = re.compile(rf"(?:go straight|move forward) {_NUM} m")
+_BACK = re.compile(rf"go back to the previous position \({_NUM} m")
+
+
+class PromptReadError(ValueError):
+    """The request does not look like the planner's sub-path prompt."""
+
+
+@dataclass(frozen=True)
+class Move:
+    """One action read from prompt text: agent-relative turn and distance, or backtrack / stop."""
+
+    kind: CandidateKind
+    angle_rad: float = 0.0
+    distance_m: float = 0.0
+
+
+def read_action(text: str) -> Move:
+    """The action a candidate or history item describes (the inverse of ``describe_candidate`` and
+    ``ActionRecord.describe``; angles are in whole degrees there, so this is exact to 0.5 deg)."""
+    text = text.strip()
+    if text.startswith("stop"):
+        return Move(CandidateKind.STOP)
+    if m := _BACK.search(text):
+        return Move(CandidateKind.BACKTRACK, 0.0, float(m.group(1)))
+    if m := _TURN.search(text):
+        sign = 1.0 if m.group(1) == "left" else -1.0
+        return Move(CandidateKind.WAYPOINT, sign * math.radians(float(m.group(2))), float(m.group(3)))
+    if m := _AROUND.search(text):
+        return Move(CandidateKind.WAYPOINT, math.pi, float(m.group(1)))
+    if m := _STRAIGHT.search(text):
+        return Move(CandidateKind.WAYPOINT, 0.0, float(m.group(1)))
+    raise PromptReadError(f"unreadable action {text!r}")
+
+
+@dataclass
+class ReadPrompt:
+    """What the stand-in understood of one request."""
+
+    instruction: str
+    step: int  # 0-based, as in the planner
+    max_steps: int
+    candidates: list[tuple[int, Move]]
+    history: list[Move]
+
+    @property
+    def indices(self) -> list[int]:
+        return [i for i, _ in self.candidates]
+
+
+def user_text(messages: list[dict]) -> str:
+    """The first user message's text parts joined, each image as ``<image>`` (a re-ask's later messages
+    are ignored: the step is the same)."""
+    for m in messages:
+        if m.get("role") != "user":
+            continue
+        content = m.get("content")
+        if isinstance(content, str):
+            return content
+        return "".join(p.get("text", "") if p.get("type") == "text" else "<image>" for p in content or [])
+    raise PromptReadError("no user message")
+
+
+def read_prompt(messages: list[dict]) -> ReadPrompt:
+    text = user_text(messages)
+    mi, ms = _INSTRUCTION.search(text), _STEP.search(text)
+    if mi is None or ms is None:
+        raise PromptReadError("not the planner's prompt (no instruction or step line)")
+    body = text[ms.end():]
+    candidates = [(int(m.group(1)), read_action(m.group(2))) for m in _CANDIDATE.finditer(body)]
+    if not candidates:
+        raise PromptReadError("the prompt lists no candidates")
+    history = [read_action(m.group(2)) for m in _HISTORY_ACTION.finditer(text[:ms.start()])]
+    return ReadPrompt(mi.group(1).strip(), int(ms.group(1)) - 1, int(ms.group(2)), candidates, history)
+
+
+def dead_reckon(history: list[Move]) -> tuple[np.ndarray, float, list[np.ndarray]]:
+    """Positions along the history's actions from the origin (heading 0), assuming the agent faces the
+    way it moved. Returns (trajectory (N, 3), heading, the backtrack stack of earlier nodes)."""
+    pos, heading = np.zeros(3), 0.0
+    traj, visited = [pos.copy()], []
+    for mv in history:
+        if mv.kind == CandidateKind.BACKTRACK:
+            target = visited.pop() if visited else pos
+            d = target - pos
+            if np.hypot(d[0], d[1]) > 1e-6:
+                heading = math.atan2(d[1], d[0])
+            pos = target.copy()
+        elif mv.kind == CandidateKind.WAYPOINT:
+            visited.append(pos.copy())
+            heading += mv.angle_rad
+            pos = pos + mv.distance_m * np.array([math.cos(heading), math.sin(heading), 0.0])
+        traj.append(pos.copy())
+    return np.asarray(traj), heading, visited
+
+
+def step_context(p: ReadPrompt) -> StepContext:
+    """A planner step context from the prompt alone (no images, labels or panorama)."""
+    traj, heading, visited = dead_reckon(p.history)
+    pose = Pose(position_m=tuple(traj[-1].tolist()), heading_rad=heading)
+    views = []
+    for index, mv in p.candidates:
+        if mv.kind == CandidateKind.BACKTRACK and visited:
+            dx, dy = (visited[-1] - traj[-1])[:2]
+            angle = math.remainder(math.atan2(dy, dx) - heading, 2 * math.pi)
+            c = Candidate(index=index, kind=mv.kind, dx_m=float(dx), dy_m=float(dy), angle_rad=angle,
+                          distance_m=mv.distance_m)
+        else:
+            world = heading + mv.angle_rad
+            c = Candidate(index=index, kind=mv.kind, dx_m=mv.distance_m * math.cos(world),
+                          dy_m=mv.distance_m * math.sin(world), angle_rad=mv.angle_rad, distance_m=mv.distance_m)
+        views.append(CandidateView(candidate=c))
+    return StepContext(instruction=p.instruction, step=p.step, pose=pose, candidates=views, trajectory_m=traj,
+                       max_steps=p.max_steps)
+
+
+# --- policies -----------------------------------------------------------------------------------------
+
+class StandinPolicy:
+    """Answers one conversation's steps in order (one instance per instruction)."""
+
+    def answer(self, p: ReadPrompt) -> tuple[int, str]:
+        raise NotImplementedError
+
+
+class HeuristicStandin(StandinPolicy):
+    """The planner's heuristic policy on the context read back from the prompt."""
+
+    def __init__(self, cfg: StandinConfig):
+        self._policy = HeuristicPolicy(HeuristicConfig())
+        self._policy.reset("standin")
+
+    def answer(self, p: ReadPrompt) -> tuple[int, str]:
+        d = self._policy.decide(step_context(p))
+        return d.candidate_index, d.reasoning
+
+
+class StraightStandin(StandinPolicy):
+    """The candidate nearest straight ahead (longest on ties); stop at step ``stop_after``."""
+
+    def __init__(self, cfg: StandinConfig):
+        self.stop_after = cfg.stop_after
+
+    def answer(self, p: ReadPrompt) -> tuple[int, str]:
+        stop = next((i for i, mv in p.candidates if mv.kind == CandidateKind.STOP), None)
+        moves = [(abs(mv.angle_rad), -mv.distance_m, i) for i, mv in p.candidates if mv.kind == CandidateKind.WAYPOINT]
+        if stop is not None and (p.step + 1 >= self.stop_after or not moves):
+            return stop, f"step {p.step + 1}: stop"
+        if not moves:
+            return p.candidates[0][0], "no waypoint"
+        return min(moves)[2], "nearest straight ahead"
+
+
+STANDIN_POLICIES: dict[str, Callable[[StandinConfig], StandinPolicy]] = {
+    "heuristic": HeuristicStandin,
+    "straight": StraightStandin,
+}
+
+
+# --- the server ---------------------------------------------------------------------------------------
+
+@dataclass
+class _Conversation:
+    policy: StandinPolicy
+    answers: dict[int, tuple[int, str]] = field(default_factory=dict)  # step -> answer (retries repeat it)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+@dataclass
+class StandinStats:
+    requests: int = 0
+    by_outcome: dict[str, int] = field(default_factory=dict)
+    prompt_tokens: int = 0
+    completion_tokens: int = 0
+
+
+class StandinServer:
+    """The stand-in as a context manager: ``with StandinServer(cfg) as s: OpenAIConfig(base_url=s.url)``."""
+
+    def __init__(self, config: StandinConfig | None = None, host: str = "127.0.0.1", port: int = 0):
+        self.config = config or StandinConfig()
+        if self.config.policy not in STANDIN_POLICIES:
+            raise ValueError(f"unknown stand-in policy {self.config.policy!r}; have {sorted(STANDIN_POLICIES)}")
+        self.stats = StandinStats()
+        self._rng = random.Random(self.config.seed)
+        self._script = list(self.config.fault_script)
+        self._lock = threading.Lock()
+        self._conversations: dict[tuple[str, int], _Conversation] = {}
+        self.httpd = ThreadingHTTPServer((host, port), _handler(self))
+        self.httpd.daemon_threads = True
+        self.url = f"http://{host}:{self.httpd.server_address[1]}/v1"
+        self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.05},
+                                        daemon=True)
+
+    def __enter__(self) -> StandinServer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self._thread.join(timeout=5)
+
+    def draw(self) -> tuple[Fault, float]:
+        """This request's outcome and latency (under the lock: one seeded sequence for all threads)."""
+        cfg = self.config
+        with self._lock:
+            self.stats.requests += 1
+            if self._script:
+                fault = self._script.pop(0)
+            else:
+                u = self._rng.random()
+                fault = "ok"
+                for name, rate in (("429", cfg.error_rate_429), ("500", cfg.error_rate_500),
+                                   ("timeout", cfg.timeout_rate)):
+                    if u < rate:
+                        fault = name
+                        break
+                    u -= rate
+            if cfg.latency_dist == "fixed":
+                latency = cfg.latency_s
+            elif cfg.latency_dist == "uniform":
+                latency = cfg.latency_s * self._rng.uniform(1 - cfg.latency_spread, 1 + cfg.latency_spread)
+            else:
+                latency = cfg.latency_s * math.exp(self._rng.gauss(0.0, cfg.latency_spread))
+            self.stats.by_outcome[fault] = self.stats.by_outcome.get(fault, 0) + 1
+        return fault, max(0.0, latency)
+
+    def answer(self, messages: list[dict]) -> str:
+        p = read_prompt(messages)
+        key = (p.instruction, p.max_steps)
+        with self._lock:
+            conv = self._conversations.get(key)
+            if conv is None or p.step == 0 and 0 in conv.answers or p.step < max(conv.answers, default=-1):
+                # A new episode (or the same instruction again from its start): a fresh policy.
+                conv = self._conversations[key] = _Conversation(STANDIN_POLICIES[self.config.policy](self.config))
+        with conv.lock:
+            if p.step not in conv.answers:
+                conv.answers[p.step] = conv.policy.answer(p)
+            index, reasoning = conv.answers[p.step]
+        return json.dumps({"action": index, "reasoning": reasoning})
+
+    def count(self, n_in: int, n_out: int) -> None:
+        with self._lock:
+            self.stats.prompt_tokens += n_in
+            self.stats.completion_tokens += n_out
+
+
+def _handler(server: StandinServer) -> type[BaseHTTPRequestHandler]:
+    class Handler(BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1"
+
+        def log_message(self, fmt, *args):
+            log.debug("%s " + fmt, self.address_string(), *args)
+
+        def _send(self, status: int, obj: dict, headers: dict[str, str] | None = None) -> None:
+            data = json.dumps(obj).encode()
+            try:
+                self.send_response(status)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(data)))
+                for k, v in (headers or {}).items():
+                    self.send_header(k, v)
+                self.end_headers()
+                self.wfile.write(data)
+            except (BrokenPipeError, ConnectionResetError):
+                pass  # the client gave up (its timeout): nothing to tell it
+
+        def _error(self, status: int, message: str, kind: str, headers=None) -> None:
+            self._send(status, {"error": {"message": message, "type": kind, "code": status}}, headers)
+
+        def do_GET(self):  # noqa: N802 - http.server naming
+            if self.path.rstrip("/") in ("/v1/models", "/models"):
+                self._send(200, {"object": "list", "data": [{"id": "standin", "object": "model"}]})
+            elif self.path == "/health":
+                self._send(200, {"ok": True, "requests": server.stats.requests})
+            else:
+                self._error(404, f"no route {self.path}", "not_found")
+
+        def do_POST(self):  # noqa: N802
+            if self.path.rstrip("/") not in ("/v1/chat/completions", "/chat/completions"):
+                self._error(404, f"no route {self.path}", "not_found")
+                return
+            try:
+                n = int(self.headers.get("Content-Length", "0"))
+            except ValueError:
+                n = -1
+            if not 0 < n <= server.config.max_body_bytes:
+                self._error(413 if n > 0 else 400, "missing or oversized body", "invalid_request_error")
+                return
+            try:
+                body = json.loads(self.rfile.read(n))
+                messages = body["messages"]
+                model = str(body.get("model", "standin"))
+                if not isinstance(messages, list) or not messages:
+                    raise ValueError("messages must be a non-empty list")
+                n_in = message_tokens(messages)
+            except (ValueError, KeyError, TypeError) as exc:
+                self._error(400, f"bad request: {exc}", "invalid_request_error")
+                return
+            fault, latency = server.draw()
+            if fault == "timeout":
+                time.sleep(server.config.timeout_sleep_s)
+                self._error(504, "held past the client's timeout", "timeout")
+                return
+            time.sleep(latency)
+            if fault == "429":
+                self._error(429, "rate limited (injected)", "rate_limit_exceeded",
+                            {"Retry-After": f"{server.config.retry_after_s:g}"})
+                return
+            if fault == "500":
+                self._error(500, "server error (injected)", "server_error")
+                return
+            try:
+                content = server.answer(messages)
+            except PromptReadError as exc:
+                self._error(400, f"the stand-in reads only the planner's prompt: {exc}", "invalid_request_error")
+                return
+            n_out = text_tokens(content)
+            server.count(n_in, n_out)
+            self._send(200, {
+                "id": f"chatcmpl-standin-{server.stats.requests}", "object": "chat.completion",
+                "created": int(time.time()), "model": model,
+                "choices": [{"index": 0, "finish_reason": "stop",
+                             "message": {"role": "assistant", "content": content}}],
+                "usage": {"prompt_tokens": n_in, "completion_tokens": n_out, "total_tokens": n_in + n_out},
+            })
+
+    return Handler
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--port", type=int, default=0, help="0: a free port (printed)")
+    ap.add_argument("--latency-s", type=float, default=2.0)
+    ap.add_argument("--latency-dist", choices=["fixed", "uniform", "lognormal"], default="fixed")
+    ap.add_argument("--latency-spread", type=float, default=0.3)
+    ap.add_argument("--policy", choices=sorted(STANDIN_POLICIES), default="heuristic")
+    ap.add_argument("--stop-after", type=int, default=6)
+    ap.add_argument("--error-rate-429", type=float, default=0.0)
+    ap.add_argument("--error-rate-500", type=float, default=0.0)
+    ap.add_argument("--timeout-rate", type=float, default=0.0)
+    ap.add_argument("--retry-after-s", type=float, default=1.0)
+    ap.add_argument("--timeout-sleep-s", type=float, default=120.0)
+    ap.add_argument("--fault-script", default="", help="comma-separated outcomes of the first requests")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    cfg = StandinConfig(
+        latency_s=a.latency_s, latency_dist=a.latency_dist, latency_spread=a.latency_spread, policy=a.policy,
+        stop_after=a.stop_after, error_rate_429=a.error_rate_429, error_rate_500=a.error_rate_500,
+        timeout_rate=a.timeout_rate, retry_after_s=a.retry_after_s, timeout_sleep_s=a.timeout_sleep_s,
+        fault_script=[f for f in a.fault_script.split(",") if f], seed=a.seed)
+    with StandinServer(cfg, a.host, a.port) as srv:
+        log.info("llm stand-in (%s, %.2f s %s) listening on %s", cfg.policy, cfg.latency_s, cfg.latency_dist,
+                 srv.url)
+        print(srv.url, flush=True)  # the one line a launching script reads
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            pass
+
+
+if __name__ == "__main__":
+    main()
