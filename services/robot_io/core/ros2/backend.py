@@ -258,6 +258,9 @@ class Ros2Robot(Robot):
         self._safety_stopped.set()
         self._send_zero()
 
+    def halt(self) -> None:
+        self.safety_stop()
+
     def clear_safety_stop(self) -> None:
         self._safety_stopped.clear()
 
