@@ -92,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ros2-keys", choices=["bridge", "rmw_zenoh"], default="bridge")
     ap.add_argument("--time-scale", type=float, default=4.0, help="the ROS 2 stand-in's simulated/real time")
     ap.add_argument("--max-steps", type=int, default=400, help="exploration budget (steps)")
+    ap.add_argument("--standin-config", default="{}", help="JSON: the ROS 2 stand-in's config (camera, rates, faults)")
     ap.add_argument("--mission-steps", type=int, default=30, help="navigation budget (steps)")
     args = ap.parse_args(argv)
     configure_logging("demo", "local", "WARNING")
@@ -106,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.robot == "ros2":
         with ROBOTS_sim(args.scene) as sim:
             labels = {int(k): v for k, v in sim.scene.label_names.items()}
-        standin = StandIn(scene=args.scene, keys=args.ros2_keys, time_scale=args.time_scale, label_names=labels)
+        standin = StandIn(scene=args.scene, keys=args.ros2_keys, time_scale=args.time_scale, label_names=labels,
+                          standin_config=json.loads(args.standin_config))
         say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys) against the ROS 2 stand-in robot "
             f"(time scale {args.time_scale:g}); robot-io speaks only ROS 2 messages over zenoh")
     say(f"starting a zenoh router + 6 services (logs: {run_dir / 'logs'})")

@@ -29,8 +29,11 @@ SERVICES = ["robot_io", "mapper", "reconstructor", "renderer", "planner", "gatew
 
 # What the stand-in publishes beyond the generic profile, and the backend therefore reads: the
 # simulated clock (time scale), the teleport service (mission start poses), the map and labels.
+# The base is the embedded simulator's agent (radius 0.1 m, which VLN-CE's graphs and tours assume)
+# with a small safety margin, and it may turn faster than a Stretch: panoramas take less (simulated) time.
 STANDIN_PROFILE_OVERRIDES = {"clock": "/clock", "teleport_service": "/teleport", "map": "/map",
-                             "semantic": "/camera/semantic/image_raw"}
+                             "semantic": "/camera/semantic/image_raw", "max_angular_dps": 90.0,
+                             "angular_accel_dps2": 360.0, "base_radius_m": 0.1, "safety_distance_m": 0.05}
 
 
 @dataclass

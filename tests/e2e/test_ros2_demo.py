@@ -13,12 +13,16 @@ from deploy.demo import main as demo_main
 pytestmark = pytest.mark.e2e
 
 SCENE = "generated:3:area=50"
+# A small camera at a low rate: the stand-in renders every frame it publishes, on a shared CPU.
+STANDIN = '{"camera": {"width_px": 128, "height_px": 128}, "camera_rate_hz": 4, "control_rate_hz": 20}'
+
 
 
 @pytest.mark.parametrize("keys", ["bridge", "rmw_zenoh"])
 def test_the_demo_runs_through_the_ros2_stand_in(keys, tmp_path, capsys):
     code = demo_main(["--robot", "ros2", "--ros2-keys", keys, "--scene", SCENE, "--run-dir", str(tmp_path),
-                      "--max-steps", "12", "--time-scale", "6", "--mission-steps", "6"])
+                      "--max-steps", "6", "--time-scale", "4", "--mission-steps", "3", "--policy", "oracle",
+                      "--standin-config", STANDIN])
     out = capsys.readouterr().out
     assert code == 0, out[-3000:]
     assert f"the ROS 2 backend ('ros2', {keys} keys)" in out

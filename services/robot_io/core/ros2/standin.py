@@ -78,7 +78,7 @@ class StandInRobot:
     def __init__(self, config: StandInConfig, profile: Ros2Profile, transport: Ros2Transport, keys: KeyStyle):
         self.config, self.profile = config, profile
         self.sim = SimRobot(SimConfig(scene=config.scene, scenes_dir=config.scenes_dir, camera=config.camera,
-                                      camera_height_m=profile.camera_height_m, agent_radius_m=profile.base_radius_m * 0.6,
+                                      camera_height_m=profile.camera_height_m, agent_radius_m=profile.base_radius_m,
                                       noise=config.noise, start_pose=config.start_pose, render_threads=1))
         self.node = Ros2Node(transport, keys, config.node_name)
         self.rng = np.random.default_rng(config.seed)
