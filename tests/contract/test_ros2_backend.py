@@ -248,3 +248,42 @@ def _connectable(port: int) -> bool:
     with socket.socket() as s:
         s.settimeout(0.2)
         return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def test_the_stretch_profile_rotated_camera_mm_depth_nav_mode_and_run_stop():
+    over = {"clock": "/clock"}  # the stand-in runs on simulated time; the rest is Stretch's
+    s = StandIn(prof="stretch", overrides=over)
+    try:
+        with s.backend(prof="stretch", overrides=over) as robot:
+            assert s.robot.navigation_mode  # switch_to_navigation_mode was called on connect
+            pano = robot.observe(with_semantic=False)
+            sim = s.robot.sim
+            pos = s.robot.true_pose.position_m
+            want = sim.renderer.render_views(pos, pano.headings_rad[:1], CAM.pinhole(), 0.0, s.profile.camera_height_m,
+                                             with_semantic=False)
+            got_rgb, want_rgb = pano.rgb[0].astype(float), want.rgb[0].astype(float)
+            err = np.abs(got_rgb - want_rgb).mean()
+            wrong = np.abs(np.rot90(got_rgb, 1) - want_rgb).mean()
+            assert err < 0.5 * wrong, (err, wrong)
+            d_got, d_want = pano.depth_m[0], np.where(np.isfinite(want.depth_m[0]), want.depth_m[0], 0)
+            both = (d_got > 0) & (d_want > 0)
+            assert both.mean() > 0.5 and np.median(np.abs(d_got[both] - d_want[both])) < 0.05
+            # The run-stop: pressed on the robot, motion is refused and nothing moves.
+            s.robot.run_stopped = True
+            wait_until(lambda: robot._run_stopped, what="run-stop seen")
+            with pytest.raises(RunStoppedError):
+                robot.move_to(0.3, 0.0)
+    finally:
+        s.close()
+
+
+def test_a_robot_without_depth_gives_views_without_depth_and_jpeg_colour_works():
+    over = {**SIM_OVERRIDES, "depth": None, "color_encoding": "jpeg"}
+    s = StandIn(overrides=over)
+    try:
+        with s.backend(overrides=over) as robot:
+            pano = robot.observe(with_semantic=False)
+            assert pano.rgb.shape == (12, 96, 96, 3) and pano.rgb.std() > 5
+            assert not pano.depth_m.any()
+    finally:
+        s.close()
