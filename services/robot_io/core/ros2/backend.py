@@ -86,7 +86,8 @@ class Ros2Config(BackendConfig):
     views: int = Field(12, ge=1, le=72)
     camera: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
     connect_timeout_s: float = Field(20.0, gt=0.0, le=600.0)
-    max_data_age_s: float = Field(0.5, gt=0.0, le=60.0)
+    max_data_age_s: float = Field(0.5, gt=0.0, le=60.0)  # robot time
+    clock_timeout_s: float = Field(2.0, gt=0.0, le=60.0)  # wall time without a clock message: the robot is gone
     control_rate_hz: float = Field(20.0, ge=1.0, le=200.0)
     yaw_tolerance_deg: float = Field(1.5, gt=0.0, le=20.0)
     goal_tolerance_m: float = Field(0.1, gt=0.0, le=1.0)
@@ -126,7 +127,11 @@ class _Latest:
 
 
 class RobotClock:
-    """Robot time: the clock topic extrapolated at its observed rate, or wall time."""
+    """Robot time: the newest clock-topic value, or wall time.
+
+    Simulated time is not extrapolated: a simulator that stalls (rendering on a busy CPU) stops its
+    own time, so its data is not stale in its own time. A clock that falls silent is caught by
+    :meth:`silence_s` instead (the robot or the link is gone)."""
 
     def __init__(self, use_clock: bool):
         self.use_clock = use_clock
@@ -146,19 +151,24 @@ class RobotClock:
 
     @property
     def rate(self) -> float:
-        return self._rate
+        """Robot seconds per wall second (1 without a clock topic)."""
+        return self._rate if self.use_clock else 1.0
 
     def now(self) -> float:
         if not self.use_clock:
             return time.time()
         with self._lock:
-            if self._last is None:
-                return float("nan")
-            t, w = self._last
-            return t + (time.monotonic() - w) * self._rate
+            return float("nan") if self._last is None else self._last[0]
+
+    def silence_s(self) -> float:
+        """Wall seconds since the last clock message (0 without a clock topic)."""
+        if not self.use_clock:
+            return 0.0
+        with self._lock:
+            return math.inf if self._last is None else time.monotonic() - self._last[1]
 
     def sleep(self, robot_s: float) -> None:
-        time.sleep(max(0.0, robot_s) / (self._rate if self.use_clock else 1.0))
+        time.sleep(max(0.0, robot_s) / max(self.rate, 1e-3))
 
 
 @ROBOTS.register("ros2", Ros2Config)
@@ -286,6 +296,9 @@ class Ros2Robot(Robot):
             raise Ros2Error("the robot connection is closed")
 
     def _fresh(self, latest: _Latest, topic: str) -> tuple[float, Any]:
+        silent = self.clock.silence_s()
+        if silent > self.config.clock_timeout_s:
+            raise StaleDataError(f"{topic} is stale: no {self.profile.clock} for {silent:.1f} s (the robot or the link is gone)")
         got = latest.get()
         now = self.clock.now()
         if got is None or not (now - got[0] <= self.config.max_data_age_s):
