@@ -56,7 +56,8 @@ class StandIn:
         config = {"profile": "generic", "profile_overrides": STANDIN_PROFILE_OVERRIDES, "keys": self.keys,
                   "transport_config": {"zenoh": {"connect": [endpoint]}}, "connect_timeout_s": 120,
                   # 0.5 s of wall time, in robot time (the stand-in runs time_scale times faster).
-                  "max_data_age_s": 0.5 * self.time_scale, "label_names": self.label_names}
+                  "max_data_age_s": 0.5 * self.time_scale, "clock_timeout_s": 5.0,
+                  "label_names": self.label_names}
         return {"ANT_ROBOT_BACKEND": "ros2", "ANT_ROBOT_CONFIG": json.dumps(config)}
 
 

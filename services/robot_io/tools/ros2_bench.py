@@ -51,7 +51,7 @@ class _Pair:
         self.thread = threading.Thread(target=self.standin.run, daemon=True)
         self.thread.start()
         self.robot = Ros2Robot(Ros2Config(keys=keys, profile_overrides=OVERRIDES, max_data_age_s=0.5 * time_scale,
-                                          transport_config={"zenoh": {"connect": [self.endpoint]}}))
+                                          clock_timeout_s=5.0, transport_config={"zenoh": {"connect": [self.endpoint]}}))
 
     def close(self):
         self.robot.close()

@@ -193,6 +193,7 @@ class Ros2Robot(Robot):
         self.zero_twists_sent = 0
         self.cmd_published = 0
         self.control_ticks: list[float] = []  # monotonic time of each control tick (benchmarks)
+        self._next_tick: float | None = None
         self._cmd = self.node.publisher(p.cmd_vel, m.MESSAGES["twist"])
         n = self.node
         if p.clock:
@@ -310,10 +311,17 @@ class Ros2Robot(Robot):
         self._check_safe()
         if self.clock.now() > end_s:
             raise DeadlineExceededError(f"{what} did not finish within its deadline")
-        self.control_ticks.append(time.monotonic())
+        now = time.monotonic()
+        self.control_ticks.append(now)
         if len(self.control_ticks) > 100_000:
             del self.control_ticks[:50_000]
-        self.clock.sleep(1.0 / self.config.control_rate_hz)
+        # A fixed rate, not a fixed pause: the loop's own work comes out of the period.
+        period = 1.0 / (self.config.control_rate_hz * max(self.clock.rate, 1e-3))
+        nxt = getattr(self, "_next_tick", None)
+        if nxt is None or now - nxt > period:  # first tick of a motion, or late: restart the schedule
+            nxt = now
+        self._next_tick = nxt + period
+        time.sleep(max(0.0, self._next_tick - now))
 
     # --- state ---------------------------------------------------------------------------------------------
     def _odom_pose(self, msg) -> Pose:

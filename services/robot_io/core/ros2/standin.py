@@ -214,10 +214,11 @@ class StandInRobot:
         if self._pub_imu:
             self._sensor(self._pub_imu, m.imu(t, "imu", self.sim.noise.imu_heading(self._heading), self._w))
         if self._pub_scan and self.t_s >= self._next_scan:
-            self._next_scan = self.t_s + 1.0 / c.scan_rate_hz
+            self._next_scan = max(self._next_scan + 1.0 / c.scan_rate_hz, self.t_s - 0.5 / c.scan_rate_hz)
             self._sensor(self._pub_scan, self._scan(t))
         if self.t_s >= self._next_cam:
-            self._next_cam = self.t_s + 1.0 / c.camera_rate_hz
+            # On the rate's own grid: due times rounded up to ticks would slow the camera down.
+            self._next_cam = max(self._next_cam + 1.0 / c.camera_rate_hz, self.t_s - 0.5 / c.camera_rate_hz)
             self._publish_camera(t)
         if self._pub_map and self.t_s >= self._next_map:
             self._next_map = self.t_s + c.map_period_s
