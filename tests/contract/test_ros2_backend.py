@@ -72,7 +72,8 @@ class StandIn:
     def backend(self, keys="bridge", prof="generic", overrides=SIM_OVERRIDES, **cfg) -> Ros2Robot:
         # Allowed data age 2 s of robot time: at time scale 4 that is 0.5 s of wall time, which a
         # loaded test machine needs (a real robot keeps the 0.5 s default).
-        cfg = {"max_data_age_s": 2.0, **cfg}
+        # The stand-in shares this process (and its GIL): allow it 5 s without a clock message.
+        cfg = {"max_data_age_s": 2.0, "clock_timeout_s": 5.0, **cfg}
         config = Ros2Config(profile=prof, profile_overrides=overrides, keys=keys, camera=CAM,
                             transport_config={"zenoh": {"connect": [self.endpoint]}}, **cfg)
         return Ros2Robot(config)

@@ -128,7 +128,8 @@ def bench_standin_images(keys: str, scene: str, time_scale: float, camera_px: in
         p.close()
 
 
-def bench_sr(scene: str, episodes: int, keys: str, time_scale: float, policy: str, max_steps: int) -> list[dict]:
+def bench_sr(scene: str, episodes: int, keys: str, time_scale: float, policy: str, max_steps: int,
+             backends: tuple[str, ...] = ("sim", "ros2")) -> list[dict]:
     from evaluation.gateway_client import GatewayClient
     from evaluation.runner import EvalRunner, MapSource, RunConfig
     from services.robot_io.core import ROBOTS, generate_episodes
@@ -137,7 +138,7 @@ def bench_sr(scene: str, episodes: int, keys: str, time_scale: float, policy: st
         eps = generate_episodes(sim.scene, sim.nav, episodes, seed=7).episodes
         labels = {int(k): v for k, v in sim.scene.label_names.items()}
     rows = []
-    for backend in ("sim", "ros2"):
+    for backend in backends:
         run_dir = Path(tempfile.mkdtemp(prefix=f"ros2-sr-{backend}-"))
         env = {"ANT_ROBOT_CONFIG": json.dumps({"scene": scene}), "ANT_STORE_DIR": str(run_dir / "maps"),
                "ANT_DB_PATH": str(run_dir / "gateway.sqlite3")}
@@ -147,7 +148,7 @@ def bench_sr(scene: str, episodes: int, keys: str, time_scale: float, policy: st
             with GatewayClient.connect(launcher.gateway_url) as gw:
                 cfg = RunConfig(policy=policy, max_steps=max_steps, map_source=MapSource.CURATED, limit=episodes)
                 report = EvalRunner(gw, None, cfg, run_dir / "eval", label=backend, progress=False).run(eps, None)
-        row = {k: report.row.get(k) for k in ("sr", "spl", "ne_m", "osr", "ndtw", "episodes")}
+        row = {k: report.row.get(k) for k in ("count", "NE", "OSR", "SR", "SPL", "nDTW", "TL", "steps", "step_s")}
         rows.append({"backend": backend if backend == "sim" else f"ros2 ({keys}, stand-in x{time_scale:g})",
                      **row, "wall_s": time.monotonic() - t0})
     return rows
@@ -175,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--policy", default="heuristic")
     ap.add_argument("--max-steps", type=int, default=15)
     ap.add_argument("--keys", default="bridge,rmw_zenoh")
+    ap.add_argument("--backends", default="sim,ros2", help="sr: which robot backends")
     a = ap.parse_args(argv)
     what = a.what.split(",")
     keys = a.keys.split(",")
@@ -189,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
               flush=True)
     if "sr" in what:
         print("## SR: embedded simulator vs ros2 backend through the stand-in (curated cloud)\n")
-        print(table(bench_sr(a.scene, a.episodes, keys[0], a.time_scale, a.policy, a.max_steps)) + "\n", flush=True)
+        print(table(bench_sr(a.scene, a.episodes, keys[0], a.time_scale, a.policy, a.max_steps,
+                             tuple(a.backends.split(",")))) + "\n", flush=True)
     return 0
 
 

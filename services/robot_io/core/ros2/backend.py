@@ -562,8 +562,12 @@ class Ros2Robot(Robot):
                     dep = min(pairs, key=lambda x: abs(x[0] - t_c))[1]
                 sem = None
                 if with_semantic and p.semantic:
+                    # Labels of the same stamp: published after the colour, so they may still be on the way.
                     sp = [x for x in self._sem.all() if abs(x[0] - t_c) <= c.stamp_match_s]
-                    sem = min(sp, key=lambda x: abs(x[0] - t_c))[1] if sp else None
+                    if not sp:
+                        self.clock.sleep(0.02)
+                        continue
+                    sem = min(sp, key=lambda x: abs(x[0] - t_c))[1]
                 if self.clock.now() - t_c > c.max_data_age_s:
                     raise StaleDataError(f"{p.color} is stale ({self.clock.now() - t_c:.2f} s old)")
                 k = self._intrinsics()
