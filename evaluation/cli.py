@@ -19,7 +19,7 @@ from pathlib import Path
 from evaluation.errors import ConfigError, EvaluationError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, ResultsLog, markdown_table, summary_row, write_tables
-from evaluation.runner import RESULTS_FILE, EvalRunner, MapCache, MapSource, RunConfig, SceneLoader
+from evaluation.runner import RESULTS_FILE, EvalRunner, SceneMapIndex, MapSource, RunConfig, SceneLoader
 
 log = logging.getLogger("evaluation")
 
@@ -52,6 +52,7 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps", type=Path, help="map-id cache shared between runs (default: <out>/maps.json)")
     p.add_argument("--no-retry-errors", action="store_true", help="on resume, keep episodes that errored")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--record", action="store_true", help="record every mission (.rrd) into <out>/recordings/")
     _system_args(p)
 
 
@@ -87,7 +88,7 @@ def run_config(a: argparse.Namespace) -> RunConfig:
         anticipation_hfov_deg=a.hfov_deg, spatial_map=not a.no_spatial_map, map_source=MapSource(a.map_source),
         seed=a.seed, reference=a.reference, limit=a.limit, scenes_dir=a.scenes_dir,
         mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
-        exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors)
+        exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors, record=a.record)
 
 
 def load_episodes(a: argparse.Namespace):
@@ -129,7 +130,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     cfg = run_config(a)
     t0 = time.monotonic()
     with system(a, a.out) as (gateway, scenes):
-        cache = MapCache(a.maps or a.out / "maps.json")
+        cache = SceneMapIndex(a.maps or a.out / "maps.json")
         label = f"{cfg.policy}/{cfg.map_source.value}"
         report = EvalRunner(gateway, scenes, cfg, a.out, map_cache=cache, label=label,
                             progress=not a.no_progress).run(episodes, gt)
@@ -150,7 +151,7 @@ def cmd_preset(a: argparse.Namespace) -> int:
     base = run_config(a)
     t0 = time.monotonic()
     with system(a, a.out) as (gateway, scenes):
-        cache = MapCache(a.maps or a.out / "maps.json")
+        cache = SceneMapIndex(a.maps or a.out / "maps.json")
         for name in names:
             rep = run_preset(name, episodes, gt, base, a.out, gateway, scenes, map_cache=cache,
                              progress=not a.no_progress)

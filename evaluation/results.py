@@ -58,6 +58,7 @@ class EpisodeResult(BaseModel):
     cost_usd: float = 0.0
     wall_s: float = 0.0
     finished_at_s: float = 0.0
+    recording: str | None = None  # the mission's .rrd, relative to the run folder (runs with --record)
 
     def episode_metrics(self) -> EpisodeMetrics | None:
         return None if self.metrics is None else metrics_from_dict(self.metrics)
@@ -217,8 +218,3 @@ def write_tables(rows: Sequence[dict[str, Any]], stem: Path | str, columns: Sequ
 def skipped_report(results: Iterable[EpisodeResult]) -> list[tuple[str, str, str]]:
     """(episode id, scene, reason) of every skipped or errored episode."""
     return [(r.episode_id, r.scene_id, f"{r.status}: {r.reason}") for r in results if r.status != "done"]
-
-
-def load_json(path: Path | str) -> Any:
-    with open(path, encoding="utf-8") as f:
-        return json.load(f)
