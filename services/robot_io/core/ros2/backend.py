@@ -33,10 +33,9 @@ from pydantic import Field
 
 from shared.geometry import panorama_headings, wrap_angle
 from shared.registry import BackendConfig
-from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose
+from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
 from ..errors import RobotIOError
-from ..info import SceneInfo
 from ..robot import ROBOTS, FrameSink, Robot
 from . import messages as m
 from .keys import key_style
@@ -340,7 +339,7 @@ class Ros2Robot(Robot):
     def camera(self) -> CameraIntrinsics:
         return self.config.camera
 
-    def scene_info(self) -> SceneInfo:
+    def scene_info(self) -> SceneSummary:
         lo, hi = self.config.bounds_min_m, self.config.bounds_max_m
         area, cell = 0.0, 0.05
         mp = self._map.get()
@@ -352,9 +351,10 @@ class Ros2Robot(Robot):
             ox, oy = float(info.origin.position.x), float(info.origin.position.y)
             lo = (ox, oy, lo[2])
             hi = (ox + info.width * cell, oy + info.height * cell, hi[2])
-        return SceneInfo(name=f"ros2:{self.config.profile}", source=f"ROS 2 robot ({self.config.keys} keys)", floors=1,
-                         bounds_min_m=lo, bounds_max_m=hi, triangle_count=0, label_names=dict(self.config.label_names),
-                         rooms=[], objects=[], reachable_area_m2=area, nav_cell_m=cell, start_pose=None)
+        # A real robot knows its bounds (from the map when there is one) and its labels, nothing more.
+        return SceneSummary(scene=f"ros2:{self.config.profile}", source=f"ROS 2 robot ({self.config.keys} keys)",
+                            floors=1, bounds_min_m=lo, bounds_max_m=hi, reachable_area_m2=area, nav_cell_m=cell,
+                            label_names=dict(self.config.label_names))
 
     # --- motion ----------------------------------------------------------------------------------------------
     def _deadline(self, distance_m: float = 0.0, angle_rad: float = 0.0) -> float:
