@@ -407,6 +407,9 @@ class RenderRequest(Message):
     camera: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
     camera_height_m: float = Field(1.25, ge=0.0, le=3.0)
     with_labels: bool = True
+    # Each view stands on the map's floor under it nearest to its given z, within this range (a
+    # candidate on the stairs or another storey is seen from its own height); 0 keeps z as given.
+    floor_search_m: float = Field(1.5, ge=0.0, le=5.0)
 
 
 class RenderResult(Message):

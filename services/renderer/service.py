@@ -118,7 +118,7 @@ class RendererService(Service[RendererSettings]):
 
     def views(self, req: RenderRequest) -> RenderResult:
         return self._map(req.map_id, req.version).views(req.map_id, req.views, req.camera, req.with_labels,
-                                                         req.camera_height_m)
+                                                         req.camera_height_m, req.floor_search_m)
 
     def spatial_map(self, req: SpatialMapRequest) -> SpatialMapResult:
         return self._map(req.map_id, req.version).spatial_map(req.map_id, req.pose, req.trajectory_m, req.candidates,

@@ -37,9 +37,10 @@ from .regional import RegionalCloud
 log = logging.getLogger(__name__)
 
 # The forward render must not depend on the cloud's unknown scale: relative occlusion tolerance
-# only, and clip planes far outside any scale a network could produce.
+# only, and clip planes far outside any scale a network could produce. The paper's 3x3 splat:
+# the visibility mode's gap limits and tolerances are in metres, which this cloud does not have.
 _SCALE_FREE_SPLAT = {
-    "near_m": 1e-4, "far_m": 1e5, "depth_tolerance_m": 0.0, "depth_tolerance_rel": 0.05,
+    "mode": "paper", "near_m": 1e-4, "far_m": 1e5, "depth_tolerance_m": 0.0, "depth_tolerance_rel": 0.05,
     "lod_points_per_px": None,
 }
 

@@ -1,5 +1,6 @@
 """Renderer core: anticipated views and the spatial map from a coloured point cloud (no bus here)."""
 
+from services.renderer.core import visibility
 from services.renderer.core.cloud import IndexedCloud
 from services.renderer.core.errors import (
     BackendUnavailableError,
@@ -23,5 +24,5 @@ from services.renderer.core.splat import (
 __all__ = [
     "RENDERERS", "BackendUnavailableError", "IndexedCloud", "MapRenderer",
     "OccupancyGrid", "RenderedViews", "RendererError", "SpatialMapConfig",
-    "SpatialMapImage", "SpatialMapper", "SplatConfig", "SplatRenderer", "TorchSplatConfig",
+    "SpatialMapImage", "SpatialMapper", "SplatConfig", "SplatRenderer", "TorchSplatConfig", "visibility",
 ]

@@ -9,3 +9,7 @@ class RendererError(Exception):
 
 class BackendUnavailableError(RendererError):
     """A backend was asked for a device it cannot use (e.g. ``cuda`` without a GPU)."""
+
+
+class MapMismatchError(RendererError, LookupError):
+    """A map renderer bound to one map was asked for another."""

@@ -38,12 +38,14 @@ MAX_FRONT_POINTS = (1 << 21) // 255 - 1
 
 
 def _front_pass(
-    x, y, z, rgb_packed, run_starts, run_counts, proj, near, far, w, h, tol_rel1, tol_abs, with_labels,
+    x, y, z, rgb_packed, spacing, run_starts, run_counts, run_scale, proj, near, far, w, h, tol_rel1, tol_abs,
+    with_labels, with_spacing,
 ):
     """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
 
     Returns, per padded pixel plus one miss bin: the minimum depth (float32 (P,)), the front-layer
-    sums as float32 rows (7, P) (count, depth, r, g, b, u, v: what ``accumulate_front`` returns),
+    sums as float32 rows (8, P) (count, depth, r, g, b, u, v, and with ``with_spacing`` the sum of
+    ``spacing[p] * run_scale[r]``: what ``accumulate_front`` returns),
     the id of the nearest point (int64 (P,), largest id among ties, -1 where none), and whether
     some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid)."""
     wp = w + 2
@@ -98,11 +100,13 @@ def _front_pass(
     # Pass 2b, sums. Depth sums are float64 in point order, exactly as ``np.bincount`` adds; the
     # other sums are exact integers, packed so that a point touches two cache lines, not eight.
     s_z = np.zeros(npad + 1, np.float64)
+    s_sp = np.zeros(npad + 1 if with_spacing else 1, np.float64)
     acc = np.zeros((npad + 1, 4), np.int64)  # count, packed rgb, packed uv, nearest id
     acc[:, 3] = -1
     k = 0
     for r in range(run_counts.shape[0]):
         s = run_starts[r]
+        scale = run_scale[r]
         for p in range(s, s + run_counts[r]):
             t = q_of[k]
             zc = z_of[k]
@@ -110,6 +114,8 @@ def _front_pass(
             k += 1
             c = np.int64(rgb_packed[p])
             s_z[t] += np.float64(zc)
+            if with_spacing:
+                s_sp[t] += np.float64(spacing[p] * scale)
             acc[t, 0] += 1
             acc[t, 1] += (c & 0xFF) | (((c >> 8) & 0xFF) << 21) | ((c >> 16) << 42)
             acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
@@ -118,7 +124,7 @@ def _front_pass(
     overflow = False
     for i in range(npad):
         overflow |= acc[i, 0] > MAX_FRONT_POINTS
-    sums = np.empty((7, npad + 1), np.float32)
+    sums = np.zeros((8, npad + 1), np.float32)
     best = np.empty(npad + 1, np.int64)
     mask21 = (1 << 21) - 1
     mask32 = (1 << 32) - 1
@@ -132,6 +138,8 @@ def _front_pass(
         uv = acc[i, 2]
         sums[5, i] = uv & mask32
         sums[6, i] = (uv >> 32) & mask32
+        if with_spacing:
+            sums[7, i] = s_sp[i]
         best[i] = acc[i, 3]
     return zbuf, sums, best, overflow
 
@@ -209,11 +217,12 @@ def warm_up() -> float:
 
     t0 = time.perf_counter()
     xyz = np.zeros((1, 3), np.float32)
-    front_pass(
-        xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(1, np.int32), np.zeros(1, np.int64), np.ones(1, np.int64),
-        np.zeros(12, np.float32), np.float32(0.05), np.float32(20.0), 4, 4, np.float32(1.05), np.float32(0.1),
-        True,
-    )
+    for with_spacing in (False, True):
+        front_pass(
+            xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(1, np.int32), np.ones(1, np.float32), np.zeros(1, np.int64),
+            np.ones(1, np.int64), np.ones(1, np.float32), np.zeros(12, np.float32), np.float32(0.05),
+            np.float32(20.0), 4, 4, np.float32(1.05), np.float32(0.1), True, with_spacing,
+        )
     f32 = np.ones((3, 6, 6), np.float32)
     compose(
         np.ones((5, 6, 6), np.float32), f32, f32, f32[0], np.zeros((6, 6), np.int64), np.float32(1.05),

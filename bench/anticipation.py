@@ -1,0 +1,310 @@
+"""Anticipation fidelity benchmark (issue 20): anticipated views of agent-built maps against the
+simulator's ray-cast view at the same camera pose, for each renderer mode.
+
+    python -m bench.anticipation            # generated:0 rgbd map: 48 free poses, the candidates of
+                                            # 6 agent poses, speed at 1e6 points (~5 min, + 1 min
+                                            # per map built the first time)
+    python -m bench.anticipation --full     # + noisy rgbd, mono-sim, curated, 2-floor house, Replica
+
+Maps are built the way the system builds them: explore (frontier DFS, hubs, tours), recorded tours,
+then the reconstructor (``rgbd``, ``mono-sim``, or ``rgbd`` on a robot with sensor noise on); the
+"curated" cloud is the sampled mesh (evaluation/clouds.py). Built maps are cached under
+``runs/anticipation/maps`` (delete to rebuild).
+
+Views: random free poses, and the candidates the waypoint predictor proposes from random agent
+poses (facing away from the agent, at the candidate's own floor as the renderer places them).
+Each mode is scored twice: over every pixel the ray cast hits ("all"), and over the pixels whose
+true surface has a map point within 6 cm ("mapped": what any renderer can show; the rest of the
+house was never seen on the tours, and the "mapped %" column says how much that is).
+
+Metrics per view (means over views), grouped by the true depth straight ahead (median of the
+central 9x9 pixels):
+
+* leak: rendered depth > true depth + 0.25 m, over pixels valid in both (something behind the true
+  surface shows through);
+* holes: rendered hole where the ray cast hits a surface;
+* SSIM and PSNR of the RGB images (holes black, as the policy sees them);
+* label accuracy: rendered label == true label over pixels valid in both (labelled clouds only).
+
+Targets (issue 20, agent-built ``rgbd`` maps, every band): leak <= 1 %, holes <= 2 %, SSIM >= 0.80
+below 1 m and >= 0.85 beyond, label accuracy >= 95 %.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from skimage.metrics import structural_similarity
+
+from services.renderer.core import RENDERERS, IndexedCloud
+from shared.cloud import PointCloud
+from shared.geometry import PinholeCamera, camera_pose
+from shared.schemas import CameraIntrinsics
+
+ROOT = Path(__file__).resolve().parents[1]
+MAPS = ROOT / "runs" / "anticipation" / "maps"
+DATA = ROOT.parent / "shared" / "data"
+BANDS = (("< 1 m", 0.0, 1.0), ("1-2 m", 1.0, 2.0), ("> 2 m", 2.0, math.inf))
+LEAK_M = 0.25
+# A ray-cast pixel is "mapped" when its surface point has a map point this close: the rest of the
+# view was never seen on the tours, and no renderer can show it.
+MAPPED_M = 0.06
+# Noise of the "noisy rgbd" map: the reality gap of the robot's sensors (depth noise and holes,
+# odometry and heading drift).
+NOISY = {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05, "odometry_drift_per_m": 0.01,
+         "heading_drift_per_rad": 0.005}
+
+
+@dataclass
+class Scores:
+    coverage: list[float] = field(default_factory=list)
+    leak: list[float] = field(default_factory=list)
+    holes: list[float] = field(default_factory=list)
+    ssim: list[float] = field(default_factory=list)
+    psnr: list[float] = field(default_factory=list)
+    label: list[float] = field(default_factory=list)
+
+
+def build_map(spec: str, backend: str, noisy: bool = False, size_px: int = 128, rate_hz: float = 4.0):
+    """(robot, cloud): the simulator of ``spec`` and the map the system builds of it (cached).
+
+    ``size_px`` and ``rate_hz`` are the mapper service's defaults (tour_frame_px, tour_rate_hz)."""
+    from services.robot_io.core.robot import ROBOTS
+
+    cam = CameraIntrinsics(width_px=size_px, height_px=size_px)
+    robot_cfg = {"scene": spec, "camera": cam}
+    if noisy:
+        robot_cfg["noise"] = NOISY
+    name = f"{spec.replace(':', '_').replace('=', '-')}_{backend}{'_noisy' if noisy else ''}_{size_px}.ply"
+    path = MAPS / name
+    robot = ROBOTS.create("sim", robot_cfg)
+    if backend == "curated":
+        from evaluation.clouds import sample_scene_cloud
+
+        return robot, sample_scene_cloud(robot.scene)
+    if path.exists():
+        return robot, PointCloud.load(path)
+    from services.mapper.core import discover, execute_tours
+    from services.reconstructor.core import ReconstructionConfig, Reconstructor
+
+    t0 = time.perf_counter()
+    d = discover(robot)
+    recs = execute_tours(robot, d.tours, d.scene, rate_hz=rate_hz)
+    with Reconstructor(ReconstructionConfig(backend=backend)) as r:
+        cloud = r.build_from_recordings(recs, robot.scene.label_names).cloud
+    MAPS.mkdir(parents=True, exist_ok=True)
+    cloud.save(path)
+    print(f"   built {name}: {len(cloud)} points in {time.perf_counter() - t0:.0f} s")
+    return robot, cloud
+
+
+def free_poses(robot, n: int, seed: int) -> list[np.ndarray]:
+    """Camera poses at random navigable floor points, random headings, level."""
+    rng = np.random.default_rng(seed)
+    pts = robot.nav.sample_navigable(rng, n)
+    heads = rng.uniform(-math.pi, math.pi, len(pts))
+    return [camera_pose(p, float(h), 0.0, robot.config.camera_height_m) for p, h in zip(pts, heads)]
+
+
+def candidate_poses(robot, index: IndexedCloud, n_agents: int, seed: int) -> list[np.ndarray]:
+    """Camera poses at the candidates the waypoint predictor really proposes from random agent
+    poses, facing away from the agent, at the candidate's own floor (as the renderer places it)."""
+    from services.mapper.core import PREDICTORS, DEFAULT_PREDICTOR
+    from services.renderer.core import MapRenderer, SpatialMapper
+    from shared.schemas import Pose, ViewPose
+
+    predictor = PREDICTORS.create(DEFAULT_PREDICTOR)
+    port = MapRenderer(index, None, SpatialMapper())
+    rng = np.random.default_rng(seed)
+    poses = []
+    for p in robot.nav.sample_navigable(rng, n_agents):
+        robot.reset(Pose(position_m=tuple(float(v) for v in p), heading_rad=float(rng.uniform(-math.pi, math.pi))))
+        pano = robot.observe(CameraIntrinsics(width_px=96, height_px=96), with_semantic=False)
+        a = pano.pose.position_m
+        views = [ViewPose(position_m=(a[0] + c.dx_m, a[1] + c.dy_m, a[2]), heading_rad=math.atan2(c.dy_m, c.dx_m))
+                 for c in predictor.predict(pano)]
+        for v in port.on_floor(views, 1.5):
+            poses.append(camera_pose(v.position_m, v.heading_rad, 0.0, robot.config.camera_height_m))
+    return poses
+
+
+def depth_ahead(depth: np.ndarray) -> float:
+    h, w = depth.shape
+    c = depth[h // 2 - 4 : h // 2 + 5, w // 2 - 4 : w // 2 + 5]
+    c = c[c > 0]
+    return float(np.median(c)) if len(c) else math.inf
+
+
+class GroundTruth:
+    """Ray-cast views at the evaluation poses, and which of their pixels the map holds at all."""
+
+    def __init__(self, robot, cloud: PointCloud, poses, cam: PinholeCamera, mapped_m: float):
+        from scipy.spatial import cKDTree
+
+        self.out = robot.renderer.render(np.stack(poses), cam)
+        self.valid = np.isfinite(self.out.depth_m) & (self.out.depth_m > 0)
+        tree = cKDTree(cloud.xyz)
+        k_inv = np.linalg.inv(cam.matrix())
+        vv, uu = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
+        rays = np.stack([uu, vv, np.ones_like(uu)], -1).reshape(-1, 3) @ k_inv.T
+        self.mapped = np.zeros_like(self.valid)
+        for i, wfc in enumerate(poses):
+            d = np.where(self.valid[i], self.out.depth_m[i], 0).reshape(-1, 1)
+            pts = (rays * d) @ wfc[:3, :3].T + wfc[:3, 3]
+            sel = self.valid[i].ravel()
+            near, _ = tree.query(pts[sel], distance_upper_bound=mapped_m, workers=2)
+            m = np.zeros(len(sel), bool)
+            m[sel] = np.isfinite(near)
+            self.mapped[i] = m.reshape(self.valid[i].shape)
+
+
+def score(renderer, index: IndexedCloud, gt: GroundTruth, poses, cam: PinholeCamera,
+          mapped_only: bool) -> dict[str, Scores]:
+    """Per band; with ``mapped_only``, over the pixels whose true surface is in the map (what a
+    renderer can show), else over every pixel the ray cast hits."""
+    out = renderer.render_poses(index, poses, cam)
+    bands = {b[0]: Scores() for b in BANDS}
+    for i in range(len(poses)):
+        g_d, g_rgb = gt.out.depth_m[i], gt.out.rgb[i]
+        g_valid = gt.valid[i]
+        ahead = depth_ahead(np.where(g_valid, g_d, 0))
+        band = next(b[0] for b in BANDS if b[1] <= ahead < b[2])
+        s = bands[band]
+        s.coverage.append(float(gt.mapped[i].sum()) / max(int(g_valid.sum()), 1))
+        region = gt.mapped[i] if mapped_only else g_valid
+        r_valid = ~out.hole_mask[i]
+        both = region & r_valid
+        nb = max(int(both.sum()), 1)
+        s.leak.append(float((out.depth_m[i][both] > g_d[both] + LEAK_M).sum()) / nb)
+        s.holes.append(float((region & ~r_valid).sum()) / max(int(region.sum()), 1))
+        _, smap = structural_similarity(g_rgb, out.rgb[i], channel_axis=2, full=True)
+        smap = smap.mean(axis=2)
+        s.ssim.append(float(smap[region].mean()) if region.any() else float(smap.mean()))
+        if region.any():  # a view with no pixel of the region has no PSNR (not a perfect one)
+            diff = (g_rgb.astype(np.float64) - out.rgb[i])[region]
+            s.psnr.append(float(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-10))))
+        if out.labels is not None and gt.out.semantic is not None:
+            s.label.append(float((out.labels[i][both] == gt.out.semantic[i][both]).sum()) / nb)
+    return bands
+
+
+def _fmt(v: list[float], pct: bool) -> str:
+    if not v:
+        return "     -"
+    m = float(np.mean(v))
+    return f"{100 * m:6.1f}" if pct else f"{m:6.3f}"
+
+
+def report(title: str, rows: dict[str, dict[str, Scores]]) -> None:
+    print(f"\n== {title} ==")
+    print(f"{'mode':<10} {'pixels':<7} {'band':<6} {'views':>5} {'mapped%':>7} {'leak %':>7} {'p90':>6} "
+          f"{'holes %':>7} {'SSIM':>6} {'PSNR':>6} {'label %':>7}  targets")
+    for (mode, region), bands in rows.items():
+        for (band, s), (_, lo, _) in zip(bands.items(), BANDS):
+            if not s.leak:
+                continue
+            p90 = 100 * float(np.percentile(s.leak, 90))
+            ssim_target = 0.80 if lo < 1.0 else 0.85
+            met = (np.mean(s.leak) <= 0.01, np.mean(s.holes) <= 0.02, np.mean(s.ssim) >= ssim_target,
+                   not s.label or np.mean(s.label) >= 0.95)
+            flags = "".join("+" if m else "-" for m in met)
+            print(f"{mode:<10} {region:<7} {band:<6} {len(s.leak):>5} {_fmt(s.coverage, True):>7} "
+                  f"{_fmt(s.leak, True):>7} {p90:6.1f} {_fmt(s.holes, True):>7} {_fmt(s.ssim, False):>6} "
+                  f"{np.mean(s.psnr) if s.psnr else float('nan'):6.2f} {_fmt(s.label, True):>7}  {flags}")
+    print("targets: leak <= 1 %, holes <= 2 %, SSIM >= 0.80 (< 1 m) / 0.85, label >= 95 % ('+' met, '-' missed)")
+
+
+def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, noisy: bool = False,
+        seed: int = 7) -> None:
+    robot, cloud = build_map(spec, backend, noisy)
+    index = IndexedCloud(cloud)
+    cam = PinholeCamera(256, 256, 90.0)
+    sets = {"free poses": free_poses(robot, n_views, seed)}
+    if n_agents:
+        sets["candidates"] = candidate_poses(robot, index, n_agents, seed + 1)
+    for name, poses in sets.items():
+        gt = GroundTruth(robot, cloud, poses, cam, MAPPED_M)
+        rows = {}
+        for mode in modes:
+            renderer = RENDERERS.create("numpy", {"mode": mode})
+            renderer.warm_up()
+            for region in ("all", "mapped"):
+                rows[(mode, region)] = score(renderer, index, gt, poses, cam, region == "mapped")
+        report(f"{spec}, {backend}{' + sensor noise' if noisy else ''} map ({len(cloud)} points), "
+               f"{len(poses)} {name}, 256x256 HFOV 90", rows)
+
+
+def speed(modes: list[str], n_points: int, reps: int) -> None:
+    """Time per view of each mode against the one-pass floor, and global perception per step
+    (spatial map + 6 views), on the built flat (bench.renderer's cloud), one process."""
+    from bench.renderer import CAM, _floor_ms, _views
+    from services.renderer.core import SpatialMapper
+    from services.renderer.tools import scenes
+    from shared.geometry import rot_z
+    from shared.schemas import Candidate, Pose
+
+    cloud = scenes.sample_mesh(scenes.built_room(), n_points)
+    index = IndexedCloud(cloud)
+    floor = _floor_ms(cloud.xyz, rot_z(0.3).astype(np.float32))
+    views = _views(6)
+    mapper = SpatialMapper()
+    pose = Pose(position_m=(1.5, 3.0, 0.0), heading_rad=0.0)
+    cands = [Candidate(index=i, dx_m=v.position_m[0] - 1.5, dy_m=v.position_m[1] - 3.0) for i, v in enumerate(views)]
+    traj = np.array([[0.8, 2.0, 0.0], [1.2, 2.6, 0.0], [1.5, 3.0, 0.0]])
+    mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)
+    print(f"\n== speed, {n_points:.0e} points, 256x256 HFOV 90, numpy backend, 2 workers; floor (one pass over the "
+          f"cloud) {floor:.2f} ms ==")
+    print(f"{'mode':<10} {'view ms':>8} {'x floor':>8} {'step ms':>8}   (target: <= 3x floor, step <= 20 ms)")
+    for mode in modes:
+        r = RENDERERS.create("numpy", {"mode": mode})
+        r.warm_up()
+        t0 = time.perf_counter()
+        r.render(index, views[:1], CAM)  # per-map arrays (and the spacing of visibility) once per map
+        first_s = time.perf_counter() - t0
+        per_view, steps = [], []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            r.render(index, views, CAM)
+            per_view.append((time.perf_counter() - t0) / len(views))
+            t0 = time.perf_counter()
+            mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)
+            r.render(index, views, CAM)
+            steps.append(time.perf_counter() - t0)
+        v_ms, s_ms = 1e3 * float(np.median(per_view)), 1e3 * float(np.median(steps))
+        print(f"{mode:<10} {v_ms:>8.2f} {v_ms / floor:>8.2f} {s_ms:>8.1f}   (first render of the map {first_s:.2f} s)")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--full", action="store_true", help="every map kind, 2-floor house and Replica; more views")
+    ap.add_argument("--views", type=int, default=None, help="free poses per map (default 48, --full 96)")
+    ap.add_argument("--agents", type=int, default=None, help="agent poses whose candidates are rendered (6, --full 16)")
+    ap.add_argument("--modes", nargs="+", default=["paper", "visibility"])
+    ap.add_argument("--no-speed", action="store_true")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    views = args.views or (96 if args.full else 48)
+    agents = args.agents if args.agents is not None else (16 if args.full else 6)
+    run("generated:0", "rgbd", args.modes, views, agents)
+    if args.full:
+        run("generated:0", "rgbd", args.modes, views, agents, noisy=True)
+        run("generated:0", "mono-sim", args.modes, views, agents)
+        run("generated:0", "curated", args.modes, views, agents)
+        run("generated:1:floors=2", "rgbd", args.modes, views, agents)
+        replica = DATA / "replica_office0" / "office0_mesh.ply"
+        if replica.exists():
+            run(str(replica), "rgbd", args.modes, views, 0)
+        else:
+            print("(Replica office0 skipped: ../shared/data/replica_office0 not present)")
+    if not args.no_speed:
+        speed(args.modes, 1_000_000, reps=3 if args.full else 2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,132 @@
+"""The ``visibility`` mode: no room behind a near wall, no holes in it, no surface invented across a
+depth edge or a doorway, labels that follow the visible surface, and numpy == torch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.renderer.core import RENDERERS, IndexedCloud, visibility
+from shared.cloud import PointCloud
+from services.renderer.tools import scenes
+from shared.geometry import PinholeCamera
+from shared.schemas import ViewPose
+
+CAM = PinholeCamera(256, 256, 90.0)
+LEAK_M = 0.25  # as in bench.anticipation
+
+
+def _lattice(x_m: float, y_m: tuple[float, float], z_m: tuple[float, float], step_m: float, colour, label: int,
+             jitter_m: float = 0.003, seed: int = 0) -> PointCloud:
+    """A vertical wall at ``x = x_m`` sampled like an agent-built map: a voxel lattice of
+    ``step_m`` with a little jitter (the rgbd map of generated:0 has 2.6 cm median spacing)."""
+    ys = np.arange(y_m[0], y_m[1], step_m)
+    zs = np.arange(z_m[0], z_m[1], step_m)
+    yy, zz = np.meshgrid(ys, zs)
+    n = yy.size
+    rng = np.random.default_rng(seed)
+    xyz = np.column_stack([np.full(n, x_m), yy.ravel(), zz.ravel()]) + rng.normal(0, jitter_m, (n, 3))
+    return PointCloud(xyz, np.tile(np.array(colour, np.uint8), (n, 1)), np.full(n, label, np.int32),
+                      {0: "wall", 1: "next room"})
+
+
+def _wall_and_room(near_x_m: float) -> IndexedCloud:
+    near = _lattice(near_x_m, (-1.5, 1.5), (0.0, 2.6), 0.025, (200, 30, 30), 0)
+    room = _lattice(near_x_m + 3.0, (-4.0, 4.0), (0.0, 2.6), 0.025, (30, 30, 200), 1, seed=1)
+    return IndexedCloud(PointCloud.concatenate([near, room]))
+
+
+def _render(mode: str, index: IndexedCloud, backend: str = "numpy", **cfg):
+    extra = {"device": "cpu"} if backend == "torch" else {}
+    r = RENDERERS.create(backend, {"mode": mode, **extra, **cfg})
+    return r.render(index, [ViewPose(position_m=(0.0, 0.0, 0.0))], CAM)
+
+
+def _leak_and_holes(out, near_x_m: float) -> tuple[float, float]:
+    depth, hole = out.depth_m[0], out.hole_mask[0]
+    # Every pixel of this view sees the near wall (it spans +-71 deg horizontally at 0.5 m and the
+    # camera at 1.25 m sees 1.25 m down and 1.35 m up at most): true z-depth = near_x_m.
+    seen = ~hole
+    leak = float((depth[seen] > near_x_m + LEAK_M).mean())
+    return leak, float(hole.mean())
+
+
+def test_no_leak_at_a_wall_half_a_metre_away():
+    index = _wall_and_room(0.5)
+    leak, holes = _leak_and_holes(_render("visibility", index), 0.5)
+    assert leak <= 0.01, leak
+    assert holes <= 0.02, holes
+    # The paper's fixed 3x3 splat shows the next room through the gaps of the same wall: the
+    # assertions above fail for it (measured: leak 0.57, holes 0.48).
+    p_leak, p_holes = _leak_and_holes(_render("paper", index), 0.5)
+    assert p_leak > 0.2 and not (p_leak <= 0.01 and p_holes <= 0.02), (p_leak, p_holes)
+
+
+def test_labels_and_colour_follow_the_visible_wall():
+    out = _render("visibility", _wall_and_room(0.5))
+    seen = ~out.hole_mask[0]
+    assert (out.labels[0][seen] == 0).mean() > 0.99
+    assert (out.rgb[0][seen][:, 2] < 60).mean() > 0.99  # red wall, not the blue room behind
+
+
+def test_a_doorway_stays_open_and_edges_stay_sharp():
+    # A wall 2 m ahead with a 0.6 m doorway and nothing behind it: the doorway must stay a hole
+    # (no surface invented across it), and the wall's edge must not grow by more than a few px.
+    left = _lattice(2.0, (-3.0, -0.3), (0.0, 2.6), 0.03, (120, 120, 120), 0)
+    right = _lattice(2.0, (0.3, 3.0), (0.0, 2.6), 0.03, (120, 120, 120), 0, seed=2)
+    out = _render("visibility", IndexedCloud(PointCloud.concatenate([left, right])))
+    hole = out.hole_mask[0]
+    edge_px = 0.3 / 2.0 * CAM.fx  # the doorway spans +-19 px around the centre column
+    c = int(CAM.cx)
+    door = hole[60:200, c - int(edge_px) + 4 : c + int(edge_px) - 4]
+    assert door.all()
+    wall = hole[60:200, : c - int(edge_px) - 2]
+    assert wall.mean() < 0.02
+
+
+def test_a_near_object_does_not_spread_over_the_background():
+    # A 0.4 m square 1 m ahead in front of a wall 3 m ahead, both sparse: outside the square's
+    # silhouette (plus its footprint) the wall shows, at its own depth.
+    box = _lattice(1.0, (-0.2, 0.2), (1.05, 1.45), 0.02, (250, 250, 0), 0)
+    wall = _lattice(3.0, (-4.0, 4.0), (0.0, 2.6), 0.03, (0, 0, 250), 1, seed=3)
+    out = _render("visibility", IndexedCloud(PointCloud.concatenate([box, wall])))
+    depth, labels = out.depth_m[0], out.labels[0]
+    half_px = 0.2 / 1.0 * CAM.fx  # 25.6 px
+    c = int(CAM.cx)
+    inner = slice(c - int(half_px) + 3, c + int(half_px) - 3)
+    assert np.allclose(depth[inner, inner], 1.0, atol=0.03) and (labels[inner, inner] == 0).all()
+    margin = int(half_px) + 6  # the box's footprint is ~3 px at 1 m
+    ring = np.ones_like(depth, bool)
+    ring[c - margin : c + margin, c - margin : c + margin] = False
+    ring &= ~out.hole_mask[0]
+    assert (np.abs(depth[ring] - 3.0) < 0.3).mean() > 0.99 and (labels[ring] == 1).mean() > 0.99
+
+
+@pytest.mark.parametrize("scene", ["room", "wall"])
+def test_numpy_and_torch_agree_in_visibility_mode(room_index, scene):
+    """Tolerance: the front-layer sums are float64 in numpy and float32 in torch, so mean depths
+    differ in the last bits and a footprint radius or a depth test right at its threshold can
+    flip: at most 0.2 % of the pixels may differ in hole, label or colour (> 2 levels), and depth
+    agrees within 1 mm elsewhere."""
+    if scene == "room":
+        index = room_index
+        views = [ViewPose(position_m=pos, heading_rad=h, pitch_rad=p) for pos, h, p in scenes.room_view_poses(3, seed=5)]
+    else:
+        index = _wall_and_room(0.5)
+        views = [ViewPose(position_m=(0.0, 0.0, 0.0), heading_rad=h) for h in (0.0, 0.4)]
+    a = RENDERERS.create("numpy", {"mode": "visibility"}).render(index, views, CAM)
+    b = RENDERERS.create("torch", {"mode": "visibility", "device": "cpu"}).render(index, views, CAM)
+    n = a.hole_mask.size
+    assert (a.hole_mask != b.hole_mask).sum() <= 0.002 * n
+    both = ~a.hole_mask & ~b.hole_mask
+    assert (np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max(axis=-1)[both] > 2).sum() <= 0.002 * n
+    assert (a.labels[both] != b.labels[both]).sum() <= 0.002 * n
+    assert np.quantile(np.abs(a.depth_m[both] - b.depth_m[both]), 0.998) < 1e-3
+
+
+def test_point_spacing_follows_the_sampling():
+    coarse = _lattice(1.0, (0.0, 1.0), (0.0, 1.0), 0.04, (0, 0, 0), 0, jitter_m=0.0)
+    fine = _lattice(3.0, (0.0, 1.0), (0.0, 1.0), 0.01, (0, 0, 0), 0, jitter_m=0.0)
+    sp = visibility.point_spacing(np.concatenate([coarse.xyz, fine.xyz]))
+    assert np.median(sp[: len(coarse)]) == pytest.approx(0.04, rel=0.1)
+    assert np.median(sp[len(coarse) :]) == pytest.approx(0.01, rel=0.1)
