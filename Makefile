@@ -2,6 +2,9 @@
 PY := .venv/bin/python
 PYTEST := $(PY) -m pytest
 RENDERERS ?= 1
+# ROBOT=ros2: robot-io's ros2 backend against the ROS 2 stand-in robot, in ROS2_KEYS style (bridge | rmw_zenoh).
+ROBOT ?= sim
+ROS2_KEYS ?= bridge
 
 .PHONY: setup demo up test test-unit test-contract test-e2e bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
 
@@ -9,7 +12,7 @@ setup:
 	@bash deploy/bootstrap.sh
 
 demo: setup
-	$(PY) -m deploy.demo --renderers $(RENDERERS)
+	$(PY) -m deploy.demo --renderers $(RENDERERS) --robot $(ROBOT) --ros2-keys $(ROS2_KEYS)
 
 # The whole system until Ctrl-C: prints the dashboard URL and the API token (PORT=8080 SCENE=generated:0).
 PORT ?= 8080

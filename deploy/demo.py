@@ -19,7 +19,7 @@ from pathlib import Path
 
 import httpx
 
-from deploy.launcher import Launcher
+from deploy.launcher import Launcher, StandIn
 from shared.logs import configure_logging
 
 
@@ -33,6 +33,12 @@ def make_episode(scene: str, seed: int):
 
     with ROBOTS.create("sim", {"scene": scene}) as robot:
         return generate_episodes(robot.scene, robot.nav, 1, seed=seed).episodes[0]
+
+
+def ROBOTS_sim(scene: str):
+    from services.robot_io.core import ROBOTS
+
+    return ROBOTS.create("sim", {"scene": scene})
 
 
 def wait_job(http: httpx.Client, url: str, deadline_s: float, show) -> dict:
@@ -81,6 +87,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=3, help="episode seed")
     ap.add_argument("--renderers", type=int, default=1, help="renderer replicas")
     ap.add_argument("--policy", default="heuristic")
+    ap.add_argument("--robot", choices=["sim", "ros2"], default="sim",
+                    help="sim: the embedded simulator; ros2: the ros2 backend against the ROS 2 stand-in robot")
+    ap.add_argument("--ros2-keys", choices=["bridge", "rmw_zenoh"], default="bridge")
+    ap.add_argument("--time-scale", type=float, default=4.0, help="the ROS 2 stand-in's simulated/real time")
+    ap.add_argument("--max-steps", type=int, default=400, help="exploration budget (steps)")
+    ap.add_argument("--standin-config", default="{}", help="JSON: the ROS 2 stand-in's config (camera, rates, faults)")
+    ap.add_argument("--mission-steps", type=int, default=30, help="navigation budget (steps)")
     args = ap.parse_args(argv)
     configure_logging("demo", "local", "WARNING")
     run_dir = Path(args.run_dir).resolve()
@@ -90,8 +103,16 @@ def main(argv: list[str] | None = None) -> int:
         "ANT_STORE_DIR": str(run_dir / "maps"),
         "ANT_DB_PATH": str(run_dir / "gateway.sqlite3"),
     }
+    standin = None
+    if args.robot == "ros2":
+        with ROBOTS_sim(args.scene) as sim:
+            labels = {int(k): v for k, v in sim.scene.label_names.items()}
+        standin = StandIn(scene=args.scene, keys=args.ros2_keys, time_scale=args.time_scale, label_names=labels,
+                          standin_config=json.loads(args.standin_config))
+        say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys) against the ROS 2 stand-in robot "
+            f"(time scale {args.time_scale:g}); robot-io speaks only ROS 2 messages over zenoh")
     say(f"starting a zenoh router + 6 services (logs: {run_dir / 'logs'})")
-    launcher = Launcher(run_dir, replicas={"renderer": args.renderers}, extra_env=env)
+    launcher = Launcher(run_dir, replicas={"renderer": args.renderers}, extra_env=env, standin=standin)
     ok = False
     try:
         launcher.start(deadline_s=120)
@@ -103,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
 
             say(f"1/2 pre-exploring and reconstructing {args.scene} ...")
             t0 = time.time()
-            job = http.post("/explorations", json={"map_id": "demo-house"}).json()
+            job = http.post("/explorations", json={"map_id": "demo-house", "max_steps": args.max_steps}).json()
             rec = wait_job(http, job["url"], 600,
                            lambda r: f"  exploration {r['state']:<9} {r.get('stage') or '':<15} {r.get('message') or ''}")
             if rec["state"] != "succeeded":
@@ -115,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
             ep = make_episode(args.scene, args.seed)
             say(f"2/2 navigating: \"{ep.instruction}\"")
             options = {
-                "policy": args.policy, "max_steps": 30, "start_pose": ep.start_pose.model_dump(),
+                "policy": args.policy, "max_steps": args.mission_steps, "start_pose": ep.start_pose.model_dump(),
                 "goal_m": list(map(float, ep.goal_m)),
                 "reference_path_m": [list(map(float, p)) for p in ep.reference_path_m],
             }

@@ -7,6 +7,7 @@ SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -25,6 +26,39 @@ from shared.bus.zenoh_bus import ZenohBus
 log = logging.getLogger("launcher")
 
 SERVICES = ["robot_io", "mapper", "reconstructor", "renderer", "planner", "gateway"]
+
+# What the stand-in publishes beyond the generic profile, and the backend therefore reads: the
+# simulated clock (time scale), the teleport service (mission start poses), the map and labels.
+# The base is the embedded simulator's agent (radius 0.1 m, which VLN-CE's graphs and tours assume)
+# with a small safety margin, and it may turn faster than a Stretch: panoramas take less (simulated) time.
+STANDIN_PROFILE_OVERRIDES = {"clock": "/clock", "teleport_service": "/teleport", "map": "/map",
+                             "semantic": "/camera/semantic/image_raw", "max_angular_dps": 90.0,
+                             "angular_accel_dps2": 360.0, "base_radius_m": 0.1, "safety_distance_m": 0.05}
+
+
+@dataclass
+class StandIn:
+    """Run robot-io's ``ros2`` backend against the ROS 2 stand-in robot (``ROBOT=ros2``)."""
+
+    scene: str = "generated:0"
+    keys: str = "bridge"  # or rmw_zenoh
+    time_scale: float = 4.0
+    label_names: dict[int, str] = field(default_factory=dict)
+    standin_config: dict = field(default_factory=dict)
+
+    def argv(self, endpoint: str) -> list[str]:
+        cfg = {"time_scale": self.time_scale, **self.standin_config}
+        return [sys.executable, "-m", "services.robot_io.tools.ros2_robot", "--scene", self.scene, "--keys", self.keys,
+                "--connect", endpoint, "--profile-overrides", json.dumps(STANDIN_PROFILE_OVERRIDES),
+                "--config", json.dumps(cfg)]
+
+    def robot_env(self, endpoint: str) -> dict[str, str]:
+        config = {"profile": "generic", "profile_overrides": STANDIN_PROFILE_OVERRIDES, "keys": self.keys,
+                  "transport_config": {"zenoh": {"connect": [endpoint]}}, "connect_timeout_s": 120,
+                  # 0.5 s of wall time, in robot time (the stand-in runs time_scale times faster).
+                  "max_data_age_s": 0.5 * self.time_scale, "clock_timeout_s": 5.0,
+                  "label_names": self.label_names}
+        return {"ANT_ROBOT_BACKEND": "ros2", "ANT_ROBOT_CONFIG": json.dumps(config)}
 
 
 def free_port() -> int:
@@ -70,7 +104,7 @@ class Launcher:
     def __init__(self, run_dir: Path, *, replicas: dict[str, int] | None = None,
                  router_port: int | None = None, gateway_port: int | None = None,
                  extra_env: dict[str, str] | None = None, restart: bool = True,
-                 services: list[str] | None = None):
+                 services: list[str] | None = None, standin: StandIn | None = None):
         self.run_dir = Path(run_dir)
         self.router_port = router_port or free_port()
         self.gateway_port = gateway_port or free_port()
@@ -79,6 +113,7 @@ class Launcher:
         self.extra_env = extra_env or {}
         self.restart = restart
         self.services = services or SERVICES
+        self.standin = standin
         self.procs: list[Proc] = []
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
@@ -111,12 +146,19 @@ class Launcher:
         router.start()
         self.procs.append(router)
         wait_tcp(self.router_port, 20.0)
+        if self.standin is not None:
+            robot = Proc("ros2-robot", self.standin.argv(self.endpoint), self._env("ros2-robot"),
+                         self.run_dir / "logs" / "ros2-robot.log")
+            robot.start()
+            self.procs.append(robot)
         for name in self.services:
             for i in range(self.replicas.get(name, 1)):
                 argv = [py, "-m", f"services.{name}"]
                 env = self._env(f"{name.replace('_', '-')}-{i}")
                 if name == "gateway":
                     env["ANT_PORT"] = str(self.gateway_port)
+                if name == "robot_io" and self.standin is not None:
+                    env.update(self.standin.robot_env(self.endpoint))
                 proc = Proc(f"{name}-{i}", argv, env, self.run_dir / "logs" / f"{name}-{i}.log")
                 proc.start()
                 self.procs.append(proc)
@@ -179,9 +221,11 @@ class Launcher:
         codes: dict[str, int | None] = {}
         # Services first, the router last: their goodbyes (undeclarations, liveliness drops) still
         # reach their peers, and no session waits on a router that is already gone.
-        services = [p for p in self.procs if p.name != "router"]
+        # robot-io before the robot it drives: its last word to the robot is a zero Twist.
+        services = [p for p in self.procs if p.name not in ("router", "ros2-robot")]
+        robots = [p for p in self.procs if p.name == "ros2-robot"]
         routers = [p for p in self.procs if p.name == "router"]
-        for group in (services, routers):
+        for group in (services, robots, routers):
             for p in group:
                 p.stopping = True
                 if p.popen and p.popen.poll() is None:

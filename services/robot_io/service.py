@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from services.robot_io import ros2_zenoh  # noqa: F401  (registers the zenoh transport of the ros2 backend)
 from services.robot_io.core import ROBOTS, Robot, SceneError, SceneNotFoundError
 from shared.bus.typed import NotFound
 from shared import keys
@@ -87,6 +88,8 @@ class RobotIoService(Service[RobotIoSettings]):
         node.serve(keys.IO_LOAD_SCENE.format(robot=r), LoadSceneRequest, self.load_scene, workers=1)
 
     def stop(self) -> None:
+        # Before the lock: a motion in progress holds it, and a robot must stop now, not after it.
+        self.robot.halt()
         with self._lock:
             for ctx, _ in self._recordings.values():
                 ctx.__exit__(None, None, None)

@@ -16,14 +16,9 @@ Adding a backend (no other service changes; they only see the bus messages):
   with ``habitat_quaternion_to_heading``, once, inside the backend); ``move_to`` turns to
   ``atan2(dy, dx)`` and calls ``sim.step("move_forward")`` (0.25 m, navmesh sliding) until the
   waypoint or a collision; ``geodesic_distance`` / ``shortest_path`` map to ``sim.pathfinder``.
-* **ROS 2 robot via zenoh-bridge-ros2dds**: the bridge exposes ROS topics as zenoh keys
-  (``rt/<topic>``, CDR payloads). ``observe`` rotates in place with 12 ``cmd_vel`` turns (or reads a
-  360-degree camera rig) and grabs ``sensor_msgs/Image`` colour + aligned depth; ``pose`` comes from
-  ``/odom`` or ``tf`` (map -> base_link); ``move_to`` sends a Nav2 ``NavigateToPose`` goal (or a
-  ``cmd_vel`` controller with the same 0.25 m step semantics) and reports ``blocked`` on abort;
-  ``recording`` subscribes to the camera and IMU topics and forwards ``Frame``s with their stamps.
-  Geodesic queries are answered from the robot's own map (``nav_msgs/OccupancyGrid``) or raise
-  ``NotImplementedError``; the mapper falls back to its own graph.
+* **ROS 2 robot** (``"ros2"``, :mod:`services.robot_io.core.ros2.backend`): a real body over zenoh
+  (zenoh-bridge-ros2dds or rmw_zenoh keys), CDR through rosbags; closed-loop turns and drives on
+  odometry, deadlines, a zero Twist on every exit; profiles ``stretch`` and ``generic`` as data.
 
 Every backend must keep these semantics: world frame z-up, heading from +x towards +y, positive
 turns are left (counter-clockwise), panorama view i looks at ``heading - i * 30 deg``.
@@ -102,6 +97,10 @@ class Robot(ABC):
 
     def shortest_path(self, start_m, goal_m) -> np.ndarray | None:
         raise NotImplementedError(f"{type(self).__name__} has no map for path queries")
+
+    def halt(self) -> None:
+        """Stop any motion now, from any thread, even while a command runs (shutdown, SIGTERM).
+        The command in progress ends with an error. A simulator has nothing to stop."""
 
     def close(self) -> None:
         """Release the robot or simulator."""
@@ -395,3 +394,7 @@ class SimRobot(Robot):
 
     def shortest_path(self, start_m, goal_m) -> np.ndarray | None:
         return self.nav.shortest_path(start_m, goal_m)
+
+
+# The ROS 2 backend registers itself as "ros2" (its zenoh transport lives in services/robot_io/ros2_zenoh.py).
+from .ros2 import backend as _ros2_backend  # noqa: E402,F401

@@ -1,0 +1,721 @@
+"""The ``ros2`` robot backend: the Robot port on a real ROS 2 body, over zenoh, in pure Python.
+
+* ``observe``: turn in place through the 12 headings (closed loop on odometry yaw), settle, take
+  colour and depth matched by stamp, resample them to the requested pinhole camera with the
+  intrinsics from camera_info (a robot without depth gives views without depth).
+* ``move_to``: turn, then drive with a closed-loop controller on odometry under velocity and
+  acceleration limits; stop at the safety distance from obstacles seen in the scan or depth and
+  report ``blocked`` (also when odometry shows no progress: the base is pushing against something).
+* Every command has a deadline. A zero Twist is sent on every exit of a motion - done, timeout,
+  exception, ``close`` (shutdown, SIGTERM through the service runner) - so the robot is never left
+  moving. Odometry or camera data older than ``max_data_age_s`` is :class:`StaleDataError`.
+* ``reset`` needs the profile's teleport service; else :class:`ResetUnsupportedError`.
+* Geodesic queries come from the map topic when it is published, else NotImplementedError.
+
+Robot time is the clock topic when the profile has one (simulators, ``use_sim_time``), else wall
+time (a robot whose clock is synchronised with ours, as ROS 2 requires anyway).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from typing import Any
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from shared.geometry import panorama_headings, wrap_angle
+from shared.registry import BackendConfig
+from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
+
+from ..errors import RobotIOError
+from ..robot import ROBOTS, FrameSink, Robot
+from . import messages as m
+from .keys import key_style
+from .node import Received, Ros2Node
+from .profiles import Ros2Profile, profile
+from .transport import TRANSPORTS, Ros2Transport, TransportError
+
+log = logging.getLogger(__name__)
+
+
+class Ros2Error(RobotIOError):
+    """Base of the ros2 backend's typed errors."""
+
+
+class RobotUnavailableError(Ros2Error):
+    """The robot's topics did not appear (not connected, wrong key style, domain or namespace)."""
+
+
+class StaleDataError(Ros2Error):
+    """Odometry or camera data is older than allowed: the robot was stopped."""
+
+
+class DeadlineExceededError(Ros2Error, TimeoutError):
+    """A command did not finish within its deadline: the robot was stopped."""
+
+
+class RunStoppedError(Ros2Error):
+    """The robot's run-stop is pressed (or the safety stop was triggered)."""
+
+
+class ResetUnsupportedError(Ros2Error, ValueError):
+    """``reset`` needs a teleport service, which a real robot does not have."""
+
+
+class Ros2Config(BackendConfig):
+    """A ROS 2 robot over zenoh. ``profile`` names the topic set; ``profile_overrides`` edits it."""
+
+    profile: str = "generic"
+    profile_overrides: dict[str, Any] = Field(default_factory=dict)
+    keys: str = Field("bridge", pattern="^(bridge|rmw_zenoh)$")
+    domain_id: int = Field(0, ge=0, le=232)
+    namespace: str = ""
+    bridge_prefix: str = ""  # zenoh-bridge-ros2dds's own namespace option
+    node_name: str = "spatialant_robot_io"
+    transport: str = "zenoh"
+    transport_config: dict[str, Any] = Field(default_factory=dict)
+    views: int = Field(12, ge=1, le=72)
+    camera: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
+    connect_timeout_s: float = Field(20.0, gt=0.0, le=600.0)
+    max_data_age_s: float = Field(0.5, gt=0.0, le=60.0)  # robot time
+    clock_timeout_s: float = Field(2.0, gt=0.0, le=60.0)  # wall time without a clock message: the robot is gone
+    control_rate_hz: float = Field(20.0, ge=1.0, le=200.0)
+    yaw_tolerance_deg: float = Field(1.5, gt=0.0, le=20.0)
+    goal_tolerance_m: float = Field(0.1, gt=0.0, le=1.0)
+    settle_s: float = Field(0.3, ge=0.0, le=10.0)
+    stamp_match_s: float = Field(0.05, ge=0.0, le=1.0)  # colour/depth pairing tolerance
+    turn_gain: float = Field(2.0, gt=0.0, le=20.0)
+    stall_s: float = Field(1.5, gt=0.0, le=30.0)  # no progress this long while driving: blocked
+    command_deadline_s: float | None = Field(None, gt=0.0, description="fixed deadline; None: from distance and limits")
+    deadline_margin_s: float = Field(10.0, ge=0.0)
+    look_step_deg: float = Field(15.0, gt=0.0, le=90.0)
+    label_names: dict[int, str] = Field(default_factory=dict)
+    bounds_min_m: tuple[float, float, float] = (-50.0, -50.0, -1.0)
+    bounds_max_m: tuple[float, float, float] = (50.0, 50.0, 3.0)
+
+
+class _Latest:
+    """The newest message of a topic with its stamp (robot time) and receive time."""
+
+    def __init__(self, keep: int = 1):
+        self._q: deque = deque(maxlen=keep)
+        self.cond = threading.Condition()
+        self.count = 0
+
+    def put(self, stamp_s: float, msg: Any) -> None:
+        with self.cond:
+            self._q.append((stamp_s, msg))
+            self.count += 1
+            self.cond.notify_all()
+
+    def get(self) -> tuple[float, Any] | None:
+        with self.cond:
+            return self._q[-1] if self._q else None
+
+    def all(self) -> list[tuple[float, Any]]:
+        with self.cond:
+            return list(self._q)
+
+
+class RobotClock:
+    """Robot time: the newest clock-topic value, or wall time.
+
+    Simulated time is not extrapolated: a simulator that stalls (rendering on a busy CPU) stops its
+    own time, so its data is not stale in its own time. A clock that falls silent is caught by
+    :meth:`silence_s` instead (the robot or the link is gone)."""
+
+    def __init__(self, use_clock: bool):
+        self.use_clock = use_clock
+        self._last: tuple[float, float] | None = None  # (robot s, monotonic s)
+        self._rate = 1.0
+        self._hist: deque = deque(maxlen=50)
+        self._lock = threading.Lock()
+
+    def on_clock(self, t_s: float) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._hist.append((t_s, now))
+            (t0, w0), (t1, w1) = self._hist[0], self._hist[-1]
+            if w1 - w0 > 0.2 and t1 > t0:
+                self._rate = (t1 - t0) / (w1 - w0)
+            self._last = (t_s, now)
+
+    @property
+    def rate(self) -> float:
+        """Robot seconds per wall second (1 without a clock topic)."""
+        return self._rate if self.use_clock else 1.0
+
+    def now(self) -> float:
+        if not self.use_clock:
+            return time.time()
+        with self._lock:
+            return float("nan") if self._last is None else self._last[0]
+
+    def silence_s(self) -> float:
+        """Wall seconds since the last clock message (0 without a clock topic)."""
+        if not self.use_clock:
+            return 0.0
+        with self._lock:
+            return math.inf if self._last is None else time.monotonic() - self._last[1]
+
+    def sleep(self, robot_s: float) -> None:
+        time.sleep(max(0.0, robot_s) / max(self.rate, 1e-3))
+
+
+@ROBOTS.register("ros2", Ros2Config)
+class Ros2Robot(Robot):
+    """A ROS 2 robot; one body: the service serialises commands; ``safety_stop`` may come from any thread."""
+
+    def __init__(self, config: Ros2Config | None = None, transport: Ros2Transport | None = None):
+        self.config = c = config or Ros2Config()
+        self.profile: Ros2Profile = profile(c.profile, c.profile_overrides)
+        p = self.profile
+        self._owns_transport = transport is None
+        self.transport = transport or TRANSPORTS.create(c.transport, c.transport_config)
+        self.keys = key_style(c.keys, domain_id=c.domain_id, namespace=c.namespace, prefix=c.bridge_prefix)
+        self.node = Ros2Node(self.transport, self.keys, c.node_name)
+        self.clock = RobotClock(p.clock is not None)
+        self._odom, self._info, self._scan, self._imu = _Latest(), _Latest(), _Latest(), _Latest()
+        self._color, self._depth, self._sem = _Latest(keep=8), _Latest(keep=8), _Latest(keep=8)
+        self._map = _Latest()
+        self._run_stopped = False
+        self._safety_stopped = threading.Event()
+        self._closed = False
+        self.zero_twists_sent = 0
+        self.cmd_published = 0
+        self.control_ticks: list[float] = []  # monotonic time of each control tick (benchmarks)
+        self._next_tick: float | None = None
+        self._cmd = self.node.publisher(p.cmd_vel, m.MESSAGES["twist"])
+        n = self.node
+        if p.clock:
+            n.subscribe(p.clock, m.MESSAGES["clock"], lambda msg, _i: self.clock.on_clock(m.stamp_s(msg.clock)), max_queue=64)
+        n.subscribe(p.odom, m.MESSAGES["odometry"], self._stamped(self._odom), max_queue=64)
+        n.subscribe(p.camera_info, m.MESSAGES["camera_info"], self._stamped(self._info))
+        color_type = m.MESSAGES["compressed_image"] if p.color_encoding == "jpeg" else m.MESSAGES["image"]
+        n.subscribe(p.color, color_type, self._stamped(self._color))
+        if p.depth:
+            n.subscribe(p.depth, m.MESSAGES["image"], self._stamped(self._depth))
+        if p.semantic:
+            n.subscribe(p.semantic, m.MESSAGES["image"], self._stamped(self._sem))
+        if p.scan:
+            n.subscribe(p.scan, m.MESSAGES["scan"], self._stamped(self._scan))
+        if p.imu:
+            n.subscribe(p.imu, m.MESSAGES["imu"], self._stamped(self._imu), max_queue=64)
+        if p.map:
+            n.subscribe(p.map, m.MESSAGES["occupancy_grid"], self._stamped(self._map))
+        if p.run_stop:
+            n.subscribe(p.run_stop, m.MESSAGES["bool"], self._on_run_stop)
+        self._teleport = n.client(p.teleport_service, "turtlesim/srv/TeleportAbsolute") if p.teleport_service else None
+        self._sinks: list[tuple[FrameSink, float]] = []
+        self._frame_index = 0
+        self._rec_threads: list[tuple[threading.Event, threading.Thread]] = []
+        self._map_cache: tuple[float, Any] | None = None
+        try:
+            self._wait_ready()
+            if p.nav_mode_service:
+                resp = n.client(p.nav_mode_service, "std_srvs/srv/Trigger").call(m.new("std_srvs/srv/Trigger_Request"), 10.0)
+                if not resp.success:
+                    raise RobotUnavailableError(f"{p.nav_mode_service} refused: {resp.message}")
+        except BaseException:
+            self.close()
+            raise
+
+    # --- inputs ------------------------------------------------------------------------------------------
+    def _stamped(self, latest: _Latest):
+        def on(msg, _info: Received) -> None:
+            hdr = getattr(msg, "header", None)
+            latest.put(m.stamp_s(hdr.stamp) if hdr is not None else self.clock.now(), msg)
+        return on
+
+    def _on_run_stop(self, msg, _info) -> None:
+        self._run_stopped = bool(msg.data)
+        if self._run_stopped:
+            self._send_zero()
+
+    def _wait_ready(self) -> None:
+        end = time.monotonic() + self.config.connect_timeout_s
+        while time.monotonic() < end:
+            if self._odom.get() and self._info.get() and (not self.clock.use_clock or not math.isnan(self.clock.now())):
+                return
+            time.sleep(0.05)
+        missing = [t for t, l in ((self.profile.odom, self._odom), (self.profile.camera_info, self._info)) if not l.get()]
+        raise RobotUnavailableError(
+            f"no {' or '.join(missing) or self.profile.clock} from the robot within {self.config.connect_timeout_s:.0f} s "
+            f"(keys {self.config.keys}, domain {self.config.domain_id}, namespace {self.config.namespace!r})")
+
+    # --- safety --------------------------------------------------------------------------------------------
+    def _send_zero(self) -> None:
+        try:
+            self._cmd.publish(m.twist(0.0, 0.0))
+            self.zero_twists_sent += 1
+        except Exception:  # the link may be gone; nothing else can be done from here
+            log.exception("could not send the zero Twist")
+
+    def _send(self, v: float, w: float) -> None:
+        self._cmd.publish(m.twist(v, w))
+        self.cmd_published += 1
+
+    def safety_stop(self) -> None:
+        """Stop now and refuse motion until :meth:`clear_safety_stop` (callable from any thread)."""
+        self._safety_stopped.set()
+        self._send_zero()
+
+    def halt(self) -> None:
+        self.safety_stop()
+
+    def clear_safety_stop(self) -> None:
+        self._safety_stopped.clear()
+
+    @contextlib.contextmanager
+    def _motion(self, deadline_s: float, what: str) -> Iterator[float]:
+        """Every motion runs inside this: it checks the preconditions and sends a zero Twist on exit."""
+        if self._closed:
+            raise Ros2Error("the robot connection is closed")
+        self._check_safe()
+        end = self.clock.now() + deadline_s
+        try:
+            yield end
+        finally:
+            for _ in range(3):  # three: one lost sample must not leave the base moving
+                self._send_zero()
+
+    def _check_safe(self) -> None:
+        if self._run_stopped:
+            raise RunStoppedError("the run-stop is pressed")
+        if self._safety_stopped.is_set():
+            raise RunStoppedError("the safety stop is on")
+        if self._closed:
+            raise Ros2Error("the robot connection is closed")
+
+    def _fresh(self, latest: _Latest, topic: str) -> tuple[float, Any]:
+        silent = self.clock.silence_s()
+        if silent > self.config.clock_timeout_s:
+            raise StaleDataError(f"{topic} is stale: no {self.profile.clock} for {silent:.1f} s (the robot or the link is gone)")
+        got = latest.get()
+        now = self.clock.now()
+        if got is None or not (now - got[0] <= self.config.max_data_age_s):
+            age = "never received" if got is None else f"{now - got[0]:.2f} s old"
+            raise StaleDataError(f"{topic} is stale ({age}; allowed {self.config.max_data_age_s:.2f} s)")
+        return got
+
+    def _tick(self, end_s: float, what: str) -> None:
+        self._check_safe()
+        if self.clock.now() > end_s:
+            raise DeadlineExceededError(f"{what} did not finish within its deadline")
+        now = time.monotonic()
+        self.control_ticks.append(now)
+        if len(self.control_ticks) > 100_000:
+            del self.control_ticks[:50_000]
+        # A fixed rate, not a fixed pause: the loop's own work comes out of the period.
+        period = 1.0 / (self.config.control_rate_hz * max(self.clock.rate, 1e-3))
+        nxt = getattr(self, "_next_tick", None)
+        if nxt is None or now - nxt > period:  # first tick of a motion, or late: restart the schedule
+            nxt = now
+        self._next_tick = nxt + period
+        time.sleep(max(0.0, self._next_tick - now))
+
+    # --- state ---------------------------------------------------------------------------------------------
+    def _odom_pose(self, msg) -> Pose:
+        pp = msg.pose.pose
+        return Pose(position_m=(float(pp.position.x), float(pp.position.y), float(pp.position.z)),
+                    heading_rad=float(wrap_angle(m.yaw_from_quaternion(pp.orientation))))
+
+    @property
+    def pose(self) -> Pose:
+        got = self._odom.get()
+        if got is None:
+            raise StaleDataError(f"no {self.profile.odom} yet")
+        return self._odom_pose(got[1])
+
+    @property
+    def camera(self) -> CameraIntrinsics:
+        return self.config.camera
+
+    def scene_info(self) -> SceneSummary:
+        lo, hi = self.config.bounds_min_m, self.config.bounds_max_m
+        area, cell = 0.0, 0.05
+        mp = self._map.get()
+        if mp is not None:
+            info = mp[1].info
+            cell = float(info.resolution)
+            data = np.asarray(mp[1].data)
+            area = float(((data >= 0) & (data < 50)).sum()) * cell * cell
+            ox, oy = float(info.origin.position.x), float(info.origin.position.y)
+            lo = (ox, oy, lo[2])
+            hi = (ox + info.width * cell, oy + info.height * cell, hi[2])
+        # A real robot knows its bounds (from the map when there is one) and its labels, nothing more.
+        return SceneSummary(scene=f"ros2:{self.config.profile}", source=f"ROS 2 robot ({self.config.keys} keys)",
+                            floors=1, bounds_min_m=lo, bounds_max_m=hi, reachable_area_m2=area, nav_cell_m=cell,
+                            label_names=dict(self.config.label_names))
+
+    # --- motion ----------------------------------------------------------------------------------------------
+    def _deadline(self, distance_m: float = 0.0, angle_rad: float = 0.0) -> float:
+        c, p = self.config, self.profile
+        if c.command_deadline_s is not None:
+            return c.command_deadline_s
+        return (distance_m / p.max_linear_mps + math.degrees(abs(angle_rad)) / p.max_angular_dps) * 2.0 + c.settle_s + c.deadline_margin_s
+
+    def _rotate_to(self, heading_rad: float, end_s: float) -> None:
+        """Closed-loop turn on odometry yaw under the angular velocity and acceleration limits."""
+        c, p = self.config, self.profile
+        w_max, a_max = math.radians(p.max_angular_dps), math.radians(p.angular_accel_dps2)
+        dt = 1.0 / c.control_rate_hz
+        tol = math.radians(c.yaw_tolerance_deg)
+        w = 0.0
+        while True:
+            _, odo = self._fresh(self._odom, p.odom)
+            err = float(wrap_angle(heading_rad - self._odom_pose(odo).heading_rad))
+            if abs(err) <= tol:
+                break
+            # Speed that still stops in time (v^2 = 2 a d), P-control near the goal, then rate limits.
+            want = math.copysign(min(w_max, math.sqrt(2 * a_max * abs(err)), c.turn_gain * abs(err) + 0.05), err)
+            w = float(np.clip(want, w - a_max * dt, w + a_max * dt))
+            self._send(0.0, w)
+            self._tick(end_s, "turn")
+        self._send(0.0, 0.0)
+
+    def turn(self, angle_rad: float) -> Pose:
+        if not math.isfinite(angle_rad):
+            raise ValueError("turn angle must be finite")
+        with self._motion(self._deadline(0.0, angle_rad), "turn") as end:
+            start = self.pose.heading_rad
+            # Long turns go in steps of at most 120 deg: wrap_angle would pick the short way round.
+            n = max(1, int(math.ceil(abs(angle_rad) / math.radians(120))))
+            for k in range(1, n + 1):
+                self._rotate_to(start + angle_rad * k / n, end)
+        return self.pose
+
+    def _obstacle_ahead_m(self) -> float:
+        """Nearest obstacle in the driving corridor (scan, else depth); inf when nothing is seen."""
+        p = self.profile
+        best = math.inf
+        sc = self._scan.get()
+        if sc is not None:
+            s = sc[1]
+            r = np.asarray(s.ranges, np.float64)
+            a = s.angle_min + s.angle_increment * np.arange(len(r))
+            ok = np.isfinite(r) & (r >= s.range_min) & (r <= s.range_max)
+            x, y = r * np.cos(a), r * np.sin(a)
+            corridor = ok & (x > 0) & (np.abs(y) <= p.base_radius_m + 0.05)
+            if corridor.any():
+                best = min(best, float(x[corridor].min()) - p.base_radius_m)
+        dp = self._depth.get()
+        if dp is not None and sc is None:
+            d = self._depth_m(dp[1])
+            h, w = d.shape
+            band = d[h // 3: 2 * h // 3, w // 4: 3 * w // 4]
+            v = band[band > 0]
+            if v.size:
+                best = min(best, float(np.percentile(v, 2)) - p.base_radius_m)
+        return best
+
+    def move_to(self, dx_m: float, dy_m: float) -> MoveResult:
+        if not (math.isfinite(dx_m) and math.isfinite(dy_m)):
+            raise ValueError("move offset must be finite")
+        dist = math.hypot(dx_m, dy_m)
+        if dist < 1e-9:
+            return MoveResult(status=MoveStatus.REACHED, pose=self.pose, travelled_m=0.0, steps=0)
+        c, p = self.config, self.profile
+        with self._motion(self._deadline(dist, math.pi), "move_to") as end:
+            start = self.pose
+            target = np.array(start.position_m[:2]) + (dx_m, dy_m)
+            self._rotate_to(math.atan2(dy_m, dx_m), end)
+            dt = 1.0 / c.control_rate_hz
+            v = 0.0
+            travelled = 0.0
+            last_xy = np.array(self.pose.position_m[:2])
+            best_rem, best_t = math.inf, self.clock.now()
+            status = MoveStatus.BLOCKED
+            while True:
+                _, odo = self._fresh(self._odom, p.odom)
+                pose = self._odom_pose(odo)
+                xy = np.array(pose.position_m[:2])
+                travelled += float(np.linalg.norm(xy - last_xy))
+                last_xy = xy
+                rem_vec = target - xy
+                rem = float(np.linalg.norm(rem_vec))
+                if rem <= c.goal_tolerance_m:
+                    status = MoveStatus.REACHED
+                    break
+                bearing = math.atan2(rem_vec[1], rem_vec[0])
+                err = float(wrap_angle(bearing - pose.heading_rad))
+                if abs(err) > math.pi / 2:  # overshot: the goal is behind
+                    status = MoveStatus.REACHED if rem <= 2 * c.goal_tolerance_m else MoveStatus.BLOCKED
+                    break
+                clear = self._obstacle_ahead_m()
+                if clear <= p.safety_distance_m:
+                    status = MoveStatus.BLOCKED
+                    break
+                now = self.clock.now()
+                if rem < best_rem - 0.01:
+                    best_rem, best_t = rem, now
+                elif now - best_t > c.stall_s:
+                    status = MoveStatus.BLOCKED  # pushing without progress (a bump, a wall the scan missed)
+                    break
+                room = min(rem, clear - p.safety_distance_m)
+                want = min(p.max_linear_mps, math.sqrt(2 * p.linear_accel_mps2 * max(room, 0.0)) + 0.02)
+                want *= max(0.0, math.cos(err))
+                v = float(np.clip(want, v - p.linear_accel_mps2 * dt, v + p.linear_accel_mps2 * dt))
+                w = float(np.clip(c.turn_gain * err, -math.radians(p.max_angular_dps), math.radians(p.max_angular_dps)))
+                self._send(v, w)
+                self._tick(end, "move_to")
+            self._send(0.0, 0.0)
+        pose = self.pose
+        step = 0.25
+        return MoveResult(status=status, pose=pose, travelled_m=travelled, steps=max(1, int(math.ceil(travelled / step))))
+
+    def reset(self, pose: Pose | None = None) -> Pose:
+        if self._teleport is None:
+            raise ResetUnsupportedError(f"profile {self.config.profile!r} has no teleport service: a real robot "
+                                        "cannot be placed; drive it to the start instead")
+        if pose is None:
+            raise ResetUnsupportedError("a ROS 2 robot has no scene start pose: give the pose")
+        self._send_zero()
+        x, y, _ = pose.position_m
+        try:
+            self._teleport.call(m.new("turtlesim/srv/TeleportAbsolute_Request", x=float(x), y=float(y),
+                                      theta=float(pose.heading_rad)), 10.0)
+        except TransportError as exc:
+            raise Ros2Error(f"teleport failed: {exc}") from exc
+        # Wait for odometry that shows the new pose (stamped after the call).
+        t0 = self.clock.now()
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end:
+            got = self._odom.get()
+            if got and got[0] > t0:
+                return self._odom_pose(got[1])
+            time.sleep(0.02)
+        raise StaleDataError("no odometry after the teleport")
+
+    # --- perception ---------------------------------------------------------------------------------------------
+    def _depth_m(self, msg) -> np.ndarray:
+        a = m.image_array(msg)
+        if msg.encoding in ("16UC1", "mono16"):
+            d = a.astype(np.float32) * 0.001
+        elif msg.encoding == "32FC1":
+            d = np.where(np.isfinite(a), a, 0.0).astype(np.float32)
+        else:
+            raise m.CdrError(f"depth encoding {msg.encoding!r} is not 16UC1 or 32FC1")
+        return self._upright(d)
+
+    def _rgb(self, msg) -> np.ndarray:
+        if hasattr(msg, "format"):
+            return self._upright(m.compressed_rgb(msg))
+        a = m.image_array(msg)
+        if msg.encoding == "bgr8":
+            a = a[..., ::-1]
+        elif msg.encoding != "rgb8":
+            raise m.CdrError(f"colour encoding {msg.encoding!r} is not rgb8, bgr8 or JPEG")
+        return self._upright(a)
+
+    def _upright(self, a: np.ndarray) -> np.ndarray:
+        k = self.profile.camera_rotation_quarters
+        return np.ascontiguousarray(np.rot90(a, k)) if k else a
+
+    def _intrinsics(self) -> np.ndarray:
+        """The upright camera's K (camera_info is the sensor's own, before undoing the mounting)."""
+        info = self._info.get()[1]
+        k = np.asarray(info.k, np.float64).reshape(3, 3)
+        fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+        w, h = int(info.width), int(info.height)
+        q = self.profile.camera_rotation_quarters
+        for _ in range(q):  # np.rot90 (CCW): new x = y, new y = (w-1) - x
+            fx, fy, cx, cy, w, h = fy, fx, cy, (w - 1) - cx, h, w
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+
+    def _resample(self, img: np.ndarray, k_src: np.ndarray, cam: CameraIntrinsics, nearest: bool) -> np.ndarray:
+        """The same view through the requested pinhole (same optical centre and axis): a homography."""
+        k_dst = cam.pinhole()
+        f = cam.width_px / 2.0 / math.tan(math.radians(cam.hfov_deg) / 2.0)
+        kd = np.array([[f, 0, (cam.width_px - 1) / 2.0], [0, f, (cam.height_px - 1) / 2.0], [0, 0, 1]])
+        h = k_src @ np.linalg.inv(kd)
+        flags = (cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP
+        del k_dst
+        return cv2.warpPerspective(np.ascontiguousarray(img), h, (cam.width_px, cam.height_px), flags=flags,
+                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def _capture(self, after_s: float, cam: CameraIntrinsics, with_semantic: bool, deadline_s: float):
+        """Colour stamped after ``after_s`` with the depth (and labels) of the same stamp."""
+        p, c = self.profile, self.config
+        while True:
+            self._check_safe()
+            if self.clock.now() > deadline_s:
+                raise DeadlineExceededError("no camera frame after settling within the deadline")
+            self._fresh(self._odom, p.odom)
+            col = [x for x in self._color.all() if x[0] >= after_s]
+            if col:
+                t_c, cmsg = col[-1]
+                dep = None
+                if p.depth:
+                    pairs = [x for x in self._depth.all() if abs(x[0] - t_c) <= c.stamp_match_s]
+                    if not pairs:
+                        self.clock.sleep(0.02)
+                        continue
+                    dep = min(pairs, key=lambda x: abs(x[0] - t_c))[1]
+                sem = None
+                if with_semantic and p.semantic:
+                    # Labels of the same stamp: published after the colour, so they may still be on the way.
+                    sp = [x for x in self._sem.all() if abs(x[0] - t_c) <= c.stamp_match_s]
+                    if not sp:
+                        self.clock.sleep(0.02)
+                        continue
+                    sem = min(sp, key=lambda x: abs(x[0] - t_c))[1]
+                if self.clock.now() - t_c > c.max_data_age_s:
+                    raise StaleDataError(f"{p.color} is stale ({self.clock.now() - t_c:.2f} s old)")
+                k = self._intrinsics()
+                rgb = self._resample(self._rgb(cmsg), k, cam, nearest=False)
+                depth = (self._resample(self._depth_m(dep), k, cam, nearest=True) if dep is not None
+                         else np.zeros((cam.height_px, cam.width_px), np.float32))
+                labels = None
+                if sem is not None:
+                    raw = self._upright(m.image_array(sem).astype(np.int32))
+                    labels = self._resample(raw + 1, k, cam, nearest=True).astype(np.int32) - 1  # border: -1
+                return t_c, rgb, depth, labels
+            self.clock.sleep(0.02)
+
+    def observe(self, camera: CameraIntrinsics | None = None, with_semantic: bool = True) -> Panorama:
+        cam = camera or self.config.camera
+        c = self.config
+        views = c.views
+        with self._motion(self._deadline(0.0, 2 * math.pi) + views * (c.settle_s + 1.0), "observe") as end:
+            start = self.pose
+            targets = panorama_headings(start.heading_rad, views)
+            rgbs, depths, sems, heads = [], [], [], []
+            t_first = None
+            for h in targets:
+                self._rotate_to(float(h), end)
+                self.clock.sleep(c.settle_s)
+                t, rgb, depth, sem = self._capture(self.clock.now(), cam, with_semantic, end)
+                t_first = t if t_first is None else t_first
+                rgbs.append(rgb)
+                depths.append(depth)
+                sems.append(sem)
+                heads.append(self.pose.heading_rad)
+            self._rotate_to(start.heading_rad, end)
+        have_sem = with_semantic and all(s is not None for s in sems)
+        # Reported headings are the targets (like the simulator's): the closed loop holds them to
+        # within yaw_tolerance_deg, and the mapper's geometry assumes the 30-degree layout.
+        return Panorama(pose=start, camera=cam, headings_rad=np.asarray(targets, np.float64), rgb=np.stack(rgbs),
+                        depth_m=np.stack(depths).astype(np.float32), semantic=np.stack(sems) if have_sem else None,
+                        timestamp_s=float(t_first or 0.0))
+
+    def _frame(self, pitch_rad: float = 0.0) -> Frame | None:
+        cam = self.config.camera
+        got = self._color.get()
+        if got is None or self._odom.get() is None:
+            return None
+        t_c, cmsg = got
+        k = self._intrinsics()
+        dep = None
+        if self.profile.depth:
+            pairs = [x for x in self._depth.all() if abs(x[0] - t_c) <= self.config.stamp_match_s]
+            dep = min(pairs, key=lambda x: abs(x[0] - t_c))[1] if pairs else None
+        sem = None
+        if self.profile.semantic:
+            sp = [x for x in self._sem.all() if abs(x[0] - t_c) <= self.config.stamp_match_s]
+            if sp:
+                raw = self._upright(m.image_array(sp[-1][1]).astype(np.int32))
+                sem = self._resample(raw + 1, k, cam, nearest=True).astype(np.int32) - 1
+        imu = self._imu.get()
+        pose = self._pose_at(t_c)
+        frame = Frame(index=self._frame_index, timestamp_s=t_c, pose=pose, pitch_rad=pitch_rad,
+                      imu_heading_rad=float(m.yaw_from_quaternion(imu[1].orientation)) if imu else pose.heading_rad,
+                      camera=cam, rgb=self._resample(self._rgb(cmsg), k, cam, nearest=False),
+                      depth_m=None if dep is None else self._resample(self._depth_m(dep), k, cam, nearest=True),
+                      semantic=sem)
+        self._frame_index += 1
+        return frame
+
+    def _pose_at(self, t_s: float) -> Pose:
+        return self.pose  # the newest odometry; at 20+ Hz odometry it is within one period of the image
+
+    def look_around(self) -> list[Frame]:
+        """Yaw sweep 0 -> +60 -> -60 -> 0 with the base (the head's tilt is not driven): a frame per step."""
+        c = self.config
+        frames: list[Frame] = []
+        with self._motion(self._deadline(0.0, math.radians(240)) + 30.0, "look_around") as end:
+            h0 = self.pose.heading_rad
+            step = math.radians(c.look_step_deg)
+            path = [0.0]
+            for a, b in ((0.0, math.radians(60)), (math.radians(60), -math.radians(60)), (-math.radians(60), 0.0)):
+                n = max(1, int(round(abs(b - a) / step)))
+                path += [a + (b - a) * k / n for k in range(1, n + 1)]
+            for yaw in path:
+                self._rotate_to(h0 + yaw, end)
+                self.clock.sleep(c.settle_s)
+                t0 = self.clock.now()
+                self._capture(t0, c.camera, True, end)  # waits for a frame taken after settling
+                f = self._frame()
+                if f is not None:
+                    frames.append(f)
+                    for sink, _ in self._sinks:
+                        sink(f)
+        return frames
+
+    @contextlib.contextmanager
+    def recording(self, sink: FrameSink, rate_hz: float = 10.0) -> Iterator[None]:
+        """Frames at ``rate_hz`` of robot time from the newest colour/depth, odometry and IMU."""
+        if not rate_hz > 0:
+            raise RobotIOError(f"rate_hz must be positive, got {rate_hz}")
+        stop = threading.Event()
+        entry = (sink, float(rate_hz))
+
+        def run():
+            last_stamp = None
+            while not stop.is_set():
+                try:
+                    got = self._color.get()
+                    if got is not None and got[0] != last_stamp:
+                        f = self._frame()
+                        if f is not None:
+                            last_stamp = got[0]
+                            sink(f)
+                except Exception:
+                    log.exception("recording frame failed")
+                self.clock.sleep(1.0 / rate_hz)
+
+        th = threading.Thread(target=run, name="ros2-recording", daemon=True)
+        self._sinks.append(entry)
+        th.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            th.join(5.0)
+            self._sinks.remove(entry)
+
+    # --- maps --------------------------------------------------------------------------------------------------
+    def _grid(self):
+        got = self._map.get()
+        if got is None:
+            raise NotImplementedError(f"no {self.profile.map or 'map topic'} published: no geodesic queries")
+        if self._map_cache is None or self._map_cache[0] != got[0]:
+            from .occupancy import OccupancyPlanner
+
+            self._map_cache = (got[0], OccupancyPlanner.from_msg(got[1], self.profile.base_radius_m))
+        return self._map_cache[1]
+
+    def geodesic_distance(self, start_m, goal_m) -> float:
+        return self._grid().distance(start_m, goal_m)
+
+    def shortest_path(self, start_m, goal_m) -> np.ndarray | None:
+        return self._grid().path(start_m, goal_m)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for _ in range(3):
+            self._send_zero()
+        time.sleep(0.05)  # let the zero Twists leave before the session goes
+        self.node.close()
+        if self._owns_transport:
+            self.transport.close()

@@ -1,0 +1,113 @@
+"""Robot profiles: which ROS 2 topics, encodings, frames, services and limits a robot has. Data only.
+
+The ``ros2`` backend and the stand-in robot both read a profile, so the stand-in publishes exactly
+what the backend expects from the real robot. A profile is chosen by name and may be overridden
+field by field from config (``{"profile": "generic", "profile_overrides": {"odom": "/wheel/odom"}}``).
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Any
+
+from pydantic import Field, field_validator
+
+from shared.registry import BackendConfig
+
+from ..errors import RobotIOError
+
+
+class ColorEncoding(StrEnum):
+    RGB8 = "rgb8"
+    BGR8 = "bgr8"
+    JPEG = "jpeg"  # sensor_msgs/CompressedImage
+
+
+class DepthEncoding(StrEnum):
+    MM_16UC1 = "16UC1"  # millimetres (RealSense, Stretch)
+    M_32FC1 = "32FC1"  # metres
+
+
+class Ros2Profile(BackendConfig):
+    """Topic names (absolute, or relative to the namespace), encodings, frames, services and limits.
+
+    A topic set to ``None`` is absent on this robot (no depth: views without depth; no scan: depth
+    alone guards motion; no map: geodesic queries are NotImplemented; no clock: wall time)."""
+
+    description: str = ""
+    cmd_vel: str = "/cmd_vel"
+    odom: str = "/odom"
+    color: str = "/camera/color/image_raw"
+    color_encoding: ColorEncoding = ColorEncoding.RGB8
+    camera_info: str = "/camera/color/camera_info"
+    depth: str | None = "/camera/depth/image_raw"
+    depth_encoding: DepthEncoding = DepthEncoding.M_32FC1
+    semantic: str | None = None  # 32SC1 class ids (simulators); real cameras have none
+    scan: str | None = "/scan"
+    imu: str | None = None
+    map: str | None = None  # nav_msgs/OccupancyGrid
+    tf: str | None = "/tf"
+    clock: str | None = None  # rosgraph_msgs/Clock (use_sim_time); None: stamps are wall time
+    run_stop: str | None = None  # std_msgs/Bool, true while the run-stop is pressed
+    nav_mode_service: str | None = None  # std_srvs/Trigger called once on connect
+    teleport_service: str | None = None  # turtlesim/TeleportAbsolute (simulators only)
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    camera_frame: str = "camera_color_optical_frame"
+    # The camera's mounting roll, in quarter turns counter-clockwise of the image as it arrives
+    # relative to upright (Stretch's head D435i is mounted on its side: its images arrive rotated).
+    camera_rotation_quarters: int = Field(0, ge=0, le=3)
+    camera_height_m: float = Field(1.25, gt=0.0, le=3.0)
+    max_linear_mps: float = Field(0.3, gt=0.0, le=2.0)
+    max_angular_dps: float = Field(45.0, gt=0.0, le=360.0)
+    linear_accel_mps2: float = Field(0.5, gt=0.0, le=10.0)
+    angular_accel_dps2: float = Field(120.0, gt=0.0, le=2000.0)
+    safety_distance_m: float = Field(0.3, ge=0.05, le=3.0)
+    base_radius_m: float = Field(0.17, gt=0.0, le=1.0)
+
+    @field_validator("cmd_vel", "odom", "color", "camera_info")
+    @classmethod
+    def _required(cls, v: str) -> str:
+        if not v or not v.strip("/"):
+            raise ValueError("this topic is required")
+        return v
+
+
+PROFILES: dict[str, Ros2Profile] = {
+    "stretch": Ros2Profile(
+        description="Hello Robot Stretch (stretch_ros2 driver in navigation mode, D435i head camera, RPLidar)",
+        cmd_vel="/stretch/cmd_vel",
+        odom="/odom",
+        color="/camera/color/image_raw",
+        camera_info="/camera/color/camera_info",
+        depth="/camera/aligned_depth_to_color/image_raw",
+        depth_encoding=DepthEncoding.MM_16UC1,
+        scan="/scan",
+        imu="/imu_mobile_base",
+        map="/map",
+        run_stop="/is_runstopped",
+        nav_mode_service="/switch_to_navigation_mode",
+        camera_rotation_quarters=1,
+        camera_height_m=1.29,
+        max_linear_mps=0.3,
+        max_angular_dps=45.0,
+        safety_distance_m=0.3,
+        base_radius_m=0.17,
+    ),
+    "generic": Ros2Profile(description="any ROS 2 base: every topic, encoding and frame configurable"),
+}
+
+
+class UnknownProfileError(RobotIOError, ValueError):
+    pass
+
+
+def profile(name: str, overrides: dict[str, Any] | None = None) -> Ros2Profile:
+    """The named profile with ``overrides`` applied (validated like the profile itself)."""
+    try:
+        base = PROFILES[name]
+    except KeyError:
+        raise UnknownProfileError(f"unknown robot profile {name!r}; known: {', '.join(sorted(PROFILES))}") from None
+    if not overrides:
+        return base
+    return Ros2Profile.model_validate({**base.model_dump(), **overrides})

@@ -1,0 +1,143 @@
+"""The zenoh adapter of the ROS 2 transport port (``core/ros2/transport.py``).
+
+Registered as transport ``zenoh``; importing this module is what makes the ``ros2`` robot backend
+usable (the service and the stand-in import it). One zenoh session per robot connection, built by
+the one config builder (``shared.bus.config.zenoh_config``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import zenoh
+from pydantic import Field
+
+from services.robot_io.core.ros2.transport import (
+    TRANSPORTS, QueryHandler, Ros2Transport, SampleHandler, TransportConfig, TransportError,
+)
+from shared.bus.base import Dispatcher, Overloaded
+from shared.bus.config import ZenohSettings, zenoh_config
+
+log = logging.getLogger(__name__)
+
+
+class ZenohTransportConfig(TransportConfig):
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to reach the robot's zenoh network")
+
+
+class _Closer:
+    def __init__(self, *fns):
+        self._fns, self._lock, self._done = fns, threading.Lock(), False
+
+    def close(self) -> None:
+        with self._lock:
+            if self._done:
+                return
+            self._done = True
+        for fn in self._fns:
+            try:
+                fn()
+            except Exception:
+                log.debug("undeclare failed", exc_info=True)
+
+
+class _Pub:
+    def __init__(self, pub):
+        self._pub = pub
+
+    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+        if attachment is None:
+            self._pub.put(payload)
+        else:
+            self._pub.put(payload, attachment=attachment)
+
+    def close(self) -> None:
+        try:
+            self._pub.undeclare()
+        except Exception:
+            pass
+
+
+@TRANSPORTS.register("zenoh", ZenohTransportConfig)
+class ZenohRos2Transport(Ros2Transport):
+    def __init__(self, config: ZenohTransportConfig | None = None, *, session: zenoh.Session | None = None):
+        self.config = config or ZenohTransportConfig()
+        self.session = session or zenoh.open(zenoh_config(self.config.zenoh))
+        self._owns_session = session is None
+        self._sid = str(self.session.info.zid())
+
+    @property
+    def session_id(self) -> str:
+        return self._sid
+
+    def publisher(self, key: str, *, reliable: bool = True):
+        # DROP, not BLOCK: a stalled robot link must never block the control loop's stop command.
+        return _Pub(self.session.declare_publisher(
+            key, congestion_control=zenoh.CongestionControl.DROP,
+            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT))
+
+    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 8):
+        disp = Dispatcher(f"ros2:{key}", 1, max_queue)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            payload = sample.payload.to_bytes()
+            att = sample.attachment.to_bytes() if sample.attachment is not None else None
+            try:
+                disp.submit(lambda: handler(payload, att))
+            except Overloaded:
+                pass  # sensor streams: the newest sample is dropped while the worker is behind
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        return _Closer(sub.undeclare, disp.close)
+
+    def query(self, key: str, payload: bytes, attachment: bytes | None, timeout_s: float):
+        kwargs = {"payload": payload, "timeout": timeout_s, "target": zenoh.QueryTarget.ALL_COMPLETE}
+        if attachment is not None:
+            kwargs["attachment"] = attachment
+        for r in self.session.get(key, **kwargs):
+            if r.ok is not None:
+                att = r.ok.attachment.to_bytes() if r.ok.attachment is not None else None
+                return r.ok.payload.to_bytes(), att
+            raise TransportError(f"{key}: {r.err.payload.to_string()}")
+        raise TransportError(f"no reply on {key} within {timeout_s:.1f} s")
+
+    def serve(self, key: str, handler: QueryHandler):
+        disp = Dispatcher(f"ros2-srv:{key}", 1, 16)
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            att = query.attachment.to_bytes() if query.attachment is not None else None
+
+            def job():
+                try:
+                    out, ratt = handler(payload, att)
+                    if ratt is None:
+                        query.reply(key, out)
+                    else:
+                        query.reply(key, out, attachment=ratt)
+                except Exception as exc:
+                    log.warning("service %s failed: %s", key, exc)
+                    query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+                finally:
+                    query.drop()
+
+            try:
+                disp.submit(job)
+            except Overloaded:
+                query.reply_err(b"overloaded")
+                query.drop()
+
+        q = self.session.declare_queryable(key, on_query, complete=True)
+        return _Closer(q.undeclare, disp.close)
+
+    def token(self, key: str):
+        tok = self.session.liveliness().declare_token(key)
+        return _Closer(tok.undeclare)
+
+    def close(self) -> None:
+        if self._owns_session:
+            try:
+                self.session.close()
+            except Exception:
+                log.debug("session close failed", exc_info=True)

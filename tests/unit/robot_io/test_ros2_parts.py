@@ -1,0 +1,53 @@
+"""Pieces of the ros2 backend that need no robot: map geodesics, robot time, intrinsics resampling."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from services.robot_io.core.ros2 import messages as m
+from services.robot_io.core.ros2.backend import RobotClock
+from services.robot_io.core.ros2.occupancy import OccupancyPlanner
+
+
+def _map_with_a_door():
+    grid = np.zeros((40, 60), np.int8)  # 0.1 m cells: 6 m x 4 m
+    grid[:, 30] = 100  # a wall at x = 3.0 m ...
+    grid[30:34, 30] = 0  # ... with a door at y = 3.0-3.4 m
+    return m.decode(m.MESSAGES["occupancy_grid"], m.encode(m.MESSAGES["occupancy_grid"],
+                    m.occupancy_grid(0.0, "map", grid, 0.1, (0.0, 0.0))))
+
+
+def test_geodesic_on_the_map_goes_through_the_door():
+    planner = OccupancyPlanner.from_msg(_map_with_a_door())
+    a, b = (1.05, 1.05, 0.0), (5.05, 1.05, 0.0)
+    d = planner.distance(a, b)
+    through_door = math.hypot(3.0 - 1.05, 3.2 - 1.05) + math.hypot(5.05 - 3.0, 3.2 - 1.05)
+    assert through_door - 0.3 < d < through_door * 1.15
+    path = planner.path(a, b)
+    assert path is not None and np.min(np.abs(path[:, 0] - 3.05)) < 0.1
+    assert np.any((np.abs(path[:, 0] - 3.05) < 0.06) & (path[:, 1] > 2.9) & (path[:, 1] < 3.5))
+
+
+def test_a_robot_wider_than_the_door_has_no_path():
+    planner = OccupancyPlanner.from_msg(_map_with_a_door(), robot_radius_m=0.3)
+    assert math.isinf(planner.distance((1.05, 1.05, 0), (5.05, 1.05, 0)))
+    assert planner.path((1.05, 1.05, 0), (5.05, 1.05, 0)) is None
+
+
+def test_robot_time_is_the_clock_topic_without_extrapolation_and_silence_is_measured():
+    c = RobotClock(use_clock=True)
+    assert math.isnan(c.now()) and math.isinf(c.silence_s())
+    t0 = time.monotonic()
+    for k in range(30):  # a simulator at 4x real time
+        c.on_clock(100.0 + 0.04 * k)
+        time.sleep(0.01)
+    assert c.now() == 100.0 + 0.04 * 29
+    assert 2.0 < c.rate < 4.5  # sleep() jitter only slows it
+    time.sleep(0.05)
+    assert c.now() == 100.0 + 0.04 * 29 and c.silence_s() >= 0.05
+    assert time.monotonic() - t0 < 5
+    wall = RobotClock(use_clock=False)
+    assert abs(wall.now() - time.time()) < 0.1 and wall.silence_s() == 0.0 and wall.rate == 1.0
