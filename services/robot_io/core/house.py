@@ -7,9 +7,10 @@ room is reachable. Each room has its own wall colour and a labelled floor ("kitc
 camera that sees the floor knows the room. Furniture is built from boxes and cylinders with class
 labels and named colours ("green plant", "red sofa"), placed against walls or in the middle of the
 room, and rejected when it would cut the room's free floor in two or block a doorway. With
-``floors=2`` a straight staircase (rise < 0.2 m) in a stairwell beside the house joins the storeys.
+``floors=2`` or ``3`` a straight staircase (rise < 0.2 m) in a stairwell beside the house joins each
+pair of consecutive storeys; the flights alternate between the +x and the -x side of the house.
 
-Spec string: ``generated:<seed>[:floors=<1|2>][:area=<m2>]`` (area of the whole house).
+Spec string: ``generated:<seed>[:floors=<1|2|3>][:area=<m2>]`` (area of the whole house, 40-1,200 m2).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from shared.schemas import Pose
 
 from .errors import SceneFormatError
 from .mesh_builder import MeshBuilder
-from .scene import GENERATED_PREFIX, Room, Scene, SceneObject
+from .scene import GENERATED_PREFIX, Room, Scene, SceneObject, register_scene_builder
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,9 @@ AGENT_R = 0.1
 # grid blocks cells conservatively (any obstacle point within radius + half a cell diagonal).
 INFLATE = AGENT_R + RASTER
 EPS = 1e-6
+MAX_FLOORS = 3
+MIN_STAIR_DEPTH_M = 7.0
+MIN_AREA_M2, MAX_AREA_M2 = 40.0, 1200.0
 
 COLOURS: dict[str, tuple[float, float, float]] = {
     "red": (0.78, 0.16, 0.14),
@@ -100,10 +104,10 @@ class HouseSpec:
     area_m2: float = 200.0
 
     def __post_init__(self) -> None:
-        if self.floors not in (1, 2):
-            raise SceneFormatError(f"floors must be 1 or 2, got {self.floors}")
-        if not 40.0 <= self.area_m2 <= 1000.0:
-            raise SceneFormatError(f"area must be within 40-1000 m2, got {self.area_m2}")
+        if not 1 <= self.floors <= MAX_FLOORS:
+            raise SceneFormatError(f"floors must be 1 to {MAX_FLOORS}, got {self.floors}")
+        if not MIN_AREA_M2 <= self.area_m2 <= MAX_AREA_M2:
+            raise SceneFormatError(f"area must be within {MIN_AREA_M2:g}-{MAX_AREA_M2:g} m2, got {self.area_m2}")
 
     @classmethod
     def parse(cls, spec: str) -> HouseSpec:
@@ -569,6 +573,9 @@ def generate_house(spec: HouseSpec | str = HouseSpec()) -> Scene:
     raise SceneFormatError(f"could not generate a valid house for {spec.spec}")
 
 
+register_scene_builder(GENERATED_PREFIX, generate_house)
+
+
 class _Retry(Exception):
     pass
 
@@ -576,9 +583,14 @@ class _Retry(Exception):
 def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
     floor_area = spec.area_m2 / spec.floors
     aspect = rng.uniform(0.75, 1.33)
+    # A stairwell needs a floor 7 m deep. A storey too small for that at any drawn aspect (a
+    # 100 m2 house on three floors) is made exactly that deep, with fewer rooms and room types.
+    tiny = spec.floors > 1 and floor_area < MIN_STAIR_DEPTH_M**2 * 0.75
+    if tiny:
+        aspect = floor_area / MIN_STAIR_DEPTH_M**2
     W = round(math.sqrt(floor_area * aspect) * 20) / 20
     D = round(floor_area / W * 20) / 20
-    if spec.floors == 2 and D < 7.0:
+    if spec.floors > 1 and D < MIN_STAIR_DEPTH_M:
         raise _Retry("too shallow for a staircase")
     rooms: list[Room] = []
     doors: list[_Door] = []
@@ -586,7 +598,7 @@ def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
     for fl in range(spec.floors):
         rects: list = []
         _bsp(rng, [0.0, 0.0], [W, D], min_side=2.8, max_area=rng.uniform(30.0, 44.0), out=rects)
-        if len(rects) < (4 if spec.floors == 1 else 3):
+        if len(rects) < (4 if spec.floors == 1 else 2 if tiny else 3):
             raise _Retry("too few rooms")
         types = _assign_types(rng, rects, fl, SINGLE_TYPES if spec.floors == 1 else (GROUND_TYPES if fl == 0 else UPPER_TYPES))
         if fl == 0 and spec.floors == 1 and "kitchen" not in types:
@@ -598,10 +610,10 @@ def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
         ]
         doors += _doors_for(rng, fl_rooms, fl)
         rooms += fl_rooms
-    if spec.floors == 2:
-        rooms, doors = _add_stairwell(rng, rooms, doors, W, D)
-    if len({r.room_type for r in rooms if r.room_type != "staircase"}) < 4:
-        raise _Retry("fewer than 4 room types")
+    rooms, doors, flights = _add_stairwells(rng, rooms, doors, W, D, spec.floors)
+    shafts = {f.shaft.name: f for f in flights}
+    if len({r.room_type for r in rooms if r.room_type != "staircase"}) < (3 if tiny else 4):
+        raise _Retry("too few room types")
 
     mb = MeshBuilder()
     # Fix label ids of the structural classes first, so they are stable across seeds.
@@ -610,10 +622,12 @@ def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
     objects: list[SceneObject] = []
     start = None
     for room in rooms:
-        rdoors = [d for d in doors if _door_on_room(d, room)]
-        _emit_room(mb, room, rdoors, top_floor=(room.floor == spec.floors - 1))
         if room.room_type == "staircase":
+            if room.name in shafts:  # a landing is the top of a flight its shaft already built
+                _emit_stairwell(mb, shafts[room.name])
             continue
+        rdoors = [d for d in doors if _door_on_room(d, room)]
+        _emit_room(mb, room, rdoors)
         raster = _RoomRaster(room, rdoors)
         wanted = list(ROOM_FURNITURE[room.room_type])
         # Essentials first (they define the room), then a random subset of the rest.
@@ -722,50 +736,68 @@ def _doors_for(rng, rooms: list[Room], floor: int) -> list[_Door]:
     return out
 
 
-def _add_stairwell(rng, rooms: list[Room], doors: list[_Door], W: float, D: float):
-    """A stairwell outside the +x wall, with a door at the bottom (floor 0) and the top (floor 1)."""
+@dataclass(frozen=True)
+class _Flight:
+    """A straight flight between storeys ``shaft.floor`` and ``shaft.floor + 1``."""
+
+    shaft: Room  # the stairwell, a room of the lower floor; it builds all the geometry
+    landing: Room  # its top, a room of the upper floor's plan (no geometry of its own)
+    doors: tuple[_Door, _Door]  # the bottom door (lower floor) and the top door (upper floor)
+
+
+def _add_stairwells(rng, rooms: list[Room], doors: list[_Door], W: float, D: float, floors: int):
+    """One stairwell per pair of consecutive floors, outside the +x wall, then the -x wall, in turn.
+
+    Each has a door at the bottom (its lower floor) and at the top (the next floor up). Alternating
+    sides keeps every flight against the house wall of both storeys it joins.
+    """
+    flights: list[_Flight] = []
+    for k in range(floors - 1):
+        flight = _add_stairwell(rng, rooms, k, W, D, plus_x=(k % 2 == 0))
+        flights.append(flight)
+        rooms = rooms + [flight.shaft, flight.landing]
+        doors = doors + list(flight.doors)
+    return rooms, doors, flights
+
+
+def _add_stairwell(rng, rooms: list[Room], lower: int, W: float, D: float, plus_x: bool) -> _Flight:
     n_steps = int(math.ceil(STOREY_H / 0.19))
     tread = 0.27
     run = n_steps * tread  # the last step is the upper landing's edge
     length = 1.0 + run + 1.1
+    wall_x = W if plus_x else 0.0
+    on_wall = (lambda r: abs(r.max_xy_m[0] - W) < EPS) if plus_x else (lambda r: abs(r.min_xy_m[0]) < EPS)
     for y0 in rng.permutation(np.arange(0.0, D - length + 1e-6, 0.05)):
         y0 = float(round(y0 * 20) / 20)
         bottom = (y0 + 0.08, y0 + 0.08 + DOOR_W)
         top = (y0 + length - 0.08 - DOOR_W, y0 + length - 0.08)
-        r0 = [r for r in rooms if r.floor == 0 and abs(r.max_xy_m[0] - W) < EPS and r.min_xy_m[1] + 0.25 <= bottom[0] and bottom[1] <= r.max_xy_m[1] - 0.25]
-        r1 = [r for r in rooms if r.floor == 1 and abs(r.max_xy_m[0] - W) < EPS and r.min_xy_m[1] + 0.25 <= top[0] and top[1] <= r.max_xy_m[1] - 0.25]
+        r0 = [r for r in rooms if r.floor == lower and on_wall(r) and r.min_xy_m[1] + 0.25 <= bottom[0] and bottom[1] <= r.max_xy_m[1] - 0.25]
+        r1 = [r for r in rooms if r.floor == lower + 1 and on_wall(r) and r.min_xy_m[1] + 0.25 <= top[0] and top[1] <= r.max_xy_m[1] - 0.25]
         if r0 and r1:
             break
     else:
         raise _Retry("no place for the stairwell doors")
-    shaft = Room("staircase", "staircase", 0, (W, y0), (W + STAIR_W, y0 + length), 0.0)
-    landing = Room("staircase landing", "staircase", 1, (W, y0), (W + STAIR_W, y0 + length), STOREY_H)
-    doors = doors + [_Door(0, W, *bottom, 0), _Door(0, W, *top, 1)]
-    return rooms + [shaft, landing], doors
+    x0, x1 = (W, W + STAIR_W) if plus_x else (-STAIR_W, 0.0)
+    suffix = "" if lower == 0 else f" {lower + 1}"
+    shaft = Room(f"staircase{suffix}", "staircase", lower, (x0, y0), (x1, y0 + length), lower * STOREY_H)
+    landing = Room(f"staircase landing{suffix}", "staircase", lower + 1, (x0, y0), (x1, y0 + length),
+                   (lower + 1) * STOREY_H)
+    return _Flight(shaft, landing, (_Door(0, wall_x, *bottom, lower), _Door(0, wall_x, *top, lower + 1)))
 
 
 def _door_on_room(d: _Door, room: Room) -> bool:
-    if room.room_type == "staircase":
-        # The stairwell is one tall room: both of its doors belong to the floor-0 entry.
-        if room.floor != 0:
-            return False
-    elif d.floor != room.floor:
+    if d.floor != room.floor:
         return False
     o = 1 - d.axis
     on_line = abs(room.min_xy_m[d.axis] - d.coord) < EPS or abs(room.max_xy_m[d.axis] - d.coord) < EPS
     return on_line and room.min_xy_m[o] - EPS <= d.lo and d.hi <= room.max_xy_m[o] + EPS
 
 
-def _emit_room(mb: MeshBuilder, room: Room, doors: list[_Door], top_floor: bool) -> None:
+def _emit_room(mb: MeshBuilder, room: Room, doors: list[_Door]) -> None:
     lo = np.array(room.min_xy_m)
     hi = np.array(room.max_xy_m)
     z0 = room.floor_z_m
     floor_label = f"{room.room_type} floor"
-    if room.room_type == "staircase":
-        if room.floor != 0:
-            return  # the floor-0 entry builds the whole stairwell
-        _emit_stairwell(mb, room, doors)
-        return
     mb.box((lo[0], lo[1], z0 - SLAB_T / 2), (hi[0], hi[1], z0), FLOOR_PAINT[room.room_type], floor_label)
     mb.box((lo[0], lo[1], z0 + CEILING_H), (hi[0], hi[1], z0 + CEILING_H + SLAB_T / 2), CEILING_COLOUR, "ceiling")
     _emit_walls(mb, room, doors, z0, CEILING_H, WALL_PAINT[room.room_type])
@@ -820,20 +852,22 @@ def _emit_walls(mb, room: Room, doors: list[_Door], z0: float, height: float, pa
                 mb.box(blo, bhi, FRAME_COLOUR, "door frame")
 
 
-def _emit_stairwell(mb: MeshBuilder, room: Room, doors: list[_Door]) -> None:
+def _emit_stairwell(mb: MeshBuilder, flight: _Flight) -> None:
+    room = flight.shaft
     lo = np.array(room.min_xy_m)
     hi = np.array(room.max_xy_m)
+    z0 = room.floor_z_m
     n_steps = int(math.ceil(STOREY_H / 0.19))
     rise = STOREY_H / n_steps
     tread = 0.27
     y = lo[1] + 1.0
-    mb.box((lo[0], lo[1], -SLAB_T / 2), (hi[0], hi[1], 0.0), FLOOR_PAINT["staircase"], "staircase floor")
+    mb.box((lo[0], lo[1], z0 - SLAB_T / 2), (hi[0], hi[1], z0), FLOOR_PAINT["staircase"], "staircase floor")
     for k in range(1, n_steps + 1):
         y_end = y + tread if k < n_steps else hi[1]
         label = "stairs" if k < n_steps else "staircase floor"
         col = STAIR_COLOUR if k < n_steps else FLOOR_PAINT["staircase"]
-        mb.box((lo[0], y, 0.0), (hi[0], y_end, k * rise), col, label)
+        mb.box((lo[0], y, z0), (hi[0], y_end, z0 + k * rise), col, label)
         y = y_end
-    top = STOREY_H + CEILING_H
+    top = z0 + STOREY_H + CEILING_H
     mb.box((lo[0], lo[1], top), (hi[0], hi[1], top + SLAB_T / 2), CEILING_COLOUR, "ceiling")
-    _emit_walls(mb, room, doors, 0.0, top, WALL_PAINT["staircase"])
+    _emit_walls(mb, room, list(flight.doors), z0, top - z0, WALL_PAINT["staircase"])

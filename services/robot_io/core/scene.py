@@ -13,6 +13,7 @@ Scene specs (the ``scene`` field of the simulator config, the ``scene_id`` of an
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -177,6 +178,15 @@ def is_generated_spec(spec: str) -> bool:
     return spec.startswith(GENERATED_PREFIX)
 
 
+#: Procedural scene builders by spec prefix. The house generator registers ``generated:`` when it is
+#: imported (the package's ``__init__`` does that), so this module never imports it: no import cycle.
+SCENE_BUILDERS: dict[str, Callable[[str], Scene]] = {}
+
+
+def register_scene_builder(prefix: str, build: Callable[[str], Scene]) -> None:
+    SCENE_BUILDERS[prefix] = build
+
+
 def resolve_scene_path(spec: str, scenes_dir: Path | str | None = None) -> Path:
     """Resolve a mesh path: absolute, or relative to ``scenes_dir``; missing -> SceneNotFoundError."""
     p = Path(spec).expanduser()
@@ -193,10 +203,9 @@ def resolve_scene_path(spec: str, scenes_dir: Path | str | None = None) -> Path:
 
 def load_scene(spec: str, scenes_dir: Path | str | None = None) -> Scene:
     """Build or load the scene named by ``spec`` (see the module docstring)."""
-    if is_generated_spec(spec):
-        from .house import HouseSpec, generate_house
-
-        return generate_house(HouseSpec.parse(spec))
+    for prefix, build in SCENE_BUILDERS.items():
+        if spec.startswith(prefix):
+            return build(spec)
     return load_mesh_scene(resolve_scene_path(spec, scenes_dir))
 
 
