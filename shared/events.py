@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import threading
-from typing import Any
-
 import cv2
 import numpy as np
 
 from shared.bus.typed import TypedBus
-from shared.schemas import MissionEvent, MissionEventKind, MissionState
+from shared.schemas import EventPayload, MissionEvent, MissionEventKind, MissionState
 
 
 def jpeg(image_rgb: np.ndarray, quality: int = 85) -> bytes:
@@ -38,10 +36,10 @@ class EventStream:
         self.state = MissionState.QUEUED
 
     def emit(self, kind: MissionEventKind, state: MissionState, *, step: int = 0,
-             data: dict[str, Any] | None = None, images: dict[str, bytes] | None = None) -> MissionEvent:
+             data: EventPayload | None = None, images: dict[str, bytes] | None = None) -> MissionEvent:
         with self._lock:
             ev = MissionEvent(mission_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
-                              data=data or {}, images=images or {})
+                              data=data, images=images or {})
             self._seq += 1
             self.state = state
             self.bus.publish(self.key, ev, cache=self.CACHE_EVENTS)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from enum import StrEnum
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -473,22 +473,184 @@ class MissionEventKind(StrEnum):
     ERROR = "error"
 
 
+# --- job events: one typed payload per kind of thing that happens to a mission or an exploration ---
+
+
+class UsageData(BaseModel):
+    """The policy's running cost: LLM calls, tokens and dollars so far (all counters, so >= 0)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    calls: int = Field(0, ge=0)
+    prompt_tokens: int = Field(0, ge=0)
+    completion_tokens: int = Field(0, ge=0)
+    cost_usd: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+    reasks: int = Field(0, ge=0)
+    fallbacks: int = Field(0, ge=0)
+    cache_hits: int = Field(0, ge=0)
+
+
+class EpisodeMetricsData(BaseModel):
+    """The VLN-CE metrics of one mission (:class:`shared.vln_metrics.EpisodeMetrics` on the wire)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    ne_m: float | None = Field(ge=0.0, allow_inf_nan=False)
+    success: bool
+    oracle_success: bool
+    oracle_ne_m: float | None = Field(ge=0.0, allow_inf_nan=False)
+    tl_m: float = Field(ge=0.0, allow_inf_nan=False)
+    spl: float = Field(ge=0.0, le=1.0)
+    ndtw: float | None = Field(ge=0.0, le=1.0)
+    sdtw: float | None = Field(ge=0.0, le=1.0)
+    shortest_m: float | None = Field(ge=0.0, allow_inf_nan=False)
+    stop_called: bool
+    steps: int = Field(ge=0)
+    goal_reachable: bool
+
+
+class EventPayload(BaseModel):
+    """Base of every job event payload. ``type`` tells the payloads apart on the wire; ``KINDS`` are the
+    event kinds a payload may travel with (checked by :class:`MissionEvent`)."""
+
+    model_config = ConfigDict(extra="forbid")
+    KINDS: ClassVar[tuple[str, ...]] = ()
+
+
+def _finite_xyz(points: list[tuple[float, float, float]], what: str):
+    for p in points:
+        _finite(p, what)
+    return points
+
+
+class MissionStarted(EventPayload):
+    KINDS: ClassVar[tuple[str, ...]] = ("started",)
+    type: Literal["mission_started"] = "mission_started"
+    pose: Pose
+    instruction: str
+    map_id: str
+    options: MissionOptions
+
+
+class MissionStep(EventPayload):
+    """One navigation step: where the agent was, what it could do, what it chose and what that cost."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("step",)
+    type: Literal["mission_step"] = "mission_step"
+    pose: Pose
+    candidates: list[Candidate]
+    decision: Decision
+    timings_s: dict[str, float] = Field(default_factory=dict)
+    usage: UsageData = Field(default_factory=UsageData)
+
+
+class MissionFinished(EventPayload):
+    """The mission's end: the path walked, its metrics when a goal was known, the policy's total cost.
+    ``reason`` qualifies a stop (e.g. boxed in); ``error`` is the cause of a failure."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("finished",)
+    type: Literal["mission_finished"] = "mission_finished"
+    stop_called: bool
+    steps: int = Field(ge=0)
+    trajectory_m: list[tuple[float, float, float]] = Field(default_factory=list)
+    metrics: EpisodeMetricsData | None = None
+    usage: UsageData = Field(default_factory=UsageData)
+    step_latency_s: list[float] = Field(default_factory=list)
+    reason: str = ""
+    error: str = ""
+
+    @field_validator("trajectory_m")
+    @classmethod
+    def _trajectory_finite(cls, v):
+        return _finite_xyz(v, "trajectory_m")
+
+
+class ExplorationStarted(EventPayload):
+    KINDS: ClassVar[tuple[str, ...]] = ("started",)
+    type: Literal["exploration_started"] = "exploration_started"
+    map_id: str
+
+
+class ExplorationProgress(EventPayload):
+    """A stage of an exploration (exploring, touring, reconstructing) and how far it has come."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("progress",)
+    type: Literal["exploration_progress"] = "exploration_progress"
+    stage: str
+    progress: float = Field(ge=0.0, le=1.0)
+    message: str = ""
+    region: int | None = None
+    frames: int | None = Field(None, ge=0)
+    nodes: int | None = Field(None, ge=0)
+    regions: int | None = Field(None, ge=0)
+    timings_s: dict[str, float] = Field(default_factory=dict)
+
+
+class ExplorationFinished(EventPayload):
+    """The stored map an exploration produced, and what the exploration took."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("finished",)
+    type: Literal["exploration_finished"] = "exploration_finished"
+    stage: str = "done"
+    progress: float = Field(1.0, ge=0.0, le=1.0)
+    map_id: str
+    version: int = Field(ge=1)
+    points: int = Field(ge=0)
+    regions: int = Field(ge=0)
+    skipped_regions: list[int] = Field(default_factory=list)
+    nodes: int = Field(0, ge=0)
+    wall_s: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+    timings_s: dict[str, float] = Field(default_factory=dict)
+
+
+class JobCancelled(EventPayload):
+    KINDS: ClassVar[tuple[str, ...]] = ("finished",)
+    type: Literal["job_cancelled"] = "job_cancelled"
+    message: str = "cancelled on request"
+
+
+class JobFailed(EventPayload):
+    """Any job's failure, with its cause."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("error",)
+    type: Literal["job_failed"] = "job_failed"
+    error: str
+
+
+EventData = Annotated[
+    MissionStarted | MissionStep | MissionFinished | ExplorationStarted | ExplorationProgress
+    | ExplorationFinished | JobCancelled | JobFailed,
+    Field(discriminator="type"),
+]
+
+
 class MissionEvent(Message):
     """One thing that happened to a mission or an exploration (``mission_id`` is then the
     exploration id); ``seq`` orders the events of one job, gap-free from 0.
 
-    ``data`` is JSON-friendly; pictures travel JPEG-encoded in ``images`` (name -> bytes) so the
-    gateway can store them once and serve them by URL instead of inlining them in every event.
+    ``data`` is the kind's typed payload (None only for events that carry nothing); pictures travel
+    JPEG-encoded in ``images`` (name -> bytes) so the gateway can store them once and serve them by URL
+    instead of inlining them in every event.
     """
 
     mission_id: str
     seq: int = Field(ge=0)
     kind: MissionEventKind
     state: MissionState
-    step: int = 0
-    timestamp_s: float = Field(default_factory=time.time)
-    data: dict[str, Any] = Field(default_factory=dict)
+    step: int = Field(0, ge=0)
+    timestamp_s: float = Field(default_factory=time.time, allow_inf_nan=False)
+    data: EventData | None = None
     images: dict[str, bytes] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _payload_fits_kind(self):
+        if self.data is not None and self.kind.value not in self.data.KINDS:
+            raise ValueError(f"a {self.data.type} payload cannot travel in a {self.kind.value!r} event")
+        return self
+
+    def data_json(self) -> dict[str, Any]:
+        """The payload as JSON-ready values (what the gateway stores and streams)."""
+        return {} if self.data is None else self.data.model_dump(mode="json")
 
 
 class ExplorationRequest(Message):

@@ -19,7 +19,7 @@ from services.gateway.records import JobKind
 from services.gateway.store import GatewayStore
 from shared import keys
 from shared.bus.base import Bus, Closeable
-from shared.schemas import MissionEvent, MissionEventKind, MissionState
+from shared.schemas import JobFailed, MissionEvent, MissionEventKind, MissionState
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ class JobReaper:
                 break
             for row in rows:
                 event = MissionEvent(mission_id=row.id, seq=row.last_seq + 1, kind=MissionEventKind.ERROR,
-                                     state=MissionState.FAILED, step=row.step, data={"error": reason})
+                                     state=MissionState.FAILED, step=row.step, data=JobFailed(error=reason))
                 stored = self.store.append_event(kind, event)
                 if stored is not None:
                     n += 1
