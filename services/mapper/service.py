@@ -24,8 +24,8 @@ from shared.clients import MapClient, RobotClient
 from shared.events import EventStream
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    BuildMapRequest, CameraIntrinsics, CandidateSet, ExplorationFinished, ExplorationProgress, ExplorationRequest,
-    ExplorationStarted, JobFailed, MissionAccepted, MissionEventKind, MissionState, Panorama, TourRecording,
+    BuildMapRequest, CameraIntrinsics, CandidateSet, ExplorationFinished, ExplorationOutcome, ExplorationProgress,
+    ExplorationRequest, ExplorationStarted, JobFailed, MissionAccepted, MissionEventKind, MissionState, Panorama, TourRecording,
 )
 
 log = logging.getLogger(__name__)
@@ -88,7 +88,8 @@ class MapperService(Service):
             cam = CameraIntrinsics(width_px=s.explore_camera_px, height_px=s.explore_camera_px)
             robot = RobotClient(node.bus, node.robot, observe_camera=cam)
             cfg = DiscoveryConfig.model_validate(req.options.get("discovery", {}))
-            cfg.exploration.max_steps = req.max_steps
+            if req.max_steps is not None:
+                cfg.exploration.max_steps = req.max_steps
             events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING,
                         data=ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
             disc = discover(robot, cfg)
@@ -97,9 +98,15 @@ class MapperService(Service):
                 node.bus.publish(keys.MAPPER_TOURS.format(robot=node.robot, region=str(tour.region)), tour)
             nodes = len(disc.result.graph.graph)
             timings_s = {k: round(v, 3) for k, v in disc.timings_s.items()}
+            outcome = ExplorationOutcome(**disc.result.summary())
+            ended = ("no frontier left" if outcome.finished else
+                     f"stopped by its {outcome.stop_reason} budget" if outcome.stop_reason != "exhausted" else
+                     f"{outcome.open_stairs} stair nodes lead past the explored floors")
+            ended += f", coverage estimate {outcome.coverage_estimate:.0%}"
             events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data=ExplorationProgress(
                 stage="touring", progress=0.3, nodes=nodes, regions=len(disc.tours), timings_s=timings_s,
-                message=f"explored {nodes} nodes; recording {len(disc.tours)} region tours"))
+                outcome=outcome,
+                message=f"explored {nodes} nodes ({ended}); recording {len(disc.tours)} region tours"))
 
             recordings: list[TourRecording] = []
 
@@ -139,10 +146,11 @@ class MapperService(Service):
             info = MapClient(node.bus).build(BuildMapRequest(
                 exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
                 reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
-                label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene}"))
+                label_names=scene.label_names,
+                source=f"exploration {req.exploration_id} of {scene.scene} ({ended})"))
             events.emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, data=ExplorationFinished(
                 map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),
-                skipped_regions=skipped, nodes=nodes, timings_s=timings_s,
+                skipped_regions=skipped, nodes=nodes, timings_s=timings_s, outcome=outcome,
                 wall_s=round(time.perf_counter() - t0, 2)))
         except (RemoteError, Exception) as exc:  # a failed job ends with a reason, never silently
             log.exception("exploration %s failed", req.exploration_id)

@@ -137,10 +137,14 @@ class Explorer:
     ):
         self.config = config or ExplorationConfig()
         self.predictor = predictor or GeometricPredictor()
-        base = scanner_config or getattr(self.predictor, "config", None) or GeometricPredictorConfig()
-        self.scanner = GeometricPredictor(
-            base.model_copy(update={"angle_bins": self.config.scan_angle_bins})
-        )
+        if scanner_config is None and isinstance(self.predictor, GeometricPredictor):
+            # One column walk per panorama serves both the candidates and the scan.
+            self.scanner = self.predictor.with_angle_bins(self.config.scan_angle_bins)
+        else:
+            base = scanner_config or getattr(self.predictor, "config", None) or GeometricPredictorConfig()
+            self.scanner = GeometricPredictor(
+                base.model_copy(update={"angle_bins": self.config.scan_angle_bins})
+            )
 
     def explore(self, robot: ExplorerRobot) -> ExplorationResult:
         cfg = self.config
@@ -310,21 +314,12 @@ class _Run:
             self.frontiers.append(nid)
 
     def _near(self, target: np.ndarray, status: tuple[NodeStatus, ...], radius: float) -> bool:
-        nodes = self.graph.nodes_with(*status)
-        if not nodes or radius <= 0:
-            return False
-        p = self.graph.positions(nodes)
-        dxy = np.linalg.norm(p[:, :2] - target[:2], axis=1)
-        dz = np.abs(p[:, 2] - target[2])
-        return bool(np.any((dxy < radius) & (dz < self.cfg.same_floor_dz_m)))
+        return bool(self.graph.near(target, radius, self.cfg.same_floor_dz_m, *status))
 
     def _cover_near(self, pos: np.ndarray) -> None:
         """Frontiers that a new visited node makes redundant are covered, not visited."""
-        r = self.cfg.visit_radius_m
-        for f in self.graph.nodes_with(NodeStatus.FRONTIER):
-            p = self.graph.pos(f)
-            if np.linalg.norm(p[:2] - pos[:2]) < r and abs(p[2] - pos[2]) < self.cfg.same_floor_dz_m:
-                self.graph.g.nodes[f]["status"] = NodeStatus.COVERED
+        for f in self.graph.near(pos, self.cfg.visit_radius_m, self.cfg.same_floor_dz_m, NodeStatus.FRONTIER):
+            self.graph.g.nodes[f]["status"] = NodeStatus.COVERED
 
     # --- DFS --------------------------------------------------------------------------------------
 
