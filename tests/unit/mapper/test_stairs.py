@@ -21,11 +21,16 @@ from services.robot_io.core.robot import ROBOTS
 CAM = CameraIntrinsics(width_px=64, height_px=64, hfov_deg=90.0)
 
 
+_DONE: dict[str, tuple] = {}  # one exploration per scene for the whole module
+
+
 def _explore(scene: str):
-    robot = ROBOTS.create("sim", {"scene": scene, "camera": CAM})
-    cfg = DiscoveryConfig()
-    result = Explorer(PREDICTORS.create(cfg.predictor, cfg.predictor_config), cfg.exploration).explore(robot)
-    return robot, result
+    if scene not in _DONE:
+        robot = ROBOTS.create("sim", {"scene": scene, "camera": CAM})
+        cfg = DiscoveryConfig()
+        result = Explorer(PREDICTORS.create(cfg.predictor, cfg.predictor_config), cfg.exploration).explore(robot)
+        _DONE[scene] = (robot, result)
+    return _DONE[scene]
 
 
 def _floor_coverage(robot, result, radius_m: float = 1.5) -> list[float]:
@@ -45,10 +50,9 @@ def _floor_coverage(robot, result, radius_m: float = 1.5) -> list[float]:
 
 @pytest.mark.parametrize("scene", [
     "generated:21:area=500:floors=2",  # the regression
-    "generated:4:floors=2",
     "generated:7:area=150:floors=2",
+    "generated:0:area=100:floors=2",
     "generated:0:floors=3",
-    "generated:5:area=240:floors=3",
 ])
 def test_every_floor_is_reached_and_explored(scene):
     robot, r = _explore(scene)
@@ -60,10 +64,8 @@ def test_every_floor_is_reached_and_explored(scene):
 
 def test_an_unfinished_flight_keeps_the_exploration_unfinished():
     """Cut the climb short: the budget stops the robot on the stairs, and the result says so."""
-    robot = ROBOTS.create("sim", {"scene": "generated:0:floors=3", "camera": CAM})
+    robot, full = _explore("generated:0:floors=3")
     cfg = DiscoveryConfig()
-    explorer = Explorer(PREDICTORS.create(cfg.predictor, cfg.predictor_config), cfg.exploration)
-    full = explorer.explore(robot)
     # The step at which the robot first stood on the stairs, half way up the first flight.
     z = np.array([full.graph.pos(n)[2] for n in full.visit_order])
     first = int(np.argmax((z > 0.5) & (z < STOREY_H - 0.5)))
