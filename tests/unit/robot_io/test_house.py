@@ -158,3 +158,19 @@ def test_large_house_areas_up_to_1200_m2():
     area = sum(r.area_m2 for r in s.rooms if r.room_type != "staircase")
     assert 1100 <= area <= 1300
     assert len(s.rooms) > 40 and len(s.objects) > 100
+
+
+def test_furniture_catalogue_builds_every_kind_a_room_asks_for():
+    from services.robot_io.core.furniture import FURNITURE, ROOM_FURNITURE, furniture_item
+
+    for kinds in ROOM_FURNITURE.values():
+        assert set(kinds) <= set(FURNITURE)
+    rng = np.random.default_rng(0)
+    for kind, f in FURNITURE.items():
+        label, colour, w, d, h, parts, placement = furniture_item(kind, rng)
+        assert label == f.label and placement == f.placement and w in f.widths_m
+        assert colour in f.colours or colour == f.described_as
+        assert w > 0 and d > 0 and h > 0 and parts
+        assert all(p[0] in ("box", "cyl") for p in parts)
+    with pytest.raises(ValueError):
+        furniture_item("spaceship", rng)
