@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 
 from shared.bus.typed import TypedBus
-from shared.schemas import EventPayload, MissionEvent, MissionEventKind, MissionState
+from shared.schemas import EventPayload, JobEvent, JobEventKind, JobState
 
 
 def jpeg(image_rgb: np.ndarray, quality: int = 85) -> bytes:
@@ -33,12 +33,12 @@ class EventStream:
         self.bus, self.key, self.job_id = bus, key, job_id
         self._seq = 0
         self._lock = threading.Lock()
-        self.state = MissionState.QUEUED
+        self.state = JobState.QUEUED
 
-    def emit(self, kind: MissionEventKind, state: MissionState, *, step: int = 0,
-             data: EventPayload | None = None, images: dict[str, bytes] | None = None) -> MissionEvent:
+    def emit(self, kind: JobEventKind, state: JobState, *, step: int = 0,
+             data: EventPayload | None = None, images: dict[str, bytes] | None = None) -> JobEvent:
         with self._lock:
-            ev = MissionEvent(mission_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
+            ev = JobEvent(job_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
                               data=data, images=images or {})
             self._seq += 1
             self.state = state

@@ -20,7 +20,7 @@ from services.gateway.store import GatewayStore, StoredEvent, image_url
 from shared import keys
 from shared.bus.base import Closeable
 from shared.bus.typed import TypedBus
-from shared.schemas import MissionEvent
+from shared.schemas import JobEvent
 
 log = logging.getLogger(__name__)
 
@@ -113,18 +113,18 @@ class EventIngest:
         self._subs: list[Closeable] = [
             # history: events published while this gateway was down come back from the
             # publishers' caches; the store ignores the ones it already has.
-            bus.subscribe(keys.MISSION_EVENTS.pattern(robot=robot), MissionEvent,
+            bus.subscribe(keys.MISSION_EVENTS.pattern(robot=robot), JobEvent,
                           lambda _k, ev: self._on_event(JobKind.MISSION, ev), history=True),
-            bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=robot), MissionEvent,
+            bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=robot), JobEvent,
                           lambda _k, ev: self._on_event(JobKind.EXPLORATION, ev), history=True),
         ]
 
-    def _on_event(self, kind: JobKind, event: MissionEvent) -> None:
+    def _on_event(self, kind: JobKind, event: JobEvent) -> None:
         stored = self.store.append_event(kind, event)
         if stored is not None:
             self.stored += 1
             # Encoded once here, sent by every stream of the job.
-            self.hub.publish(event.mission_id, stored.seq, sse_frame(kind, stored))
+            self.hub.publish(event.job_id, stored.seq, sse_frame(kind, stored))
         else:
             self.duplicates += 1
 

@@ -19,12 +19,12 @@ from services.gateway.records import JobKind
 from services.gateway.store import GatewayStore
 from shared import keys
 from shared.bus.base import Bus, Closeable
-from shared.schemas import JobFailed, MissionEvent, MissionEventKind, MissionState
+from shared.schemas import JobFailed, JobEvent, JobEventKind, JobState
 
 log = logging.getLogger(__name__)
 
 WORKERS = {"planner": JobKind.MISSION, "mapper": JobKind.EXPLORATION}
-_OPEN = [MissionState.QUEUED, MissionState.RUNNING]
+_OPEN = [JobState.QUEUED, JobState.RUNNING]
 
 
 class JobReaper:
@@ -64,14 +64,14 @@ class JobReaper:
             if not rows:
                 break
             for row in rows:
-                event = MissionEvent(mission_id=row.id, seq=row.last_seq + 1, kind=MissionEventKind.ERROR,
-                                     state=MissionState.FAILED, step=row.step, data=JobFailed(error=reason))
+                event = JobEvent(job_id=row.id, seq=row.last_seq + 1, kind=JobEventKind.ERROR,
+                                     state=JobState.FAILED, step=row.step, data=JobFailed(error=reason))
                 stored = self.store.append_event(kind, event)
                 if stored is not None:
                     n += 1
                     self.hub.publish(row.id, stored.seq, sse_frame(kind, stored))
                 else:  # the worker's own event took that seq in between: mark without an event
-                    self.store.mark(row.id, MissionState.FAILED, reason)
+                    self.store.mark(row.id, JobState.FAILED, reason)
                     self.hub.notify(row.id)
         if n:
             log.warning("%d open %s(s) ended as failed: %s", n, kind.value, reason)

@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from deploy.launcher import Launcher
-from services.gateway.testing import ScriptedReconstructor
+from tests.doubles.scripted_services import ScriptedReconstructor
 from shared import keys
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus

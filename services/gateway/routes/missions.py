@@ -23,7 +23,7 @@ from services.gateway.store import JobRow
 from shared import keys
 from shared.bus.typed import RemoteError
 from shared.schemas import (
-    CancelRequest, ErrorCode, MapInfo, MapRequest, MissionAccepted, MissionOptions, MissionRequest, MissionState,
+    CancelRequest, ErrorCode, MapInfo, MapRequest, JobAccepted, MissionOptions, MissionRequest, JobState,
 )
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ def _get(store, job_id: str) -> JobRow:
 
 
 def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_request: Request, noun: str,
-              service: str, send: Callable[[], MissionAccepted]) -> None:
+              service: str, send: Callable[[], JobAccepted]) -> None:
     """Create the job's row, then hand the job to its service (``send``).
 
     The row exists before the service hears of the job, so its first event has a home; it is
@@ -118,16 +118,16 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
               lambda: bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
                                   MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
                                                  options=body.options),
-                                  MissionAccepted, timeout_s=settings.request_timeout_s))
+                                  JobAccepted, timeout_s=settings.request_timeout_s))
     url, events_url = _links(job_id)
     response.headers["Location"] = url
     row = store.get_job(job_id)
-    return JobCreated(id=job_id, state=row.state if row else MissionState.QUEUED, url=url, events_url=events_url)
+    return JobCreated(id=job_id, state=row.state if row else JobState.QUEUED, url=url, events_url=events_url)
 
 
 @router.get("", response_model=MissionPage)
 async def list_missions(store: StoreDep,
-                  state: Annotated[list[MissionState] | None, Query(description="keep these states")] = None,
+                  state: Annotated[list[JobState] | None, Query(description="keep these states")] = None,
                   limit: Annotated[int, Query(ge=1, le=500)] = 50,
                   offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> MissionPage:
     """Missions, newest first, paged and filterable by state (``?state=running&state=queued``)."""
@@ -160,11 +160,11 @@ def cancel(mission_id: JobId, bus: BusDep, store: StoreDep, hub: HubDep, setting
         raise GatewayError(f"mission {mission_id!r} has already ended ({row.state.value})", 409)
     try:
         reply = bus.request(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
-                            MissionAccepted, timeout_s=settings.request_timeout_s)
+                            JobAccepted, timeout_s=settings.request_timeout_s)
     except RemoteError as exc:
         if exc.code == ErrorCode.NOT_FOUND:
             # The planner no longer knows it (it restarted): the mission cannot finish any more.
-            store.mark(mission_id, MissionState.CANCELLED, "cancelled; the planner no longer ran it")
+            store.mark(mission_id, JobState.CANCELLED, "cancelled; the planner no longer ran it")
             hub.notify(mission_id)  # its streams end now
         else:
             raise GatewayError(remote_detail(exc, "cannot cancel"), remote_status(exc)) from None

@@ -148,12 +148,12 @@ def test_record_and_events_survive_a_gateway_restart(world, gateway):
 def test_events_published_while_no_client_listens_are_stored(world, gateway):
     # A mission submitted straight to the planner (not through the gateway) is still recorded.
     from shared import keys
-    from shared.schemas import MissionRequest, MissionAccepted
+    from shared.schemas import MissionRequest, JobAccepted
 
     with gateway() as client:
         reply = world.planner.bus.request(keys.MISSION_SUBMIT.format(robot="robot0"),
                                           MissionRequest(mission_id="m-direct", instruction="go", map_id="house"),
-                                          MissionAccepted)
+                                          JobAccepted)
         assert reply.accepted
         rec = wait_state(client, "m-direct")
         assert rec["last_seq"] == 4 and rec["instruction"] == ""
