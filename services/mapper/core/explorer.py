@@ -335,6 +335,7 @@ class _Run:
         parent = g.g.nodes[target]["parent"]
         if parent != self.here and not self._walk_to(parent):
             # Could not get back to where the frontier was seen from: give it up.
+            log.info("frontier %s given up: its parent %s is out of reach from %s", target, parent, self.here)
             g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
             return
         goal = g.pos(target)
