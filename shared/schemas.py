@@ -475,6 +475,7 @@ class MissionOptions(BaseModel):
     reference_path_m: list[tuple[float, float, float]] | None = None
     start_pose: Pose | None = None
     seed: int = 0
+    record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
 
 
 class MissionRequest(Message):
@@ -730,6 +731,7 @@ class ExplorationRequest(Message):
     max_steps: int | None = Field(None, ge=1, le=100_000)
     reconstruction: str = Field("rgbd", description="regional reconstruction backend (rgbd, mono, ...)")
     options: dict[str, Any] = Field(default_factory=dict)
+    record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
 
 
 class BuildMapRequest(Message):

@@ -24,7 +24,7 @@ from services.gateway.cache import RecordCache
 from services.gateway.events import EventHub, EventIngest
 from services.gateway.limits import BodyLimit
 from services.gateway.reaper import JobReaper
-from services.gateway.routes import dashboard, explorations, health, maps, metrics, missions, robot, status
+from services.gateway.routes import dashboard, downloads, explorations, health, maps, metrics, missions, robot, status
 from services.gateway.settings import GatewaySettings
 from services.gateway.store import GatewayStore
 from shared.bus.base import Bus
@@ -76,10 +76,12 @@ def create_app(settings: GatewaySettings | None = None,
         app.state.ingest = EventIngest(running.node.bus, store, hub, settings.robot)
         # A mission whose planner died can never finish: it ends as failed, with the reason.
         app.state.reaper = JobReaper(bus, store, hub)
+        app.state.recordings = downloads.RecordingWriter(running.node.bus, store, settings)
         log.info("gateway on %s:%d, database %s", settings.host, settings.port, settings.db_path)
         try:
             yield
         finally:
+            app.state.recordings.close()
             app.state.reaper.close()
             app.state.ingest.close()
             hub.close()
@@ -95,7 +97,7 @@ def create_app(settings: GatewaySettings | None = None,
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
                            allow_headers=["*"], expose_headers=["Location"])
     errors.install(app)
-    for module in (health, status, metrics, missions, explorations, maps, robot, dashboard):
+    for module in (health, status, metrics, missions, explorations, maps, robot, dashboard, downloads):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     return app

@@ -30,3 +30,7 @@ class GatewaySettings(ServiceSettings):
     record_cache_jobs: int = Field(512, ge=1, le=100_000, description="encoded job records kept for polling")
     scene_timeout_s: float = Field(120.0, gt=0, le=600, description="loading a scene on robot-io (POST /robot/scene)")
     shutdown_grace_s: float = Field(3.0, ge=0, le=60, description="open streams get this long at shutdown")
+    record_jobs: bool = Field(False, description="record missions and explorations to .rrd unless a job says otherwise")
+    recordings_dir: Path | None = Field(None, description="where the .rrd recordings go (None: beside db_path)")
+    recording_max_points: int = Field(500_000, ge=0, le=10_000_000,
+                                      description="map points kept in a recording (0: no map cloud)")
