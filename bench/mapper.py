@@ -1,13 +1,22 @@
-"""Mapper benchmark: Algorithm 1 on generated houses (one and two floors).
+"""Mapper benchmark: Algorithm 1 on generated houses, one scene at a time or as a scale ladder.
 
     python -m bench.mapper [--scenes generated:0 generated:1:floors=2] [--size 96] [--json OUT]
                            [--predictor wide|cwp]
     python -m bench.mapper --scenes ../shared/data/replica_office0/office0_mesh.ply
+    python -m bench.mapper --ladder [--full] [--jobs 2] [--size 64] [--json OUT]
 
 Reports per scene: explored-node coverage of the simulator's reachable area (target >= 95 %),
 hub visibility coverage per region (>= tau), exploration steps and moves, set cover + 2-opt
-planning time (target < 1 s for a 200 m2 house) and the tour length against a plain
-nearest-neighbour tour over the same hubs.
+planning time and the tour length against a plain nearest-neighbour tour over the same hubs.
+
+The ladder (issue 21) runs 100 / 200 / 500 / 1,000 m2 by 1 / 2 / 3 floors, 5 seeds each with
+``--full`` (60 explorations), or a quick subset by default (seed 0 of 100 / 500 / 1,000 m2 by 1 and
+3 floors). Per rung it prints coverage, floors reached, steps, moves, metres walked per m2, wall
+seconds of explore (split into the robot's time - rendering and moving in the simulator - and the
+mapper's own), analyse and plan, and set cover + 2-opt; then a least-squares fit of each cost
+against the reachable area, ``cost ~ area^k``, and the issue's targets met or not:
+coverage >= 95 % on every rung; mapper explore + plan <= 30 s at 1,000 m2; set cover + 2-opt <= 2 s
+at 1,000 m2; tours no longer than a nearest-neighbour tour over the same hubs.
 """
 
 from __future__ import annotations
@@ -39,14 +48,43 @@ def coverage_of(reachable_m: np.ndarray, nodes_m: np.ndarray, radius_m: float) -
 PREDICTOR_KNOBS = {"cwp": {}, "wide": WIDE_EXPLORATION}
 
 
+class TimedRobot:
+    """The simulator behind a stopwatch: how much of the exploration's wall time is the robot's."""
+
+    def __init__(self, robot):
+        self.robot = robot
+        self.robot_s = 0.0
+
+    def observe(self):
+        t = time.perf_counter()
+        try:
+            return self.robot.observe()
+        finally:
+            self.robot_s += time.perf_counter() - t
+
+    def move_to(self, dx_m: float, dy_m: float):
+        t = time.perf_counter()
+        try:
+            return self.robot.move_to(dx_m, dy_m)
+        finally:
+            self.robot_s += time.perf_counter() - t
+
+
+def floors_reached(scene, visited_m: np.ndarray) -> int:
+    """Storeys of a generated house with at least a few visited nodes on their floor."""
+    levels = sorted({r.floor_z_m for r in scene.rooms if r.room_type != "staircase"})
+    return sum(int(np.sum(np.abs(visited_m[:, 2] - z) < 0.1) >= 3) for z in levels) if len(visited_m) else 0
+
+
 def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide") -> dict:
     from services.robot_io.core.robot import ROBOTS
 
     cam = CameraIntrinsics(width_px=size_px, height_px=size_px, hfov_deg=90.0)
     robot = ROBOTS.create("sim", {"scene": scene, "camera": cam})
+    timed = TimedRobot(robot)
     cfg = DiscoveryConfig(predictor_config=PREDICTOR_KNOBS[predictor])
     t0 = time.perf_counter()
-    d = discover(robot, cfg)
+    d = discover(timed, cfg)
     wall = time.perf_counter() - t0
     nav = robot.nav
     reach = nav.nodes_m[nav.component == nav.main_component]
@@ -67,16 +105,25 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
         })
     nn = sum(pt.nn_length_m for pt in d.tours)
     ours = sum(pt.order_length_m for pt in d.tours)
+    traj = d.result.trajectory_m
+    walked = float(np.linalg.norm(np.diff(traj, axis=0), axis=1).sum()) if len(traj) > 1 else 0.0
     return {
         "scene": scene,
         "predictor": predictor,
         "reachable_area_m2": round(nav.reachable_area_m2, 1),
         "floors": len(d.scene.floors),
+        "scene_floors": robot.scene.floors,
+        "floors_reached": floors_reached(robot.scene, visited),
         "stair_nodes": len(d.scene.stairs),
         "steps": d.result.steps,
         "moves": d.result.moves,
+        "walked_m": round(walked, 1),
+        "walked_m_per_m2": round(walked / max(nav.reachable_area_m2, 1e-9), 3),
         "unreachable": d.result.unreachable,
         "finished": d.result.finished,
+        "outcome": d.result.summary(),
+        "robot_s": round(timed.robot_s, 2),
+        "mapper_explore_s": round(d.timings_s["explore"] - timed.robot_s, 2),
         f"coverage_visited_{radius_m:g}m": round(coverage_of(reach, visited, radius_m), 3),
         f"coverage_explored_{radius_m:g}m": round(coverage_of(reach, explored, radius_m), 3),
         "regions": len(d.tours),
@@ -93,17 +140,144 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
     }
 
 
+LADDER_AREAS = (100, 200, 500, 1000)
+LADDER_FLOORS = (1, 2, 3)
+LADDER_SEEDS = 5
+QUICK = [(100, 1), (100, 3), (500, 1), (500, 3), (1000, 1), (1000, 3)]
+
+
+def ladder_specs(full: bool) -> list[tuple[int, int, int, str]]:
+    rungs = [(a, f) for a in LADDER_AREAS for f in LADDER_FLOORS] if full else QUICK
+    seeds = range(LADDER_SEEDS) if full else range(1)
+    # Seed by seed, so that a ladder cut short still has every rung measured.
+    return [(a, f, s, f"generated:{s}:area={a}:floors={f}") for s in seeds for a, f in rungs]
+
+
+def _ladder_job(args) -> dict:
+    area, floors, seed, spec, size, radius = args
+    logging.basicConfig(level=logging.ERROR)
+    row = run_scene(spec, size, radius)
+    row.update(area_m2=area, scene_floors=floors, seed=seed)
+    return row
+
+
+def growth_exponent(x: np.ndarray, y: np.ndarray) -> float:
+    """k of the least-squares fit log y = k log x + c (NaN with fewer than two distinct x)."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = (x > 0) & (y > 0)
+    if len(np.unique(x[ok])) < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0])
+
+
+LADDER_COSTS = ("steps", "moves", "walked_m", "explore_s", "robot_s", "mapper_explore_s", "analyse_s",
+                "plan_s", "set_cover_2opt_s")
+
+
+def _flat(row: dict, radius_m: float) -> dict:
+    t = row["timings_s"]
+    return {**row, "coverage": row[f"coverage_visited_{radius_m:g}m"], "explore_s": t["explore"],
+            "analyse_s": t["analyse"], "plan_s": t["plan"]}
+
+
+def print_ladder(rows: list[dict], radius_m: float) -> dict:
+    rows = [_flat(r, radius_m) for r in rows]
+    head = ("rung", "n", "reach m2", "coverage min/mean", "floors", "steps", "moves", "m/m2",
+            "explore s (robot+mapper)", "analyse s", "plan s", "cover+2opt s", "tour/NN max")
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    rungs = sorted({(r["area_m2"], r["scene_floors"]) for r in rows})
+    for area, fl in rungs:
+        rr = [r for r in rows if r["area_m2"] == area and r["scene_floors"] == fl]
+        m = lambda k: float(np.mean([r[k] for r in rr]))  # noqa: E731
+        cov = [r["coverage"] for r in rr]
+        reached = f"{min(r['floors_reached'] for r in rr)}-{max(r['floors_reached'] for r in rr)}/{fl}"
+        print(f"| {area} m2 x {fl} | {len(rr)} | {m('reachable_area_m2'):.0f} | {min(cov):.1%} / {np.mean(cov):.1%} "
+              f"| {reached} | {m('steps'):.0f} | {m('moves'):.0f} | {m('walked_m_per_m2'):.2f} "
+              f"| {m('explore_s'):.1f} ({m('robot_s'):.1f}+{m('mapper_explore_s'):.1f}) | {m('analyse_s'):.2f} "
+              f"| {m('plan_s'):.2f} | {m('set_cover_2opt_s'):.2f} | {max(r['tour_vs_nn_ratio'] for r in rr):.3f} |")
+    area = np.array([r["reachable_area_m2"] for r in rows])
+    exps = {k: round(growth_exponent(area, np.array([r[k] for r in rows])), 2) for k in LADDER_COSTS}
+    print("\ngrowth exponents vs reachable area (cost ~ area^k, all runs):")
+    print("  " + ", ".join(f"{k} {v}" for k, v in exps.items()))
+    big = [r for r in rows if r["area_m2"] == max(LADDER_AREAS)]
+    targets = {
+        "coverage >= 95 % on every rung": all(r["coverage"] >= 0.95 for r in rows),
+        "every floor reached": all(r["floors_reached"] == r["scene_floors"] for r in rows),
+        "mapper explore + plan <= 30 s at 1,000 m2": bool(big) and max(
+            r["mapper_explore_s"] + r["plan_s"] for r in big) <= 30.0,
+        "set cover + 2-opt <= 2 s at 1,000 m2": bool(big) and max(r["set_cover_2opt_s"] for r in big) <= 2.0,
+        "tours no longer than nearest neighbour": all(r["tour_vs_nn_ratio"] <= 1.0 + 1e-9 for r in rows),
+    }
+    if big:
+        print(f"  at 1,000 m2: explore + plan wall {max(r['explore_s'] + r['plan_s'] for r in big):.1f} s max "
+              f"(robot {max(r['robot_s'] for r in big):.1f} s of it)")
+    print("targets:")
+    for k, ok in targets.items():
+        print(f"  [{'x' if ok else ' '}] {k}")
+    return {"exponents": exps, "targets": targets}
+
+
+def run_ladder(full: bool, jobs: int, size_px: int, radius_m: float, out_json: str | None,
+               rows_path: str | None = None) -> None:
+    specs = ladder_specs(full)
+    args = [(a, f, s, spec, size_px, radius_m) for a, f, s, spec in specs]
+    rows: list[dict] = []
+    t0 = time.perf_counter()
+
+    def done(row: dict) -> None:
+        rows.append(row)
+        _progress(row, t0, radius_m, len(args), len(rows))
+        if rows_path:  # one JSON line per exploration: a ladder cut short can still be tabled
+            with open(rows_path, "a") as f:
+                f.write(json.dumps({k: v for k, v in row.items() if k != "per_region"}) + "\n")
+
+    if jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(jobs) as pool:
+            for row in pool.map(_ladder_job, args):
+                done(row)
+    else:
+        for a in args:
+            done(_ladder_job(a))
+    summary = print_ladder(rows, radius_m)
+    if out_json:
+        with open(out_json, "w") as f:
+            json.dump({"rows": rows, **summary}, f, indent=2)
+
+
+def _progress(row: dict, t0: float, radius_m: float, total: int, done: int) -> None:
+    print(f"[{done}/{total} {time.perf_counter() - t0:.0f} s] {row['scene']}: reach {row['reachable_area_m2']} m2, "
+          f"coverage {row[f'coverage_visited_{radius_m:g}m']:.1%}, floors {row['floors_reached']}/{row['scene_floors']}, "
+          f"{row['steps']} steps, {row['outcome']['stop_reason']}, explore {row['timings_s']['explore']} s "
+          f"(robot {row['robot_s']} s)", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["generated:0", "generated:1:floors=2"])
-    ap.add_argument("--size", type=int, default=96, help="panorama view size in pixels")
+    ap.add_argument("--size", type=int, default=None,
+                    help="panorama view size in pixels (96 for scenes, 64 for the ladder)")
     ap.add_argument("--radius", type=float, default=1.5, help="coverage radius around nodes (m)")
     ap.add_argument("--predictor", choices=sorted(PREDICTOR_KNOBS), default="wide",
                     help="exploration candidates: wide (10 at 15 deg, the default) or cwp (5 at 30 deg)")
+    ap.add_argument("--ladder", action="store_true", help="the scale ladder instead of --scenes")
+    ap.add_argument("--full", action="store_true", help="the whole ladder: 12 rungs x 5 seeds")
+    ap.add_argument("--jobs", type=int, default=1, help="explorations run in parallel processes")
+    ap.add_argument("--rows", default=None, help="ladder: append one JSON line per exploration here")
+    ap.add_argument("--table", default=None, help="ladder: print the table of a --rows file and exit")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    rows = [run_scene(s, args.size, args.radius, args.predictor) for s in args.scenes]
+    if args.table:
+        with open(args.table) as f:
+            print_ladder([json.loads(line) for line in f if line.strip()], args.radius)
+        return
+    if args.ladder:
+        run_ladder(args.full, args.jobs, args.size or 64, args.radius, args.json, args.rows)
+        return
+    rows = [run_scene(s, args.size or 96, args.radius, args.predictor) for s in args.scenes]
     for r in rows:
         print(json.dumps({k: v for k, v in r.items() if k != "per_region"}))
         for reg in r["per_region"]:

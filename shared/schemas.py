@@ -606,6 +606,20 @@ class ExplorationStarted(EventPayload):
     map_id: str
 
 
+class ExplorationOutcome(BaseModel):
+    """How an exploration ended: on an exhausted frontier (``finished``), or on a safety budget."""
+
+    model_config = ConfigDict(extra="forbid")
+    finished: bool
+    stop_reason: Literal["exhausted", "steps", "moves", "time"]
+    steps: int = Field(ge=0)
+    step_budget: int = Field(ge=0)
+    moves: int = Field(ge=0)
+    discovered_m2: float = Field(ge=0.0, allow_inf_nan=False)
+    coverage_estimate: float = Field(ge=0.0, le=1.0)
+    open_stairs: int = Field(0, ge=0)  # stair nodes past the last explored floor: a flight leads on
+
+
 class ExplorationProgress(EventPayload):
     """A stage of an exploration (exploring, touring, reconstructing) and how far it has come."""
 
@@ -619,6 +633,7 @@ class ExplorationProgress(EventPayload):
     nodes: int | None = Field(None, ge=0)
     regions: int | None = Field(None, ge=0)
     timings_s: dict[str, float] = Field(default_factory=dict)
+    outcome: ExplorationOutcome | None = None
 
 
 class ExplorationFinished(EventPayload):
@@ -636,6 +651,7 @@ class ExplorationFinished(EventPayload):
     nodes: int = Field(0, ge=0)
     wall_s: float = Field(0.0, ge=0.0, allow_inf_nan=False)
     timings_s: dict[str, float] = Field(default_factory=dict)
+    outcome: ExplorationOutcome | None = None
 
 
 class MapBuildProgress(EventPayload):
@@ -713,7 +729,9 @@ class ExplorationRequest(Message):
 
     exploration_id: str
     map_id: str
-    max_steps: int = Field(400, ge=1, le=10_000)
+    # A hard cap on panoramas; None leaves the mapper's safety budget, which scales with the area
+    # discovered (the exploration otherwise ends when no frontier is left).
+    max_steps: int | None = Field(None, ge=1, le=100_000)
     reconstruction: str = Field("rgbd", description="regional reconstruction backend (rgbd, mono, ...)")
     options: dict[str, Any] = Field(default_factory=dict)
     record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")

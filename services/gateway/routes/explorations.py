@@ -30,7 +30,7 @@ class ExplorationCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     map_id: str | None = Field(None, pattern=SEGMENT, description="name of the map to build (default: generated)")
-    max_steps: int = Field(400, ge=1, le=10_000)
+    max_steps: int | None = Field(None, ge=1, le=100_000)  # None: the mapper's area-scaled budget
     reconstruction: str = Field("rgbd", pattern=SEGMENT, description="regional reconstruction backend")
     options: dict[str, Any] = Field(default_factory=dict)
     record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")

@@ -31,7 +31,10 @@ log = logging.getLogger(__name__)
 
 @runtime_checkable
 class TourRobot(Protocol):
-    """What tour execution needs from a robot."""
+    """What tour execution needs from a robot (robot-io's port, its bus client, the box world)."""
+
+    @property
+    def pose(self) -> Pose: ...
 
     def observe(self) -> Panorama: ...
 
@@ -52,12 +55,6 @@ class RegionRecording:
     hubs_visited: int = 0
     blocked_moves: int = 0
     travelled_m: float = 0.0
-
-
-def robot_pose(robot: Any) -> Pose:
-    """The robot's pose whether it exposes ``pose`` as a property or a method."""
-    p = robot.pose
-    return p() if callable(p) else p
 
 
 def execute_tours(
@@ -96,7 +93,7 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
     start = np.asarray(tour.start_pose.position_m)
     if scene is not None:
         _transit(robot, scene, start)
-    here = robot_pose(robot)
+    here = robot.pose
     d = start[:2] - here.xyz[:2]
     if np.hypot(*d) > 0.05:
         res = robot.move_to(float(d[0]), float(d[1]))
@@ -104,7 +101,7 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
             raise TourExecutionError(
                 f"region {tour.region}: could not reach the tour start ({res.travelled_m:.2f} m)"
             )
-    turn = float(wrap_angle(tour.start_pose.heading_rad - robot_pose(robot).heading_rad))
+    turn = float(wrap_angle(tour.start_pose.heading_rad - robot.pose.heading_rad))
     if abs(turn) > 1e-3:
         robot.turn(turn)
     frames: list[Frame] = []
@@ -114,13 +111,13 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
         seen.add(frame.index)
         frames.append(frame)
 
-    rec = RegionRecording(region=tour.region, start_pose=robot_pose(robot))
+    rec = RegionRecording(region=tour.region, start_pose=robot.pose)
     hubs = set(pt.hub_path_index)
     path = np.asarray(tour.path_m)
     with robot.recording(sink, rate_hz):
         for k in range(len(path)):
             if k > 0:
-                cur = robot_pose(robot).xyz
+                cur = robot.pose.xyz
                 d = path[k, :2] - cur[:2]
                 if np.hypot(*d) > 1e-3:
                     res = robot.move_to(float(d[0]), float(d[1]))
@@ -154,7 +151,7 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray) -> None:
         d = np.linalg.norm(pos[:, :2] - p[:2], axis=1) + 3.0 * np.abs(pos[:, 2] - p[2])
         return visited[int(np.argmin(d))]
 
-    a = nearest(robot_pose(robot).xyz)
+    a = nearest(robot.pose.xyz)
     b = nearest(goal_m)
     try:
         route = nx.shortest_path(g.traversed(), a, b, weight="length")
@@ -162,7 +159,7 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray) -> None:
         log.warning("no traversed route to the tour start; trying straight")
         return
     for n in route:
-        cur = robot_pose(robot).xyz
+        cur = robot.pose.xyz
         d = g.pos(n)[:2] - cur[:2]
         if math.hypot(*d) < 0.05:
             continue

@@ -18,7 +18,7 @@ from typing import Protocol
 
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import (
-    BuildMapRequest, ExplorationFinished, ExplorationProgress, ExplorationRequest, JobEvent, JobState, MapBuildProgress,
+    BuildMapRequest, ExplorationFinished, ExplorationOutcome, ExplorationProgress, ExplorationRequest, JobEvent, JobState, MapBuildProgress,
     MapInfo, NavGraph, RecordReply, SceneSummary, Tour, TourRecording,
 )
 
@@ -50,7 +50,8 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
             tour_rate_hz: float) -> JobEnd:
     t0 = time.perf_counter()
     cfg = DiscoveryConfig.model_validate(req.options.get("discovery", {}))
-    cfg.exploration.max_steps = req.max_steps
+    if req.max_steps is not None:  # a hard cap; otherwise the budget scales with the area discovered
+        cfg.exploration.max_steps = req.max_steps
     ctx.progress(ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
     disc = discover(robot, cfg)
     ctx.check_cancelled()
@@ -60,9 +61,11 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     nodes = len(disc.result.graph.graph)
     timings_s = {k: round(v, 3) for k, v in disc.timings_s.items()}
     n_tours = max(1, len(disc.tours))
+    outcome = ExplorationOutcome(**disc.result.summary())
+    ended = describe_outcome(outcome)
     ctx.progress(ExplorationProgress(stage="touring", progress=_TOURS_AT, nodes=nodes, regions=len(disc.tours),
-                                     timings_s=timings_s,
-                                     message=f"explored {nodes} nodes; recording {len(disc.tours)} region tours"))
+                                     timings_s=timings_s, outcome=outcome,
+                                     message=f"explored {nodes} nodes ({ended}); recording {len(disc.tours)} region tours"))
 
     recordings: list[TourRecording] = []
     skipped: list[int] = []
@@ -102,8 +105,20 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     info = maps.build(BuildMapRequest(
         build_id=req.exploration_id, exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
         reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
-        label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene}"),
+        label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene} ({ended})"),
         on_event=on_build_event)
     return JobEnd(JobState.SUCCEEDED, ExplorationFinished(
         map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),
-        skipped_regions=skipped, nodes=nodes, timings_s=timings_s, wall_s=round(time.perf_counter() - t0, 2)))
+        skipped_regions=skipped, nodes=nodes, timings_s=timings_s, outcome=outcome,
+        wall_s=round(time.perf_counter() - t0, 2)))
+
+
+def describe_outcome(outcome: ExplorationOutcome) -> str:
+    """How the exploration ended, in words, for the events and the map's source line."""
+    if outcome.finished:
+        ended = "no frontier left"
+    elif outcome.stop_reason != "exhausted":
+        ended = f"stopped by its {outcome.stop_reason} budget after {outcome.steps} of {outcome.step_budget} steps"
+    else:
+        ended = f"{outcome.open_stairs} stair nodes lead past the explored floors"
+    return f"{ended}, coverage estimate {outcome.coverage_estimate:.0%}"

@@ -3,8 +3,19 @@
 The robot starts anywhere, looks around, asks the waypoint predictor for candidates and adds them
 to the grid graph as observed nodes; the newest frontier is visited next (depth first), walking back
 along traversed edges when a branch is exhausted. A candidate that the robot cannot reach is marked
-unreachable and never tried again; exploration ends when no frontier is left or the step budget is
-spent. Every panorama also feeds a 360-ray free-space scan kept for the occupancy map that the tour
+unreachable and never tried again. Exploration ends when no frontier is left (the paper's rule).
+A safety budget only guards against a predictor that keeps inventing frontiers: it grows with the
+area discovered so far (``steps_per_m2``), so a 1,000 m2 building is not cut short where a 100 m2
+flat would be; a wall-time budget and a hard cap may be set too. Whatever ends the run is recorded
+in ``stop_reason``, with a coverage estimate.
+
+Stairs: the predictor judges one panorama at a time, and near the top (or bottom) of a flight too
+few treads remain in view to tell a staircase from a bed. The robot itself knows better: a move
+that rose or fell like a flight is followed by a push on in the same direction (``stair_follow_m``),
+until the ground levels out. A flight whose continuation could not be walked keeps the exploration
+from counting as finished (``open_stairs``).
+
+Every panorama also feeds a 360-ray free-space scan kept for the occupancy map that the tour
 planner needs.
 """
 
@@ -14,6 +25,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Protocol, runtime_checkable
 
 import networkx as nx
@@ -49,8 +61,18 @@ class ExplorationConfig(BaseModel):
 
     dxy_m: float = Field(0.2, gt=0.0)
     dz_m: float = Field(0.5, gt=0.0)
-    max_steps: int = Field(300, ge=1)  # panoramas taken (waypoints visited)
-    max_moves: int = Field(3000, ge=1)  # move_to calls, transit included
+    # Safety budget, scaled by the area discovered (1 m cells holding any graph node): panoramas
+    # may number ``min_steps + steps_per_m2 * area``. A finished exploration needs about one
+    # panorama per reachable m2 (bench/mapper.py), so the default leaves twice that.
+    min_steps: int = Field(100, ge=1)
+    steps_per_m2: float = Field(2.0, gt=0.0)
+    moves_per_step: float = Field(12.0, gt=0.0)  # move_to calls (transit included) per budgeted step
+    max_steps: int | None = Field(None, ge=1)  # a hard cap on panoramas, whatever the area
+    stair_rise_m: float = Field(0.15, gt=0.0)  # a move that rises or falls this much was on stairs
+    stair_follow_m: float = Field(1.5, gt=0.0)  # how far on the robot pushes after such a move
+    floor_min_nodes: int = Field(5, ge=1)  # visited nodes at one height that make it a floor
+    replan_attempts: int = Field(3, ge=1, le=20)  # walks re-planned around blocked traversed edges
+    reconnect_radius_m: float = Field(3.0, gt=0.0)  # direct moves that may rejoin a stranded node
     visit_radius_m: float = Field(0.8, gt=0.0)  # a frontier this close to a visited node is covered
     frontier_merge_m: float = Field(0.5, ge=0.0)  # candidates closer than this to a frontier merge
     same_floor_dz_m: float = Field(0.4, gt=0.0)
@@ -69,6 +91,13 @@ class Scan:
     node: str
 
 
+class StopReason(StrEnum):
+    EXHAUSTED = "exhausted"  # no frontier left: the paper's end
+    STEPS = "steps"  # the area-scaled panorama budget (or the hard cap) ran out
+    MOVES = "moves"
+    TIME = "time"
+
+
 @dataclass
 class ExplorationResult:
     graph: GridGraph
@@ -79,10 +108,22 @@ class ExplorationResult:
     moves: int  # move_to calls
     unreachable: int
     blocked_moves: int
-    finished: bool  # True: no frontier left; False: a budget ran out
+    finished: bool  # True: no frontier left and no flight left unclimbed; False: see stop_reason
     duration_s: float
     start_pose: Pose
     scan_angles_rad: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stop_reason: StopReason = StopReason.EXHAUSTED
+    discovered_m2: float = 0.0  # 1 m cells holding a graph node (what the budget scaled with)
+    coverage_estimate: float = 1.0  # explored share of the discovered cells that can be reached
+    open_stairs: int = 0  # flights seen climbing or descending whose continuation failed
+    step_budget: int = 0
+
+    def summary(self) -> dict:
+        """What events and map metadata say about how the exploration ended."""
+        return {"finished": self.finished, "stop_reason": str(self.stop_reason), "steps": self.steps,
+                "step_budget": self.step_budget, "moves": self.moves,
+                "discovered_m2": round(self.discovered_m2, 1),
+                "coverage_estimate": round(self.coverage_estimate, 3), "open_stairs": self.open_stairs}
 
 
 class Explorer:
@@ -96,10 +137,14 @@ class Explorer:
     ):
         self.config = config or ExplorationConfig()
         self.predictor = predictor or GeometricPredictor()
-        base = scanner_config or getattr(self.predictor, "config", None) or GeometricPredictorConfig()
-        self.scanner = GeometricPredictor(
-            base.model_copy(update={"angle_bins": self.config.scan_angle_bins})
-        )
+        if scanner_config is None and isinstance(self.predictor, GeometricPredictor):
+            # One column walk per panorama serves both the candidates and the scan.
+            self.scanner = self.predictor.with_angle_bins(self.config.scan_angle_bins)
+        else:
+            base = scanner_config or getattr(self.predictor, "config", None) or GeometricPredictorConfig()
+            self.scanner = GeometricPredictor(
+                base.model_copy(update={"angle_bins": self.config.scan_angle_bins})
+            )
 
     def explore(self, robot: ExplorerRobot) -> ExplorationResult:
         cfg = self.config
@@ -108,20 +153,26 @@ class Explorer:
         pano = robot.observe()
         start_pose = pano.pose
         run.arrive(pano, previous=None, travelled_m=0.0)
-        finished = False
+        reason = StopReason.EXHAUSTED
         while True:
-            if run.steps >= cfg.max_steps or run.moves >= cfg.max_moves:
-                log.info("exploration budget spent: %d steps, %d moves", run.steps, run.moves)
-                break
-            if cfg.time_budget_s is not None and time.perf_counter() - t0 > cfg.time_budget_s:
-                log.info("exploration time budget spent")
-                break
-            target = run.next_frontier()
-            if target is None:
-                finished = True
-                break
-            run.visit(target)
+            budget = run.step_budget()
+            if run.steps >= budget:
+                reason = StopReason.STEPS
+            elif run.moves >= budget * cfg.moves_per_step:
+                reason = StopReason.MOVES
+            elif cfg.time_budget_s is not None and time.perf_counter() - t0 > cfg.time_budget_s:
+                reason = StopReason.TIME
+            else:
+                target = run.next_frontier()
+                if target is None:
+                    break
+                run.visit(target)
+                continue
+            log.warning("exploration stopped by its %s budget: %d steps, %d moves, %.0f m2 discovered",
+                        reason, run.steps, run.moves, run.discovered_m2())
+            break
         g = run.graph
+        open_stairs = run.open_stairs()
         return ExplorationResult(
             graph=g,
             scans=run.scans,
@@ -131,10 +182,15 @@ class Explorer:
             moves=run.moves,
             unreachable=len(g.nodes_with(NodeStatus.UNREACHABLE)),
             blocked_moves=run.blocked,
-            finished=finished,
+            finished=reason == StopReason.EXHAUSTED and open_stairs == 0,
             duration_s=time.perf_counter() - t0,
             start_pose=start_pose,
             scan_angles_rad=self.scanner.angles_rad.copy(),
+            stop_reason=reason,
+            discovered_m2=run.discovered_m2(),
+            coverage_estimate=run.coverage_estimate(),
+            open_stairs=open_stairs,
+            step_budget=run.step_budget(),
         )
 
 
@@ -155,6 +211,54 @@ class _Run:
         self.steps = 0
         self.moves = 0
         self.blocked = 0
+        self.cells: set[tuple[int, int, int]] = set()  # 1 m cells holding a node: the discovered area
+        self.stair_nodes: set[str] = set()  # visited nodes reached by a move that climbed or fell
+
+    # --- budget and bookkeeping -------------------------------------------------------------------
+
+    def _cell(self, pos: np.ndarray) -> tuple[int, int, int]:
+        return (math.floor(pos[0]), math.floor(pos[1]), math.floor(pos[2] / (2.0 * self.cfg.same_floor_dz_m)))
+
+    def discovered_m2(self) -> float:
+        return float(len(self.cells))
+
+    def step_budget(self) -> int:
+        budget = int(self.cfg.min_steps + self.cfg.steps_per_m2 * len(self.cells))
+        return min(budget, self.cfg.max_steps) if self.cfg.max_steps is not None else budget
+
+    def coverage_estimate(self) -> float:
+        """Share of the discovered cells that hold an explored node, among those not known unreachable.
+
+        An open frontier marks a cell nobody has looked at from close by; a cell holding only
+        unreachable candidates is not part of the area there is to explore.
+        """
+        status: dict[tuple, set] = {}
+        for _, a in self.graph.g.nodes(data=True):
+            status.setdefault(self._cell(a["pos"]), set()).add(a["status"])
+        done = sum(1 for st in status.values() if st & {NodeStatus.VISITED, NodeStatus.COVERED})
+        todo = sum(1 for st in status.values()
+                   if NodeStatus.FRONTIER in st and not st & {NodeStatus.VISITED, NodeStatus.COVERED})
+        return done / max(done + todo, 1)
+
+    def open_stairs(self) -> int:
+        """Stair nodes above the highest explored floor or below the lowest: a flight that leads on.
+
+        A floor here is a height where at least ``floor_min_nodes`` visited nodes pile up (the
+        stair nodes themselves left out); a flight between two explored floors is closed.
+        """
+        g = self.graph
+        stairs = [n for n in self.stair_nodes if n in g.g]
+        z = g.positions([n for n in g.nodes_with(NodeStatus.VISITED) if n not in self.stair_nodes])[:, 2]
+        if not stairs or len(z) == 0:
+            return 0
+        zs = np.sort(z)
+        groups = np.split(zs, np.nonzero(np.diff(zs) > self.cfg.same_floor_dz_m)[0] + 1)
+        levels = [float(np.median(grp)) for grp in groups if len(grp) >= self.cfg.floor_min_nodes]
+        if not levels:
+            return 0
+        sz = g.positions(stairs)[:, 2]
+        rise = self.cfg.stair_rise_m
+        return int(np.sum((sz > max(levels) + rise) | (sz < min(levels) - rise)))
 
     # --- graph updates --------------------------------------------------------------------------
 
@@ -165,6 +269,7 @@ class _Run:
         pos = pano.pose.xyz
         self.trajectory.append(pos.copy())
         nid = self.graph.add_visited(pos, order=self.steps)
+        self.cells.add(self._cell(pos))
         self.visit_order.append(nid)
         if previous is not None:
             self.graph.connect(previous, nid, max(travelled_m, 1e-3))
@@ -176,7 +281,24 @@ class _Run:
         # Push the best candidate last so that the DFS takes it first.
         for cand in sorted(cands, key=lambda c: c.score):
             self._add_candidate(nid, pos, cand)
+        if previous is not None:
+            self._follow_stairs(nid, self.graph.pos(previous), pos)
         return nid
+
+    def _follow_stairs(self, nid: str, came_from: np.ndarray, pos: np.ndarray) -> None:
+        """After a move that climbed or descended like a flight, push on the same way, first."""
+        d = pos - came_from
+        run = math.hypot(d[0], d[1])
+        if abs(d[2]) < self.cfg.stair_rise_m or run < 1e-3:
+            return
+        self.stair_nodes.add(nid)
+        target = pos + np.array([d[0], d[1], 0.0]) / run * self.cfg.stair_follow_m
+        if self._near(target, (NodeStatus.VISITED,), self.cfg.visit_radius_m):
+            return  # that part of the flight was walked already
+        f = self.graph.add_observed(target, nid, 1.0)
+        if f is not None:
+            self.cells.add(self._cell(target))
+            self.frontiers.append(f)
 
     def _add_candidate(self, parent: str, pos: np.ndarray, cand: Candidate) -> None:
         target = pos + np.array([cand.dx_m, cand.dy_m, 0.0])
@@ -188,24 +310,16 @@ class _Run:
             return  # a place we already failed to reach stays failed
         nid = self.graph.add_observed(target, parent, cand.score)
         if nid is not None:
+            self.cells.add(self._cell(target))
             self.frontiers.append(nid)
 
     def _near(self, target: np.ndarray, status: tuple[NodeStatus, ...], radius: float) -> bool:
-        nodes = self.graph.nodes_with(*status)
-        if not nodes or radius <= 0:
-            return False
-        p = self.graph.positions(nodes)
-        dxy = np.linalg.norm(p[:, :2] - target[:2], axis=1)
-        dz = np.abs(p[:, 2] - target[2])
-        return bool(np.any((dxy < radius) & (dz < self.cfg.same_floor_dz_m)))
+        return bool(self.graph.near(target, radius, self.cfg.same_floor_dz_m, *status))
 
     def _cover_near(self, pos: np.ndarray) -> None:
         """Frontiers that a new visited node makes redundant are covered, not visited."""
-        r = self.cfg.visit_radius_m
-        for f in self.graph.nodes_with(NodeStatus.FRONTIER):
-            p = self.graph.pos(f)
-            if np.linalg.norm(p[:2] - pos[:2]) < r and abs(p[2] - pos[2]) < self.cfg.same_floor_dz_m:
-                self.graph.g.nodes[f]["status"] = NodeStatus.COVERED
+        for f in self.graph.near(pos, self.cfg.visit_radius_m, self.cfg.same_floor_dz_m, NodeStatus.FRONTIER):
+            self.graph.g.nodes[f]["status"] = NodeStatus.COVERED
 
     # --- DFS --------------------------------------------------------------------------------------
 
@@ -221,6 +335,7 @@ class _Run:
         parent = g.g.nodes[target]["parent"]
         if parent != self.here and not self._walk_to(parent):
             # Could not get back to where the frontier was seen from: give it up.
+            log.info("frontier %s given up: its parent %s is out of reach from %s", target, parent, self.here)
             g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
             return
         goal = g.pos(target)
@@ -249,25 +364,68 @@ class _Run:
             self.here = parent
 
     def _walk_to(self, goal: str) -> bool:
-        """Follow traversed edges from the current node to ``goal``."""
+        """Follow traversed edges from the current node to ``goal``, re-planning around a blocked one.
+
+        An edge walked one way may not be walkable back the same straight way (the simulator slides
+        along a door jamb; a real robot's odometry drifts). A blocked edge is dropped and the robot
+        steps back to its node; when that leaves the node with no way on, it reconnects it to a
+        visited neighbour by a direct move, so one bad edge never strands the whole exploration.
+        """
         g = self.graph
-        try:
-            path = nx.shortest_path(g.traversed(), self.here, goal, weight="length")
-        except (nx.NetworkXNoPath, nx.NodeNotFound):
-            return False
+        for _ in range(self.cfg.replan_attempts):
+            try:
+                path = nx.shortest_path(g.traversed(), self.here, goal, weight="length")
+            except (nx.NetworkXNoPath, nx.NodeNotFound):
+                if not self._reconnect():
+                    return False
+                continue
+            if self._follow(path):
+                return True
+        return False
+
+    def _follow(self, path: list[str]) -> bool:
+        g = self.graph
         for nxt in path[1:]:
-            if self.moves >= self.cfg.max_moves:
-                return False
             p = g.pos(nxt)
             cur = self.pose.xyz
             res = self._move(p[0] - cur[0], p[1] - cur[1])
             if res.status != MoveStatus.REACHED:
                 self.blocked += 1
-                log.warning("blocked on a traversed edge towards %s", nxt)
-                g.g.remove_edge(self.here, nxt) if g.g.has_edge(self.here, nxt) else None
+                log.info("blocked on a traversed edge %s -> %s after %.2f m", self.here, nxt, res.travelled_m)
+                if g.g.has_edge(self.here, nxt):
+                    g.g.remove_edge(self.here, nxt)
+                self._return_to(self.here)
                 return False
             self.here = nxt
         return True
+
+    def _return_to(self, nid: str) -> None:
+        back = self.graph.pos(nid)[:2] - self.pose.xyz[:2]
+        if math.hypot(*back) > 1e-3:
+            self._move(*back)
+
+    def _reconnect(self) -> bool:
+        """Join the current node to the nearest visited nodes it has no traversed path to, directly."""
+        g = self.graph
+        here = g.pos(self.here)
+        reach = nx.node_connected_component(g.traversed(), self.here)
+        others = [n for n in g.nodes_with(NodeStatus.VISITED) if n not in reach]
+        if not others:
+            return False
+        p = g.positions(others)
+        same = np.abs(p[:, 2] - here[2]) < self.cfg.same_floor_dz_m
+        dist = np.linalg.norm(p[:, :2] - here[:2], axis=1)
+        for k in np.argsort(np.where(same, dist, np.inf))[: self.cfg.replan_attempts]:
+            if not same[k] or dist[k] > self.cfg.reconnect_radius_m:
+                break
+            res = self._move(*(p[k, :2] - self.pose.xyz[:2]))
+            if res.status == MoveStatus.REACHED:
+                g.connect(self.here, others[k], res.travelled_m)
+                self.here = others[k]
+                return True
+            self.blocked += 1
+            self._return_to(self.here)
+        return False
 
     def _move(self, dx: float, dy: float) -> MoveResult:
         self.moves += 1

@@ -27,12 +27,44 @@ class NodeStatus(StrEnum):
 class GridGraph:
     """networkx graph keyed by voxel node ids, with the attributes the mapper needs."""
 
+    #: Side of the buckets of the spatial index (m): "which nodes are near here" looks at 3 x 3 of
+    #: them instead of every node, which keeps exploration linear in the building's size.
+    BUCKET_M = 1.0
+
     def __init__(self, dxy_m: float = 0.2, dz_m: float = 0.5):
         if dxy_m <= 0 or dz_m <= 0:
             raise ValueError("voxel sizes must be positive")
         self.dxy_m = dxy_m
         self.dz_m = dz_m
         self.g = nx.Graph()
+        self._buckets: dict[tuple[int, int], set[str]] = {}
+
+    def _bucket(self, pos) -> tuple[int, int]:
+        return (math.floor(pos[0] / self.BUCKET_M), math.floor(pos[1] / self.BUCKET_M))
+
+    def _index(self, nid: str, old=None) -> None:
+        if old is not None:
+            self._buckets.get(self._bucket(old), set()).discard(nid)
+        self._buckets.setdefault(self._bucket(self.g.nodes[nid]["pos"]), set()).add(nid)
+
+    def near(self, position_m, radius_m: float, dz_m: float, *status: NodeStatus) -> list[str]:
+        """Nodes of ``status`` within ``radius_m`` horizontally and ``dz_m`` vertically of a point."""
+        if radius_m <= 0:
+            return []
+        p = np.asarray(position_m, dtype=np.float64)
+        span = int(math.ceil(radius_m / self.BUCKET_M))
+        bx, by = self._bucket(p)
+        out = []
+        for ix in range(bx - span, bx + span + 1):
+            for iy in range(by - span, by + span + 1):
+                for n in self._buckets.get((ix, iy), ()):
+                    a = self.g.nodes[n]
+                    if status and a["status"] not in status:
+                        continue
+                    q = a["pos"]
+                    if math.hypot(q[0] - p[0], q[1] - p[1]) < radius_m and abs(q[2] - p[2]) < dz_m:
+                        out.append(n)
+        return sorted(out)
 
     @property
     def graph(self) -> nx.Graph:
@@ -53,9 +85,12 @@ class GridGraph:
         if nid in self.g:
             attrs = self.g.nodes[nid]
             if attrs["status"] != NodeStatus.VISITED:
+                old = attrs["pos"]
                 attrs.update(status=NodeStatus.VISITED, pos=pos, order=order)
+                self._index(nid, old)
         else:
             self.g.add_node(nid, pos=pos, status=NodeStatus.VISITED, order=order, parent=None)
+            self._index(nid)
         return nid
 
     def add_observed(self, position_m, parent: str, score: float) -> str | None:
@@ -71,6 +106,7 @@ class GridGraph:
             score=float(score),
             order=-1,
         )
+        self._index(nid)
         return nid
 
     def connect(self, a: str, b: str, length_m: float | None = None) -> None:

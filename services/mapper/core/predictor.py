@@ -122,6 +122,109 @@ class GeometricPredictorConfig(BackendConfig):
         return self.body_radius_m + self.clearance_margin_m
 
 
+class _Memo:
+    """The last panorama's column walk: (panorama, hits), replaced as one tuple (thread-safe reads)."""
+
+    last: tuple[Panorama, _ColumnHits] | None = None
+
+
+@dataclass(frozen=True)
+class _ColumnHits:
+    """Per image column (views x columns, flattened): the first obstacle's range, the range where an
+    unconfirmed climb was first seen, whether a blind-zone climb was confirmed (a flight), azimuth."""
+
+    hit: np.ndarray
+    doubt: np.ndarray
+    climbed: np.ndarray
+    azimuth_rad: np.ndarray
+
+
+@dataclass
+class _ColumnWalk:
+    """State of the outward walk along every image column, one entry per column.
+
+    The ground may rise by less than a step per profile bin (stairs, ramps); the first bin whose
+    highest point rises more than that is the obstacle. Points above the body band were dropped, so
+    ceilings and lamps never block. The camera cannot see the floor right in front of the feet (and
+    far rows are sparse), so the first surface after a blind stretch may already be a few treads up
+    a staircase - or the top of a bed whose front edge hides in the blind zone. Such a rise is
+    accepted only tentatively: it must be *confirmed* by the ground climbing on by
+    ``confirm_rise_m`` (more treads); a surface that stays flat, drops away or ends at a wall was
+    furniture.
+    """
+
+    ground: np.ndarray  # height of the walkable ground reached so far
+    hit: np.ndarray  # range of the first obstacle (inf: none yet)
+    open_: np.ndarray  # still walking
+    last_r: np.ndarray  # range of the last surface seen (the feet at first)
+    tentative: np.ndarray  # where an unconfirmed climb's obstacle would stand
+    tent_z: np.ndarray
+    tent_first: np.ndarray  # where that raised surface was first seen
+    strict: np.ndarray  # the pending climb's edge hid in the blind zone
+    climbed: np.ndarray  # a blind-zone climb was confirmed: a flight
+    doubt: np.ndarray  # unconfirmed climb: where it was first seen
+
+    @classmethod
+    def start(cls, n: int) -> _ColumnWalk:
+        inf = lambda: np.full(n, np.inf)  # noqa: E731
+        return cls(ground=np.zeros(n), hit=inf(), open_=np.ones(n, dtype=bool), last_r=np.zeros(n),
+                   tentative=inf(), tent_z=np.zeros(n), tent_first=inf(), strict=np.zeros(n, dtype=bool),
+                   climbed=np.zeros(n, dtype=bool), doubt=inf())
+
+    def run(self, top: np.ndarray, vertical: np.ndarray, c: GeometricPredictorConfig, low_tan: float) -> None:
+        tan_slope = math.tan(math.radians(c.max_slope_deg))
+        near_edge_m = c.clearance_m + c.profile_bin_m
+        for b in range(top.shape[1]):
+            self._bin(b, top[:, b], vertical[:, b], c, tan_slope, low_tan, near_edge_m)
+        # A climb out of the blind zone never confirmed by the end of what the column saw was
+        # furniture, not stairs. (Far climbs after a sparse-row gap are judged by the drop alone:
+        # above the camera only risers are visible, so a flight's top never looks confirmed.)
+        left = self.open_ & np.isfinite(self.tentative) & self.strict
+        self.hit[left] = self.tentative[left]
+        self.doubt[left] = self.tent_first[left]
+
+    def _bin(self, b: int, t: np.ndarray, vertical: np.ndarray, c: GeometricPredictorConfig,
+             tan_slope: float, low_tan: float, near_edge_m: float) -> None:
+        seen = np.isfinite(t) & self.open_
+        if not seen.any():
+            return
+        r_b = b * c.profile_bin_m  # near edge of the bin: conservative
+        rise = t - self.ground
+        # Over a stretch nobody saw (pixel rows are sparse far away), the ground may have
+        # climbed as much as the steepest walkable slope allows.
+        slope_ok = rise <= c.max_step_m + tan_slope * np.maximum(r_b - self.last_r - c.profile_bin_m, 0.0)
+        pending = np.isfinite(self.tentative)
+        confirmed = seen & pending & (t >= self.tent_z + c.confirm_rise_m) & (rise <= c.max_step_m)
+        self.tentative[confirmed] = np.inf
+        self.climbed |= confirmed & self.strict
+        self.strict[confirmed] = False
+        pending &= ~confirmed
+        blocked = seen & (rise > c.max_step_m) & (~slope_ok | vertical)
+        dropped = seen & (rise < -c.max_step_m) & pending
+        unconfirmed = blocked & pending & self.strict
+        self.hit[blocked] = np.where(unconfirmed[blocked], self.tentative[blocked], r_b)
+        self.doubt[unconfirmed] = self.tent_first[unconfirmed]
+        # A surface that drops away again is a step-up/step-down block; its far edge decides
+        # nothing, and a flight seen from its side drops too: stop where it was first seen.
+        self.hit[dropped] = self.tent_first[dropped]
+        self.open_ &= ~(blocked | dropped)
+        new_tent = seen & self.open_ & slope_ok & (rise > c.max_step_m) & ~pending
+        if new_tent.any():
+            # Where did the raised surface begin? Seen well past the range from which the lowest
+            # ray would have caught it, it begins where it was first seen; otherwise its edge
+            # hides in the blind stretch, assumed just beyond the body.
+            visible_from = (c.camera_height_m - t) / low_tan
+            hidden = r_b <= visible_from + 2.0 * c.profile_bin_m
+            edge = np.where(hidden, np.maximum(self.last_r, np.minimum(r_b, near_edge_m)), r_b)
+            self.tentative[new_tent] = edge[new_tent]
+            self.tent_z[new_tent] = t[new_tent]
+            self.tent_first[new_tent] = r_b
+            self.strict[new_tent] = hidden[new_tent]
+        walk = seen & self.open_ & (rise > -4.0 * c.max_step_m)
+        self.ground[walk] = t[walk]
+        self.last_r[seen] = r_b
+
+
 @PREDICTORS.register("geometric", GeometricPredictorConfig)
 class GeometricPredictor:
     """CWP-contract predictor computed from depth geometry alone (no learning, a few ms)."""
@@ -138,6 +241,7 @@ class GeometricPredictor:
         self._cos = np.cos(d)
         self._sin = np.abs(np.sin(d))
         self._column_cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._memo = _Memo()
 
     # --- public ---------------------------------------------------------------------------------
 
@@ -156,6 +260,26 @@ class GeometricPredictor:
 
     def obstacle_distance(self, panorama: Panorama) -> np.ndarray:
         """Horizontal distance to the nearest obstacle per angle bin (``inf``: none in range)."""
+        cols = self._column_hits(panorama)
+        return self._bin_columns(cols)
+
+    def with_angle_bins(self, angle_bins: int) -> GeometricPredictor:
+        """The same predictor at another angular resolution, sharing the per-panorama column walk
+        (the explorer's 360-ray scan and the 120-bin prediction then cost one walk, not two)."""
+        other = GeometricPredictor(self.config.model_copy(update={"angle_bins": angle_bins}))
+        other._memo = self._memo
+        return other
+
+    def _column_hits(self, panorama: Panorama) -> _ColumnHits:
+        last = self._memo.last
+        if last is not None and last[0] is panorama:
+            return last[1]
+        hits = self._walk_columns(panorama)
+        self._memo.last = (panorama, hits)
+        return hits
+
+    def _walk_columns(self, panorama: Panorama) -> _ColumnHits:
+        """Where each image column meets its first obstacle, walking outward over the ground."""
         c = self.config
         depth = np.asarray(panorama.depth_m)
         if depth.ndim != 3:
@@ -165,12 +289,23 @@ class GeometricPredictor:
         cam = panorama.camera
         xn, yn, col_angle = self._columns(cam.width_px, cam.height_px, cam.hfov_deg, s)
         views, rows, cols = depth.shape
+        top, vertical = self._profiles(depth, xn, yn)
+        # Lowest sampled ray: a surface of height t is visible from range (cam_h - t) / low_tan on.
+        walk = _ColumnWalk.start(views * cols)
+        walk.run(top, vertical, c, low_tan=max(float(yn.max()), 1e-3))
+        # Column azimuth relative to the agent heading; views look at headings_rad[i].
+        heads = np.asarray(panorama.headings_rad, dtype=np.float64) - panorama.pose.heading_rad
+        az = wrap_angle(heads[:, None] - col_angle[None, :]).ravel()
+        return _ColumnHits(walk.hit, walk.doubt, walk.climbed, az)
 
+    def _profiles(self, depth: np.ndarray, xn: np.ndarray, yn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per image column and range bin: the highest surface point, and whether the bin is a
+        vertical face (its points span more height than a step plus the steepest slope)."""
+        c = self.config
+        views, rows, cols = depth.shape
         valid = np.isfinite(depth) & (depth > 0.0)
         rng = np.where(valid, depth * np.sqrt(1.0 + xn * xn)[None, None, :], np.inf)
         height = c.camera_height_m - yn[None, :, None] * depth  # above the agent's floor
-
-        # Profile of each image column binned by range: the highest surface point per range bin.
         nb = len(self._profile_edges) - 1
         rbin = np.floor(rng / c.profile_bin_m)
         inband = valid & (rbin < nb) & (height < c.body_height_m + c.max_step_m)
@@ -182,105 +317,32 @@ class GeometricPredictor:
         top = top.reshape(views * cols, nb)
         bottom = np.full(views * cols * nb, np.inf)
         np.minimum.at(bottom, flat, height[inband])
-        # A bin whose points span more height than a step plus the steepest slope is a vertical
-        # face (a wall, a sofa front): never walkable, whatever blind stretch came before it.
+        # A wall or a sofa front is never walkable, whatever blind stretch came before it.
         vertical = (top - bottom.reshape(views * cols, nb)) > (
             c.max_step_m + math.tan(math.radians(c.max_slope_deg)) * c.profile_bin_m
         )
+        return top, vertical
 
-        # Walk outward along each column: the ground may rise by less than a step per profile bin
-        # (stairs, ramps); the first bin whose highest point rises more than that is the obstacle.
-        # Points above the body band were dropped above, so ceilings and lamps never block.
-        # The camera cannot see the floor right in front of the feet (and far rows are sparse), so
-        # the first surface after a blind stretch may already be a few treads up a staircase - or
-        # the top of a bed whose front edge hides in the blind zone. Such a rise is accepted only
-        # tentatively: it must be *confirmed* by the ground climbing on by ``confirm_rise_m``
-        # (more treads), and a surface that stays flat, drops away or ends at a wall was furniture.
-        n_col = views * cols
-        ground = np.zeros(n_col)
-        hit = np.full(n_col, np.inf)
-        open_ = np.ones(n_col, dtype=bool)
-        last_r = np.zeros(n_col)  # range of the last surface seen (the feet at first)
-        tentative = np.full(n_col, np.inf)  # where an unconfirmed climb's obstacle would stand
-        tent_z = np.zeros(n_col)
-        tent_first = np.full(n_col, np.inf)  # where that raised surface was first seen
-        strict = np.zeros(n_col, dtype=bool)  # the pending climb's edge hid in the blind zone
-        climbed = np.zeros(n_col, dtype=bool)  # a blind-zone climb was confirmed: a flight
-        doubt = np.full(n_col, np.inf)  # unconfirmed climb: where it was first seen
-        tan_slope = math.tan(math.radians(c.max_slope_deg))
-        # Lowest sampled ray: a surface of height t is visible from range (cam_h - t) / low_tan on.
-        low_tan = max(float(yn.max()), 1e-3)
-        near_edge_m = c.clearance_m + c.profile_bin_m
-        for b in range(nb):
-            t = top[:, b]
-            seen = np.isfinite(t) & open_
-            if not seen.any():
-                continue
-            r_b = b * c.profile_bin_m  # near edge of the bin: conservative
-            rise = t - ground
-            # Over a stretch nobody saw (pixel rows are sparse far away), the ground may have
-            # climbed as much as the steepest walkable slope allows.
-            slope_ok = rise <= c.max_step_m + tan_slope * np.maximum(r_b - last_r - c.profile_bin_m, 0.0)
-            pending = np.isfinite(tentative)
-            confirmed = seen & pending & (t >= tent_z + c.confirm_rise_m) & (rise <= c.max_step_m)
-            tentative[confirmed] = np.inf
-            climbed |= confirmed & strict
-            strict[confirmed] = False
-            pending &= ~confirmed
-            blocked = seen & (rise > c.max_step_m) & (~slope_ok | vertical[:, b])
-            dropped = seen & (rise < -c.max_step_m) & pending
-            unconfirmed = blocked & pending & strict
-            hit[blocked] = np.where(unconfirmed[blocked], tentative[blocked], r_b)
-            doubt[unconfirmed] = tent_first[unconfirmed]
-            # A surface that drops away again is a step-up/step-down block; its far edge decides
-            # nothing, and a flight seen from its side drops too: stop where it was first seen.
-            hit[dropped] = tent_first[dropped]
-            open_ &= ~(blocked | dropped)
-            new_tent = seen & open_ & slope_ok & (rise > c.max_step_m) & ~pending
-            if new_tent.any():
-                # Where did the raised surface begin? Seen well past the range from which the
-                # lowest ray would have caught it, it begins where it was first seen; otherwise its
-                # edge hides in the blind stretch, assumed just beyond the body.
-                visible_from = (c.camera_height_m - t) / low_tan
-                hidden = r_b <= visible_from + 2.0 * c.profile_bin_m
-                edge = np.where(hidden, np.maximum(last_r, np.minimum(r_b, near_edge_m)), r_b)
-                tentative[new_tent] = edge[new_tent]
-                tent_z[new_tent] = t[new_tent]
-                tent_first[new_tent] = r_b
-                strict[new_tent] = hidden[new_tent]
-            walk = seen & open_ & (rise > -4.0 * c.max_step_m)
-            ground[walk] = t[walk]
-            last_r[seen] = r_b
-        # A climb out of the blind zone never confirmed by the end of what the column saw was
-        # furniture, not stairs. (Far climbs after a sparse-row gap are judged by the drop alone:
-        # above the camera only risers are visible, so a flight's top never looks confirmed.)
-        left = open_ & np.isfinite(tentative) & strict
-        hit[left] = tentative[left]
-        doubt[left] = tent_first[left]
-        hit = hit.reshape(views, cols)
-
-        # Column azimuth relative to the agent heading; views look at headings_rad[i].
-        heads = np.asarray(panorama.headings_rad, dtype=np.float64) - panorama.pose.heading_rad
-        az = wrap_angle(heads[:, None] - col_angle[None, :])
+    def _bin_columns(self, cols: _ColumnHits) -> np.ndarray:
+        c = self.config
         step = 2.0 * math.pi / c.angle_bins
-        abin = np.round(az / step).astype(np.int64) % c.angle_bins
+        abin = np.round(cols.azimuth_rad / step).astype(np.int64) % c.angle_bins
+        hit = cols.hit
         # An unconfirmed climb beside a confirmed flight is the same flight seen at a slant (its
         # side wall ends the column early): trust where it was first seen, not the blind edge.
         flight = np.zeros(c.angle_bins, dtype=bool)
-        flight[abin.ravel()[climbed]] = True
+        flight[abin[cols.climbed]] = True
         if flight.any():
             half = max(1, int(round(c.flight_spread_deg / (360.0 / c.angle_bins))))
             near = np.zeros_like(flight)
             for k in range(-half, half + 1):
                 near |= np.roll(flight, k)
-            relax = near[abin].ravel() & np.isfinite(doubt)
-            hit = hit.ravel()
-            hit[relax] = doubt[relax]
-            hit = hit.reshape(views, cols)
+            relax = near[abin] & np.isfinite(cols.doubt)
+            hit = np.where(relax, cols.doubt, hit)
         out = np.full(c.angle_bins, np.inf)
-        np.minimum.at(out, abin.ravel(), hit.ravel())
+        np.minimum.at(out, abin, hit)
         covered = np.zeros(c.angle_bins, dtype=bool)
-        covered[abin.ravel()] = True
+        covered[abin] = True
         # A direction no pixel looked at is unknown, not free: NaN lets free_distance close it.
         out[~covered] = np.nan
         return out

@@ -221,6 +221,17 @@ def resample(points: np.ndarray, step_m: float) -> np.ndarray:
 # --- the planner ---------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class _FloorGrids:
+    fflat: np.ndarray  # flat ids of the explored free cells
+    region_of: np.ndarray  # their region (-1: none)
+    clear: np.ndarray  # clearance per cell (m)
+    reach: np.ndarray  # free with the tour's clearance
+    rg: object  # the reachable cells' grid graph (csr)
+    rflat: np.ndarray
+    comp: np.ndarray  # connected component of each reachable cell
+
+
 class TourPlanner:
     def __init__(self, config: TourConfig | None = None):
         self.config = config or TourConfig()
@@ -228,23 +239,24 @@ class TourPlanner:
     def plan(self, scene: SceneMap) -> list[PlannedTour]:
         """One tour per region (regions without any reachable cell are skipped with a warning)."""
         tours = []
+        grids: dict[int, _FloorGrids] = {}  # per floor, shared by its regions
         for rid in sorted(scene.regions):
             try:
-                tours.append(self.plan_region(scene, rid))
+                tours.append(self.plan_region(scene, rid, grids))
             except PlanningError as exc:
                 log.warning("region %d: no tour: %s", rid, exc)
         return tours
 
-    def plan_region(self, scene: SceneMap, rid: int) -> PlannedTour:
+    def _floor_grids(self, scene: SceneMap, index: int) -> _FloorGrids:
+        """What every region of a floor plans on: the explored cells' owner regions, clearance, the
+        reachable-cell graph and its components. Built once per floor, not once per region, which
+        kept planning quadratic in the floor's area."""
         cfg = self.config
-        floor = scene.floors[scene.region_floor[rid]]
+        floor = scene.floors[index]
         occ = floor.occupancy
         g = scene.result.graph
-        nodes = scene.regions[rid]
         floor_nodes = floor.nodes
         fpos = g.positions(floor_nodes)
-        npos = g.positions(nodes)
-
         # Every explored cell of the floor goes to the region of its nearest (geodesic) node.
         free = occ.free
         fg, fflat = grid_graph(free, occ.cell_m)
@@ -257,22 +269,37 @@ class TourPlanner:
         region_of = np.array(
             [scene.node_region.get(node_of_src.get(int(s)), -1) if s >= 0 else -1 for s in src]
         )
-        target_flat = fflat[region_of == rid]
-        if len(target_flat) == 0:
-            raise PlanningError("region has no explored cell")
-        targets = np.column_stack(np.unravel_index(target_flat, free.shape))
-
-        # Reachable cells: free with clearance, in the component of the region's nodes.
+        # Reachable cells: free with clearance.
         clear = occ.clearance_m()
         reach = free & (clear >= cfg.clearance_m)
         rg, rflat = grid_graph(reach, occ.cell_m)
+        _, comp = connected_components(rg, directed=False)
+        return _FloorGrids(fflat, region_of, clear, reach, rg, rflat, comp)
+
+    def plan_region(self, scene: SceneMap, rid: int, grids: dict[int, _FloorGrids] | None = None) -> PlannedTour:
+        cfg = self.config
+        fi = scene.region_floor[rid]
+        floor = scene.floors[fi]
+        occ = floor.occupancy
+        g = scene.result.graph
+        nodes = scene.regions[rid]
+        npos = g.positions(nodes)
+        grids = {} if grids is None else grids
+        if fi not in grids:
+            grids[fi] = self._floor_grids(scene, fi)
+        fg_ = grids[fi]
+        free = occ.free
+        target_flat = fg_.fflat[fg_.region_of == rid]
+        if len(target_flat) == 0:
+            raise PlanningError("region has no explored cell")
+        targets = np.column_stack(np.unravel_index(target_flat, free.shape))
+        clear, reach, rg, rflat, comp = fg_.clear, fg_.reach, fg_.rg, fg_.rflat, fg_.comp
         rnode = _cells_of(occ, npos, rflat, reach, snap_m=cfg.clearance_m + 0.5)
         if not (rnode >= 0).any():
             raise PlanningError("no region node has the required clearance")
         # One tour walks one connected piece of reachable space: the piece that holds most of the
         # region's nodes (a sliver cut off by furniture would need a hub the robot cannot reach).
         seeds = rnode[rnode >= 0]
-        _, comp = connected_components(rg, directed=False)
         main = np.bincount(comp[seeds]).argmax()
         connected = comp == main
         region_mask = np.zeros(free.shape, dtype=bool)

@@ -7,9 +7,10 @@ room is reachable. Each room has its own wall colour and a labelled floor ("kitc
 camera that sees the floor knows the room. Furniture is built from boxes and cylinders with class
 labels and named colours ("green plant", "red sofa"), placed against walls or in the middle of the
 room, and rejected when it would cut the room's free floor in two or block a doorway. With
-``floors=2`` a straight staircase (rise < 0.2 m) in a stairwell beside the house joins the storeys.
+``floors=2`` or ``3`` a straight staircase (rise < 0.2 m) in a stairwell beside the house joins each
+pair of consecutive storeys; the flights alternate between the +x and the -x side of the house.
 
-Spec string: ``generated:<seed>[:floors=<1|2>][:area=<m2>]`` (area of the whole house).
+Spec string: ``generated:<seed>[:floors=<1|2|3>][:area=<m2>]`` (area of the whole house, 40-1,200 m2).
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ from scipy import ndimage
 from shared.schemas import Pose
 
 from .errors import SceneFormatError
+from .furniture import ROOM_FURNITURE, chair_parts, colour_rgb, furniture_item
 from .mesh_builder import MeshBuilder
-from .scene import GENERATED_PREFIX, Room, Scene, SceneObject
+from .scene import GENERATED_PREFIX, Room, Scene, SceneObject, register_scene_builder
 
 log = logging.getLogger(__name__)
 
@@ -44,23 +46,9 @@ AGENT_R = 0.1
 # grid blocks cells conservatively (any obstacle point within radius + half a cell diagonal).
 INFLATE = AGENT_R + RASTER
 EPS = 1e-6
-
-COLOURS: dict[str, tuple[float, float, float]] = {
-    "red": (0.78, 0.16, 0.14),
-    "green": (0.20, 0.62, 0.22),
-    "blue": (0.18, 0.32, 0.78),
-    "yellow": (0.92, 0.80, 0.18),
-    "orange": (0.93, 0.50, 0.12),
-    "purple": (0.52, 0.26, 0.66),
-    "pink": (0.92, 0.55, 0.68),
-    "white": (0.93, 0.93, 0.91),
-    "black": (0.10, 0.10, 0.11),
-    "grey": (0.50, 0.51, 0.53),
-    "brown": (0.48, 0.31, 0.17),
-    "beige": (0.85, 0.77, 0.60),
-    "silver": (0.75, 0.77, 0.80),
-    "teal": (0.10, 0.55, 0.55),
-}
+MAX_FLOORS = 3
+MIN_STAIR_DEPTH_M = 7.0
+MIN_AREA_M2, MAX_AREA_M2 = 40.0, 1200.0
 
 WALL_PAINT = {
     "living room": (0.93, 0.88, 0.74),
@@ -100,10 +88,10 @@ class HouseSpec:
     area_m2: float = 200.0
 
     def __post_init__(self) -> None:
-        if self.floors not in (1, 2):
-            raise SceneFormatError(f"floors must be 1 or 2, got {self.floors}")
-        if not 40.0 <= self.area_m2 <= 1000.0:
-            raise SceneFormatError(f"area must be within 40-1000 m2, got {self.area_m2}")
+        if not 1 <= self.floors <= MAX_FLOORS:
+            raise SceneFormatError(f"floors must be 1 to {MAX_FLOORS}, got {self.floors}")
+        if not MIN_AREA_M2 <= self.area_m2 <= MAX_AREA_M2:
+            raise SceneFormatError(f"area must be within {MIN_AREA_M2:g}-{MAX_AREA_M2:g} m2, got {self.area_m2}")
 
     @classmethod
     def parse(cls, spec: str) -> HouseSpec:
@@ -215,239 +203,6 @@ def _name_rooms(types: list[str], floors: list[int], existing: dict[str, int]) -
     return names
 
 
-# --- furniture -----------------------------------------------------------------------------------
-
-# A part: ("box", (x0, y0, z0), (x1, y1, z1), colour, label) or ("cyl", (x, y), r, z0, z1, colour, label, r_top)
-# in the item frame: x along the wall (-w/2..w/2), y away from the wall (0..d), z up.
-
-
-def _c(name_or_rgb) -> tuple[float, float, float]:
-    return COLOURS[name_or_rgb] if isinstance(name_or_rgb, str) else name_or_rgb
-
-
-def _legs(w, d, h, t, col, label, inset=0.03):
-    xs = (-w / 2 + inset, w / 2 - inset - t)
-    ys = (inset, d - inset - t)
-    return [("box", (x, y, 0.0), (x + t, y + t, h), col, label) for x in xs for y in ys]
-
-
-def _item(kind: str, rng: np.random.Generator):
-    """(label, colour name, width, depth, height, parts, placement) for a furniture kind."""
-    pick = lambda names: str(rng.choice(names))  # noqa: E731
-    if kind == "bed":
-        col = pick(["blue", "red", "green", "purple", "beige", "grey"])
-        w, d = float(rng.choice([1.4, 1.6])), 2.0
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d, 0.3), _c("brown"), "bed"),
-            ("box", (-w / 2 + 0.03, 0.05, 0.3), (w / 2 - 0.03, d - 0.03, 0.5), _c("white"), "bed"),
-            ("box", (-w / 2 + 0.02, 0.55, 0.5), (w / 2 - 0.02, d - 0.02, 0.56), _c(col), "bed"),
-            ("box", (-w / 2 + 0.1, 0.08, 0.5), (w / 2 - 0.1, 0.45, 0.62), _c("white"), "bed"),
-            ("box", (-w / 2, 0, 0), (w / 2, 0.06, 1.0), _c("brown"), "bed"),
-        ]
-        return "bed", col, w, d, 1.0, parts, "wall"
-    if kind == "sofa":
-        col = pick(["red", "blue", "grey", "green", "orange", "beige"])
-        w, d = float(rng.choice([1.8, 2.1])), 0.9
-        parts = [
-            ("box", (-w / 2, 0, 0.05), (w / 2, d, 0.42), _c(col), "sofa"),
-            ("box", (-w / 2, 0, 0.42), (w / 2, 0.22, 0.85), _c(col), "sofa"),
-            ("box", (-w / 2, 0.22, 0.42), (-w / 2 + 0.18, d, 0.62), _c(col), "sofa"),
-            ("box", (w / 2 - 0.18, 0.22, 0.42), (w / 2, d, 0.62), _c(col), "sofa"),
-            ("box", (-w / 2 + 0.2, 0.24, 0.42), (w / 2 - 0.2, d - 0.02, 0.5), _c("white"), "sofa"),
-        ] + _legs(w, d, 0.05, 0.05, _c("black"), "sofa")
-        return "sofa", col, w, d, 0.85, parts, "wall"
-    if kind == "armchair":
-        col = pick(["red", "blue", "yellow", "green", "purple"])
-        w, d = 0.85, 0.85
-        parts = [
-            ("box", (-w / 2, 0, 0.05), (w / 2, d, 0.42), _c(col), "armchair"),
-            ("box", (-w / 2, 0, 0.42), (w / 2, 0.2, 0.9), _c(col), "armchair"),
-            ("box", (-w / 2, 0.2, 0.42), (-w / 2 + 0.15, d, 0.62), _c(col), "armchair"),
-            ("box", (w / 2 - 0.15, 0.2, 0.42), (w / 2, d, 0.62), _c(col), "armchair"),
-        ] + _legs(w, d, 0.05, 0.05, _c("black"), "armchair")
-        return "armchair", col, w, d, 0.9, parts, "wall"
-    if kind in ("table", "dining table", "coffee table", "kitchen table"):
-        col = pick(["brown", "white", "black", "beige"])
-        dims = {"table": (1.2, 0.8, 0.75), "dining table": (1.6, 0.9, 0.75), "kitchen table": (1.1, 0.75, 0.75), "coffee table": (1.0, 0.55, 0.42)}
-        w, d, h = dims[kind]
-        parts = [("box", (-w / 2, 0, h - 0.04), (w / 2, d, h), _c(col), "table")] + _legs(w, d, h - 0.04, 0.05, _c(col), "table")
-        return ("coffee table" if kind == "coffee table" else "table"), col, w, d, h, parts, "centre"
-    if kind == "chair":
-        col = pick(["brown", "black", "white", "red", "blue"])
-        w = d = 0.45
-        parts = [("box", (-w / 2, 0, 0.42), (w / 2, d, 0.46), _c(col), "chair"), ("box", (-w / 2, 0, 0.46), (w / 2, 0.05, 0.9), _c(col), "chair")]
-        parts += _legs(w, d, 0.42, 0.04, _c(col), "chair", inset=0.0)
-        return "chair", col, w, d, 0.9, parts, "wall"
-    if kind == "fridge":
-        col = pick(["white", "silver"])
-        w, d, h = 0.7, 0.7, 1.85
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d, h), _c(col), "fridge"),
-            ("box", (-w / 2 + 0.02, d, 1.15), (w / 2 - 0.02, d + 0.005, 1.16), _c("black"), "fridge"),
-            ("box", (w / 2 - 0.1, d, 1.2), (w / 2 - 0.07, d + 0.04, 1.6), _c("grey"), "fridge"),
-            ("box", (w / 2 - 0.1, d, 0.7), (w / 2 - 0.07, d + 0.04, 1.05), _c("grey"), "fridge"),
-        ]
-        return "fridge", col, w, d + 0.04, h, parts, "wall"
-    if kind == "stove":
-        w, d, h = 0.6, 0.6, 0.9
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d, h - 0.02), _c("silver"), "stove"),
-            ("box", (-w / 2, 0, h - 0.02), (w / 2, d, h), _c("black"), "stove"),
-            ("box", (-w / 2 + 0.05, d, 0.15), (w / 2 - 0.05, d + 0.01, 0.6), _c("black"), "stove"),
-            ("box", (-w / 2, 0, h), (w / 2, 0.05, h + 0.12), _c("silver"), "stove"),
-        ]
-        for bx in (-0.14, 0.14):
-            for by in (0.18, 0.42):
-                parts.append(("cyl", (bx, by), 0.09, h, h + 0.015, _c("grey"), "stove", None))
-        return "stove", "silver", w, d + 0.01, h + 0.12, parts, "wall"
-    if kind == "kitchen counter":
-        col = pick(["white", "beige", "grey", "teal"])
-        w, d, h = float(rng.choice([1.2, 1.6])), 0.6, 0.9
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d - 0.02, h - 0.04), _c(col), "kitchen counter"),
-            ("box", (-w / 2, 0, h - 0.04), (w / 2, d, h), _c("grey"), "kitchen counter"),
-            ("box", (-0.25, 0.1, h - 0.005), (0.25, 0.5, h + 0.002), _c("silver"), "sink"),
-            ("cyl", (0.0, 0.06), 0.02, h, h + 0.3, _c("silver"), "sink", None),
-        ]
-        return "kitchen counter", col, w, d, h, parts, "wall"
-    if kind == "sink":
-        w, d, h = 0.55, 0.45, 0.85
-        parts = [
-            ("box", (-0.1, 0, 0), (0.1, 0.25, h - 0.15), _c("white"), "sink"),
-            ("box", (-w / 2, 0, h - 0.15), (w / 2, d, h), _c("white"), "sink"),
-            ("box", (-w / 2 + 0.05, 0.05, h), (w / 2 - 0.05, d - 0.05, h + 0.005), _c("silver"), "sink"),
-            ("box", (-0.2, 0, 1.1), (0.2, 0.02, 1.6), _c("silver"), "mirror"),
-        ]
-        return "sink", "white", w, d, h, parts, "wall"
-    if kind == "toilet":
-        w, d = 0.42, 0.7
-        parts = [
-            ("box", (-0.2, 0, 0.4), (0.2, 0.2, 0.8), _c("white"), "toilet"),
-            ("cyl", (0.0, 0.45), 0.14, 0.0, 0.38, _c("white"), "toilet", 0.2),
-            ("cyl", (0.0, 0.45), 0.2, 0.38, 0.42, _c("white"), "toilet", None),
-        ]
-        return "toilet", "white", w, d, 0.8, parts, "wall"
-    if kind == "bathtub":
-        w, d, h = 1.7, 0.75, 0.55
-        t = 0.08
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d, 0.1), _c("white"), "bathtub"),
-            ("box", (-w / 2, 0, 0.1), (w / 2, t, h), _c("white"), "bathtub"),
-            ("box", (-w / 2, d - t, 0.1), (w / 2, d, h), _c("white"), "bathtub"),
-            ("box", (-w / 2, t, 0.1), (-w / 2 + t, d - t, h), _c("white"), "bathtub"),
-            ("box", (w / 2 - t, t, 0.1), (w / 2, d - t, h), _c("white"), "bathtub"),
-            ("box", (-w / 2 + t, t, 0.1), (w / 2 - t, d - t, 0.35), _c("blue"), "bathtub"),
-        ]
-        return "bathtub", "white", w, d, h, parts, "wall"
-    if kind == "washing machine":
-        w, d, h = 0.6, 0.6, 0.85
-        parts = [("box", (-w / 2, 0, 0), (w / 2, d, h), _c("white"), "washing machine"), ("cyl", (0.0, d), 0.2, 0.25, 0.65, _c("grey"), "washing machine", None)]
-        # The door is a cylinder lying on the front: approximate with a thin box instead.
-        parts[-1] = ("box", (-0.18, d, 0.27), (0.18, d + 0.02, 0.63), _c("grey"), "washing machine")
-        return "washing machine", "white", w, d + 0.02, h, parts, "wall"
-    if kind == "desk":
-        col = pick(["white", "brown", "black"])
-        w, d, h = 1.4, 0.7, 0.75
-        parts = [("box", (-w / 2, 0, h - 0.04), (w / 2, d, h), _c(col), "desk"), ("box", (w / 2 - 0.45, 0.02, 0), (w / 2, d - 0.02, h - 0.04), _c(col), "desk")]
-        parts += [("box", (-w / 2, 0.02, 0), (-w / 2 + 0.04, d - 0.02, h - 0.04), _c(col), "desk")]
-        parts += [("box", (-0.25, 0.05, h), (0.25, 0.08, h + 0.35), _c("black"), "monitor"), ("box", (-0.03, 0.08, h), (0.03, 0.14, h + 0.1), _c("black"), "monitor")]
-        return "desk", col, w, d, h + 0.35, parts, "wall"
-    if kind == "bookshelf":
-        col = pick(["brown", "white", "black"])
-        w, d, h = float(rng.choice([0.8, 1.0])), 0.35, 1.9
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, 0.02, h), _c(col), "bookshelf"),
-            ("box", (-w / 2, 0, 0), (-w / 2 + 0.03, d, h), _c(col), "bookshelf"),
-            ("box", (w / 2 - 0.03, 0, 0), (w / 2, d, h), _c(col), "bookshelf"),
-        ]
-        book_cols = [_c(n) for n in ("red", "blue", "green", "yellow", "orange", "purple", "white")]
-        for k in range(5):
-            z = k * (h - 0.03) / 4
-            parts.append(("box", (-w / 2, 0, z), (w / 2, d, z + 0.03), _c(col), "bookshelf"))
-            if k < 4:
-                x = -w / 2 + 0.04
-                while x < w / 2 - 0.08:
-                    bw = float(rng.uniform(0.03, 0.07))
-                    bh = float(rng.uniform(0.2, 0.33))
-                    parts.append(("box", (x, 0.04, z + 0.03), (x + bw, d - 0.03, z + 0.03 + bh), book_cols[int(rng.integers(len(book_cols)))], "book"))
-                    x += bw + 0.005
-        return "bookshelf", col, w, d, h, parts, "wall"
-    if kind == "plant":
-        pot = pick(["orange", "white", "grey", "brown"])
-        r = 0.22
-        parts = [
-            ("cyl", (0.0, r), 0.16, 0.0, 0.35, _c(pot), "plant pot", 0.2),
-            ("cyl", (0.0, r), 0.03, 0.35, 0.7, _c("brown"), "plant", None),
-            ("cyl", (0.0, r), 0.08, 0.55, 0.75, _c("green"), "plant", r),
-            ("cyl", (0.0, r), r, 0.75, 1.05, _c("green"), "plant", 0.15),
-            ("cyl", (0.0, r), 0.15, 1.05, 1.25, _c("green"), "plant", 0.0),
-        ]
-        return "plant", "green", 2 * r, 2 * r, 1.25, parts, "wall"
-    if kind == "tv":
-        col = pick(["black", "brown", "white"])
-        w, d = 1.4, 0.45
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d, 0.5), _c(col), "tv stand"),
-            ("box", (-0.55, 0.12, 0.5), (0.55, 0.17, 1.2), _c("black"), "tv"),
-            ("box", (-0.52, 0.171, 0.53), (0.52, 0.175, 1.17), (0.15, 0.2, 0.3), "tv"),
-        ]
-        return "tv", "black", w, d, 1.2, parts, "wall"
-    if kind == "wardrobe":
-        col = pick(["white", "brown", "grey"])
-        w, d, h = float(rng.choice([1.0, 1.4])), 0.6, 2.0
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d, h), _c(col), "wardrobe"),
-            ("box", (-0.005, d, 0.05), (0.005, d + 0.005, h - 0.05), _c("black"), "wardrobe"),
-            ("box", (-0.08, d, 1.0), (-0.06, d + 0.03, 1.3), _c("silver"), "wardrobe"),
-            ("box", (0.06, d, 1.0), (0.08, d + 0.03, 1.3), _c("silver"), "wardrobe"),
-        ]
-        return "wardrobe", col, w, d + 0.03, h, parts, "wall"
-    if kind == "nightstand":
-        col = pick(["brown", "white"])
-        w = d = 0.45
-        parts = [
-            ("box", (-w / 2, 0, 0), (w / 2, d, 0.5), _c(col), "nightstand"),
-            ("cyl", (0.0, 0.22), 0.06, 0.5, 0.85, _c("yellow"), "lamp", 0.1),
-        ]
-        return "nightstand", col, w, d, 0.85, parts, "wall"
-    if kind == "lamp":
-        col = pick(["yellow", "white", "orange"])
-        parts = [
-            ("cyl", (0.0, 0.2), 0.15, 0.0, 0.03, _c("black"), "lamp", None),
-            ("cyl", (0.0, 0.2), 0.015, 0.03, 1.45, _c("black"), "lamp", None),
-            ("cyl", (0.0, 0.2), 0.2, 1.4, 1.7, _c(col), "lamp", 0.12),
-        ]
-        return "lamp", col, 0.4, 0.4, 1.7, parts, "wall"
-    if kind == "cabinet":
-        col = pick(["brown", "white", "teal", "grey"])
-        w, d, h = 1.2, 0.45, 0.85
-        parts = [("box", (-w / 2, 0, 0), (w / 2, d, h), _c(col), "cabinet"), ("box", (-0.005, d, 0.05), (0.005, d + 0.005, h - 0.05), _c("black"), "cabinet")]
-        return "cabinet", col, w, d + 0.005, h, parts, "wall"
-    if kind == "rug":
-        col = pick(["red", "blue", "beige", "purple", "teal"])
-        w, d = 2.0, 1.4
-        return "rug", col, w, d, 0.01, [("box", (-w / 2, 0, 0), (w / 2, d, 0.01), _c(col), "rug")], "centre"
-    if kind == "painting":
-        col = pick(["red", "blue", "yellow", "green", "orange"])
-        w = float(rng.choice([0.6, 0.9]))
-        parts = [
-            ("box", (-w / 2, 0, 1.3), (w / 2, 0.03, 1.3 + 0.7 * w), _c("black"), "painting"),
-            ("box", (-w / 2 + 0.04, 0.03, 1.34), (w / 2 - 0.04, 0.035, 1.26 + 0.7 * w), _c(col), "painting"),
-        ]
-        return "painting", col, w, 0.035, 1.3 + 0.7 * w, parts, "on wall"
-    raise ValueError(f"unknown furniture kind {kind!r}")
-
-
-ROOM_FURNITURE: dict[str, list[str]] = {
-    "bedroom": ["bed", "wardrobe", "nightstand", "plant", "desk", "painting", "lamp"],
-    "kitchen": ["fridge", "stove", "kitchen counter", "kitchen table", "plant", "cabinet"],
-    "bathroom": ["toilet", "sink", "bathtub", "washing machine", "plant"],
-    "living room": ["sofa", "tv", "coffee table", "armchair", "plant", "bookshelf", "lamp", "rug", "painting"],
-    "dining room": ["dining table", "cabinet", "plant", "painting", "lamp"],
-    "office": ["desk", "bookshelf", "chair", "plant", "cabinet", "painting"],
-    "hallway": ["plant", "painting", "cabinet"],
-    "staircase": [],
-}
 
 
 class _RoomRaster:
@@ -501,7 +256,7 @@ class _RoomRaster:
 
 
 def _place(rng, room: Room, raster: _RoomRaster, kind: str):
-    label, colour, w, d, h, parts, placement = _item(kind, rng)
+    label, colour, w, d, h, parts, placement = furniture_item(kind, rng)
     lo_r = np.array(room.min_xy_m) + WALL_T
     hi_r = np.array(room.max_xy_m) - WALL_T
     for _ in range(30):
@@ -569,6 +324,9 @@ def generate_house(spec: HouseSpec | str = HouseSpec()) -> Scene:
     raise SceneFormatError(f"could not generate a valid house for {spec.spec}")
 
 
+register_scene_builder(GENERATED_PREFIX, generate_house)
+
+
 class _Retry(Exception):
     pass
 
@@ -576,9 +334,14 @@ class _Retry(Exception):
 def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
     floor_area = spec.area_m2 / spec.floors
     aspect = rng.uniform(0.75, 1.33)
+    # A stairwell needs a floor 7 m deep. A storey too small for that at any drawn aspect (a
+    # 100 m2 house on three floors) is made exactly that deep, with fewer rooms and room types.
+    tiny = spec.floors > 1 and floor_area < MIN_STAIR_DEPTH_M**2 * 0.75
+    if tiny:
+        aspect = floor_area / MIN_STAIR_DEPTH_M**2
     W = round(math.sqrt(floor_area * aspect) * 20) / 20
     D = round(floor_area / W * 20) / 20
-    if spec.floors == 2 and D < 7.0:
+    if spec.floors > 1 and D < MIN_STAIR_DEPTH_M:
         raise _Retry("too shallow for a staircase")
     rooms: list[Room] = []
     doors: list[_Door] = []
@@ -586,7 +349,7 @@ def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
     for fl in range(spec.floors):
         rects: list = []
         _bsp(rng, [0.0, 0.0], [W, D], min_side=2.8, max_area=rng.uniform(30.0, 44.0), out=rects)
-        if len(rects) < (4 if spec.floors == 1 else 3):
+        if len(rects) < (4 if spec.floors == 1 else 2 if tiny else 3):
             raise _Retry("too few rooms")
         types = _assign_types(rng, rects, fl, SINGLE_TYPES if spec.floors == 1 else (GROUND_TYPES if fl == 0 else UPPER_TYPES))
         if fl == 0 and spec.floors == 1 and "kitchen" not in types:
@@ -598,10 +361,10 @@ def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
         ]
         doors += _doors_for(rng, fl_rooms, fl)
         rooms += fl_rooms
-    if spec.floors == 2:
-        rooms, doors = _add_stairwell(rng, rooms, doors, W, D)
-    if len({r.room_type for r in rooms if r.room_type != "staircase"}) < 4:
-        raise _Retry("fewer than 4 room types")
+    rooms, doors, flights = _add_stairwells(rng, rooms, doors, W, D, spec.floors)
+    shafts = {f.shaft.name: f for f in flights}
+    if len({r.room_type for r in rooms if r.room_type != "staircase"}) < (3 if tiny else 4):
+        raise _Retry("too few room types")
 
     mb = MeshBuilder()
     # Fix label ids of the structural classes first, so they are stable across seeds.
@@ -610,10 +373,12 @@ def _try_house(spec: HouseSpec, rng: np.random.Generator) -> Scene:
     objects: list[SceneObject] = []
     start = None
     for room in rooms:
-        rdoors = [d for d in doors if _door_on_room(d, room)]
-        _emit_room(mb, room, rdoors, top_floor=(room.floor == spec.floors - 1))
         if room.room_type == "staircase":
+            if room.name in shafts:  # a landing is the top of a flight its shaft already built
+                _emit_stairwell(mb, shafts[room.name])
             continue
+        rdoors = [d for d in doors if _door_on_room(d, room)]
+        _emit_room(mb, room, rdoors)
         raster = _RoomRaster(room, rdoors)
         wanted = list(ROOM_FURNITURE[room.room_type])
         # Essentials first (they define the room), then a random subset of the rest.
@@ -689,8 +454,7 @@ def _chairs_around(rng, mb, room, raster, flo, fhi, objects) -> None:
             if not raster.footprint_ok(clo, chi):
                 continue
             raster.commit(clo, chi)
-            parts = [("box", (-w / 2, 0, 0.42), (w / 2, d, 0.46), _c(col), "chair"), ("box", (-w / 2, 0, 0.46), (w / 2, 0.05, 0.9), _c(col), "chair")]
-            parts += _legs(w, d, 0.42, 0.04, _c(col), "chair", inset=0.0)
+            parts = chair_parts(w, d, colour_rgb(col))
             _emit_parts(mb, parts, origin, facing, right, room.floor_z_m)
             centre = (clo + chi) / 2
             objects.append(SceneObject(len(objects), "chair", col, room.name, (float(centre[0]), float(centre[1]), room.floor_z_m), (w, d, 0.9), float(math.atan2(facing[1], facing[0]))))
@@ -722,50 +486,68 @@ def _doors_for(rng, rooms: list[Room], floor: int) -> list[_Door]:
     return out
 
 
-def _add_stairwell(rng, rooms: list[Room], doors: list[_Door], W: float, D: float):
-    """A stairwell outside the +x wall, with a door at the bottom (floor 0) and the top (floor 1)."""
+@dataclass(frozen=True)
+class _Flight:
+    """A straight flight between storeys ``shaft.floor`` and ``shaft.floor + 1``."""
+
+    shaft: Room  # the stairwell, a room of the lower floor; it builds all the geometry
+    landing: Room  # its top, a room of the upper floor's plan (no geometry of its own)
+    doors: tuple[_Door, _Door]  # the bottom door (lower floor) and the top door (upper floor)
+
+
+def _add_stairwells(rng, rooms: list[Room], doors: list[_Door], W: float, D: float, floors: int):
+    """One stairwell per pair of consecutive floors, outside the +x wall, then the -x wall, in turn.
+
+    Each has a door at the bottom (its lower floor) and at the top (the next floor up). Alternating
+    sides keeps every flight against the house wall of both storeys it joins.
+    """
+    flights: list[_Flight] = []
+    for k in range(floors - 1):
+        flight = _add_stairwell(rng, rooms, k, W, D, plus_x=(k % 2 == 0))
+        flights.append(flight)
+        rooms = rooms + [flight.shaft, flight.landing]
+        doors = doors + list(flight.doors)
+    return rooms, doors, flights
+
+
+def _add_stairwell(rng, rooms: list[Room], lower: int, W: float, D: float, plus_x: bool) -> _Flight:
     n_steps = int(math.ceil(STOREY_H / 0.19))
     tread = 0.27
     run = n_steps * tread  # the last step is the upper landing's edge
     length = 1.0 + run + 1.1
+    wall_x = W if plus_x else 0.0
+    on_wall = (lambda r: abs(r.max_xy_m[0] - W) < EPS) if plus_x else (lambda r: abs(r.min_xy_m[0]) < EPS)
     for y0 in rng.permutation(np.arange(0.0, D - length + 1e-6, 0.05)):
         y0 = float(round(y0 * 20) / 20)
         bottom = (y0 + 0.08, y0 + 0.08 + DOOR_W)
         top = (y0 + length - 0.08 - DOOR_W, y0 + length - 0.08)
-        r0 = [r for r in rooms if r.floor == 0 and abs(r.max_xy_m[0] - W) < EPS and r.min_xy_m[1] + 0.25 <= bottom[0] and bottom[1] <= r.max_xy_m[1] - 0.25]
-        r1 = [r for r in rooms if r.floor == 1 and abs(r.max_xy_m[0] - W) < EPS and r.min_xy_m[1] + 0.25 <= top[0] and top[1] <= r.max_xy_m[1] - 0.25]
+        r0 = [r for r in rooms if r.floor == lower and on_wall(r) and r.min_xy_m[1] + 0.25 <= bottom[0] and bottom[1] <= r.max_xy_m[1] - 0.25]
+        r1 = [r for r in rooms if r.floor == lower + 1 and on_wall(r) and r.min_xy_m[1] + 0.25 <= top[0] and top[1] <= r.max_xy_m[1] - 0.25]
         if r0 and r1:
             break
     else:
         raise _Retry("no place for the stairwell doors")
-    shaft = Room("staircase", "staircase", 0, (W, y0), (W + STAIR_W, y0 + length), 0.0)
-    landing = Room("staircase landing", "staircase", 1, (W, y0), (W + STAIR_W, y0 + length), STOREY_H)
-    doors = doors + [_Door(0, W, *bottom, 0), _Door(0, W, *top, 1)]
-    return rooms + [shaft, landing], doors
+    x0, x1 = (W, W + STAIR_W) if plus_x else (-STAIR_W, 0.0)
+    suffix = "" if lower == 0 else f" {lower + 1}"
+    shaft = Room(f"staircase{suffix}", "staircase", lower, (x0, y0), (x1, y0 + length), lower * STOREY_H)
+    landing = Room(f"staircase landing{suffix}", "staircase", lower + 1, (x0, y0), (x1, y0 + length),
+                   (lower + 1) * STOREY_H)
+    return _Flight(shaft, landing, (_Door(0, wall_x, *bottom, lower), _Door(0, wall_x, *top, lower + 1)))
 
 
 def _door_on_room(d: _Door, room: Room) -> bool:
-    if room.room_type == "staircase":
-        # The stairwell is one tall room: both of its doors belong to the floor-0 entry.
-        if room.floor != 0:
-            return False
-    elif d.floor != room.floor:
+    if d.floor != room.floor:
         return False
     o = 1 - d.axis
     on_line = abs(room.min_xy_m[d.axis] - d.coord) < EPS or abs(room.max_xy_m[d.axis] - d.coord) < EPS
     return on_line and room.min_xy_m[o] - EPS <= d.lo and d.hi <= room.max_xy_m[o] + EPS
 
 
-def _emit_room(mb: MeshBuilder, room: Room, doors: list[_Door], top_floor: bool) -> None:
+def _emit_room(mb: MeshBuilder, room: Room, doors: list[_Door]) -> None:
     lo = np.array(room.min_xy_m)
     hi = np.array(room.max_xy_m)
     z0 = room.floor_z_m
     floor_label = f"{room.room_type} floor"
-    if room.room_type == "staircase":
-        if room.floor != 0:
-            return  # the floor-0 entry builds the whole stairwell
-        _emit_stairwell(mb, room, doors)
-        return
     mb.box((lo[0], lo[1], z0 - SLAB_T / 2), (hi[0], hi[1], z0), FLOOR_PAINT[room.room_type], floor_label)
     mb.box((lo[0], lo[1], z0 + CEILING_H), (hi[0], hi[1], z0 + CEILING_H + SLAB_T / 2), CEILING_COLOUR, "ceiling")
     _emit_walls(mb, room, doors, z0, CEILING_H, WALL_PAINT[room.room_type])
@@ -820,20 +602,22 @@ def _emit_walls(mb, room: Room, doors: list[_Door], z0: float, height: float, pa
                 mb.box(blo, bhi, FRAME_COLOUR, "door frame")
 
 
-def _emit_stairwell(mb: MeshBuilder, room: Room, doors: list[_Door]) -> None:
+def _emit_stairwell(mb: MeshBuilder, flight: _Flight) -> None:
+    room = flight.shaft
     lo = np.array(room.min_xy_m)
     hi = np.array(room.max_xy_m)
+    z0 = room.floor_z_m
     n_steps = int(math.ceil(STOREY_H / 0.19))
     rise = STOREY_H / n_steps
     tread = 0.27
     y = lo[1] + 1.0
-    mb.box((lo[0], lo[1], -SLAB_T / 2), (hi[0], hi[1], 0.0), FLOOR_PAINT["staircase"], "staircase floor")
+    mb.box((lo[0], lo[1], z0 - SLAB_T / 2), (hi[0], hi[1], z0), FLOOR_PAINT["staircase"], "staircase floor")
     for k in range(1, n_steps + 1):
         y_end = y + tread if k < n_steps else hi[1]
         label = "stairs" if k < n_steps else "staircase floor"
         col = STAIR_COLOUR if k < n_steps else FLOOR_PAINT["staircase"]
-        mb.box((lo[0], y, 0.0), (hi[0], y_end, k * rise), col, label)
+        mb.box((lo[0], y, z0), (hi[0], y_end, z0 + k * rise), col, label)
         y = y_end
-    top = STOREY_H + CEILING_H
+    top = z0 + STOREY_H + CEILING_H
     mb.box((lo[0], lo[1], top), (hi[0], hi[1], top + SLAB_T / 2), CEILING_COLOUR, "ceiling")
-    _emit_walls(mb, room, doors, 0.0, top, WALL_PAINT["staircase"])
+    _emit_walls(mb, room, list(flight.doors), z0, top - z0, WALL_PAINT["staircase"])

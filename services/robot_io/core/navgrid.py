@@ -368,10 +368,6 @@ class NavGrid:
         n = self.locate(p, z_tol_m=0.5)
         return n if n >= 0 else self.nearest_node(p)
 
-    def distance_field(self, goal) -> np.ndarray:
-        """Geodesic distance (m) from every node to ``goal`` (inf where unreachable)."""
-        return self._field(self._endpoint(goal))[0]
-
     def geodesic_distance(self, a, b) -> float:
         """Shortest walkable distance between two points (snapped to the grid); inf if unreachable.
 

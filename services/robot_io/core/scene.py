@@ -15,8 +15,8 @@ Scene specs (the ``scene`` field of the simulator config, the ``scene_id`` of an
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -182,6 +182,15 @@ def is_generated_spec(spec: str) -> bool:
     return spec.startswith(GENERATED_PREFIX)
 
 
+#: Procedural scene builders by spec prefix. The house generator registers ``generated:`` when it is
+#: imported (the package's ``__init__`` does that), so this module never imports it: no import cycle.
+SCENE_BUILDERS: dict[str, Callable[[str], Scene]] = {}
+
+
+def register_scene_builder(prefix: str, build: Callable[[str], Scene]) -> None:
+    SCENE_BUILDERS[prefix] = build
+
+
 def resolve_scene_path(spec: str, scenes_dir: Path | str | None = None) -> Path:
     """Resolve a mesh path: absolute, or relative to ``scenes_dir``; missing -> SceneNotFoundError."""
     p = Path(spec).expanduser()
@@ -202,10 +211,9 @@ def load_scene(spec: str, scenes_dir: Path | str | None = None, frame: Mapping[s
     A mesh spec may carry frame options (``x.glb:up=z:scale=0.01``, see :mod:`.scene_files`);
     ``frame`` overrides them in turn.
     """
-    if is_generated_spec(spec):
-        from .house import HouseSpec, generate_house
-
-        return generate_house(HouseSpec.parse(spec))
+    for prefix, build in SCENE_BUILDERS.items():
+        if spec.startswith(prefix):
+            return build(spec)
     path_spec, options = split_scene_spec(spec)
     if isinstance(frame, SceneFrame):
         frame = frame.model_dump(exclude_unset=True)

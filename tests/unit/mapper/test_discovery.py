@@ -65,6 +65,25 @@ def test_step_budget_is_respected(world):
     robot = BoxWorldRobot(world, PinholeCamera(32, 32, 90.0))
     d = discover(robot, DiscoveryConfig(exploration=ExplorationConfig(max_steps=3)))
     assert d.result.steps == 3 and not d.result.finished
+    assert d.result.stop_reason == "steps" and d.result.step_budget == 3
+
+
+def test_safety_budget_scales_with_the_discovered_area_and_still_builds_the_map(world):
+    robot = BoxWorldRobot(world, PinholeCamera(32, 32, 90.0))
+    cfg = ExplorationConfig(min_steps=2, steps_per_m2=0.1)
+    d = discover(robot, DiscoveryConfig(exploration=cfg))
+    r = d.result
+    assert r.stop_reason == "steps" and not r.finished
+    # The budget is not a fixed count: it grew with every square metre the graph reached.
+    assert r.discovered_m2 > 10 and r.steps == r.step_budget == int(2 + 0.1 * r.discovered_m2)
+    assert 0.0 < r.coverage_estimate < 1.0
+    summary = r.summary()
+    assert summary["stop_reason"] == "steps" and summary["coverage_estimate"] == round(r.coverage_estimate, 3)
+    # The partial exploration still yields a scene map and tours.
+    assert d.scene.regions and d.tours
+    full = discover(BoxWorldRobot(world, PinholeCamera(32, 32, 90.0)))
+    assert full.result.finished and full.result.stop_reason == "exhausted"
+    assert full.result.steps < full.result.step_budget
 
 
 def test_unreachable_candidates_are_not_retried(world):

@@ -40,7 +40,10 @@ def test_spec_parsing():
     with pytest.raises(SceneFormatError):
         HouseSpec.parse("generated:x")
     with pytest.raises(SceneFormatError):
-        HouseSpec.parse("generated:1:floors=3")
+        HouseSpec.parse("generated:1:floors=4")
+    with pytest.raises(SceneFormatError):
+        HouseSpec.parse("generated:1:area=1500")
+    assert HouseSpec.parse("generated:1:floors=3:area=1200") == HouseSpec(1, 3, 1200.0)
 
 
 def _room_floor_nodes(nav, room):
@@ -123,3 +126,51 @@ def test_furniture_tops_are_not_walkable(fixture, request):
     assert np.all(on_floor | in_stairwell)
     # Tables and beds exist in these houses, so the rule above had something to reject.
     assert any(o.label in ("table", "bed", "coffee table") for o in robot.scene.objects)
+
+
+@pytest.mark.parametrize("spec", ["generated:0:floors=3", "generated:2:area=100:floors=3"])
+def test_three_floors_joined_by_one_flight_per_pair_of_floors(spec):
+    from services.robot_io.core.navgrid import NavGrid
+    from services.robot_io.core.house import STOREY_H
+
+    scene = generate_house(spec)
+    assert scene.floors == 3
+    shafts = [r for r in scene.rooms if r.room_type == "staircase" and "landing" not in r.name]
+    assert sorted(r.floor for r in shafts) == [0, 1]
+    nav = NavGrid(scene)
+    main = nav.component == nav.main_component
+    start = scene.start_pose.xyz
+    for fl in range(3):
+        rooms = [r for r in scene.rooms if r.floor == fl and r.room_type != "staircase"]
+        assert rooms, f"no rooms on floor {fl}"
+        for room in rooms:
+            cells = _room_floor_nodes(nav, room)
+            assert len(cells) > 50 and main[cells].mean() > 0.5, room.name
+        goal = nav.nodes_m[_room_floor_nodes(nav, rooms[0])[0]]
+        assert abs(goal[2] - fl * STOREY_H) < 0.05
+        path = nav.shortest_path(start, goal, smooth=False)
+        assert path is not None, f"floor {fl} unreachable"
+        assert np.max(np.abs(np.diff(path[:, 2])), initial=0.0) <= 0.2 + 1e-6
+
+
+def test_large_house_areas_up_to_1200_m2():
+    s = generate_house("generated:3:area=1200")
+    area = sum(r.area_m2 for r in s.rooms if r.room_type != "staircase")
+    assert 1100 <= area <= 1300
+    assert len(s.rooms) > 40 and len(s.objects) > 100
+
+
+def test_furniture_catalogue_builds_every_kind_a_room_asks_for():
+    from services.robot_io.core.furniture import FURNITURE, ROOM_FURNITURE, furniture_item
+
+    for kinds in ROOM_FURNITURE.values():
+        assert set(kinds) <= set(FURNITURE)
+    rng = np.random.default_rng(0)
+    for kind, f in FURNITURE.items():
+        label, colour, w, d, h, parts, placement = furniture_item(kind, rng)
+        assert label == f.label and placement == f.placement and w in f.widths_m
+        assert colour in f.colours or colour == f.described_as
+        assert w > 0 and d > 0 and h > 0 and parts
+        assert all(p[0] in ("box", "cyl") for p in parts)
+    with pytest.raises(ValueError):
+        furniture_item("spaceship", rng)
