@@ -92,7 +92,6 @@ class SceneRenderer:
         self._tables = ShadingTables.build(scene.vertex_colors, scene.triangles, scene.triangle_labels, scene.texture)
         self.use_kernel = use_kernel
         self._tri_mean: np.ndarray | None = None
-        self._normals = None
         self._buf: np.ndarray | None = None
         self._lock = threading.Lock()
 
@@ -103,13 +102,6 @@ class SceneRenderer:
     @property
     def triangle_count(self) -> int:
         return self._tables.miss_row
-
-    def triangle_normals(self) -> np.ndarray:
-        if self._normals is None:
-            v = self.scene.vertices[self.scene.triangles]
-            n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-            self._normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        return self._normals
 
     def triangle_colors(self) -> np.ndarray:
         """(T, 3) float32 mean vertex colour of each triangle, in [0, 1]."""
