@@ -7,8 +7,10 @@ emits are published on ``IO_FRAMES/{recording}`` for the reconstructor.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
+from collections.abc import Iterator
 from typing import Any
 
 import cv2
@@ -116,30 +118,42 @@ class RobotIoService(Service):
         if self._node:
             self._node.bus.publish(keys.IO_POSE.format(robot=self._node.robot), self.robot.pose)
 
+    def health(self) -> str | None:
+        # Without the lock: a reading taken beside a running motion is still a reading, and the
+        # info queryable must answer while a long sweep holds the body.
+        return self.robot.health()
+
+    @contextlib.contextmanager
+    def _body(self) -> Iterator[None]:
+        """One request on the robot's one body: serialised, and undone when it fails (a failed
+        request leaves the robot's state exactly as it was)."""
+        with self._lock, self.robot.transaction():
+            yield
+
     def observe(self, req: ObserveRequest) -> Panorama:
-        with self._lock:
+        with self._body():
             return self.robot.observe(req.camera, with_semantic=req.with_semantic)
 
     def move_to(self, req: MoveRequest) -> MoveResult:
-        with self._lock:
+        with self._body():
             result = self.robot.move_to(req.dx_m, req.dy_m)
         self._publish_pose()
         return result
 
     def turn(self, req: TurnRequest) -> PoseReply:
-        with self._lock:
+        with self._body():
             pose = self.robot.turn(req.angle_rad)
         self._publish_pose()
         return PoseReply(pose=pose)
 
     def look_around(self, _: Ping) -> PoseReply:
         # The sweep's frames reach subscribers through an open recording; the reply is the pose.
-        with self._lock:
+        with self._body():
             self.robot.look_around()
             return PoseReply(pose=self.robot.pose)
 
     def reset(self, req: ResetRequest) -> PoseReply:
-        with self._lock:
+        with self._body():
             pose = self.robot.reset(req.pose)
         self._publish_pose()
         return PoseReply(pose=pose)
@@ -168,11 +182,12 @@ class RobotIoService(Service):
             return RecordReply(recording=req.recording, recording_on=False, frame_count=counter[0])
 
     def geodesic(self, req: GeodesicRequest) -> GeodesicReply:
+        off = {"start_off_m": self.robot.off_ground_m(req.start_m), "goal_off_m": self.robot.off_ground_m(req.goal_m)}
         d = float(self.robot.geodesic_distance(req.start_m, req.goal_m))
         if not np.isfinite(d):
-            return GeodesicReply(distance_m=None)
+            return GeodesicReply(distance_m=None, **off)
         path = self.robot.shortest_path(req.start_m, req.goal_m)
-        return GeodesicReply(distance_m=d, path_m=None if path is None else np.asarray(path, np.float64))
+        return GeodesicReply(distance_m=d, path_m=None if path is None else np.asarray(path, np.float64), **off)
 
     def scene(self, _: Ping) -> SceneSummary:
         return scene_summary(self.robot.scene_info())

@@ -1,6 +1,7 @@
 """Typed messaging over any :class:`~shared.bus.base.Bus`: encode, decode, typed errors.
 
-* :meth:`TypedBus.serve` decodes the request, calls the handler and encodes its result; *any*
+* :meth:`TypedBus.serve` decodes the request (which checks every number's range and finiteness),
+  checks its budget (:meth:`~shared.schemas.Message.check_budget`), calls the handler and encodes its result; *any*
   exception (bad payload, validation, a bug) becomes an :class:`~shared.schemas.ErrorReply`, so a bad
   request never kills a service and the asker always learns why.
 * :meth:`TypedBus.request` raises :class:`RemoteError` with that code when the other side failed and
@@ -18,7 +19,7 @@ from typing import TypeVar
 from shared import keys
 from shared.bus.base import Bus, Closeable, QueryFailed, QueryTarget, Reply
 from shared.codec import CodecError, decode, decode_any, encode
-from shared.schemas import ErrorCode, ErrorReply, Message
+from shared.schemas import BudgetExceeded, ErrorCode, ErrorReply, Message
 from shared.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,8 @@ def error_for(exc: BaseException) -> tuple[ErrorCode, str]:
         return ErrorCode.BAD_REQUEST, str(exc)
     if isinstance(exc, NotFound):
         return ErrorCode.NOT_FOUND, str(exc)
+    if isinstance(exc, BudgetExceeded):
+        return ErrorCode.BUDGET_EXCEEDED, str(exc)
     if isinstance(exc, (ValueError, TypeError)):
         return ErrorCode.BAD_REQUEST, f"{type(exc).__name__}: {exc}"
     if isinstance(exc, TimeoutError):
@@ -153,7 +156,9 @@ class TypedBus:
             try:
                 if payload is None:
                     raise CodecError("empty", "the query carries no payload")
-                result = handler(decode(payload, model, self.max_request_bytes))
+                request = decode(payload, model, self.max_request_bytes)
+                request.check_budget()  # before any work: an over-budget request costs nothing
+                result = handler(request)
                 out = encode(result)
             except Exception as exc:
                 code, message = error_for(exc)

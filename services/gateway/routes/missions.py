@@ -9,7 +9,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
@@ -23,7 +23,7 @@ from services.gateway.store import JobRow
 from shared import keys
 from shared.bus.typed import RemoteError
 from shared.schemas import (
-    CancelRequest, ErrorCode, MapInfo, MapRequest, MissionAccepted, MissionOptions, MissionRequest, MissionState,
+    CancelRequest, ErrorCode, Instruction, MapInfo, MapRequest, MissionAccepted, MissionOptions, MissionRequest, MissionState,
 )
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,7 @@ class MissionCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    instruction: Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=4000)]
+    instruction: Instruction
     map_id: str = Field(pattern=SEGMENT, description="a map listed by GET /maps")
     options: MissionOptions = Field(default_factory=MissionOptions)
 
