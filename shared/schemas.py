@@ -66,17 +66,20 @@ BUILD_MAX_FRAMES = 500_000  # frames of every recording of one BuildMapRequest t
 IMPORT_MAX_BYTES = 256 << 20  # an imported cloud file
 PATH_MAX_POINTS = 10_000  # trajectories and reference paths
 FREE_FORM_MAX_ITEMS = 10_000  # values in a free-form dict (options, policy configs, event data)
+FREE_FORM_MAX_ABS = 1e15  # |number| in a free-form dict; the typed config that reads it narrows it
 
 
 def _free_form_check(value: Any, what: str, budget: list[int]) -> None:
-    """Free-form (``dict[str, Any]``) fields escape the typed checks: refuse non-finite numbers and
-    absurd sizes in them too (the typed config that reads them checks ranges)."""
+    """Free-form (``dict[str, Any]``) fields escape the typed checks: refuse non-finite and huge
+    numbers and absurd sizes in them too (the typed config that reads them narrows the ranges)."""
     budget[0] -= 1
     if budget[0] < 0:
         raise ValueError(f"{what}: more than {FREE_FORM_MAX_ITEMS} values")
-    if isinstance(value, float):
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
         if not math.isfinite(value):
             raise ValueError(f"{what} must be finite, got {value}")
+        if abs(value) > FREE_FORM_MAX_ABS:
+            raise ValueError(f"{what} must be within +-{FREE_FORM_MAX_ABS:g}, got {value:g}")
     elif isinstance(value, dict):
         for k, v in value.items():
             _free_form_check(v, f"{what}.{k}", budget)

@@ -85,3 +85,13 @@ def system(tmp_path_factory):
             assert r.status_code == 201, r.text
         launcher.run_dir_path = run_dir
         yield launcher
+
+
+@pytest.fixture(scope="session")
+def live(tmp_path_factory):
+    """Every service that serves a queryable, in this process, each on its own zenoh session behind a
+    real zenoh router (see tests/reliability/live.py), with one map imported."""
+    from tests.reliability.live import live_system
+
+    with live_system(tmp_path_factory.mktemp("live"), map_ply=scene_ply(density_per_m2=20.0)) as system:
+        yield system
