@@ -71,6 +71,8 @@ def check_bus(service: str, settings: ZenohSettings, *, instance: str | None = N
             raise Unhealthy(f"{service}/{name} is alive but its info queryable failed: {exc}") from exc
         if info.service != service:
             raise Unhealthy(f"{service}/{name} answered as {info.service!r}")
+        if not info.healthy:
+            raise Unhealthy(f"{service}/{name} is alive but its state is broken: {info.problem}")
         return name
 
 

@@ -29,7 +29,8 @@ from shared.geometry import PinholeCamera
 # range, checked when the message is decoded: a value outside it can only be a mistake or an attack,
 # and once inside a robot's pose or a map it would poison every later request.
 
-WORLD_LIMIT_M = 10_000.0  # |coordinate|: no building is 10 km across; 1e6 or 1e300 is a mistake
+WORLD_LIMIT_M = 2.0e7  # |coordinate|: UTM northings reach 1e7 m; 1e300 is a mistake (nearness to the
+# scene is checked where the scene is known: a start pose 1e6 m away gets a 422 with its distance)
 ANGLE_LIMIT_RAD = 4.0 * math.pi  # |heading| or |turn|: two full turns either way
 PITCH_LIMIT_RAD = math.pi / 2.0
 TIME_LIMIT_S = 1.0e11  # timestamps: epoch seconds (~1.7e9) or simulated seconds (>= 0)

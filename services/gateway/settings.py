@@ -7,6 +7,7 @@ from pathlib import Path
 from pydantic import Field
 
 from shared.runner import ServiceSettings
+from shared.schemas import MAP_CHUNK_MAX_POINTS
 
 
 class GatewaySettings(ServiceSettings):
@@ -23,7 +24,9 @@ class GatewaySettings(ServiceSettings):
     max_upload_bytes: int = Field(512 << 20, ge=1024, description="largest uploaded cloud (POST /maps)")
     max_instruction_chars: int = Field(4000, ge=1, le=4000)
     validate_map: bool = Field(True, description="ask the reconstructor that a mission's map exists")
-    map_chunk_points: int = Field(500_000, ge=1000, le=10_000_000, description="points per MAP_CHUNK request")
+    pose_tolerance_m: float = Field(1.0, gt=0, le=100,
+                                    description="start_pose / goal_m farther than this from walkable ground: 422")
+    map_chunk_points: int = Field(500_000, ge=1000, le=MAP_CHUNK_MAX_POINTS, description="points per MAP_CHUNK request")
     sse_keepalive_s: float = Field(15.0, gt=0, le=300, description="comment line sent on idle SSE streams")
     sse_batch: int = Field(200, ge=1, le=10_000, description="events read from the DB per SSE round")
     threadpool_workers: int = Field(128, ge=4, le=1024, description="threads for sync routes (bus calls)")

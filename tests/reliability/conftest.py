@@ -95,3 +95,21 @@ def live(tmp_path_factory):
 
     with live_system(tmp_path_factory.mktemp("live"), map_ply=scene_ply(density_per_m2=20.0)) as system:
         yield system
+
+
+@pytest.fixture
+def live_gateway(live, tmp_path):
+    """``live_gateway(**settings)``: a TestClient of a gateway on its own zenoh session of ``live``."""
+    from contextlib import contextmanager
+
+    from fastapi.testclient import TestClient
+
+    from services.gateway.app import create_app
+    from tests.reliability.live import gateway_settings
+
+    @contextmanager
+    def make(**overrides):
+        with TestClient(create_app(gateway_settings(live, tmp_path, **overrides))) as client:
+            yield client
+
+    return make

@@ -23,7 +23,8 @@ from services.gateway.store import JobRow
 from shared import keys
 from shared.bus.typed import RemoteError
 from shared.schemas import (
-    CancelRequest, ErrorCode, Instruction, MapInfo, MapRequest, MissionAccepted, MissionOptions, MissionRequest, MissionState,
+    CancelRequest, ErrorCode, GeodesicReply, GeodesicRequest, Instruction, MapInfo, MapRequest, MissionAccepted,
+    MissionOptions, MissionRequest, MissionState,
 )
 
 log = logging.getLogger(__name__)
@@ -98,6 +99,27 @@ def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_reques
         raise
 
 
+def check_poses(bus, settings, options: MissionOptions) -> None:
+    """A start pose or a goal must lie on (or near) walkable ground: robot-io would otherwise snap
+    (1e6, 1e6) to some corner where the robot cannot move. 422 with the distance when it does not."""
+    start = options.start_pose.position_m if options.start_pose is not None else None
+    goal = options.goal_m
+    if start is None and goal is None:
+        return
+    try:
+        reply = bus.request(keys.IO_GEODESIC.format(robot=settings.robot),
+                            GeodesicRequest(start_m=start or goal, goal_m=goal or start), GeodesicReply,
+                            timeout_s=settings.request_timeout_s)
+    except RemoteError as exc:
+        raise GatewayError(remote_detail(exc, "cannot check start_pose/goal_m against the scene"),
+                           remote_status(exc)) from None
+    tol = settings.pose_tolerance_m
+    for name, value, off in (("options.start_pose", start, reply.start_off_m), ("options.goal_m", goal, reply.goal_off_m)):
+        if value is not None and off is not None and off > tol:
+            raise GatewayError(f"{name} {tuple(round(v, 3) for v in value)} is {off:.2f} m from walkable ground "
+                               f"(tolerance {tol:.2f} m)", 422)
+
+
 @router.post("", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED, dependencies=[Authorized],
              responses={401: {}, 409: {}, 413: {}, 422: {}, 503: {}})
 def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep,
@@ -113,6 +135,7 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
             if exc.code == ErrorCode.NOT_FOUND:
                 raise GatewayError(f"unknown map {body.map_id!r} (see GET /maps)", 422) from None
             raise GatewayError(remote_detail(exc, "cannot check the map"), remote_status(exc)) from None
+    check_poses(bus, settings, body.options)
     job_id = f"m-{uuid.uuid4().hex[:16]}"
     start_job(store, JobKind.MISSION, job_id, body.model_dump(mode="json"), request, "mission", "planner",
               lambda: bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),

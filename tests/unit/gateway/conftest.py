@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from services.gateway.testing import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
+from services.gateway.testing import ScriptedGround, ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.typed import TypedBus
 
@@ -25,8 +25,10 @@ class World:
         self.reconstructor.add_random("house", 5000, labels=True)
         self.planner = ScriptedPlanner(typed, steps=steps, step_interval_s=step_interval_s)
         self.mapper = ScriptedMapper(typed, reconstructor=self.reconstructor)
+        self.ground = ScriptedGround(typed)
 
     def close(self):
+        self.ground.close()
         self.planner.close()
         self.mapper.close()
         self.reconstructor.close()
