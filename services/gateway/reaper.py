@@ -16,7 +16,7 @@ import threading
 
 from services.gateway.events import EventHub, sse_frame
 from services.gateway.records import JobKind
-from services.gateway.store import GatewayStore
+from services.gateway.store import EventRejected, GatewayStore
 from shared import keys
 from shared.bus.base import Bus, Closeable
 from shared.schemas import MissionEvent, MissionEventKind, MissionState
@@ -66,7 +66,10 @@ class JobReaper:
             for row in rows:
                 event = MissionEvent(mission_id=row.id, seq=row.last_seq + 1, kind=MissionEventKind.ERROR,
                                      state=MissionState.FAILED, step=row.step, data={"error": reason})
-                stored = self.store.append_event(kind, event)
+                try:
+                    stored = self.store.append_event(kind, event)
+                except EventRejected:  # it ended (or moved on) in between: look again
+                    stored = None
                 if stored is not None:
                     n += 1
                     self.hub.publish(row.id, stored.seq, sse_frame(kind, stored))

@@ -19,9 +19,17 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from shared.schemas import MissionEvent, MissionState
+from shared.schemas import MissionEvent, MissionEventKind, MissionState
 
 TERMINAL = frozenset({MissionState.SUCCEEDED, MissionState.FAILED, MissionState.CANCELLED})
+# The states an event of each kind can carry; anything else is refused at ingest.
+KIND_STATES = {
+    MissionEventKind.STARTED: frozenset({MissionState.QUEUED, MissionState.RUNNING}),
+    MissionEventKind.STEP: frozenset({MissionState.RUNNING}),
+    MissionEventKind.PROGRESS: frozenset({MissionState.QUEUED, MissionState.RUNNING}),
+    MissionEventKind.FINISHED: TERMINAL,
+    MissionEventKind.ERROR: frozenset({MissionState.FAILED}),
+}
 MAX_DECISIONS_KEPT = 1000  # a record stays small enough to serve 200 pollers; events keep everything
 
 
