@@ -578,6 +578,7 @@ class MissionAccepted(Message):
     mission_id: str
     accepted: bool
     reason: str = ""
+    instance: str = ""  # the worker instance that took the job ("" : not said; the gateway then looks it up)
 
 
 class CancelRequest(Message):

@@ -74,8 +74,9 @@ def create_app(settings: GatewaySettings | None = None,
         app.state.scene_lock = threading.Lock()
         # Subscribed before the first request: every event published from now on is stored.
         app.state.ingest = EventIngest(running.node.bus, store, hub, settings.robot)
-        # A mission whose planner died can never finish: it ends as failed, with the reason.
-        app.state.reaper = JobReaper(bus, store, hub)
+        # Jobs whose worker is gone (died, or restarted and forgot them) end as failed, with the reason:
+        # checked at start, periodically and whenever a worker's token drops.
+        app.state.reaper = JobReaper(running.node.bus, store, hub, interval_s=settings.reconcile_interval_s)
         log.info("gateway on %s:%d, database %s", settings.host, settings.port, settings.db_path)
         try:
             yield

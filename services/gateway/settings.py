@@ -32,4 +32,6 @@ class GatewaySettings(ServiceSettings):
     threadpool_workers: int = Field(128, ge=4, le=1024, description="threads for sync routes (bus calls)")
     record_cache_jobs: int = Field(512, ge=1, le=100_000, description="encoded job records kept for polling")
     scene_timeout_s: float = Field(120.0, gt=0, le=600, description="loading a scene on robot-io (POST /robot/scene)")
+    reconcile_interval_s: float = Field(5.0, gt=0, le=3600,
+                                        description="how often open jobs are checked against the live workers")
     shutdown_grace_s: float = Field(3.0, ge=0, le=60, description="open streams get this long at shutdown")

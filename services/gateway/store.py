@@ -241,6 +241,18 @@ class GatewayStore:
             with self._meta_lock:
                 self._meta.pop(job_id, None)
 
+    def set_owner(self, job_id: str, owner: dict[str, Any] | None) -> None:
+        """Record the worker instance (and its incarnation) that accepted the job (see the reaper)."""
+        with self._write_lock:
+            row = self._writer.execute("SELECT summary, state, last_seq FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                return
+            summary = json.loads(row[0])
+            summary["owner"] = owner
+            self._writer.execute("UPDATE jobs SET summary = ?, updated_s = ? WHERE id = ?",
+                                 (_json(summary), time.time(), job_id))
+            self._set_meta(job_id, row[1], row[2])
+
     def mark(self, job_id: str, state: MissionState, error: str | None = None) -> None:
         """Set a job's state from the gateway itself (e.g. the planner lost it)."""
         with self._write_lock:

@@ -37,10 +37,16 @@ class RemoteError(RuntimeError):
 
 
 class NoReplyError(RemoteError):
-    """Nobody answered within the timeout (no service, or it is busy or dead)."""
+    """Nobody answered: within the timeout (a service busy or hung), or - when the query ended early -
+    because nobody serves the key any more (a service that is gone)."""
 
-    def __init__(self, key: str, timeout_s: float):
-        super().__init__(ErrorCode.UNAVAILABLE, f"no reply within {timeout_s:.1f} s", "", key)
+    def __init__(self, key: str, timeout_s: float, elapsed_s: float | None = None):
+        if elapsed_s is not None and elapsed_s < 0.9 * timeout_s:
+            what = f"nobody serves it (the query ended after {elapsed_s:.1f} s without a reply)"
+        else:
+            what = f"no reply within {timeout_s:.1f} s"
+        super().__init__(ErrorCode.UNAVAILABLE, what, "", key)
+        self.timeout_s, self.elapsed_s = timeout_s, elapsed_s
 
 
 class NotFound(LookupError):
@@ -207,9 +213,10 @@ class TypedBus:
                 except RemoteError as exc:
                     if exc.code != ErrorCode.UNAVAILABLE:
                         raise
+        t0 = time.monotonic()
         replies = self.raw.query(key, payload, timeout_s=timeout_s, target=QueryTarget.BEST)
         if not replies:
-            raise NoReplyError(key, timeout_s)
+            raise NoReplyError(key, timeout_s, time.monotonic() - t0)
         return self._decode_reply(key, replies[0], model)
 
     @staticmethod

@@ -35,15 +35,27 @@ class Live:
     typed: TypedBus
     services: dict[str, RunningService]
     run_dir: Path
-    buses: list[ZenohBus] = field(default_factory=list)
-
-    def session(self) -> ZenohBus:
-        b = ZenohBus(ZenohSettings(connect=[self.endpoint]))
-        self.buses.append(b)
-        return b
+    buses: dict[str, ZenohBus] = field(default_factory=dict)
+    makers: dict[str, object] = field(default_factory=dict)
 
     def service(self, name: str):
         return self.services[name].service
+
+    def kill(self, name: str) -> None:
+        """As close to SIGKILL as one process allows: the service's zenoh session goes first (its
+        token drops, nothing more it says reaches anyone), then its threads are stopped."""
+        self.buses.pop(name).close()
+        with contextlib.suppress(Exception):
+            self.services.pop(name).close()
+
+    def start(self, name: str) -> None:
+        """(Re)start a service under the same instance name: a new incarnation."""
+        b = ZenohBus(ZenohSettings(connect=[self.endpoint]))
+        self.buses[name] = b
+        self.services[name] = RunningService(self.makers[name](), b)
+        instance = self.services[name].node.instance
+        wait_until(lambda: self.bus.alive(keys.ALIVE.format(service=name, instance=instance), timeout_s=0.5), 20,
+                   f"{name} seen alive again")
 
 
 @contextlib.contextmanager
@@ -73,13 +85,12 @@ def live_system(run_dir: Path, *, map_ply: bytes):
             "mapper": lambda: MapperService(MapperSettings(instance="map-live")),
             "planner": lambda: PlannerService(PlannerSettings(instance="plan-live", call_timeout_s=20.0)),
         }
-        buses, running = [], {}
+        buses, running = {}, {}
         for name, make in specs.items():
-            b = bus()
-            buses.append(b)
-            running[name] = RunningService(make(), b)
+            buses[name] = bus()
+            running[name] = RunningService(make(), buses[name])
         client = bus()
-        live = Live(endpoint, client, TypedBus(client, "live-test"), running, run_dir, buses)
+        live = Live(endpoint, client, TypedBus(client, "live-test"), running, run_dir, buses, dict(specs))
         wait_until(lambda: len(client.alive(keys.ALIVE.pattern(), timeout_s=0.5)) >= len(specs), 30,
                    "every live service seen through the router")
         live.typed.request(keys.MAP_IMPORT.format(map=LIVE_MAP),
@@ -90,7 +101,7 @@ def live_system(run_dir: Path, *, map_ply: bytes):
         if live is not None:
             for r in reversed(list(live.services.values())):
                 r.close()
-            for b in live.buses:
+            for b in live.buses.values():
                 b.close()
             live.bus.close()
         router.close()

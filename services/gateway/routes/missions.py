@@ -15,6 +15,7 @@ from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.events import event_json, parse_last_event_id, sse_stream
+from services.gateway.reaper import find_owner
 from services.gateway.records import (
     EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary,
 )
@@ -83,7 +84,8 @@ def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_reques
 
     The row exists before the service hears of the job, so its first event has a home; it is
     removed again when the job cannot start (a scene switch under way, the service absent or
-    refusing), so a refused request leaves nothing behind.
+    refusing), so a refused request leaves nothing behind. Once accepted, the job records its owner
+    (the worker instance and incarnation) for the reaper's reconciliation.
     """
     store.create_job(kind, job_id, request_json)
     try:
@@ -97,6 +99,9 @@ def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_reques
     except BaseException:
         store.delete_job(job_id)
         raise
+    settings = http_request.app.state.settings
+    store.set_owner(job_id, find_owner(http_request.app.state.bus, service, reply.instance,
+                                       timeout_s=settings.status_timeout_s))
 
 
 def check_poses(bus, settings, options: MissionOptions) -> None:
@@ -176,24 +181,26 @@ async def get_mission(mission_id: JobId, cache: CacheDep, if_none_match: IfNoneM
 
 @router.post("/{mission_id}/cancel", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED,
              dependencies=[Authorized], responses={401: {}, 404: {}, 409: {}, 503: {}})
-def cancel(mission_id: JobId, bus: BusDep, store: StoreDep, hub: HubDep, settings: SettingsDep) -> JobCreated:
-    """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream."""
+def cancel(mission_id: JobId, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep) -> JobCreated:
+    """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream. A mission no
+    live planner runs (an orphan: its planner died or restarted) is cancelled here at once."""
     row = _get(store, mission_id)
+    if row.state == MissionState.CANCELLED:
+        raise GatewayError(f"mission {mission_id!r} is already cancelled", 409)
     if row.terminal:
         raise GatewayError(f"mission {mission_id!r} has already ended ({row.state.value})", 409)
-    try:
-        reply = bus.request(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
-                            MissionAccepted, timeout_s=settings.request_timeout_s)
-    except RemoteError as exc:
-        if exc.code == ErrorCode.NOT_FOUND:
-            # The planner no longer knows it (it restarted): the mission cannot finish any more.
-            store.mark(mission_id, MissionState.CANCELLED, "cancelled; the planner no longer ran it")
-            hub.notify(mission_id)  # its streams end now
-        else:
-            raise GatewayError(remote_detail(exc, "cannot cancel"), remote_status(exc)) from None
-    else:
-        if not reply.accepted:
-            raise GatewayError(f"the planner refused to cancel: {reply.reason or 'no reason given'}", 409)
+    # Every planner is asked: with replicas, the one zenoh would pick need not be the one running it.
+    answers = bus.request_all(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
+                              MissionAccepted, timeout_s=settings.request_timeout_s)
+    if not any(isinstance(a, MissionAccepted) and a.accepted for a in answers):
+        failures = [a for a in answers if isinstance(a, RemoteError) and a.code != ErrorCode.NOT_FOUND]
+        if failures and len(failures) == len(answers):
+            raise GatewayError(remote_detail(failures[0], "cannot cancel"), remote_status(failures[0]))
+        # No planner runs it (none answered, or each said it has no such mission): it can never
+        # finish, so it ends here, cancelled as asked.
+        why = "no planner answered" if not answers else "no planner runs it any more"
+        request.app.state.reaper.fail(JobKind.MISSION, mission_id, f"cancelled on request; {why}",
+                                      state=MissionState.CANCELLED)
     url, events_url = _links(mission_id)
     row = _get(store, mission_id)
     return JobCreated(id=mission_id, state=row.state, url=url, events_url=events_url)
