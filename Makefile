@@ -3,13 +3,19 @@ PY := .venv/bin/python
 PYTEST := $(PY) -m pytest
 RENDERERS ?= 1
 
-.PHONY: setup demo test test-unit test-contract test-e2e bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
+.PHONY: setup demo up test test-unit test-contract test-e2e bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
 
 setup:
 	@bash deploy/bootstrap.sh
 
 demo: setup
 	$(PY) -m deploy.demo --renderers $(RENDERERS)
+
+# The whole system until Ctrl-C: prints the dashboard URL and the API token (PORT=8080 SCENE=generated:0).
+PORT ?= 8080
+SCENE ?= generated:0
+up: setup
+	$(PY) -m deploy.up --port $(PORT) --scene $(SCENE) --renderers $(RENDERERS)
 
 # The long variants (marked slow: more fuzz cases, repeated kills) run in `make reliability`.
 test: setup

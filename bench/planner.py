@@ -15,7 +15,7 @@ import time
 
 from bench.common import percentiles_ms, table
 from evaluation.clouds import sample_scene_cloud
-from evaluation.metrics import summarize
+from shared.vln_metrics import summarize
 from services.mapper.core import PREDICTORS
 from services.planner.core.local import LocalStack, episode_options
 from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper

@@ -67,7 +67,7 @@ def follow_mission(http: httpx.Client, mission_id: str, deadline_s: float) -> di
                     t = d.get("timings_s", {})
                     say(f"  step {data.get('step'):>2}: at ({pos[0]:5.2f}, {pos[1]:5.2f})  "
                         f"{len(d.get('candidates', []))} candidates -> {dec.get('kind', '?')} #{dec.get('candidate_index')}"
-                        f"  [{1000 * t.get('prompt_ready_s', 0):.0f} ms to prompt]  {str(d.get('reasoning', ''))[:90]}")
+                        f"  [{1000 * t.get('prompt_ready_s', 0):.0f} ms to prompt]  {str(dec.get('reasoning', ''))[:90]}")
                 if event == "end" or data.get("kind") in ("finished", "error"):
                     break
                 event, data = None, None

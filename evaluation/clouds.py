@@ -3,7 +3,7 @@
 The paper compares its agent-reconstructed cloud with the dataset's curated one; in our setting the
 curated cloud is an area-uniform sample of the scene's surfaces with their true colours and semantic
 labels, i.e. a reconstruction with no pose, scale or depth error (the renderer core's
-:func:`~services.renderer.core.sample_mesh` does the sampling).
+:func:`~shared.cloud.sample_mesh` does the sampling).
 """
 
 from __future__ import annotations
@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from evaluation.errors import ConfigError
-from services.renderer.core import PointCloud, sample_mesh
-from shared import ply
+from shared.cloud import PointCloud, sample_mesh
 
 
 def sample_scene_cloud(scene, *, density_per_m2: float = 300.0, max_points: int = 1_000_000,
@@ -26,9 +25,3 @@ def sample_scene_cloud(scene, *, density_per_m2: float = 300.0, max_points: int 
     n = int(min(max_points, max(1, round(float(area) * density_per_m2))))
     return sample_mesh(scene.vertices, scene.triangles, scene.vertex_colors, scene.triangle_labels, n_points=n,
                        seed=seed, texture=scene.texture, label_names=scene.label_names)
-
-
-def cloud_ply_bytes(cloud: PointCloud, with_labels: bool = True) -> bytes:
-    """The cloud in the project's PLY layout (:mod:`shared.ply`, as ``GET /maps/{id}/cloud.ply`` serves it)."""
-    labels = cloud.labels if with_labels else None
-    return ply.encode(cloud.xyz, cloud.rgb, labels, cloud.label_names if with_labels else None)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 
 class EvaluationError(Exception):
-    """Base of every error raised by :mod:`evaluation` (except :class:`evaluation.metrics.MetricsError`)."""
+    """Base of every error raised by :mod:`evaluation` (except :class:`shared.vln_metrics.MetricsError`)."""
 
 
 class ConfigError(EvaluationError, ValueError):

@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from evaluation.errors import ResultsFormatError
-from evaluation.metrics import EpisodeMetrics, MetricsError, summarize
+from shared.vln_metrics import EpisodeMetrics, MetricsError, summarize
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +150,7 @@ mean LLM tokens per episode, ``cost_usd`` the total."""
 
 
 def summary_row(results: Iterable[EpisodeResult], label: str = "all") -> dict[str, Any]:
-    """One table row: VLN-CE means over the ``done`` episodes (via :func:`evaluation.metrics.summarize`),
+    """One table row: VLN-CE means over the ``done`` episodes (via :func:`shared.vln_metrics.summarize`),
     with counts of skipped and errored episodes, latency and LLM usage."""
     res = list(results)
     done = [r for r in res if r.status == "done" and r.metrics is not None]

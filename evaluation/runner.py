@@ -24,17 +24,17 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from evaluation.errors import (
     ConfigError, EvaluationError, GatewayError, MapUnavailable, MissionTimeout, SceneSwitchError,
 )
 from evaluation.gateway_client import GatewayClient
-from evaluation.metrics import MetricsError
+from shared.vln_metrics import MetricsError
 from evaluation.results import EpisodeResult, ResultsLog, metrics_from_dict, skipped_report, summary_row, write_tables
 from services.robot_io.core import Episode, GroundTruth, SceneNotFoundError
 from services.robot_io.core.scene import is_generated_spec
-from shared.schemas import MissionOptions, SceneSummary
+from shared.schemas import MissionFinished, MissionOptions, SceneSummary, UsageData
 
 log = logging.getLogger(__name__)
 
@@ -333,7 +333,8 @@ class EvalRunner:
         log.info("explored and reconstructed %s in %.0f s", map_id, time.monotonic() - t0)
 
     def _upload_curated(self, spec: str, map_id: str) -> None:
-        from evaluation.clouds import cloud_ply_bytes, sample_scene_cloud
+        from evaluation.clouds import sample_scene_cloud
+        from shared.cloud import encode
 
         cfg = self.config
         builder = self.scene_builder
@@ -346,7 +347,7 @@ class EvalRunner:
         cloud = sample_scene_cloud(scene, density_per_m2=cfg.curated_density_per_m2,
                                    max_points=cfg.curated_max_points, seed=cfg.seed)
         try:
-            info = self.gateway.upload_map(map_id, cloud_ply_bytes(cloud), filename=f"{map_id}.ply")
+            info = self.gateway.upload_map(map_id, encode(cloud), filename=f"{map_id}.ply")
         except GatewayError as exc:
             raise MapUnavailable(f"upload of the curated cloud {map_id}: {exc}") from None
         log.info("uploaded curated cloud %s: %d points", map_id, info.get("point_count", len(cloud)))
@@ -398,38 +399,47 @@ class EvalRunner:
                               wall_s=time.monotonic() - t0, **base)
         return self._result(e, mid, rec, time.monotonic() - t0, base)
 
-    def _final_event(self, mid: str, rec: dict[str, Any]) -> dict[str, Any]:
+    def _final_event(self, mid: str, rec: dict[str, Any]) -> MissionFinished | None:
+        """The mission's typed end (None when it ended without one: failed, cancelled, reaped)."""
         try:
             events = self.gateway.history(mid, after=max(-1, int(rec.get("last_seq", 0)) - 1), limit=10)
         except GatewayError as exc:
             log.warning("no history for %s: %s", mid, exc)
-            return {}
+            return None
         ends = [ev for ev in events if ev.get("kind") in ("finished", "error")]
-        return ends[-1].get("data", {}) if ends else {}
+        if not ends or (ends[-1].get("data") or {}).get("type") != "mission_finished":
+            return None
+        try:
+            return MissionFinished.model_validate(ends[-1]["data"])
+        except ValidationError as exc:
+            log.warning("mission %s: unreadable final event: %s", mid, exc)
+            return None
 
     def _result(self, e: Episode, mid: str, rec: dict[str, Any], wall_s: float, base: dict) -> EpisodeResult:
-        data = self._final_event(mid, rec)
-        usage = data.get("usage") if isinstance(data.get("usage"), dict) else {}
+        end = self._final_event(mid, rec)
+        # The record's running totals stand in when the mission never sent its end (e.g. it failed).
+        usage = end.usage if end is not None else UsageData(
+            prompt_tokens=int(rec.get("prompt_tokens", 0)), completion_tokens=int(rec.get("completion_tokens", 0)),
+            cost_usd=float(rec.get("cost_usd", 0.0)))
         common = dict(
             mission_id=mid, state=rec["state"], wall_s=round(wall_s, 3),
-            trajectory_m=data.get("trajectory_m") or rec.get("trajectory") or [],
+            trajectory_m=[list(p) for p in end.trajectory_m] if end is not None else rec.get("trajectory") or [],
             decisions=rec.get("decisions") or [],
-            step_latency_s=[float(x) for x in data.get("step_latency_s") or []],
-            prompt_tokens=int(usage.get("prompt_tokens", rec.get("prompt_tokens", 0))),
-            completion_tokens=int(usage.get("completion_tokens", rec.get("completion_tokens", 0))),
-            cost_usd=float(usage.get("cost_usd", rec.get("cost_usd", 0.0))), **base)
+            step_latency_s=list(end.step_latency_s) if end is not None else [],
+            prompt_tokens=usage.prompt_tokens, completion_tokens=usage.completion_tokens, cost_usd=usage.cost_usd,
+            **base)
         if rec["state"] == "cancelled":
             return self._base(e, status="error", reason="the mission was cancelled", **common)
-        raw = data.get("metrics") if isinstance(data.get("metrics"), dict) else rec.get("metrics")
-        if not raw:
-            why = rec.get("error") or data.get("reason") or "the mission ended without metrics"
+        if end is None or end.metrics is None:
+            why = rec.get("error") or (end.error or end.reason if end is not None else "") \
+                or "the mission ended without metrics"
             return self._base(e, status="error", reason=str(why), **common)
         try:
-            metrics = metrics_from_dict(raw).to_dict()
+            metrics = metrics_from_dict(end.metrics.model_dump()).to_dict()
         except MetricsError as exc:
             return self._base(e, status="error", reason=f"bad metrics from the planner: {exc}", **common)
         # A failed mission with metrics ran out of steps: a VLN-CE failure, not a system error.
-        return self._base(e, status="done", reason=str(data.get("reason") or ""), metrics=metrics, **common)
+        return self._base(e, status="done", reason=end.reason or end.error, metrics=metrics, **common)
 
 
 class _NoBar:

@@ -2,7 +2,7 @@
 
 They speak the real contracts (:mod:`shared.keys`, :mod:`shared.schemas`) on any bus: robot-io answers
 scene loads (refusing specs that contain ``"broken"``); the planner walks straight towards the goal
-in ``step_m`` steps and finishes with VLN-CE metrics computed by :mod:`evaluation.metrics` (straight-line
+in ``step_m`` steps and finishes with VLN-CE metrics computed by :mod:`shared.vln_metrics` (straight-line
 geodesics), its usage and step latencies, as the real planner's ``finished`` event carries them.
 Instructions containing ``"crash"`` end in an error event; ``"hang"`` never ends (cancel ends it).
 """
@@ -14,12 +14,13 @@ import time
 
 import numpy as np
 
-from evaluation.metrics import episode_metrics, euclidean_geodesic
+from shared.vln_metrics import episode_metrics, euclidean_geodesic
 from shared import keys
 from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
-    CancelRequest, LoadSceneRequest, MissionAccepted, MissionEvent, MissionEventKind, MissionRequest, MissionState,
-    SceneSummary,
+    CancelRequest, Decision, JobCancelled, JobFailed, LoadSceneRequest, MissionAccepted, MissionEvent,
+    MissionEventKind, MissionFinished, MissionRequest, MissionStarted, MissionState, MissionStep, Pose, SceneSummary,
+    UsageData,
 )
 
 
@@ -85,19 +86,21 @@ class ScriptedNavPlanner:
         pos = np.array(opts.start_pose.position_m if opts.start_pose else (0.0, 0.0, 0.0), float)
         goal = np.array(opts.goal_m, float) if opts.goal_m is not None else pos.copy()
         traj, lat = [pos.copy()], []
-        emit(MissionEventKind.STARTED, MissionState.RUNNING, 0, {"pose": {"position_m": pos.tolist()}})
+        emit(MissionEventKind.STARTED, MissionState.RUNNING, 0,
+             MissionStarted(pose=Pose(position_m=tuple(pos.tolist())), instruction=req.instruction, map_id=req.map_id,
+                            options=opts))
         if "crash" in req.instruction:
-            emit(MissionEventKind.ERROR, MissionState.FAILED, 0, {"reason": "scripted crash", "error": "scripted crash"})
+            emit(MissionEventKind.ERROR, MissionState.FAILED, 0, JobFailed(error="scripted crash"))
             return
         if "hang" in req.instruction:
             cancel.wait(60.0)
-            emit(MissionEventKind.FINISHED, MissionState.CANCELLED, 0, {"reason": "cancelled"})
+            emit(MissionEventKind.FINISHED, MissionState.CANCELLED, 0, JobCancelled())
             return
         stop = False
         for step in range(1, opts.max_steps + 1):
             t0 = time.perf_counter()
             if cancel.wait(self.interval_s) if self.interval_s else cancel.is_set():
-                emit(MissionEventKind.FINISHED, MissionState.CANCELLED, step - 1, {"reason": "cancelled"})
+                emit(MissionEventKind.FINISHED, MissionState.CANCELLED, step - 1, JobCancelled())
                 return
             d = goal - pos
             dist = float(np.linalg.norm(d))
@@ -107,21 +110,21 @@ class ScriptedNavPlanner:
                 traj.append(pos.copy())
             lat.append(time.perf_counter() - t0 + 0.01)
             emit(MissionEventKind.STEP, MissionState.RUNNING, step,
-                 {"pose": {"position_m": pos.tolist()},
-                  "decision": {"candidate_index": 0, "kind": "stop" if stop else "waypoint", "backend": opts.policy,
-                               "reasoning": "stop at the goal" if stop else "towards the goal",
-                               "prompt_tokens": 100, "completion_tokens": 10, "cost_usd": 0.0005}})
+                 MissionStep(pose=Pose(position_m=tuple(pos.tolist())), candidates=[], decision=Decision(
+                     candidate_index=0, kind="stop" if stop else "waypoint", backend=opts.policy,
+                     reasoning="stop at the goal" if stop else "towards the goal",
+                     prompt_tokens=100, completion_tokens=10, cost_usd=0.0005)))
             if stop:
                 break
         m = episode_metrics(np.array(traj), goal, geodesic=euclidean_geodesic, stop_called=stop,
                             reference_path_m=opts.reference_path_m)
         steps = len(lat)
         emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED if stop else MissionState.FAILED, steps,
-             {"stop_called": stop, "steps": steps, "reason": "" if stop else "step budget exhausted",
-              "trajectory_m": np.array(traj).tolist(), "metrics": m.to_dict(),
-              "usage": {"calls": steps, "prompt_tokens": 100 * steps, "completion_tokens": 10 * steps,
-                        "cost_usd": 0.0005 * steps},
-              "step_latency_s": [round(x, 4) for x in lat]})
+             MissionFinished(stop_called=stop, steps=steps, error="" if stop else "step budget exhausted",
+                             trajectory_m=[tuple(p) for p in np.array(traj).tolist()], metrics=m.to_dict(),
+                             usage=UsageData(calls=steps, prompt_tokens=100 * steps, completion_tokens=10 * steps,
+                                             cost_usd=0.0005 * steps),
+                             step_latency_s=[round(x, 4) for x in lat]))
 
     def close(self) -> None:
         for ev in self._cancel.values():

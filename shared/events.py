@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import threading
-from typing import Any
-
 import cv2
 import numpy as np
 
 from shared.bus.typed import TypedBus
-from shared.schemas import MissionEvent, MissionEventKind, MissionState
+from shared.schemas import EventPayload, MissionEvent, MissionEventKind, MissionState
 
 
 def jpeg(image_rgb: np.ndarray, quality: int = 85) -> bytes:
@@ -39,13 +37,13 @@ class EventStream:
         self.step = 0
 
     def emit(self, kind: MissionEventKind, state: MissionState, *, step: int | None = None,
-             data: dict[str, Any] | None = None, images: dict[str, bytes] | None = None) -> MissionEvent:
+             data: EventPayload | None = None, images: dict[str, bytes] | None = None) -> MissionEvent:
         """``step`` None: the job's step so far (a final event of a job cancelled or failed at step 7
         says 7, not 0)."""
         with self._lock:
             step = self.step if step is None else max(step, 0)
             ev = MissionEvent(mission_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
-                              data=data or {}, images=images or {})
+                              data=data, images=images or {})
             self._seq += 1
             self.state = state
             self.step = max(self.step, step)

@@ -1,12 +1,13 @@
 """Every key expression of the system, in one place (the topology, like dora's dataflow.yml).
 
-Each :class:`Key` names its template, who owns it (serves or publishes on it), how it is used
-(``queryable`` / ``publication`` / ``liveliness``) and the schemas it carries. Services and tests
+Each :class:`Key` names its template, who owns it (serves or publishes on it), who consumes it (queries
+or subscribes), how it is used (``queryable`` / ``publication`` / ``liveliness``) and the schemas it
+carries. Services and tests
 build concrete keys with :meth:`Key.format`, which validates the ``{robot}``, ``{map}``, ... parts so
 that a caller can never inject ``*``, ``**``, ``/`` or ``$`` into a key expression.
 
-The README's architecture diagram and the access-control example in ``deploy/`` are derived from
-:data:`CATALOGUE`.
+The README's dataflow diagram and key table (``python -m shared.keys``) and the access-control rules
+in ``deploy/`` are derived from :data:`CATALOGUE`; a test keeps the README in step.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ class Key:
     request: str = ""
     reply: str = ""
     doc: str = ""
+    consumers: tuple[str, ...] = ()  # who queries or subscribes: the other end of the dataflow
 
     @property
     def parts(self) -> list[str]:
@@ -96,82 +98,161 @@ _R = ROOT + "/{robot}"
 
 # --- liveliness and per-instance plumbing (every service) -----------------------------------------
 ALIVE = Key(f"{ROOT}/alive/{{service}}/{{instance}}", "*", Usage.LIVELINESS,
-            doc="liveliness token of one running service instance")
+            doc="liveliness token of one running service instance",
+            consumers=("gateway", "planner", "mapper"))
 INFO = Key(f"{ROOT}/svc/{{service}}/{{instance}}/info", "*", Usage.QUERYABLE, "Ping", "ServiceInfo",
-           "name, version, instance id and backends of one instance")
+           "name, version, instance id and backends of one instance",
+            consumers=("gateway",))
 METRICS = Key(f"{ROOT}/svc/{{service}}/{{instance}}/metrics", "*", Usage.QUERYABLE, "Ping", "ServiceMetrics",
-              "request/error counters, latencies and queue depth of one instance")
+              "request/error counters, latencies and queue depth of one instance",
+            consumers=("gateway",))
 
 # --- robot-io ---------------------------------------------------------------------------------------
 IO_OBSERVE = Key(f"{_R}/io/observe", "robot_io", Usage.QUERYABLE, "ObserveRequest", "Panorama",
-                 "a 12-view RGB-D(-semantic) panorama at the current pose")
+                 "a 12-view RGB-D(-semantic) panorama at the current pose",
+            consumers=("planner", "mapper"))
 IO_MOVE = Key(f"{_R}/io/move_to", "robot_io", Usage.QUERYABLE, "MoveRequest", "MoveResult",
-              "walk to a waypoint (dx, dy) with collision handling")
-IO_TURN = Key(f"{_R}/io/turn", "robot_io", Usage.QUERYABLE, "TurnRequest", "PoseReply", "turn in place")
+              "walk to a waypoint (dx, dy) with collision handling",
+            consumers=("planner", "mapper"))
+IO_TURN = Key(f"{_R}/io/turn", "robot_io", Usage.QUERYABLE, "TurnRequest", "PoseReply", "turn in place",
+            consumers=("mapper",))
 IO_LOOK = Key(f"{_R}/io/look_around", "robot_io", Usage.QUERYABLE, "Ping", "PoseReply",
-              "+-60 deg yaw, +-45 deg pitch sweep")
-IO_RESET = Key(f"{_R}/io/reset", "robot_io", Usage.QUERYABLE, "ResetRequest", "PoseReply", "teleport / reset")
+              "+-60 deg yaw, +-45 deg pitch sweep",
+            consumers=("mapper",))
+IO_RESET = Key(f"{_R}/io/reset", "robot_io", Usage.QUERYABLE, "ResetRequest", "PoseReply", "teleport / reset",
+            consumers=("planner", "mapper"))
 IO_GEODESIC = Key(f"{_R}/io/geodesic", "robot_io", Usage.QUERYABLE, "GeodesicRequest", "GeodesicReply",
-                  "geodesic distance and shortest path (simulator oracle for metrics)")
+                  "geodesic distance and shortest path (simulator oracle for metrics)",
+            consumers=("planner", "mapper"))
 IO_RECORD = Key(f"{_R}/io/record", "robot_io", Usage.QUERYABLE, "RecordRequest", "RecordReply",
-                "start/stop recording a tour (frames published on IO_FRAMES)")
+                "start/stop recording a tour (frames published on IO_FRAMES)",
+            consumers=("mapper",))
 IO_SCENE = Key(f"{_R}/io/scene", "robot_io", Usage.QUERYABLE, "Ping", "SceneSummary",
-               "what the robot knows of its scene (rooms, labels, bounds)")
+               "what the robot knows of its scene (rooms, labels, bounds)",
+            consumers=("gateway", "mapper"))
 IO_LOAD_SCENE = Key(f"{_R}/io/scene/load", "robot_io", Usage.QUERYABLE, "LoadSceneRequest", "SceneSummary",
-                    "load another scene (simulator backends; evaluation over many houses)")
-IO_POSE = Key(f"{_R}/io/pose", "robot_io", Usage.PUBLICATION, reply="Pose", doc="pose after every motion")
+                    "load another scene (simulator backends; evaluation over many houses)",
+            consumers=("gateway",))
+IO_POSE = Key(f"{_R}/io/pose", "robot_io", Usage.PUBLICATION, reply="Pose", doc="pose after every motion",
+            consumers=())
 IO_FRAMES = Key(f"{_R}/io/frames/{{recording}}", "robot_io", Usage.PUBLICATION, reply="Frame",
-                doc="recorded tour frames at a fixed rate")
+                doc="recorded tour frames at a fixed rate",
+            consumers=("reconstructor",))
 
 # --- mapper -----------------------------------------------------------------------------------------
 MAPPER_PREDICT = Key(f"{_R}/mapper/predict", "mapper", Usage.QUERYABLE, "Panorama", "CandidateSet",
-                     "waypoint candidates for a panorama")
+                     "waypoint candidates for a panorama",
+            consumers=("planner",))
 MAPPER_GRAPH = Key(f"{_R}/mapper/graph", "mapper", Usage.PUBLICATION, reply="NavGraph",
-                   doc="the explored navigation graph")
+                   doc="the explored navigation graph",
+            consumers=())
 MAPPER_TOURS = Key(f"{_R}/mapper/tours/{{region}}", "mapper", Usage.PUBLICATION, reply="Tour",
-                   doc="planned recording tour per region")
+                   doc="planned recording tour per region",
+            consumers=())
 
 MAPPER_EXPLORE = Key(f"{_R}/mapper/explorations/submit", "mapper", Usage.QUERYABLE, "ExplorationRequest",
-                     "MissionAccepted", "start pre-exploration + tour recording + reconstruction")
+                     "MissionAccepted", "start pre-exploration + tour recording + reconstruction",
+            consumers=("gateway",))
 EXPLORATION_EVENTS = Key(f"{_R}/explorations/{{exploration}}/events", "mapper", Usage.PUBLICATION,
-                         reply="MissionEvent", doc="exploration progress events (mission_id = exploration id)")
+                         reply="MissionEvent", doc="exploration progress events (mission_id = exploration id)",
+            consumers=("gateway",))
 
 # --- maps (reconstructor owns the map store) --------------------------------------------------------
-MAP_LIST = Key(f"{ROOT}/maps/list", "reconstructor", Usage.QUERYABLE, "Ping", "MapListReply", "list maps")
+MAP_LIST = Key(f"{ROOT}/maps/list", "reconstructor", Usage.QUERYABLE, "Ping", "MapListReply", "list maps",
+            consumers=("gateway",))
 MAP_INFO = Key(f"{ROOT}/maps/{{map}}/info", "reconstructor", Usage.QUERYABLE, "MapRequest", "MapInfo",
-               "metadata of one map")
+               "metadata of one map",
+            consumers=("gateway", "planner", "renderer"))
 MAP_CHUNK = Key(f"{ROOT}/maps/{{map}}/chunk", "reconstructor", Usage.QUERYABLE, "MapChunkRequest", "MapChunk",
-                "the map's points, in chunks")
+                "the map's points, in chunks",
+            consumers=("gateway", "renderer"))
 MAP_BUILD = Key(f"{ROOT}/maps/{{map}}/build", "reconstructor", Usage.QUERYABLE, "BuildMapRequest", "MapInfo",
-                "reconstruct recorded tours into a stored map")
+                "reconstruct recorded tours into a stored map",
+            consumers=("mapper",))
 MAP_IMPORT = Key(f"{ROOT}/maps/{{map}}/import", "reconstructor", Usage.QUERYABLE, "MapImportRequest", "MapInfo",
-                 "store an uploaded PLY/PCD cloud as a map")
+                 "store an uploaded PLY/PCD cloud as a map",
+            consumers=("gateway",))
 MAP_UPDATED = Key(f"{ROOT}/maps/{{map}}/updated", "reconstructor", Usage.PUBLICATION, reply="MapInfo",
-                  doc="a new version of a map was stored")
+                  doc="a new version of a map was stored",
+            consumers=("renderer",))
 
 # --- renderer -----------------------------------------------------------------------------------------
 RENDER_VIEWS = Key(f"{ROOT}/render/views", "renderer", Usage.QUERYABLE, "RenderRequest", "RenderResult",
-                   "anticipated views of one step (batch)")
+                   "anticipated views of one step (batch)",
+            consumers=("planner",))
 RENDER_MAP = Key(f"{ROOT}/render/spatial_map", "renderer", Usage.QUERYABLE, "SpatialMapRequest",
-                 "SpatialMapResult", "top-down spatial map image")
+                 "SpatialMapResult", "top-down spatial map image",
+            consumers=("planner",))
 
 # --- planner / missions ---------------------------------------------------------------------------------
 MISSION_SUBMIT = Key(f"{_R}/planner/missions/submit", "planner", Usage.QUERYABLE, "MissionRequest",
-                     "MissionAccepted", "start a navigation mission")
+                     "MissionAccepted", "start a navigation mission",
+            consumers=("gateway",))
 MISSION_CANCEL = Key(f"{_R}/planner/missions/cancel", "planner", Usage.QUERYABLE, "CancelRequest",
-                     "MissionAccepted", "cancel a running mission")
+                     "MissionAccepted", "cancel a running mission",
+            consumers=("gateway",))
 MISSION_EVENTS = Key(f"{_R}/missions/{{mission}}/events", "planner", Usage.PUBLICATION, reply="MissionEvent",
-                     doc="mission events (started, step, finished, error)")
+                     doc="mission events (started, step, finished, error)",
+            consumers=("gateway",))
 
 CATALOGUE: tuple[Key, ...] = tuple(v for v in globals().values() if isinstance(v, Key))
 
 
 def markdown_table() -> str:
-    """The catalogue as the README's Markdown table (``python -m shared.keys``)."""
-    rows = ["| key expression | owner | usage | request | reply / sample |", "|---|---|---|---|---|"]
-    rows += [f"| `{k.template}` | {k.owner} | {k.usage} | {k.request or '-'} | {k.reply or '-'} |" for k in CATALOGUE]
+    """The catalogue as the README's Markdown table."""
+    rows = ["| key expression | owner | consumers | usage | request | reply / sample |", "|---|---|---|---|---|---|"]
+    rows += [f"| `{k.template}` | {k.owner} | {', '.join(k.consumers) or '-'} | {k.usage} | {k.request or '-'} "
+             f"| {k.reply or '-'} |" for k in CATALOGUE]
     return "\n".join(rows)
 
 
+def dataflow_mermaid() -> str:
+    """Who talks to whom, as a Mermaid flowchart, labelled with the keys (their fixed segments).
+
+    A solid arrow is a query, from the consumer that asks to the owner that answers; a dotted arrow is
+    a publication (or liveliness), from the owner to its subscribers. Per-instance plumbing (owner ``*``)
+    is left out: every service has it."""
+    edges: dict[tuple[str, str, bool], set[str]] = {}
+    for k in CATALOGUE:
+        if k.owner == "*":
+            continue
+        label = "/".join(p for p in k.template.split("/")[1:] if not p.startswith("{"))
+        query = k.usage == Usage.QUERYABLE
+        for c in k.consumers:
+            edges.setdefault((c, k.owner, True) if query else (k.owner, c, False), set()).add(label)
+    lines = ["flowchart LR"]
+    for (src, dst, query), labels in sorted(edges.items()):
+        lines.append(f"    {src} {'-->' if query else '-.->'}|{', '.join(sorted(labels))}| {dst}")
+    return "\n".join(lines)
+
+
+_BEGIN = "<!-- BEGIN {name}: generated by `python -m shared.keys --write README.md`; a test checks it -->"
+_END = "<!-- END {name} -->"
+
+
+def readme_blocks() -> dict[str, str]:
+    """The README's generated blocks: the dataflow diagram and the key table."""
+    return {"dataflow": "```mermaid\n" + dataflow_mermaid() + "\n```", "keys": markdown_table()}
+
+
+def render_readme(text: str) -> str:
+    """``text`` with every generated block replaced by its current content (markers kept)."""
+    for name, body in readme_blocks().items():
+        begin, end = _BEGIN.format(name=name), _END.format(name=name)
+        i, j = text.find(begin), text.find(end)
+        if i < 0 or j < i:
+            raise ValueError(f"README has no {name!r} block ({begin} ... {end})")
+        text = text[: i + len(begin)] + "\n" + body + "\n" + text[j:]
+    return text
+
+
 if __name__ == "__main__":
-    print(markdown_table())
+    import sys
+    from pathlib import Path
+
+    if sys.argv[1:2] == ["--write"] and len(sys.argv) == 3:
+        path = Path(sys.argv[2])
+        path.write_text(render_readme(path.read_text()))
+    else:
+        for body in readme_blocks().values():
+            print(body + "\n")

@@ -15,7 +15,7 @@ import math
 import time
 import unicodedata
 from enum import StrEnum
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -45,6 +45,8 @@ Seconds = Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]
 Xyz_m = tuple[Metres, Metres, Metres]
 LabelId = Annotated[int, Field(ge=-1, le=LABEL_LIMIT)]
 Count = Annotated[int, Field(ge=0, le=SEQ_LIMIT)]
+Cost_usd = Annotated[float, Field(ge=0.0, le=1e6)]
+Duration_s = Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]
 
 
 class BudgetExceeded(ValueError):
@@ -513,13 +515,13 @@ class SpatialMapResult(Message):
 class Decision(Message):
     """What the policy chose at one step."""
 
-    candidate_index: int
+    candidate_index: int = Field(ge=0, le=10_000)
     kind: CandidateKind
     reasoning: str = ""
     backend: str = ""
-    prompt_tokens: int = 0
-    completion_tokens: int = 0
-    cost_usd: float = 0.0
+    prompt_tokens: Count = 0
+    completion_tokens: Count = 0
+    cost_usd: Cost_usd = 0.0
     fallback: bool = False
 
 
@@ -593,12 +595,164 @@ class MissionEventKind(StrEnum):
     ERROR = "error"
 
 
+# --- job events: one typed payload per kind of thing that happens to a mission or an exploration ---
+
+
+class UsageData(BaseModel):
+    """The policy's running cost: LLM calls, tokens and dollars so far (all counters, so >= 0)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    calls: Count = 0
+    prompt_tokens: Count = 0
+    completion_tokens: Count = 0
+    cost_usd: Cost_usd = 0.0
+    reasks: Count = 0
+    fallbacks: Count = 0
+    cache_hits: Count = 0
+
+
+class EpisodeMetricsData(BaseModel):
+    """The VLN-CE metrics of one mission (:class:`shared.vln_metrics.EpisodeMetrics` on the wire)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    ne_m: Distance_m | None
+    success: bool
+    oracle_success: bool
+    oracle_ne_m: Distance_m | None
+    tl_m: Distance_m
+    spl: float = Field(ge=0.0, le=1.0)
+    ndtw: float | None = Field(ge=0.0, le=1.0)
+    sdtw: float | None = Field(ge=0.0, le=1.0)
+    shortest_m: Distance_m | None
+    stop_called: bool
+    steps: Count
+    goal_reachable: bool
+
+
+class EventPayload(BaseModel):
+    """Base of every job event payload. ``type`` tells the payloads apart on the wire; ``KINDS`` are the
+    event kinds a payload may travel with (checked by :class:`MissionEvent`)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    KINDS: ClassVar[tuple[str, ...]] = ()
+
+
+def _finite_xyz(points: list[tuple[float, float, float]], what: str):
+    for p in points:
+        _finite(p, what)
+    return points
+
+
+class MissionStarted(EventPayload):
+    KINDS: ClassVar[tuple[str, ...]] = ("started",)
+    type: Literal["mission_started"] = "mission_started"
+    pose: Pose
+    instruction: str
+    map_id: str
+    options: MissionOptions
+
+
+class MissionStep(EventPayload):
+    """One navigation step: where the agent was, what it could do, what it chose and what that cost."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("step",)
+    type: Literal["mission_step"] = "mission_step"
+    pose: Pose
+    candidates: list[Candidate]
+    decision: Decision
+    timings_s: dict[str, Duration_s] = Field(default_factory=dict)
+    usage: UsageData = Field(default_factory=UsageData)
+
+
+class MissionFinished(EventPayload):
+    """The mission's end: the path walked, its metrics when a goal was known, the policy's total cost.
+    ``reason`` qualifies a stop (e.g. boxed in); ``error`` is the cause of a failure."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("finished",)
+    type: Literal["mission_finished"] = "mission_finished"
+    stop_called: bool
+    steps: Count
+    trajectory_m: list[Xyz_m] = Field(default_factory=list, max_length=PATH_MAX_POINTS)
+    metrics: EpisodeMetricsData | None = None
+    usage: UsageData = Field(default_factory=UsageData)
+    step_latency_s: list[Duration_s] = Field(default_factory=list, max_length=PATH_MAX_POINTS)
+    reason: str = ""
+    error: str = ""
+
+    @field_validator("trajectory_m")
+    @classmethod
+    def _trajectory_finite(cls, v):
+        return _finite_xyz(v, "trajectory_m")
+
+
+class ExplorationStarted(EventPayload):
+    KINDS: ClassVar[tuple[str, ...]] = ("started",)
+    type: Literal["exploration_started"] = "exploration_started"
+    map_id: str
+
+
+class ExplorationProgress(EventPayload):
+    """A stage of an exploration (exploring, touring, reconstructing) and how far it has come."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("progress",)
+    type: Literal["exploration_progress"] = "exploration_progress"
+    stage: str
+    progress: float = Field(ge=0.0, le=1.0)
+    message: str = ""
+    region: int | None = Field(None, ge=-1, le=100_000)
+    frames: Count | None = None
+    nodes: Count | None = None
+    regions: Count | None = None
+    timings_s: dict[str, Duration_s] = Field(default_factory=dict)
+
+
+class ExplorationFinished(EventPayload):
+    """The stored map an exploration produced, and what the exploration took."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("finished",)
+    type: Literal["exploration_finished"] = "exploration_finished"
+    stage: str = "done"
+    progress: float = Field(1.0, ge=0.0, le=1.0)
+    map_id: str
+    version: int = Field(ge=1, le=SEQ_LIMIT)
+    points: Count
+    regions: Count
+    skipped_regions: list[Annotated[int, Field(ge=-1, le=100_000)]] = Field(default_factory=list)
+    nodes: Count = 0
+    wall_s: Duration_s = 0.0
+    timings_s: dict[str, Duration_s] = Field(default_factory=dict)
+
+
+class JobCancelled(EventPayload):
+    KINDS: ClassVar[tuple[str, ...]] = ("finished",)
+    type: Literal["job_cancelled"] = "job_cancelled"
+    message: str = "cancelled on request"
+
+
+class JobFailed(EventPayload):
+    """Any job's failure, with its cause."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("error",)
+    type: Literal["job_failed"] = "job_failed"
+    error: str
+
+
+EventData = Annotated[
+    MissionStarted | MissionStep | MissionFinished | ExplorationStarted | ExplorationProgress
+    | ExplorationFinished | JobCancelled | JobFailed,
+    Field(discriminator="type"),
+]
+
+
 class MissionEvent(Message):
     """One thing that happened to a mission or an exploration (``mission_id`` is then the
     exploration id); ``seq`` orders the events of one job, gap-free from 0.
 
-    ``data`` is JSON-friendly; pictures travel JPEG-encoded in ``images`` (name -> bytes) so the
-    gateway can store them once and serve them by URL instead of inlining them in every event.
+    ``data`` is the kind's typed payload (None only for events that carry nothing); pictures travel
+    JPEG-encoded in ``images`` (name -> bytes) so the gateway can store them once and serve them by URL
+    instead of inlining them in every event.
     """
 
     mission_id: str
@@ -607,10 +761,18 @@ class MissionEvent(Message):
     state: MissionState
     step: int = Field(0, ge=0, le=100_000)
     timestamp_s: Seconds = Field(default_factory=time.time)
-    data: dict[str, Any] = Field(default_factory=dict)
+    data: EventData | None = None
     images: dict[str, bytes] = Field(default_factory=dict)
 
-    FREE_FORM: ClassVar[tuple[str, ...]] = ("data",)
+    @model_validator(mode="after")
+    def _payload_fits_kind(self):
+        if self.data is not None and self.kind.value not in self.data.KINDS:
+            raise ValueError(f"a {self.data.type} payload cannot travel in a {self.kind.value!r} event")
+        return self
+
+    def data_json(self) -> dict[str, Any]:
+        """The payload as JSON-ready values (what the gateway stores and streams)."""
+        return {} if self.data is None else self.data.model_dump(mode="json")
 
 
 class ExplorationRequest(Message):

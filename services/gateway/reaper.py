@@ -30,7 +30,7 @@ from services.gateway.store import EventRejected, GatewayStore, JobRow
 from shared import keys
 from shared.bus.base import Closeable
 from shared.bus.typed import RemoteError, TypedBus
-from shared.schemas import MissionEvent, MissionEventKind, MissionState, Ping, ServiceInfo
+from shared.schemas import JobCancelled, JobFailed, MissionEvent, MissionEventKind, MissionState, Ping, ServiceInfo
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ class JobReaper:
         if row is None or row.terminal:
             return 0
         ev_kind = MissionEventKind.ERROR if state == MissionState.FAILED else MissionEventKind.FINISHED
-        data = {"error": reason} if state == MissionState.FAILED else {"message": reason}
+        data = JobFailed(error=reason) if state == MissionState.FAILED else JobCancelled(message=reason)
         event = MissionEvent(mission_id=row.id, seq=row.last_seq + 1, kind=ev_kind, state=state, step=row.step,
                              data=data)
         try:

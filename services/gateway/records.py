@@ -2,24 +2,21 @@
 
 A mission's (or exploration's) record is *derived* from its event stream: :func:`apply_event` folds
 one :class:`~shared.schemas.MissionEvent` into a JSON-friendly summary that the store keeps beside the
-events, so ``GET /missions/{id}`` is one row read and is the same after a gateway restart. The fold is
-lenient about ``data``: planners may leave fields out, and an odd value is skipped, never an error.
-
-Expected ``data`` fields (all optional): ``pose`` ({position_m, heading_rad}), ``candidates`` (list of
-Candidate dicts), ``decision`` (Decision dict with ``reasoning``), ``reasoning``, ``timings_s``,
-``metrics`` (VLN-CE: ne_m, sr, spl, ...), ``prompt_tokens``/``completion_tokens``/``cost_usd`` (or inside
-``decision``), ``progress`` (0-1), ``stage``, ``message``, ``map_id``, ``error``.
+events, so ``GET /missions/{id}`` is one row read and is the same after a gateway restart. Each event
+kind carries its typed payload (:data:`shared.schemas.EventData`), so the fold is one case per payload.
 """
 
 from __future__ import annotations
 
-import math
 from enum import StrEnum
 from typing import Any
 
 from pydantic import BaseModel, Field
 
-from shared.schemas import MissionEvent, MissionEventKind, MissionState
+from shared.schemas import (
+    ExplorationFinished, ExplorationProgress, ExplorationStarted, JobCancelled, JobFailed, MissionEvent, MissionEventKind,
+    MissionFinished, MissionStarted, MissionState, MissionStep, Pose,
+)
 
 TERMINAL = frozenset({MissionState.SUCCEEDED, MissionState.FAILED, MissionState.CANCELLED})
 # The states an event of each kind can carry; anything else is refused at ingest.
@@ -41,26 +38,6 @@ class JobKind(StrEnum):
 # --- folding -------------------------------------------------------------------------------------
 
 
-def _xyz(value: Any) -> list[float] | None:
-    if isinstance(value, dict):
-        value = value.get("position_m")
-    if isinstance(value, (list, tuple)) and len(value) == 3:
-        try:
-            out = [float(v) for v in value]
-        except (TypeError, ValueError):
-            return None
-        return out if all(math.isfinite(v) for v in out) else None
-    return None
-
-
-def _num(value: Any, default: float = 0.0) -> float:
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        return default
-    return out if math.isfinite(out) else default
-
-
 def empty_summary() -> dict[str, Any]:
     return {"trajectory": [], "decisions": [], "metrics": None, "prompt_tokens": 0, "completion_tokens": 0,
             "cost_usd": 0.0, "progress": None, "stage": None, "message": None, "error": None,
@@ -68,47 +45,58 @@ def empty_summary() -> dict[str, Any]:
             "candidates": [], "pose": None}
 
 
+def _set_pose(summary: dict[str, Any], pose: Pose) -> None:
+    xyz = [float(v) for v in pose.position_m]
+    summary["pose"] = {"position_m": xyz, "heading_rad": float(pose.heading_rad)}
+    # The trajectory is the sequence of distinct positions (a turn in place adds nothing).
+    if not summary["trajectory"] or summary["trajectory"][-1] != xyz:
+        summary["trajectory"].append(xyz)
+
+
 def apply_event(summary: dict[str, Any], event: MissionEvent, image_urls: dict[str, str]) -> dict[str, Any]:
-    """Fold one event into ``summary`` (mutated and returned); ``image_urls`` name -> URL of its images."""
-    data = event.data if isinstance(event.data, dict) else {}
+    """Fold one event into ``summary`` (mutated and returned); ``image_urls`` name -> URL of its images.
+
+    The payload was validated against its kind's schema when the event was decoded, so each case reads
+    typed fields; there is nothing to guess."""
     if event.kind == "started" and summary["started_s"] is None:
         summary["started_s"] = event.timestamp_s
     if event.state in TERMINAL:
         summary["finished_s"] = event.timestamp_s
-    pose = data.get("pose")
-    xyz = _xyz(pose)
-    if xyz is not None:
-        summary["pose"] = {"position_m": xyz, "heading_rad": _num(pose.get("heading_rad"))
-                           if isinstance(pose, dict) else 0.0}
-        # The trajectory is the sequence of distinct positions (a turn in place adds nothing).
-        if not summary["trajectory"] or summary["trajectory"][-1] != xyz:
-            summary["trajectory"].append(xyz)
-    if isinstance(data.get("candidates"), list):
-        summary["candidates"] = [c for c in data["candidates"] if isinstance(c, dict)]
-    decision = data.get("decision")
-    if isinstance(decision, dict):
-        entry = {"step": event.step, "seq": event.seq,
-                 "candidate_index": decision.get("candidate_index"), "kind": decision.get("kind"),
-                 "reasoning": decision.get("reasoning") or data.get("reasoning") or "",
-                 "backend": decision.get("backend", ""), "fallback": bool(decision.get("fallback", False))}
-        summary["decisions"].append(entry)
-        del summary["decisions"][:-MAX_DECISIONS_KEPT]
-        for key in ("prompt_tokens", "completion_tokens"):
-            summary[key] += int(_num(decision.get(key)))
-        summary["cost_usd"] += _num(decision.get("cost_usd"))
-    else:
-        for key in ("prompt_tokens", "completion_tokens"):
-            summary[key] += int(_num(data.get(key)))
-        summary["cost_usd"] += _num(data.get("cost_usd"))
-    if isinstance(data.get("metrics"), dict):
-        summary["metrics"] = {k: v for k, v in data["metrics"].items() if isinstance(v, (int, float, str, bool))}
-    if "progress" in data:
-        summary["progress"] = min(1.0, max(0.0, _num(data["progress"])))
-    for key in ("stage", "message", "map_id"):
-        if isinstance(data.get(key), str):
-            summary[key] = data[key]
-    if event.kind == "error" or isinstance(data.get("error"), str):
-        summary["error"] = str(data.get("error") or data.get("message") or "error")
+    d = event.data
+    match d:
+        case MissionStarted():
+            _set_pose(summary, d.pose)
+            summary["map_id"] = d.map_id
+        case MissionStep():
+            _set_pose(summary, d.pose)
+            summary["candidates"] = [c.model_dump(mode="json") for c in d.candidates]
+            dec = d.decision
+            summary["decisions"].append({
+                "step": event.step, "seq": event.seq, "candidate_index": dec.candidate_index, "kind": dec.kind.value,
+                "reasoning": dec.reasoning, "backend": dec.backend, "fallback": dec.fallback})
+            del summary["decisions"][:-MAX_DECISIONS_KEPT]
+            summary["prompt_tokens"] += dec.prompt_tokens
+            summary["completion_tokens"] += dec.completion_tokens
+            summary["cost_usd"] += dec.cost_usd
+        case MissionFinished():
+            if d.metrics is not None:
+                summary["metrics"] = d.metrics.model_dump(mode="json")
+            if d.error:
+                summary["error"] = d.error
+            elif d.reason:
+                summary["message"] = d.reason
+        case ExplorationStarted():
+            summary["map_id"] = d.map_id
+        case ExplorationProgress():
+            summary["progress"], summary["stage"] = d.progress, d.stage
+            summary["message"] = d.message or summary["message"]
+        case ExplorationFinished():
+            summary["progress"], summary["stage"], summary["map_id"] = d.progress, d.stage, d.map_id
+            summary["message"] = f"map {d.map_id} v{d.version}: {d.points} points from {d.regions} regions"
+        case JobCancelled():
+            summary["message"] = d.message
+        case JobFailed():
+            summary["error"] = d.error
     if event.state == MissionState.SUCCEEDED and summary.get("progress") is not None:
         summary["progress"] = 1.0
     if image_urls:

@@ -322,7 +322,7 @@ class GatewayStore:
             log.warning("event %s/%d: dropped images with invalid names %s", event.mission_id, event.seq,
                         sorted(set(event.images) - set(names)))
         urls = {n: image_url(kind, event.mission_id, event.seq, n) for n in names}
-        data_json = _json(event.data)
+        data_json = _json(event.data_json())
         with self._write_lock:
             db = self._writer
             db.execute("BEGIN IMMEDIATE")

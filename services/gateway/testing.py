@@ -21,10 +21,10 @@ from shared import keys
 from shared.bus.base import Closeable
 from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
-    CancelRequest, Candidate, CandidateKind, Decision, ExplorationRequest, GeodesicReply, GeodesicRequest,
-    LoadSceneRequest, MapChunk,
-    MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, MissionAccepted, MissionEvent,
-    MissionEventKind, MissionRequest, MissionState, Ping, Pose, RoomInfo, SceneSummary,
+    CancelRequest, Candidate, CandidateKind, Decision, EpisodeMetricsData, ExplorationFinished, ExplorationProgress,
+    ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled, LoadSceneRequest, MapChunk, MapChunkRequest,
+    MapImportRequest, MapInfo, MapListReply, MapRequest, MissionAccepted, MissionEvent, MissionEventKind,
+    MissionFinished, MissionRequest, MissionStarted, MissionState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
 )
 
 _PALETTE = np.array([[66, 135, 245], [245, 166, 35], [80, 200, 120], [220, 80, 90], [160, 110, 220],
@@ -141,12 +141,12 @@ class ScriptedPlanner:
         pos, heading = np.zeros(3), 0.0
         traj = [(0.0, 0.0)]
         emit(MissionEventKind.STARTED, MissionState.RUNNING, 0,
-             {"pose": {"position_m": pos.tolist(), "heading_rad": heading}, "instruction": req.instruction,
-              "map_id": req.map_id})
+             MissionStarted(pose=Pose(position_m=tuple(pos.tolist()), heading_rad=heading),
+                            instruction=req.instruction, map_id=req.map_id, options=req.options))
         steps = min(self.steps, req.options.max_steps)
         for step in range(1, steps + 1):
             if run.cancel.wait(self.step_interval_s):
-                emit(MissionEventKind.FINISHED, MissionState.CANCELLED, step - 1, {"message": "cancelled"})
+                emit(MissionEventKind.FINISHED, MissionState.CANCELLED, step - 1, JobCancelled(message="cancelled"))
                 return
             n = self.n_candidates
             cands = [Candidate(index=i, dx_m=float(1.5 * math.cos(heading + (i - n // 2) * 0.7)),
@@ -167,16 +167,18 @@ class ScriptedPlanner:
                 heading = math.atan2(choice.dy_m, choice.dx_m)
                 traj.append((float(pos[0]), float(pos[1])))
             emit(MissionEventKind.STEP, MissionState.RUNNING, step,
-                 {"pose": {"position_m": pos.tolist(), "heading_rad": heading},
-                  "candidates": [c.model_dump(mode="json") for c in cands],
-                  "decision": decision.model_dump(mode="json"),
-                  "timings_s": {"observe": 0.05, "render": 0.12, "policy": 0.3}}, images)
-        data: dict = {"pose": {"position_m": pos.tolist(), "heading_rad": heading}}
+                 MissionStep(pose=Pose(position_m=tuple(pos.tolist()), heading_rad=heading), candidates=cands,
+                             decision=decision, timings_s={"observe": 0.05, "render": 0.12, "policy": 0.3}), images)
+        metrics = None
         if req.options.goal_m is not None:
             ne = float(np.linalg.norm(pos - np.asarray(req.options.goal_m)))
-            data["metrics"] = {"ne_m": ne, "sr": float(ne <= 3.0), "osr": float(ne <= 3.0), "spl": 0.8 * (ne <= 3.0),
-                               "tl_m": 1.5 * (steps - 1), "ndtw": 0.7}
-        emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, steps, data)
+            ok = ne <= 3.0
+            metrics = EpisodeMetricsData(ne_m=ne, success=ok, oracle_success=ok, oracle_ne_m=ne, tl_m=1.5 * (steps - 1),
+                                         spl=0.8 * ok, ndtw=0.7, sdtw=0.7 * ok, shortest_m=1.5 * (steps - 1),
+                                         stop_called=True, steps=steps, goal_reachable=True)
+        traj_m = [(x, y, 0.0) for x, y in traj]
+        emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, steps,
+             MissionFinished(stop_called=True, steps=steps, trajectory_m=traj_m, metrics=metrics))
 
     def _images(self, step: int, px: int, n: int, traj, pos, cands) -> dict[str, bytes]:
         if self.image_variants:
@@ -224,18 +226,19 @@ class ScriptedMapper:
         key = keys.EXPLORATION_EVENTS.format(robot=self.robot, exploration=req.exploration_id)
         names = ["discovery", "tours", "reconstruction"]
         self.bus.publish(key, MissionEvent(mission_id=req.exploration_id, seq=0, kind=MissionEventKind.STARTED,
-                                           state=MissionState.RUNNING, data={"stage": names[0], "progress": 0.0}))
+                                           state=MissionState.RUNNING, data=ExplorationStarted(map_id=req.map_id)))
         for i in range(1, self.stages + 1):
             time.sleep(self.interval_s)
             self.bus.publish(key, MissionEvent(
                 mission_id=req.exploration_id, seq=i, kind=MissionEventKind.PROGRESS, state=MissionState.RUNNING,
-                step=i * 10, data={"stage": names[min(i, len(names)) - 1], "progress": i / (self.stages + 1)},
+                step=i * 10, data=ExplorationProgress(stage=names[min(i, len(names)) - 1], progress=i / (self.stages + 1)),
                 images={"map": jpeg(spatial_map([(0, 0), (i, 0)], []))}))
         if self.reconstructor is not None:
             self.reconstructor.add_random(req.map_id, 2000)
         self.bus.publish(key, MissionEvent(mission_id=req.exploration_id, seq=self.stages + 1,
                                            kind=MissionEventKind.FINISHED, state=MissionState.SUCCEEDED,
-                                           step=self.stages * 10, data={"map_id": req.map_id, "progress": 1.0}))
+                                           step=self.stages * 10, data=ExplorationFinished(map_id=req.map_id, version=1, points=2000,
+                                                                                  regions=self.stages)))
 
     def close(self) -> None:
         for e in self._entities:

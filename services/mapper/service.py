@@ -24,8 +24,8 @@ from shared.clients import MapClient, RobotClient
 from shared.events import EventStream
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    BuildMapRequest, CameraIntrinsics, CandidateSet, ExplorationRequest, MissionAccepted, MissionEventKind,
-    MissionState, Panorama, TourRecording,
+    BuildMapRequest, CameraIntrinsics, CandidateSet, ExplorationFinished, ExplorationProgress, ExplorationRequest,
+    ExplorationStarted, JobFailed, MissionAccepted, MissionEventKind, MissionState, Panorama, TourRecording,
 )
 
 log = logging.getLogger(__name__)
@@ -84,22 +84,22 @@ class MapperService(Service):
         s: MapperSettings = self.settings  # type: ignore[assignment]
         t0 = time.perf_counter()
         try:
-            events.emit(MissionEventKind.STARTED, MissionState.RUNNING, data={"map_id": req.map_id})
+            events.emit(MissionEventKind.STARTED, MissionState.RUNNING, data=ExplorationStarted(map_id=req.map_id))
             cam = CameraIntrinsics(width_px=s.explore_camera_px, height_px=s.explore_camera_px)
             robot = RobotClient(node.bus, node.robot, observe_camera=cam)
             cfg = DiscoveryConfig.model_validate(req.options.get("discovery", {}))
             cfg.exploration.max_steps = req.max_steps
             events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING,
-                        data={"stage": "exploring", "progress": 0.02, "message": "frontier DFS over waypoints"})
+                        data=ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
             disc = discover(robot, cfg)
             node.bus.publish(keys.MAPPER_GRAPH.format(robot=node.robot), disc.nav_graph())
             for tour in disc.tour_messages():
                 node.bus.publish(keys.MAPPER_TOURS.format(robot=node.robot, region=str(tour.region)), tour)
-            explored = {"nodes": len(disc.result.graph.graph), "regions": len(disc.tours),
-                        "timings_s": {k: round(v, 3) for k, v in disc.timings_s.items()}}
-            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
-                "stage": "touring", "progress": 0.3, **explored,
-                "message": f"explored {explored['nodes']} nodes; recording {len(disc.tours)} region tours"})
+            nodes = len(disc.result.graph.graph)
+            timings_s = {k: round(v, 3) for k, v in disc.timings_s.items()}
+            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data=ExplorationProgress(
+                stage="touring", progress=0.3, nodes=nodes, regions=len(disc.tours), timings_s=timings_s,
+                message=f"explored {nodes} nodes; recording {len(disc.tours)} region tours"))
 
             recordings: list[TourRecording] = []
 
@@ -108,10 +108,10 @@ class MapperService(Service):
                 recordings.append(TourRecording(exploration_id=req.exploration_id, recording=last.recording,
                                                 region=rec.region, start_pose=rec.start_pose,
                                                 frame_count=last.frame_count))
-                events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
-                    "stage": "touring", "progress": 0.3 + 0.5 * len(recordings) / max(1, len(disc.tours)),
-                    "region": rec.region, "frames": last.frame_count,
-                    "message": f"region {rec.region}: {last.frame_count} frames ({len(recordings)}/{len(disc.tours)})"})
+                events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data=ExplorationProgress(
+                    stage="touring", progress=0.3 + 0.5 * len(recordings) / max(1, len(disc.tours)),
+                    region=rec.region, frames=last.frame_count,
+                    message=f"region {rec.region}: {last.frame_count} frames ({len(recordings)}/{len(disc.tours)})"))
 
             class _Recorder:
                 # execute_tours opens robot.recording(sink, rate); route it to robot-io's recorder
@@ -127,27 +127,24 @@ class MapperService(Service):
 
             def on_skip(pt, exc) -> None:
                 skipped.append(pt.tour.region)
-                events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
-                    "stage": "touring", "progress": 0.3 + 0.5 * (len(recordings) + len(skipped)) / max(1, len(disc.tours)),
-                    "message": f"region {pt.tour.region} skipped: {exc}"})
+                events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data=ExplorationProgress(
+                    stage="touring", progress=0.3 + 0.5 * (len(recordings) + len(skipped)) / max(1, len(disc.tours)),
+                    region=pt.tour.region, message=f"region {pt.tour.region} skipped: {exc}"))
 
             execute_tours(_Recorder(), disc.tours, disc.scene, rate_hz=s.tour_rate_hz, on_recording=on_recording,
                           on_skip=on_skip)
-            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data={
-                "stage": "reconstructing", "progress": 0.85,
-                "message": f"reconstructing {len(recordings)} regions"})
+            events.emit(MissionEventKind.PROGRESS, MissionState.RUNNING, data=ExplorationProgress(
+                stage="reconstructing", progress=0.85, message=f"reconstructing {len(recordings)} regions"))
             scene = robot.scene()
             info = MapClient(node.bus).build(BuildMapRequest(
                 exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
                 reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
                 label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene}"))
-            events.emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, data={
-                "stage": "done", "progress": 1.0, "map_id": info.map_id, "version": info.version, "points": info.point_count,
-                "regions": len(recordings), "skipped_regions": skipped,
-                "wall_s": round(time.perf_counter() - t0, 2),
-                "exploration": explored,
-            })
+            events.emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, data=ExplorationFinished(
+                map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),
+                skipped_regions=skipped, nodes=nodes, timings_s=timings_s,
+                wall_s=round(time.perf_counter() - t0, 2)))
         except (RemoteError, Exception) as exc:  # a failed job ends with a reason, never silently
             log.exception("exploration %s failed", req.exploration_id)
             events.emit(MissionEventKind.ERROR, MissionState.FAILED,
-                        data={"error": f"{type(exc).__name__}: {exc}"})
+                        data=JobFailed(error=f"{type(exc).__name__}: {exc}"))

@@ -23,7 +23,8 @@ from shared.clients import MapClient, MapperClient, RendererClient, RobotClient
 from shared.events import EventStream, jpeg
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    CancelRequest, MissionAccepted, MissionEventKind, MissionRequest, MissionState,
+    CancelRequest, JobCancelled, JobFailed, MissionAccepted, MissionEventKind, MissionFinished, MissionRequest,
+    MissionState, UsageData,
 )
 
 log = logging.getLogger(__name__)
@@ -128,23 +129,23 @@ class PlannerService(Service):
                 cancel=cancel, label_names=info.label_names, jpeg=jpeg,
             )
             out = loop.run(req.mission_id, req.instruction, req.map_id, opts)
-            data = {"stop_called": out.stop_called, "steps": out.steps,
-                    "trajectory_m": out.trajectory_m.tolist(), "metrics": out.metrics,
-                    "usage": policy.usage.to_dict(),
-                    "step_latency_s": [round(x, 4) for x in out.step_latency_s]}
-            if out.reason:
-                # A failed mission carries its cause as the error; a stop with a caveat as a reason.
-                data["error" if out.state == MissionState.FAILED else "reason"] = out.reason
+            # A failed mission carries its cause as the error; a stop with a caveat as a reason.
+            failed = out.state == MissionState.FAILED
+            data = MissionFinished(
+                stop_called=out.stop_called, steps=out.steps, trajectory_m=[tuple(p) for p in out.trajectory_m.tolist()],
+                metrics=out.metrics, usage=UsageData(**policy.usage.to_dict()),
+                step_latency_s=[round(x, 4) for x in out.step_latency_s],
+                reason="" if failed else out.reason, error=out.reason if failed else "")
             events.emit(MissionEventKind.FINISHED, out.state, step=out.steps, data=data)
         except MissionCancelled:
-            events.emit(MissionEventKind.FINISHED, MissionState.CANCELLED, data={"message": "cancelled on request"})
+            events.emit(MissionEventKind.FINISHED, MissionState.CANCELLED, data=JobCancelled())
         except RemoteError as exc:
             log.warning("mission %s failed: %s", req.mission_id, exc)
             events.emit(MissionEventKind.ERROR, MissionState.FAILED,
-                        data={"error": f"a service did not answer properly: {exc}"})
+                        data=JobFailed(error=f"a service did not answer properly: {exc}"))
         except Exception as exc:
             log.exception("mission %s failed", req.mission_id)
-            events.emit(MissionEventKind.ERROR, MissionState.FAILED, data={"error": f"{type(exc).__name__}: {exc}"})
+            events.emit(MissionEventKind.ERROR, MissionState.FAILED, data=JobFailed(error=f"{type(exc).__name__}: {exc}"))
         finally:
             if policy is not None:
                 policy.close()

@@ -15,7 +15,7 @@ from collections import OrderedDict
 
 from pydantic import Field
 
-from services.renderer.core.errors import CloudFormatError
+from shared.cloud import CloudFormatError
 from services.reconstructor.core import (
     DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig, Reconstructor, region_from_frames,
 )

@@ -17,7 +17,8 @@ from typing import Any
 
 from pydantic import Field
 
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, PointCloud, SpatialMapper
+from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
+from shared.cloud import PointCloud
 from shared import keys
 from shared.bus.typed import NotFound, RemoteError
 from shared.clients import MapClient

@@ -55,12 +55,13 @@ def wait_until(pred, timeout_s: float, what: str, interval_s: float = 0.1):
 
 def scene_ply(density_per_m2: float = 60.0) -> bytes:
     """A PLY of points sampled from the scene robot-io simulates (the map a mission runs on)."""
-    from evaluation.clouds import cloud_ply_bytes, sample_scene_cloud
+    from evaluation.clouds import sample_scene_cloud
+    from shared.cloud import encode
     from services.robot_io.core import ROBOTS
 
     with ROBOTS.create("sim", {"scene": SCENE}) as robot:
         cloud = sample_scene_cloud(robot.scene, density_per_m2=density_per_m2, max_points=200_000)
-    return cloud_ply_bytes(cloud)
+    return encode(cloud)
 
 
 @pytest.fixture(scope="session")

@@ -163,8 +163,33 @@ def samples(map_id: str = "m", panorama: schemas.Panorama | None = None) -> dict
                 rgb=np.zeros((16, 16, 3), np.uint8)),
         S.MapInfo(map_id=map_id, version=1, point_count=5, bounds_min_m=(0.0, 0.0, 0.0), bounds_max_m=(1.0, 1.0, 1.0),
                   label_names={1: "wall"}, regions=1, scale_factors=[1.0], timings_s={"t": 1.0}, created_s=1.0),
-        S.MissionEvent(mission_id="m-fuzz", seq=0, kind=S.MissionEventKind.STARTED, state=S.MissionState.RUNNING,
-                       step=1, timestamp_s=1.0, data={"pose": {"position_m": [1.0, 2.0, 0.0]}}),
         tour,
     ]
-    return {m.SCHEMA: m for m in out}
+    out_by_name = {m.SCHEMA: m for m in out}
+    # Job events: one per typed payload that carries numbers.
+    usage = S.UsageData(calls=1, prompt_tokens=10, completion_tokens=5, cost_usd=0.01, reasks=1, fallbacks=1,
+                        cache_hits=1)
+    metrics = S.EpisodeMetricsData(ne_m=1.0, success=True, oracle_success=True, oracle_ne_m=0.5, tl_m=3.0, spl=0.5,
+                                   ndtw=0.5, sdtw=0.5, shortest_m=2.0, stop_called=True, steps=3, goal_reachable=True)
+    R, F = S.MissionState.RUNNING, S.MissionState.SUCCEEDED
+    K = S.MissionEventKind
+    events = {
+        "MissionEvent": (K.STEP, R, S.MissionStep(
+            pose=pose, candidates=[cand], usage=usage, timings_s={"policy": 0.1},
+            decision=S.Decision(candidate_index=0, kind=S.CandidateKind.WAYPOINT, prompt_tokens=3,
+                                completion_tokens=2, cost_usd=0.01))),
+        "MissionEvent:started": (K.STARTED, R, S.MissionStarted(
+            pose=pose, instruction="go", map_id=map_id, options=out_by_name["MissionRequest"].options)),
+        "MissionEvent:finished": (K.FINISHED, F, S.MissionFinished(
+            stop_called=True, steps=3, trajectory_m=[(1.0, 2.0, 0.0)], metrics=metrics, usage=usage,
+            step_latency_s=[0.1])),
+        "MissionEvent:progress": (K.PROGRESS, R, S.ExplorationProgress(
+            stage="touring", progress=0.5, region=1, frames=3, nodes=4, regions=2, timings_s={"t": 1.0})),
+        "MissionEvent:explored": (K.FINISHED, F, S.ExplorationFinished(
+            map_id=map_id, version=1, points=5, regions=1, skipped_regions=[2], nodes=3, wall_s=1.0,
+            timings_s={"t": 1.0})),
+    }
+    for name, (kind, state, data) in events.items():
+        out_by_name[name] = S.MissionEvent(mission_id="m-fuzz", seq=0, kind=kind, state=state, step=1,
+                                           timestamp_s=1.0, data=data)
+    return out_by_name

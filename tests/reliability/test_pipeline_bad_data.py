@@ -11,7 +11,7 @@ import pytest
 
 from services.reconstructor.core.errors import MapStoreError
 from services.reconstructor.core.store import MapStore
-from services.renderer.core.errors import CloudFormatError
+from shared.cloud import CloudFormatError
 from shared import keys
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.base import QueryTarget
@@ -168,7 +168,7 @@ def test_load_scene_without_walkable_area_over_the_bus_is_bad_request_and_the_se
 
 def _tiny_cloud(n: int, z_m: float = 3.0):
     """``n`` points well above the floor band (a speck of ceiling): nothing to see, nothing on the floor."""
-    from services.renderer.core import PointCloud
+    from shared.cloud import PointCloud
 
     xyz = np.random.default_rng(n).uniform(-0.5, 0.5, (n, 3)).astype(np.float32)
     xyz[:, 2] += z_m
@@ -202,7 +202,8 @@ def test_tiny_cloud_renders_holes_and_an_unknown_map(backend, n):
 
 
 def test_empty_cloud_is_a_typed_error_that_is_also_a_value_error():
-    from services.renderer.core import EmptyCloudError, IndexedCloud, PointCloud
+    from services.renderer.core import IndexedCloud
+    from shared.cloud import EmptyCloudError, PointCloud
     from shared.schemas import MapChunk
 
     with pytest.raises(EmptyCloudError):

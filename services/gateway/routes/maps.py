@@ -15,7 +15,7 @@ from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.routes.missions import SEGMENT
 from shared import keys
 from shared.bus.typed import RemoteError, TypedBus
-from shared import ply
+from shared import cloud as ply
 from shared.schemas import MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, Ping
 
 log = logging.getLogger(__name__)

@@ -20,10 +20,10 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from evaluation.metrics import EpisodeMetrics, episode_metrics
+from shared.vln_metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
-    CameraIntrinsics, Candidate, CandidateKind, Decision, MissionEventKind, MissionOptions, MissionState,
-    MoveResult, Panorama, Pose, RenderResult, SpatialMapResult, ViewPose,
+    CameraIntrinsics, Candidate, CandidateKind, Decision, MissionEventKind, MissionOptions, MissionStarted,
+    MissionState, MissionStep, MoveResult, Panorama, Pose, RenderResult, SpatialMapResult, UsageData, ViewPose,
 )
 
 from .context import Ablation, OracleInfo, StepContext, build_candidate_views, with_stop_and_backtrack
@@ -129,8 +129,7 @@ class MissionLoop:
         step = 0
         boxed_in_at: int | None = None  # last step at which stop was the only action left
         self.emit(MissionEventKind.STARTED, MissionState.RUNNING, step=0,
-                  data={"pose": _pose(pano.pose), "instruction": instruction, "map_id": map_id,
-                        "options": opts.model_dump(mode="json")})
+                  data=MissionStarted(pose=pano.pose, instruction=instruction, map_id=map_id, options=opts))
         for step in range(opts.max_steps):
             if self.cancel.is_set():
                 raise MissionCancelled()
@@ -222,21 +221,13 @@ class MissionLoop:
                     images[f"cand_{v.index}_observed"] = self.jpeg(_thumb(v.observed_rgb, self.thumb_px))
                 if v.anticipated_rgb is not None:
                     images[f"cand_{v.index}_anticipated"] = self.jpeg(_thumb(v.anticipated_rgb, self.thumb_px))
-        self.emit(MissionEventKind.STEP, MissionState.RUNNING, step=step, images=images, data={
-            "pose": _pose(pano.pose),
-            "candidates": [v.candidate.model_dump(mode="json") for v in ctx.candidates],
-            "decision": decision.model_dump(mode="json"),
-            "reasoning": decision.reasoning,
-            "timings_s": {k: round(v, 4) for k, v in timings.items()},
-            "usage": self.policy.usage.to_dict(),
-        })
+        self.emit(MissionEventKind.STEP, MissionState.RUNNING, step=step, images=images, data=MissionStep(
+            pose=pano.pose, candidates=[v.candidate for v in ctx.candidates], decision=decision,
+            timings_s={k: round(v, 4) for k, v in timings.items()}, usage=UsageData(**self.policy.usage.to_dict()),
+        ))
 
 
 def _towards(pose: Pose, target_m) -> Candidate:
     """A candidate from ``pose`` to the floor point ``target_m`` (for the blocked-move check)."""
     return Candidate(index=0, kind=CandidateKind.BACKTRACK, dx_m=float(target_m[0]) - pose.position_m[0],
                      dy_m=float(target_m[1]) - pose.position_m[1])
-
-
-def _pose(p: Pose) -> dict[str, Any]:
-    return {"position_m": list(p.position_m), "heading_rad": p.heading_rad}

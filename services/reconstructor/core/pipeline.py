@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.renderer.core import PointCloud
+from shared.cloud import PointCloud
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M
 
 from .align import AlignmentConfig, AlignmentReport, MetricAligner, to_world

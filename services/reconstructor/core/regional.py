@@ -32,7 +32,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from services.renderer.core import PointCloud
+from shared.cloud import PointCloud
 from shared.geometry import camera_rotation, rot_z
 from shared.registry import BackendConfig, Registry
 

@@ -33,7 +33,7 @@ from types import SimpleNamespace
 import numpy as np
 from pydantic import Field
 
-from services.renderer.core import PointCloud
+from shared.cloud import PointCloud
 from shared.registry import BackendConfig
 
 from .errors import BackendUnavailableError, EmptyRecordingError

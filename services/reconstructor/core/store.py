@@ -2,8 +2,7 @@
 
 Layout under ``root``::
 
-    <map_id>/v000001/cloud.ply          points and colours (binary PLY, open3d)
-    <map_id>/v000001/cloud.labels.npz   semantic labels and their names (when the map has labels)
+    <map_id>/v000001/cloud.ply          points, colours, labels and label names (:mod:`shared.cloud`'s PLY)
     <map_id>/v000001/meta.json          MapInfo + details (source, regions, scale factors, timings)
     <map_id>/.lock                      serialises version allocation between processes
 
@@ -35,10 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from shared import ply
-
-from services.renderer.core import PointCloud
-from services.renderer.core.errors import CloudFormatError
+from shared.cloud import CloudFormatError, PointCloud, read_cloud, read_cloud_bytes
 from shared.keys import KeyExprError, validate_segment
 from shared.schemas import MapChunk, MapInfo
 
@@ -126,22 +122,19 @@ class MapStore:
         max_points: int = 50_000_000,
     ) -> MapInfo:
         """Store a user's PLY/PCD cloud (bytes with a ``filename``, or a path) as a new map version."""
-        if isinstance(data, (bytes, bytearray, memoryview)):
-            if not filename:
-                raise MapFormatError("importing bytes needs a filename (.ply or .pcd)")
-            suffix = Path(filename).suffix.lower()
-            if suffix not in (".ply", ".pcd"):
-                raise MapFormatError(f"{filename!r}: only .ply and .pcd clouds can be imported")
-            with tempfile.TemporaryDirectory(prefix="import-") as tmp:
-                p = Path(tmp) / f"upload{suffix}"
-                p.write_bytes(bytes(data))
-                cloud = _read_cloud(p, filename)
-        else:
-            p = Path(data)
-            if p.suffix.lower() not in (".ply", ".pcd"):
-                raise MapFormatError(f"{p.name!r}: only .ply and .pcd clouds can be imported")
-            cloud = _read_cloud(p, p.name)
-            filename = filename or p.name
+        try:
+            if isinstance(data, (bytes, bytearray, memoryview)):
+                if not filename:
+                    raise MapFormatError("importing bytes needs a filename (.ply or .pcd)")
+                cloud = read_cloud_bytes(data, filename)
+            else:
+                p = Path(data)
+                if p.suffix.lower() not in (".ply", ".pcd"):
+                    raise MapFormatError(f"{p.name!r}: only .ply and .pcd clouds can be imported")
+                cloud = read_cloud(p)
+                filename = filename or p.name
+        except CloudFormatError as exc:
+            raise MapFormatError(str(exc)) from None
         if len(cloud) > max_points:
             raise MapFormatError(f"{filename}: {len(cloud)} points exceed the limit of {max_points}")
         return self.save(map_id, cloud, source=source or f"import:{filename}", details={"imported": filename})
@@ -332,101 +325,6 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
-
-
-def _read_cloud(path: Path, name: str) -> PointCloud:
-    """A user's PLY/PCD file as a cloud; every way it can be unreadable is a :class:`MapFormatError`."""
-    try:
-        return _decode_cloud(path, name)
-    except CloudFormatError as exc:  # the cloud type's own checks (shapes, finiteness)
-        raise MapFormatError(f"{name}: {exc}") from None
-
-
-def _decode_cloud(path: Path, name: str) -> PointCloud:
-    import open3d as o3d
-
-    if path.suffix.lower() == ".ply":
-        data = path.read_bytes()
-        # Our own layout keeps semantic labels and their names, which open3d would drop.
-        try:
-            ours = ply.decode(data)
-        except ValueError as exc:
-            raise MapFormatError(f"{name}: {exc}") from None
-        if ours is not None:
-            xyz, rgb, labels, names = ours
-            finite = _finite32(xyz)
-            if not finite.any():
-                raise MapFormatError(f"{name}: every point is non-finite")
-            return PointCloud(xyz[finite], rgb[finite], None if labels is None else labels[finite], names)
-        # open3d reads what it can of a truncated file, warns and returns garbage: check first.
-        _check_ply_body(data, name)
-    pcd = o3d.io.read_point_cloud(str(path))
-    xyz = np.asarray(pcd.points)
-    if len(xyz) == 0:
-        raise MapFormatError(f"{name}: no points could be read (not a PLY/PCD point cloud?)")
-    finite = _finite32(xyz)
-    if not finite.any():
-        raise MapFormatError(f"{name}: every point is non-finite")
-    rgb = np.asarray(pcd.colors) if pcd.has_colors() else np.full((len(xyz), 3), 0.5)
-    if not finite.all():
-        log.warning("%s: dropping %d non-finite points", name, int((~finite).sum()))
-    return PointCloud(xyz[finite], rgb[finite])
-
-
-def _finite32(xyz: np.ndarray) -> np.ndarray:
-    """Rows that stay finite as float32 (the cloud's storage type): huge values are garbage too."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        return np.isfinite(np.asarray(xyz, np.float32)).all(axis=1)
-
-
-_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
-              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
-
-
-def _check_ply_body(data: bytes, name: str) -> None:
-    """Raise :class:`MapFormatError` when a PLY's header is unreadable or its vertices are cut short.
-
-    Binary files: the bytes after the header must hold every element up to the vertices (fixed-size
-    records only; a list property before them stops the check). ASCII: one line per record."""
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise MapFormatError(f"{name}: not a PLY file (no 'ply' magic or no end_header)")
-    nl = data.find(b"\n", end)
-    body = data[nl + 1:] if nl >= 0 else b""
-    lines = data[:end].decode("ascii", errors="replace").splitlines()
-    fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ")), "")
-    elements: list[list] = []  # [name, count, record size or None for lists]
-    try:
-        for ln in lines:
-            parts = ln.split()
-            if parts[:1] == ["element"]:
-                elements.append([parts[1], int(parts[2]), 0])
-            elif parts[:1] == ["property"] and elements:
-                size = None if parts[1] == "list" else _PLY_SIZES.get(parts[1])
-                elements[-1][2] = None if size is None or elements[-1][2] is None else elements[-1][2] + size
-    except (IndexError, ValueError):
-        raise MapFormatError(f"{name}: malformed PLY header") from None
-    if not any(e[0] == "vertex" for e in elements):
-        raise MapFormatError(f"{name}: the PLY has no vertex element")
-    if fmt == "ascii":
-        need = 0
-        for el, count, _ in elements:
-            need += count
-            if el == "vertex":
-                break
-        have = sum(1 for ln in body.splitlines() if ln.strip())
-        if have < need:
-            raise MapFormatError(f"{name}: truncated PLY ({have} records, the header announces {need})")
-        return
-    need = 0
-    for el, count, size in elements:
-        if size is None:
-            return  # variable-length records before the vertices: leave it to the reader
-        need += count * size
-        if el == "vertex":
-            break
-    if len(body) < need:
-        raise MapFormatError(f"{name}: truncated PLY (body holds {len(body)} bytes, the vertices need {need})")
 
 
 def _jsonable(obj: Any) -> Any:

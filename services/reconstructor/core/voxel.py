@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.renderer.core import PointCloud
+from shared.cloud import PointCloud
 
 from .errors import InputError
 from .kernels import AXIS_BITS as _AXIS_BITS

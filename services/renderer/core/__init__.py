@@ -1,10 +1,8 @@
 """Renderer core: anticipated views and the spatial map from a coloured point cloud (no bus here)."""
 
-from services.renderer.core.cloud import IndexedCloud, PointCloud, sample_mesh
+from services.renderer.core.cloud import IndexedCloud
 from services.renderer.core.errors import (
     BackendUnavailableError,
-    CloudFormatError,
-    EmptyCloudError,
     RendererError,
 )
 from services.renderer.core.port import MapRenderer
@@ -23,7 +21,7 @@ from services.renderer.core.splat import (
 )
 
 __all__ = [
-    "RENDERERS", "BackendUnavailableError", "CloudFormatError", "EmptyCloudError", "IndexedCloud", "MapRenderer",
-    "OccupancyGrid", "PointCloud", "RenderedViews", "RendererError", "SpatialMapConfig",
-    "SpatialMapImage", "SpatialMapper", "sample_mesh", "SplatConfig", "SplatRenderer", "TorchSplatConfig",
+    "RENDERERS", "BackendUnavailableError", "IndexedCloud", "MapRenderer",
+    "OccupancyGrid", "RenderedViews", "RendererError", "SpatialMapConfig",
+    "SpatialMapImage", "SpatialMapper", "SplatConfig", "SplatRenderer", "TorchSplatConfig",
 ]

@@ -1,21 +1,10 @@
-"""Typed errors of the renderer core."""
+"""Typed errors of the renderer core (a cloud's own errors live with it, in :mod:`shared.cloud`)."""
 
 from __future__ import annotations
 
 
 class RendererError(Exception):
     """Base of every error raised by the renderer core."""
-
-
-class EmptyCloudError(RendererError, ValueError):
-    """The cloud has no points, so there is nothing to render or map.
-
-    Also a ``ValueError``: a map with no points is bad input, so the bus answers ``bad_request``
-    (naming the map) rather than ``internal``."""
-
-
-class CloudFormatError(RendererError):
-    """A cloud's arrays have the wrong shape or dtype, or a cloud file cannot be read."""
 
 
 class BackendUnavailableError(RendererError):

@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import Field
 
 from services.renderer.core.cloud import IndexedCloud
-from services.renderer.core.errors import EmptyCloudError
+from shared.cloud import EmptyCloudError
 from shared.registry import BackendConfig
 from shared.schemas import Candidate, CandidateKind, Pose
 

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.renderer.core.cloud import PointCloud
-from services.renderer.core.cloud import sample_mesh as core_sample_mesh
+from shared.cloud import PointCloud
+from shared.cloud import sample_mesh as core_sample_mesh
 from shared.geometry import PinholeCamera, camera_pose, depth_to_points
 
 

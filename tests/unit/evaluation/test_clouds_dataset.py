@@ -9,7 +9,8 @@ import open3d as o3d
 import pytest
 
 from tests.unit.evaluation.conftest import box_scene
-from evaluation.clouds import cloud_ply_bytes, sample_scene_cloud
+from evaluation.clouds import sample_scene_cloud
+from shared.cloud import encode
 from evaluation.dataset import SetSpec, generate_set, gt_path_for, parse_floors, write_set
 from evaluation.errors import ConfigError
 from services.robot_io.core import read_episodes, read_ground_truth
@@ -41,7 +42,7 @@ def test_cloud_is_area_uniform_on_the_surface_with_labels_and_colours():
 
 def test_ply_reads_back_with_open3d_and_keeps_labels(tmp_path):
     cloud = sample_scene_cloud(box_scene(), density_per_m2=50.0, seed=1)
-    data = cloud_ply_bytes(cloud)
+    data = encode(cloud)
     path = tmp_path / "c.ply"
     path.write_bytes(data)
     pcd = o3d.io.read_point_cloud(str(path))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from evaluation.errors import ResultsFormatError
-from evaluation.metrics import MetricsError, episode_metrics, euclidean_geodesic
+from shared.vln_metrics import MetricsError, episode_metrics, euclidean_geodesic
 from evaluation.results import (
     COLUMNS, EpisodeResult, ResultsLog, csv_table, markdown_table, metrics_from_dict, summary_row, write_tables,
 )

@@ -10,7 +10,7 @@ import pytest
 
 from tests.unit.evaluation.conftest import box_scene, make_episode
 from evaluation.errors import ConfigError, SceneSwitchError
-from evaluation.metrics import episode_metrics, euclidean_geodesic
+from shared.vln_metrics import episode_metrics, euclidean_geodesic
 from evaluation.results import ResultsLog
 from evaluation.runner import EvalRunner, MapCache, MapSource, RunConfig, episode_seed, group_by_scene, map_id_for
 from services.robot_io.core import GroundTruth

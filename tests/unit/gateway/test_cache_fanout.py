@@ -14,15 +14,20 @@ from services.gateway.records import JobKind
 from services.gateway.routes.explorations import exploration_record
 from services.gateway.routes.missions import mission_record
 from services.gateway.store import GatewayStore
-from shared.schemas import MissionEvent, MissionEventKind, MissionState
+from shared.schemas import (
+    CandidateKind, Decision, MissionEvent, MissionEventKind, MissionFinished, MissionState, MissionStep, Pose,
+)
 from tests.unit.gateway.conftest import World, wait_state
 from tests.unit.gateway.test_missions import sse_events, submit
 
 
-def _event(job: str, seq: int, state=MissionState.RUNNING, **data) -> MissionEvent:
-    kind = MissionEventKind.FINISHED if state == MissionState.SUCCEEDED else MissionEventKind.STEP
-    return MissionEvent(mission_id=job, seq=seq, kind=kind, state=state, step=seq,
-                        data={"pose": {"position_m": [float(seq), 0.0, 0.0]}, **data})
+def _event(job: str, seq: int, state=MissionState.RUNNING) -> MissionEvent:
+    if state == MissionState.SUCCEEDED:
+        return MissionEvent(mission_id=job, seq=seq, kind=MissionEventKind.FINISHED, state=state, step=seq,
+                            data=MissionFinished(stop_called=True, steps=seq))
+    return MissionEvent(mission_id=job, seq=seq, kind=MissionEventKind.STEP, state=state, step=seq,
+                        data=MissionStep(pose=Pose(position_m=(float(seq), 0.0, 0.0)), candidates=[],
+                                         decision=Decision(candidate_index=0, kind=CandidateKind.WAYPOINT)))
 
 
 @pytest.fixture
@@ -120,7 +125,8 @@ def test_etag_matching():
 def test_spliced_event_json_equals_the_plain_encoding(store):
     store.create_job(JobKind.MISSION, "m1", {})
     ev = MissionEvent(mission_id="m1", seq=0, kind=MissionEventKind.STEP, state=MissionState.RUNNING, step=1,
-                      data={"decision": {"reasoning": 'say "hi" \u00e9'}, "n": [1, 2.5, None]},
+                      data=MissionStep(pose=Pose(position_m=(0.0, 0.0, 0.0)), candidates=[], decision=Decision(
+                          candidate_index=0, kind=CandidateKind.WAYPOINT, reasoning='say "hi" \u00e9')),
                       images={"panorama": b"\xff\xd8jpeg"})
     stored = store.append_event(JobKind.MISSION, ev)
     (read,) = store.events("m1")

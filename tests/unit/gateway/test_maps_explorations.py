@@ -67,7 +67,7 @@ def test_exploration_reports_progress_and_builds_a_map(world, gateway):
         assert r.status_code == 202
         xid = r.json()["id"]
         rec = wait_until(lambda: (x := client.get(f"/explorations/{xid}").json())["state"] == "succeeded" and x)
-        assert rec["progress"] == 1.0 and rec["map_id"] == "new-house" and rec["stage"] == "reconstruction"
+        assert rec["progress"] == 1.0 and rec["map_id"] == "new-house" and rec["stage"] == "done"
         assert rec["images"]["map"].startswith(f"/explorations/{xid}/events/")
         assert client.get(rec["images"]["map"]).status_code == 200
         assert "new-house" in [m["map_id"] for m in client.get("/maps").json()]

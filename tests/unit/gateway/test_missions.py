@@ -37,7 +37,7 @@ def test_mission_runs_to_the_end_and_its_record_is_derived_from_events(world, ga
     assert rec["trajectory"][0] == [0.0, 0.0, 0.0] and len(rec["trajectory"]) == 3
     assert rec["prompt_tokens"] == 810 + 820 + 830 and rec["completion_tokens"] == 180
     assert rec["cost_usd"] == pytest.approx(0.003)
-    assert set(rec["metrics"]) >= {"ne_m", "sr", "spl"}
+    assert set(rec["metrics"]) >= {"ne_m", "success", "spl"}
     assert rec["images"]["panorama"].endswith("/events/3/images/panorama.jpg")
 
 

@@ -166,7 +166,7 @@ def test_llm_timeout_falls_back_to_the_heuristic_every_step_and_the_mission_comp
     assert usage.fallbacks == out.steps and usage.reasks == 0
     assert len(srv.requests) == out.steps  # retries=0: one try per step, no re-ask after a timeout
     step_events = [kw for kind, _, kw in events.items if kind == MissionEventKind.STEP]
-    assert [e["data"]["usage"]["fallbacks"] for e in step_events] == list(range(1, out.steps + 1))
+    assert [e["data"].usage.fallbacks for e in step_events] == list(range(1, out.steps + 1))
 
 
 def test_llm_timeout_with_stop_fallback_stops_at_once(world):
@@ -192,4 +192,4 @@ def test_llm_garbage_is_reasked_once_then_falls_back_and_the_mission_completes(w
     reask = srv.requests[1]["messages"]
     assert reask[-2] == {"role": "assistant", "content": "I would go left, probably."}
     last = [kw for kind, _, kw in events.items if kind == MissionEventKind.STEP][-1]
-    assert last["data"]["usage"]["reasks"] == out.steps
+    assert last["data"].usage.reasks == out.steps

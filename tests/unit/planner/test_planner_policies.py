@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from tests.unit.planner.planner_toyworld import ToyWorld, run_episode
 
-from evaluation.metrics import episode_metrics, euclidean_geodesic
+from shared.vln_metrics import episode_metrics, euclidean_geodesic
 from services.planner.core import (
     POLICIES,
     Ablation,

@@ -20,7 +20,7 @@ from services.reconstructor.core import (
     MapNotFoundError,
     MapStore,
 )
-from services.renderer.core import PointCloud
+from shared.cloud import PointCloud
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -153,7 +153,7 @@ def test_killed_writer_never_leaves_a_broken_map(tmp_path):
         import sys, numpy as np
         sys.path.insert(0, {str(REPO)!r})
         from services.reconstructor.core import MapStore
-        from services.renderer.core import PointCloud
+        from shared.cloud import PointCloud
         store = MapStore({str(tmp_path)!r})
         rng = np.random.default_rng(0)
         n = 300_000

@@ -25,7 +25,7 @@ from services.reconstructor.core import (
     to_world,
     voxel_downsample,
 )
-from services.renderer.core import PointCloud
+from shared.cloud import PointCloud
 from shared.geometry import rot_z
 from shared.registry import UnknownBackendError
 from shared.schemas import CameraIntrinsics, Frame, Pose

@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from services.renderer.core import IndexedCloud, PointCloud, SpatialMapper
+from services.renderer.core import IndexedCloud, SpatialMapper
+from shared.cloud import PointCloud
 from services.renderer.core.spatial_map import FREE, OBSTACLE, UNKNOWN
 from shared.schemas import Candidate, CandidateKind, Pose
 

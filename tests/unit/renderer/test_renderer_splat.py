@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from services.renderer.core import RENDERERS, IndexedCloud, PointCloud, kernels
-from services.renderer.core.errors import BackendUnavailableError, EmptyCloudError
+from services.renderer.core import RENDERERS, IndexedCloud, kernels
+from services.renderer.core.errors import BackendUnavailableError
+from shared.cloud import EmptyCloudError, PointCloud
 from services.renderer.tools import scenes
 from shared.geometry import PinholeCamera, camera_pose
 from shared.schemas import CameraIntrinsics, ViewPose

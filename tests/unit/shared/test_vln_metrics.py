@@ -10,7 +10,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from evaluation.metrics import (
+from shared.vln_metrics import (
     MetricsError,
     dedupe_consecutive,
     dtw_distance,

@@ -1,0 +1,386 @@
+"""Point clouds as they cross services: the type, its errors, and the project's one PLY layout.
+
+Every service that holds a map speaks :class:`PointCloud`: the reconstructor builds and stores it, the
+renderer draws it, the gateway streams it, the evaluation uploads curated ones. Files use ONE layout
+(:func:`encode` / :func:`decode`): binary little-endian ``x y z`` float32, ``red green blue`` uchar and,
+when labelled, ``label`` int32, with the label names in a ``comment label_names {json}`` header line, so
+labels and their names travel inside the file (no side files). Foreign clouds (ASCII or double PLY,
+PCD) are read through open3d by :func:`read_cloud`, which checks a PLY's body against its header first
+(open3d reads what it can of a truncated file, warns and returns garbage) and drops non-finite points.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+class CloudError(Exception):
+    """Base of every error about a point cloud or a cloud file."""
+
+
+class CloudFormatError(CloudError, ValueError):
+    """A cloud's arrays have the wrong shape or dtype, or a cloud file cannot be read.
+
+    Also a ``ValueError``: a malformed cloud is the sender's bad input."""
+
+
+class EmptyCloudError(CloudError, ValueError):
+    """The cloud has no points, so there is nothing to render, map or store.
+
+    Also a ``ValueError``: a map with no points is bad input, so the bus answers ``bad_request``
+    (naming the map) rather than ``internal``."""
+
+
+@dataclass
+class PointCloud:
+    """Points in world metres (z up) with colours and optional semantic labels.
+
+    ``xyz`` float32 (N, 3); ``rgb`` uint8 (N, 3); ``labels`` int32 (N,) or None (-1 = unknown);
+    ``label_names`` maps label ids to class names (room floors are named like ``"kitchen floor"``).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    labels: np.ndarray | None = None
+    label_names: dict[int, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float32)
+        if self.xyz.ndim != 2 or self.xyz.shape[1] != 3:
+            raise CloudFormatError(f"xyz must be (N, 3), got {self.xyz.shape}")
+        rgb = np.asarray(self.rgb)
+        if rgb.dtype != np.uint8:
+            # Colours in [0, 1] (open3d) are scaled; anything else must already be 0-255.
+            rgb = np.clip(rgb * 255.0 if rgb.size and rgb.max() <= 1.0 else rgb, 0, 255)
+            rgb = np.rint(rgb).astype(np.uint8)
+        self.rgb = np.ascontiguousarray(rgb)
+        if self.rgb.shape != self.xyz.shape:
+            raise CloudFormatError(f"rgb shape {self.rgb.shape} != xyz shape {self.xyz.shape}")
+        if self.labels is not None:
+            self.labels = np.ascontiguousarray(self.labels, dtype=np.int32)
+            if self.labels.shape != (len(self.xyz),):
+                raise CloudFormatError(f"labels shape {self.labels.shape} != ({len(self.xyz)},)")
+        if not np.isfinite(self.xyz).all():
+            raise CloudFormatError("xyz contains non-finite values")
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    @property
+    def has_labels(self) -> bool:
+        return self.labels is not None
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        if len(self) == 0:
+            raise EmptyCloudError("an empty cloud has no bounds")
+        return self.xyz.min(axis=0), self.xyz.max(axis=0)
+
+    def subset(self, index: np.ndarray) -> PointCloud:
+        labels = None if self.labels is None else self.labels[index]
+        return PointCloud(self.xyz[index], self.rgb[index], labels, dict(self.label_names))
+
+    @classmethod
+    def concatenate(cls, clouds: Sequence[PointCloud]) -> PointCloud:
+        """Merge clouds; labels survive only if every part has them."""
+        if not clouds:
+            raise EmptyCloudError("nothing to concatenate")
+        labelled = all(c.labels is not None for c in clouds)
+        names: dict[int, str] = {}
+        for c in clouds:
+            names.update(c.label_names)
+        return cls(
+            np.concatenate([c.xyz for c in clouds]),
+            np.concatenate([c.rgb for c in clouds]),
+            np.concatenate([c.labels for c in clouds]) if labelled else None,
+            names,
+        )
+
+    @classmethod
+    def from_chunks(cls, chunks: Iterable, label_names: dict[int, str] | None = None) -> PointCloud:
+        """Assemble a cloud from ``shared.schemas.MapChunk`` messages (any order)."""
+        parts = sorted(chunks, key=lambda c: c.index)
+        if not parts:
+            raise EmptyCloudError("no chunks")
+        if not any(len(c.xyz_m) for c in parts):
+            first = parts[0]
+            raise EmptyCloudError(f"map {first.map_id!r} version {first.version} has no points")
+        labelled = all(c.labels is not None for c in parts)
+        return cls(
+            np.concatenate([c.xyz_m for c in parts]),
+            np.concatenate([c.rgb for c in parts]),
+            np.concatenate([c.labels for c in parts]) if labelled else None,
+            dict(label_names or {}),
+        )
+
+    # --- files -------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        """Write the cloud in the project's PLY layout (labels and their names inside the file)."""
+        path = Path(path)
+        try:
+            with open(path, "wb") as fh:
+                fh.write(header(len(self), self.labels is not None, self.label_names))
+                fh.write(records(self.xyz, self.rgb, self.labels))
+        except OSError as exc:
+            raise CloudFormatError(f"could not write {path}: {exc}") from exc
+
+    @classmethod
+    def load(cls, path: str | Path) -> PointCloud:
+        """Read a cloud file: our PLY layout with its labels, or any PLY/PCD open3d reads."""
+        return read_cloud(path)
+
+
+def sample_mesh(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.ndarray,
+                triangle_labels: np.ndarray | None = None, *, n_points: int, seed: int = 0, texture=None,
+                label_names: dict[int, str] | None = None) -> PointCloud:
+    """``n_points`` samples spread uniformly by area over a triangle mesh, with interpolated colours
+    (or the texel under the sample) and their triangle's label - a cloud with no pose, scale or depth
+    error: the paper's "human-curated" cloud, and the ground truth of renderer tests.
+
+    Args:
+        vertices: (V, 3) positions; triangles: (T, 3) vertex indices; vertex_colors: (V, 3) in [0, 1].
+        triangle_labels: (T,) label per triangle (-1: unknown); None: the cloud has no labels.
+        texture: optional ``services.robot_io.core.scene.Texture`` (per-triangle material and UVs).
+    """
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
+        raise CloudFormatError(f"need (V, 3) vertices and (T, 3) triangles, got {v.shape} and {t.shape}")
+    if n_points < 1:
+        raise CloudFormatError("n_points must be positive")
+    corners = v[t]  # (T, 3, 3)
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    total = float(area.sum())
+    if total <= 0:
+        raise CloudFormatError("the mesh has no surface area")
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(t), size=n_points, p=area / total)
+    # Uniform barycentrics by the square-root trick (Osada et al. 2002).
+    r1, r2 = np.sqrt(rng.random(n_points)), rng.random(n_points)
+    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+    xyz = np.einsum("nk,nkd->nd", bary, corners[tri])
+    rgb = np.einsum("nk,nkd->nd", bary, np.asarray(vertex_colors, np.float64)[t[tri]])
+    if texture is not None:
+        mids = np.asarray(texture.material_ids)[tri]
+        for m in np.unique(mids[mids >= 0]):
+            sel = np.flatnonzero(mids == m)
+            img = texture.images[int(m)]
+            uv = np.einsum("nk,nkd->nd", bary[sel], np.asarray(texture.triangle_uvs, np.float64)[tri[sel]])
+            h, w = img.shape[:2]
+            # Texture v runs upwards, image rows downwards.
+            px = np.clip((uv[:, 0] % 1.0) * w, 0, w - 1).astype(np.int64)
+            py = np.clip((1.0 - uv[:, 1] % 1.0) * h, 0, h - 1).astype(np.int64)
+            rgb[sel] = img[py, px, :3] / 255.0
+    labels = None if triangle_labels is None else np.asarray(triangle_labels, np.int32)[tri]
+    return PointCloud(xyz.astype(np.float32), np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8), labels,
+                      dict(label_names or {}))
+
+
+
+
+# --- the PLY layout ------------------------------------------------------------------------------
+
+_BASE = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+_LABEL_COMMENT = "label_names "
+_PLY_TYPES = {"f4": "float", "u1": "uchar", "i4": "int"}
+
+
+def vertex_dtype(with_labels: bool) -> np.dtype:
+    return np.dtype(_BASE + ([("label", "<i4")] if with_labels else []))
+
+
+def _our_properties(with_labels: bool) -> list[list[str]]:
+    dt = vertex_dtype(with_labels)
+    return [[_PLY_TYPES[dt.fields[n][0].str[1:]], n] for n in dt.names]
+
+
+def header(point_count: int, with_labels: bool, label_names: dict[int, str] | None = None,
+           comment: str = "") -> bytes:
+    """The PLY header for ``point_count`` records (the gateway streams a map as header + records)."""
+    lines = ["ply", "format binary_little_endian 1.0"]
+    if comment:
+        lines.append(f"comment {comment}")
+    if with_labels and label_names:
+        names = {str(k): v for k, v in sorted(label_names.items())}
+        lines.append("comment " + _LABEL_COMMENT + json.dumps(names, separators=(",", ":")))
+    lines += [f"element vertex {point_count}"] + [f"property {t} {n}" for t, n in _our_properties(with_labels)]
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def records(xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
+            with_labels: bool | None = None) -> bytes:
+    """Packed vertex records (one vectorised copy); ``with_labels`` without labels writes -1."""
+    with_labels = labels is not None if with_labels is None else with_labels
+    out = np.empty(len(xyz), vertex_dtype(with_labels))
+    out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    out["red"], out["green"], out["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    if with_labels:
+        out["label"] = labels if labels is not None else -1
+    return out.tobytes()
+
+
+def encode(cloud: PointCloud, with_labels: bool = True, comment: str = "") -> bytes:
+    """The whole cloud as a PLY file in our layout (``with_labels=False`` drops the labels)."""
+    labels = cloud.labels if with_labels else None
+    names = cloud.label_names if labels is not None else None
+    return header(len(cloud), labels is not None, names, comment) + records(cloud.xyz, cloud.rgb, labels)
+
+
+def decode(data: bytes) -> PointCloud | None:
+    """The cloud in a PLY of our layout; None for any other PLY (left to :func:`read_cloud`).
+
+    Raises :class:`CloudFormatError` when the file is ours but its body is cut short."""
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply") or end < 0:
+        return None
+    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    if "format binary_little_endian 1.0" not in lines:
+        return None
+    props = [ln.split()[1:] for ln in lines if ln.startswith("property ")]
+    count = next((int(ln.split()[2]) for ln in lines if ln.startswith("element vertex ")), None)
+    elements = [ln for ln in lines if ln.startswith("element ")]
+    with_labels = props == _our_properties(True)
+    if count is None or len(elements) != 1 or not (with_labels or props == _our_properties(False)):
+        return None
+    dtype = vertex_dtype(with_labels)
+    body = memoryview(data)[end + len(b"end_header\n"):]
+    if len(body) < count * dtype.itemsize:
+        raise CloudFormatError(f"PLY body holds {len(body)} bytes, {count} vertices need {count * dtype.itemsize}")
+    rec = np.frombuffer(body, dtype, count)
+    names: dict[int, str] = {}
+    for ln in lines:
+        if ln.startswith("comment " + _LABEL_COMMENT):
+            try:
+                raw = json.loads(ln[len("comment " + _LABEL_COMMENT):])
+                names = {int(k): str(v) for k, v in raw.items()}
+            except (ValueError, AttributeError) as exc:
+                raise CloudFormatError(f"unreadable label names in the PLY header: {exc}") from None
+    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+    rgb = np.stack([rec["red"], rec["green"], rec["blue"]], axis=1)
+    labels = np.ascontiguousarray(rec["label"]) if with_labels else None
+    finite = np.isfinite(xyz).all(axis=1)
+    if not finite.all():
+        if not finite.any():
+            raise CloudFormatError("every point is non-finite")
+        log.warning("dropping %d non-finite points", int((~finite).sum()))
+        xyz, rgb, labels = xyz[finite], rgb[finite], None if labels is None else labels[finite]
+    return PointCloud(xyz, rgb, labels, names)
+
+
+def read_cloud(path: str | Path) -> PointCloud:
+    """A cloud file as a :class:`PointCloud`: our layout (labels kept), or any PLY/PCD open3d reads.
+
+    Every way a file can be unreadable (missing, truncated, malformed header, no points, every point
+    non-finite) is a :class:`CloudFormatError` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CloudFormatError(f"no such cloud file: {path}")
+    try:
+        if path.suffix.lower() == ".ply":
+            data = path.read_bytes()
+            ours = decode(data)
+            if ours is not None:
+                return ours
+            _check_ply_body(data)
+        return _read_foreign(path)
+    except CloudFormatError as exc:
+        raise CloudFormatError(f"{path.name}: {exc}") from None
+
+
+def read_cloud_bytes(data: bytes, filename: str) -> PointCloud:
+    """:func:`read_cloud` for an upload's bytes; ``filename``'s suffix (.ply or .pcd) names the format."""
+    suffix = Path(filename).suffix.lower()
+    if suffix not in (".ply", ".pcd"):
+        raise CloudFormatError(f"{filename!r}: only .ply and .pcd clouds can be read")
+    if suffix == ".ply":
+        try:
+            ours = decode(bytes(data))
+        except CloudFormatError as exc:
+            raise CloudFormatError(f"{filename}: {exc}") from None
+        if ours is not None:
+            return ours
+    # open3d reads only from a path.
+    with tempfile.TemporaryDirectory(prefix="cloud-") as tmp:
+        p = Path(tmp) / f"upload{suffix}"
+        p.write_bytes(bytes(data))
+        try:
+            return read_cloud(p)
+        except CloudFormatError as exc:
+            raise CloudFormatError(str(exc).replace(p.name, filename, 1)) from None
+
+
+def _read_foreign(path: Path) -> PointCloud:
+    import open3d as o3d
+
+    pcd = o3d.io.read_point_cloud(str(path))
+    xyz = np.asarray(pcd.points)
+    if len(xyz) == 0:
+        raise CloudFormatError("no points could be read (not a PLY/PCD point cloud?)")
+    # Rows must stay finite as float32 (the cloud's storage type): huge doubles are garbage too.
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.isfinite(np.asarray(xyz, np.float32)).all(axis=1)
+    if not finite.any():
+        raise CloudFormatError("every point is non-finite")
+    rgb = np.asarray(pcd.colors) if pcd.has_colors() else np.full((len(xyz), 3), 0.5)
+    if not finite.all():
+        log.warning("%s: dropping %d non-finite points", path.name, int((~finite).sum()))
+    return PointCloud(xyz[finite], rgb[finite])
+
+
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _check_ply_body(data: bytes) -> None:
+    """Raise :class:`CloudFormatError` when a PLY's header is unreadable or its vertices are cut short.
+
+    Binary files: the bytes after the header must hold every element up to the vertices (fixed-size
+    records only; a list property before them stops the check). ASCII: one line per record."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise CloudFormatError("not a PLY file (no 'ply' magic or no end_header)")
+    nl = data.find(b"\n", end)
+    body = data[nl + 1:] if nl >= 0 else b""
+    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ")), "")
+    elements: list[list] = []  # [name, count, record size or None for lists]
+    try:
+        for ln in lines:
+            parts = ln.split()
+            if parts[:1] == ["element"]:
+                elements.append([parts[1], int(parts[2]), 0])
+            elif parts[:1] == ["property"] and elements:
+                size = None if parts[1] == "list" else _PLY_SIZES.get(parts[1])
+                elements[-1][2] = None if size is None or elements[-1][2] is None else elements[-1][2] + size
+    except (IndexError, ValueError):
+        raise CloudFormatError("malformed PLY header") from None
+    if not any(e[0] == "vertex" for e in elements):
+        raise CloudFormatError("the PLY has no vertex element")
+    if fmt == "ascii":
+        need = 0
+        for el, count, _ in elements:
+            need += count
+            if el == "vertex":
+                break
+        have = sum(1 for ln in body.splitlines() if ln.strip())
+        if have < need:
+            raise CloudFormatError(f"truncated PLY ({have} records, the header announces {need})")
+        return
+    need = 0
+    for el, count, size in elements:
+        if size is None:
+            return  # variable-length records before the vertices: leave it to the reader
+        need += count * size
+        if el == "vertex":
+            break
+    if len(body) < need:
+        raise CloudFormatError(f"truncated PLY (body holds {len(body)} bytes, the vertices need {need})")
