@@ -116,7 +116,9 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[tuple[GatewayClient, Sc
 
         log.info("starting the system (logs in %s)", out / "system")
         t0 = time.monotonic()
-        launcher = Launcher(out / "system")
+        # robot-io loads scene files only from its configured directories (issue 15).
+        env = {"ANT_SCENE_DIRS": json.dumps([str(a.scenes_dir.resolve())])} if a.scenes_dir else None
+        launcher = Launcher(out / "system", extra_env=env)
         stack.callback(launcher.stop)
         launcher.start(a.start_timeout_s)
         log.info("system up in %.1f s, gateway %s", time.monotonic() - t0, launcher.gateway_url)

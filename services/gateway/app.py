@@ -19,7 +19,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
 import shared
-from services.gateway import errors
+from services.gateway import deps, errors
 from services.gateway.cache import RecordCache
 from services.gateway.events import EventHub, EventIngest
 from services.gateway.limits import BodyLimit
@@ -96,7 +96,9 @@ def create_app(settings: GatewaySettings | None = None,
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
                            allow_headers=["*"], expose_headers=["Location"])
     errors.install(app)
-    for module in (health, status, metrics, missions, explorations, maps, robot, dashboard):
+    for module in (health, dashboard):  # liveness probes and the page itself stay open
         app.include_router(module.router)
+    for module in (status, metrics, missions, explorations, maps, robot):
+        app.include_router(module.router, dependencies=[deps.ReadAuthorized])
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     return app

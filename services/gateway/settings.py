@@ -14,6 +14,8 @@ class GatewaySettings(ServiceSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     api_token: str | None = Field(None, description="bearer token required by mutating routes (None: open)")
+    read_token: str | None = Field(None, description="bearer token required to read missions, images, maps and "
+                                                     "status (None: reads open); the API token reads too")
     cors_origins: list[str] = Field(default_factory=list)
     status_timeout_s: float = Field(1.0, gt=0, le=30)
 

@@ -11,6 +11,7 @@ import contextlib
 import logging
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -18,6 +19,7 @@ import numpy as np
 from pydantic import Field
 
 from services.robot_io.core import ROBOTS, Robot, SceneError, SceneNotFoundError
+from services.robot_io.core.scene import is_generated_spec
 from shared.bus.typed import NotFound
 from shared import keys
 from shared.runner import Node, Service, ServiceSettings
@@ -33,6 +35,9 @@ class RobotIoSettings(ServiceSettings):
     # Field names are unique across services so that one environment can configure them all.
     robot_backend: str = Field("sim", description="robot backend (registered in services.robot_io.core.ROBOTS)")
     robot_config: dict[str, Any] = Field(default_factory=dict, description="the backend's typed config")
+    scene_dirs: list[str] = Field(default_factory=list, description=(
+        "directories scene files may be loaded from over the bus (besides the backend's scenes_dir); "
+        "a path elsewhere is refused without looking at it"))
 
 
 def _config_fields(backend: str) -> set[str]:
@@ -192,10 +197,26 @@ class RobotIoService(Service):
     def scene(self, _: Ping) -> SceneSummary:
         return scene_summary(self.robot.scene_info())
 
+    def _check_scene_path(self, spec: str) -> None:
+        """A scene file must lie inside a configured scene directory: the bus must not become a way to
+        probe which paths exist on this host (the answer to a path elsewhere never depends on it)."""
+        if is_generated_spec(spec):
+            return
+        s: RobotIoSettings = self.settings  # type: ignore[assignment]
+        dirs = [*s.scene_dirs, *([s.robot_config["scenes_dir"]] if s.robot_config.get("scenes_dir") else [])]
+        if not dirs:
+            raise ValueError("no scene directory is configured: only generated:<seed> scenes can be loaded")
+        p = Path(spec)
+        roots = [Path(d).resolve() for d in dirs]
+        candidates = [p.resolve()] if p.is_absolute() else [(r / p).resolve() for r in roots]
+        if not any(c.is_relative_to(r) for c in candidates for r in roots):
+            raise ValueError(f"scene files are loaded only from the configured scene directories ({len(roots)})")
+
     def load_scene(self, req: LoadSceneRequest) -> SceneSummary:
         s: RobotIoSettings = self.settings  # type: ignore[assignment]
         if "scene" not in _config_fields(s.robot_backend):
             raise ValueError(f"the {s.robot_backend!r} robot backend cannot load scenes")
+        self._check_scene_path(req.scene)
         with self._lock:
             if self._recordings:
                 raise ValueError("cannot switch scenes while a recording is on")

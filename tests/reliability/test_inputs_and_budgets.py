@@ -120,3 +120,13 @@ def test_robot_state_health_shows_in_status(live, live_gateway):
             svc.robot._pos = saved
     assert io["healthy"] is False and "not finite" in io["problem"]
     assert body["all_healthy"] is False
+
+
+def test_scene_paths_outside_the_configured_directories_reveal_nothing(live, live_gateway, tmp_path):
+    existing, missing = "/etc/hostname", "/etc/no-such-file-here.glb"
+    with live_gateway() as client:
+        answers = [client.post("/robot/scene", json={"scene": p}) for p in (existing, missing, "../../etc/hostname")]
+    assert [a.status_code for a in answers] == [422, 422, 422], [a.text for a in answers]
+    details = {a.json()["detail"].replace(p, "<path>") for a, p in zip(answers, (existing, missing, "../../etc/hostname"))}
+    assert len(details) == 1, details  # the same answer whether the file exists or not
+    assert "only generated" in details.pop()  # live robot-io has no scene directory configured

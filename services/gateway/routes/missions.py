@@ -17,12 +17,12 @@ from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.events import event_json, parse_last_event_id, sse_stream
 from services.gateway.reaper import find_owner
 from services.gateway.records import (
-    EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary,
+    EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary, outcome_of,
 )
 from services.gateway.routes.robot import refuse_while_switching
 from services.gateway.store import JobRow
 from shared import keys
-from shared.bus.typed import RemoteError
+from shared.bus.typed import NoReplyError, RemoteError
 from shared.schemas import (
     CancelRequest, ErrorCode, GeodesicReply, GeodesicRequest, Instruction, MapInfo, MapRequest, MissionAccepted,
     MissionOptions, MissionRequest, MissionState,
@@ -61,12 +61,14 @@ def mission_record(row: JobRow) -> MissionRecord:
         url=url, events_url=events_url, instruction=req.get("instruction", ""), map_id=req.get("map_id", ""),
         options=req.get("options", {}), pose=s.get("pose"), trajectory=s.get("trajectory", []),
         candidates=s.get("candidates", []), decisions=s.get("decisions", []), metrics=s.get("metrics"),
+        outcome=outcome_of(row.state, s.get("outcome")), success=s.get("success"),
         prompt_tokens=s.get("prompt_tokens", 0), completion_tokens=s.get("completion_tokens", 0),
         cost_usd=s.get("cost_usd", 0.0))
 
 
 def _summary(row: JobRow) -> MissionSummary:
-    return MissionSummary(id=row.id, state=row.state, step=row.step, instruction=row.request.get("instruction", ""),
+    return MissionSummary(id=row.id, state=row.state, outcome=outcome_of(row.state, row.summary.get("outcome")),
+                          success=row.summary.get("success"), step=row.step, instruction=row.request.get("instruction", ""),
                           map_id=row.request.get("map_id", ""), created_s=row.created_s, updated_s=row.updated_s,
                           url=f"/missions/{row.id}")
 
@@ -115,6 +117,11 @@ def check_poses(bus, settings, options: MissionOptions) -> None:
         reply = bus.request(keys.IO_GEODESIC.format(robot=settings.robot),
                             GeodesicRequest(start_m=start or goal, goal_m=goal or start), GeodesicReply,
                             timeout_s=settings.request_timeout_s)
+    except NoReplyError:
+        # No robot-io serves the scene: nothing to check against here; the mission itself then fails
+        # with that reason when it starts.
+        log.warning("no robot-io answered: start_pose/goal_m not checked against the scene")
+        return
     except RemoteError as exc:
         raise GatewayError(remote_detail(exc, "cannot check start_pose/goal_m against the scene"),
                            remote_status(exc)) from None

@@ -99,7 +99,18 @@ function renderHead() {
   badge.className = "badge " + record.state;
   $("#m-step").textContent = `step ${record.step}`;
   $("#cancel").hidden = TERMINAL.has(record.state);
+  // How it ended is not whether it was right: success exists only when the mission had a goal.
+  const outcome = $("#m-outcome");
+  outcome.hidden = !record.outcome;
+  if (record.outcome) {
+    const goal = record.success === true ? "goal reached" : record.success === false ? "goal missed" : "no goal given";
+    outcome.textContent = `${OUTCOMES[record.outcome] || record.outcome} · ${goal}`;
+    outcome.className = "badge outcome " + (record.success === true ? "ok" : record.success === false ? "miss" : "");
+  }
 }
+
+const OUTCOMES = { policy_stopped: "policy stopped", no_way_to_move: "no way to move", max_steps: "step budget used up",
+                   cancelled: "cancelled", failed: "failed" };
 
 function renderImages(images) {
   setImage($("#panorama"), images.panorama);
@@ -209,6 +220,11 @@ function onEvent(ev) {
   }
   if (d.metrics) record.metrics = d.metrics;
   Object.assign(record.images, ev.images || {});
+  if (TERMINAL.has(ev.state)) {
+    // The outcome and success are the gateway's reading of the end: take them from the record.
+    api(`/missions/${record.id}`).then((r) => { record.outcome = r.outcome; record.success = r.success; renderHead(); })
+      .catch(() => {});
+  }
   renderHead();
   renderImages(record.images);
   if (d.candidates) {
