@@ -96,7 +96,8 @@ def client_settings() -> ZenohSettings:
 
     env = ServiceSettings().zenoh
     connect = env.connect or ["tcp/127.0.0.1:7447"]
-    return ZenohSettings(mode="client", connect=connect, config_file=env.config_file)
+    # The service's own credentials: an authenticated router refuses an anonymous session.
+    return env.model_copy(update={"mode": "client", "connect": connect})
 
 
 def main(argv: list[str] | None = None) -> int:
