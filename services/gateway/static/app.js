@@ -18,6 +18,12 @@ let record = null;       // its record, kept up to date from events
 
 function token() { return localStorage.getItem("ant-token") || ""; }
 
+// 3 -> "3 pts", 48210 -> "48.2k pts", 2.1e6 -> "2.1M pts" (a 3-point map is not "0.0k").
+function points(n) {
+  if (n < 1000) return `${n} pts`;
+  return n < 1e6 ? `${(n / 1000).toFixed(1)}k pts` : `${(n / 1e6).toFixed(1)}M pts`;
+}
+
 async function api(path, opts = {}) {
   const headers = Object.assign({ "Accept": "application/json" }, opts.headers || {});
   if (opts.body) headers["Content-Type"] = "application/json";
@@ -60,7 +66,7 @@ async function refreshMaps() {
     list.replaceChildren(...(maps.length ? maps.map((m) => {
       const li = el("li");
       li.append(el("span", "text", m.map_id),
-        el("span", "meta", `${(m.point_count / 1000).toFixed(1)}k pts · v${m.version}`));
+        el("span", "meta", `${points(m.point_count)} · v${m.version}`));
       li.title = `source ${m.source || "?"}; click to download the cloud`;
       li.onclick = () => { window.location.href = `/maps/${encodeURIComponent(m.map_id)}/cloud.ply`; };
       return li;
@@ -291,7 +297,8 @@ function showExploration(rec) {
   box.className = "job " + rec.state;
   $("#explore-progress").value = rec.progress == null ? 0 : rec.progress;
   const pct = rec.progress == null ? "" : ` ${Math.round(100 * rec.progress)}%`;
-  const what = rec.error ? `: ${rec.error}` : rec.stage ? ` · ${rec.stage}` : "";
+  // A finished exploration shows how it ended, not the last stage it was in ("reconstructing 10 regions").
+  const what = rec.error ? `: ${rec.error}` : TERMINAL.has(rec.state) ? "" : rec.stage ? ` · ${rec.stage}` : "";
   $("#explore-status").textContent = `${rec.state}${pct}${what}`;
   $("#explore-status").dataset.state = rec.state;
 }
