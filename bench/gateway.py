@@ -33,7 +33,7 @@ import httpx
 
 from bench.common import percentiles_ms, table
 from deploy.launcher import free_port
-from services.gateway.testing import ScriptedPlanner, ScriptedReconstructor
+from tests.doubles.scripted_services import ScriptedPlanner, ScriptedReconstructor
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bench.common import percentiles_ms, table
 from deploy.launcher import Launcher
-from services.gateway.testing import ScriptedReconstructor
+from tests.doubles.scripted_services import ScriptedReconstructor
 from shared import keys
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus

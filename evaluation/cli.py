@@ -19,7 +19,7 @@ from pathlib import Path
 from evaluation.errors import ConfigError, EvaluationError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, ResultsLog, markdown_table, summary_row, write_tables
-from evaluation.runner import RESULTS_FILE, EvalRunner, MapCache, MapSource, RunConfig, SceneLoader
+from evaluation.runner import RESULTS_FILE, EvalRunner, SceneMapIndex, MapSource, RunConfig, SceneLoader
 
 log = logging.getLogger("evaluation")
 
@@ -131,7 +131,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     cfg = run_config(a)
     t0 = time.monotonic()
     with system(a, a.out) as (gateway, scenes):
-        cache = MapCache(a.maps or a.out / "maps.json")
+        cache = SceneMapIndex(a.maps or a.out / "maps.json")
         label = f"{cfg.policy}/{cfg.map_source.value}"
         report = EvalRunner(gateway, scenes, cfg, a.out, map_cache=cache, label=label,
                             progress=not a.no_progress).run(episodes, gt)
@@ -152,7 +152,7 @@ def cmd_preset(a: argparse.Namespace) -> int:
     base = run_config(a)
     t0 = time.monotonic()
     with system(a, a.out) as (gateway, scenes):
-        cache = MapCache(a.maps or a.out / "maps.json")
+        cache = SceneMapIndex(a.maps or a.out / "maps.json")
         for name in names:
             rep = run_preset(name, episodes, gt, base, a.out, gateway, scenes, map_cache=cache,
                              progress=not a.no_progress)

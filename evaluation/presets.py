@@ -18,7 +18,7 @@ from typing import Any
 from evaluation.errors import ConfigError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, write_tables
-from evaluation.runner import EvalRunner, MapCache, RunConfig, RunReport, SceneLoader
+from evaluation.runner import EvalRunner, SceneMapIndex, RunConfig, RunReport, SceneLoader
 from services.robot_io.core import Episode, GroundTruth
 
 log = logging.getLogger(__name__)
@@ -86,14 +86,14 @@ class PresetReport:
 
 def run_preset(name: str, episodes: Sequence[Episode], gt: dict[str, GroundTruth] | None, base: RunConfig,
                out_dir: Path | str, gateway: GatewayClient, scenes: SceneLoader | None, *,
-               map_cache: MapCache | None = None, progress: bool = True) -> PresetReport:
+               map_cache: SceneMapIndex | None = None, progress: bool = True) -> PresetReport:
     """Run every variant of preset ``name`` into ``out_dir/<name>/<variant>`` and write its table and plot."""
     table = presets()
     if name not in table:
         raise ConfigError(f"unknown preset {name!r}; known: {', '.join(table)}")
     preset = table[name]
     root = Path(out_dir) / name
-    cache = map_cache or MapCache(Path(out_dir) / "maps.json")
+    cache = map_cache or SceneMapIndex(Path(out_dir) / "maps.json")
     reports = []
     for v in preset.variants:
         cfg = RunConfig.model_validate({**base.model_dump(), **v.overrides})  # overrides validated too

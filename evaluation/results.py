@@ -217,8 +217,3 @@ def write_tables(rows: Sequence[dict[str, Any]], stem: Path | str, columns: Sequ
 def skipped_report(results: Iterable[EpisodeResult]) -> list[tuple[str, str, str]]:
     """(episode id, scene, reason) of every skipped or errored episode."""
     return [(r.episode_id, r.scene_id, f"{r.status}: {r.reason}") for r in results if r.status != "done"]
-
-
-def load_json(path: Path | str) -> Any:
-    with open(path, encoding="utf-8") as f:
-        return json.load(f)

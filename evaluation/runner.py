@@ -114,8 +114,9 @@ class SceneLoader(Protocol):
     def load_scene(self, scene: str) -> SceneSummary: ...
 
 
-class MapCache:
-    """scene + map source -> map id, persisted as JSON (shared by the runs of a preset)."""
+class SceneMapIndex:
+    """Which stored map serves a scene and map source (scene + source -> map id), persisted as JSON and
+    shared by the runs of a preset, so a house is explored or uploaded once."""
 
     def __init__(self, path: Path | str):
         self.path = Path(path)
@@ -125,7 +126,7 @@ class MapCache:
             try:
                 self._data = dict(json.loads(self.path.read_text(encoding="utf-8")))
             except ValueError as exc:
-                raise ConfigError(f"{self.path}: not a map cache ({exc})") from None
+                raise ConfigError(f"{self.path}: not a scene map index ({exc})") from None
 
     @staticmethod
     def _key(scene_id: str, source: MapSource | str) -> str:
@@ -174,12 +175,12 @@ class EvalRunner:
     """
 
     def __init__(self, gateway: GatewayClient, scenes: SceneLoader | None, config: RunConfig, out_dir: Path | str,
-                 *, map_cache: MapCache | None = None, label: str = "all", progress: bool = True,
+                 *, map_cache: SceneMapIndex | None = None, label: str = "all", progress: bool = True,
                  scene_builder: Callable[[str, Path | None], Any] | None = None):
         self.gateway, self.scenes, self.config = gateway, scenes, config
         self.out_dir = Path(out_dir)
         self.log = ResultsLog(self.out_dir / RESULTS_FILE)
-        self.maps = map_cache or MapCache(self.out_dir / "maps.json")
+        self.maps = map_cache or SceneMapIndex(self.out_dir / "maps.json")
         self.label, self.progress = label, progress
         self.scene_builder = scene_builder
 

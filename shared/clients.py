@@ -10,15 +10,17 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
 from shared import keys
 from shared.bus.typed import TypedBus
+from shared.jobs import JobFailedError, await_job
 from shared.schemas import (
-    BuildMapRequest, CameraIntrinsics, Candidate, CandidateSet, Frame, GeodesicReply, GeodesicRequest,
-    LoadSceneRequest,
+    BuildMapRequest, CameraIntrinsics, Candidate, CandidateSet, Frame, GeodesicReply, GeodesicRequest, JobEvent,
+    LoadSceneRequest, MapBuildFinished,
     MapChunk, MapChunkRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
     Panorama, Ping, Pose, PoseReply, RecordReply, RecordRequest, RenderRequest, RenderResult, ResetRequest,
     SceneSummary, SpatialMapRequest, SpatialMapResult, TurnRequest, ViewPose,
@@ -31,9 +33,15 @@ class RobotClient:
     """The robot port over the bus (what robot-io serves). Satisfies the mapper's robot protocols."""
 
     def __init__(self, bus: TypedBus, robot: str, *, timeout_s: float = 30.0,
-                 observe_camera: CameraIntrinsics | None = None):
+                 observe_camera: CameraIntrinsics | None = None, recording_px: int | None = 128,
+                 recording_prefix: str | None = None):
         self.bus, self.robot, self.timeout_s = bus, robot, timeout_s
         self.observe_camera = observe_camera
+        # Tours recorded through this client: frame width, and names "<prefix>-r<k>" (k counts up), so a
+        # job's recordings can be told apart on the frames key.
+        self.recording_px = recording_px
+        self.recording_prefix = recording_prefix
+        self._recordings = itertools.count()
         self._pose: Pose | None = None
         self.last_recording: RecordReply | None = None
 
@@ -92,13 +100,16 @@ class RobotClient:
         return float("inf") if d is None else d
 
     @contextlib.contextmanager
-    def recording(self, sink=None, rate_hz: float = 5.0, *, recording: str | None = None,
-                  max_width_px: int | None = 128) -> Iterator[str]:
+    def recording(self, sink=None, rate_hz: float = 5.0, *, recording: str | None = None) -> Iterator[str]:
         """Record a tour on robot-io; frames go to whoever subscribes to ``IO_FRAMES`` (the
         reconstructor), not to ``sink``. ``last_recording`` holds the frame count afterwards."""
-        name = recording or f"rec-{os.getpid()}-{next(_recording_ids)}"
+        if recording is None:
+            k = next(self._recordings)
+            recording = (f"{self.recording_prefix}-r{k}" if self.recording_prefix
+                         else f"rec-{os.getpid()}-{next(_recording_ids)}")
+        name = recording
         self.bus.request(self._k(keys.IO_RECORD),
-                         RecordRequest(recording=name, start=True, rate_hz=rate_hz, max_width_px=max_width_px),
+                         RecordRequest(recording=name, start=True, rate_hz=rate_hz, max_width_px=self.recording_px),
                          RecordReply, timeout_s=self.timeout_s)
         try:
             yield name
@@ -120,8 +131,8 @@ class MapperClient:
 class MapClient:
     """The map store (served by the reconstructor)."""
 
-    def __init__(self, bus: TypedBus, *, timeout_s: float = 30.0):
-        self.bus, self.timeout_s = bus, timeout_s
+    def __init__(self, bus: TypedBus, *, timeout_s: float = 30.0, build_stall_s: float = 300.0):
+        self.bus, self.timeout_s, self.build_stall_s = bus, timeout_s, build_stall_s
 
     def list(self) -> list[MapInfo]:
         return self.bus.request(keys.MAP_LIST.format(), Ping(), MapListReply, timeout_s=self.timeout_s).maps
@@ -142,8 +153,18 @@ class MapClient:
             index += 1
             yield chunk
 
-    def build(self, req: BuildMapRequest, timeout_s: float = 1800.0) -> MapInfo:
-        return self.bus.request(keys.MAP_BUILD.format(map=req.map_id), req, MapInfo, timeout_s=timeout_s)
+    def build(self, req: BuildMapRequest, *, on_event: Callable[[JobEvent], None] | None = None,
+              cancel: threading.Event | None = None) -> MapInfo:
+        """Run a map build job on the reconstructor to its end; ``on_event`` sees its progress.
+
+        The budget is per event (``build_stall_s`` without one fails), not for the whole build: a large
+        map takes long, a dead reconstructor is noticed as soon as it stops talking."""
+        end = await_job(self.bus, keys.MAP_BUILD.format(map=req.map_id), req,
+                        keys.MAP_BUILD_EVENTS.format(map=req.map_id, build=req.build_id), on_event=on_event,
+                        stall_s=self.build_stall_s, submit_timeout_s=self.timeout_s, cancel=cancel)
+        if not isinstance(end.data, MapBuildFinished):
+            raise JobFailedError(f"map build {req.build_id} ended without its map ({type(end.data).__name__})")
+        return end.data.info
 
 
 class RendererClient:

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 
 from shared.bus.typed import TypedBus
-from shared.schemas import EventPayload, MissionEvent, MissionEventKind, MissionState
+from shared.schemas import EventPayload, JobEvent, JobEventKind, JobState
 
 
 def jpeg(image_rgb: np.ndarray, quality: int = 85) -> bytes:
@@ -33,16 +33,16 @@ class EventStream:
         self.bus, self.key, self.job_id = bus, key, job_id
         self._seq = 0
         self._lock = threading.Lock()
-        self.state = MissionState.QUEUED
+        self.state = JobState.QUEUED
         self.step = 0
 
-    def emit(self, kind: MissionEventKind, state: MissionState, *, step: int | None = None,
-             data: EventPayload | None = None, images: dict[str, bytes] | None = None) -> MissionEvent:
+    def emit(self, kind: JobEventKind, state: JobState, *, step: int | None = None,
+             data: EventPayload | None = None, images: dict[str, bytes] | None = None) -> JobEvent:
         """``step`` None: the job's step so far (a final event of a job cancelled or failed at step 7
         says 7, not 0)."""
         with self._lock:
             step = self.step if step is None else max(step, 0)
-            ev = MissionEvent(mission_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
+            ev = JobEvent(job_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
                               data=data, images=images or {})
             self._seq += 1
             self.state = state

@@ -151,10 +151,10 @@ MAPPER_TOURS = Key(f"{_R}/mapper/tours/{{region}}", "mapper", Usage.PUBLICATION,
             consumers=())
 
 MAPPER_EXPLORE = Key(f"{_R}/mapper/explorations/submit", "mapper", Usage.QUERYABLE, "ExplorationRequest",
-                     "MissionAccepted", "start pre-exploration + tour recording + reconstruction",
+                     "JobAccepted", "start pre-exploration + tour recording + reconstruction",
             consumers=("gateway",))
 EXPLORATION_EVENTS = Key(f"{_R}/explorations/{{exploration}}/events", "mapper", Usage.PUBLICATION,
-                         reply="MissionEvent", doc="exploration progress events (mission_id = exploration id)",
+                         reply="JobEvent", doc="exploration progress events (mission_id = exploration id)",
             consumers=("gateway",))
 
 # --- maps (reconstructor owns the map store) --------------------------------------------------------
@@ -166,9 +166,12 @@ MAP_INFO = Key(f"{ROOT}/maps/{{map}}/info", "reconstructor", Usage.QUERYABLE, "M
 MAP_CHUNK = Key(f"{ROOT}/maps/{{map}}/chunk", "reconstructor", Usage.QUERYABLE, "MapChunkRequest", "MapChunk",
                 "the map's points, in chunks",
             consumers=("gateway", "renderer"))
-MAP_BUILD = Key(f"{ROOT}/maps/{{map}}/build", "reconstructor", Usage.QUERYABLE, "BuildMapRequest", "MapInfo",
-                "reconstruct recorded tours into a stored map",
+MAP_BUILD = Key(f"{ROOT}/maps/{{map}}/build", "reconstructor", Usage.QUERYABLE, "BuildMapRequest", "JobAccepted",
+                "start a job that reconstructs recorded tours into a stored map",
             consumers=("mapper",))
+MAP_BUILD_EVENTS = Key(f"{ROOT}/maps/{{map}}/builds/{{build}}/events", "reconstructor", Usage.PUBLICATION,
+                       reply="JobEvent", doc="a map build's progress and its stored map (or why it failed)",
+                       consumers=("mapper",))
 MAP_IMPORT = Key(f"{ROOT}/maps/{{map}}/import", "reconstructor", Usage.QUERYABLE, "MapImportRequest", "MapInfo",
                  "store an uploaded PLY/PCD cloud as a map",
             consumers=("gateway",))
@@ -186,12 +189,12 @@ RENDER_MAP = Key(f"{ROOT}/render/spatial_map", "renderer", Usage.QUERYABLE, "Spa
 
 # --- planner / missions ---------------------------------------------------------------------------------
 MISSION_SUBMIT = Key(f"{_R}/planner/missions/submit", "planner", Usage.QUERYABLE, "MissionRequest",
-                     "MissionAccepted", "start a navigation mission",
+                     "JobAccepted", "start a navigation mission",
             consumers=("gateway",))
 MISSION_CANCEL = Key(f"{_R}/planner/missions/cancel", "planner", Usage.QUERYABLE, "CancelRequest",
-                     "MissionAccepted", "cancel a running mission",
+                     "JobAccepted", "cancel a running mission",
             consumers=("gateway",))
-MISSION_EVENTS = Key(f"{_R}/missions/{{mission}}/events", "planner", Usage.PUBLICATION, reply="MissionEvent",
+MISSION_EVENTS = Key(f"{_R}/missions/{{mission}}/events", "planner", Usage.PUBLICATION, reply="JobEvent",
                      doc="mission events (started, step, finished, error)",
             consumers=("gateway",))
 

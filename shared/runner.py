@@ -21,7 +21,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from typing import ClassVar, TypeVar
+from typing import ClassVar, Generic, TypeVar
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -100,12 +100,14 @@ class Node:
         self.bus.close()
 
 
-class Service(ABC):
+class Service(ABC, Generic[S]):
+    """Base of every service; ``Service[MySettings]`` types ``self.settings`` as ``MySettings``."""
+
     name: ClassVar[str]
     Settings: ClassVar[type[ServiceSettings]] = ServiceSettings
 
-    def __init__(self, settings: ServiceSettings):
-        self.settings = settings
+    def __init__(self, settings: S):
+        self.settings: S = settings
 
     def backends(self) -> dict[str, str]:
         """Names of the backends this instance runs (shown in ``info`` and ``GET /status``)."""

@@ -286,24 +286,53 @@ class RecordReply(Message):
 
 
 class RoomInfo(Message):
-    name: str
+    """A labelled room: the box it fills, from its floor up to its ceiling (world metres)."""
+
+    name: str  # unique: "bedroom", "bedroom 2", ...
     room_type: str
-    floor: int = 0
+    floor: int = Field(0, ge=0)
     bounds_min_m: tuple[float, float, float]
     bounds_max_m: tuple[float, float, float]
+    area_m2: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+
+
+class ObjectInfo(Message):
+    """A labelled object (furniture) with its footprint box."""
+
+    object_id: int = Field(ge=0)
+    label: str
+    colour: str
+    description: str  # "green plant": how instructions name it
+    room: str
+    position_m: tuple[float, float, float]  # centre of the footprint, on the floor
+    size_m: tuple[float, float, float]  # extent along world x, y, z
+    yaw_rad: float = Field(allow_inf_nan=False)
 
 
 class SceneSummary(Message):
-    """What robot-io tells others about its scene (the simulator knows it; a real robot may not)."""
+    """What robot-io tells others about its scene: the one scene description of the system.
+
+    The simulator knows all of it; a real robot may know only its bounds (and its map's labels), so
+    everything past the bounds has an empty default."""
 
     scene: str
+    source: str = ""
     bounds_min_m: tuple[float, float, float]
     bounds_max_m: tuple[float, float, float]
-    floors: int = 1
-    reachable_area_m2: float = 0.0
-    label_names: dict[int, str] = Field(default_factory=dict)
+    floors: int = Field(1, ge=1)
+    triangle_count: int = Field(0, ge=0)
+    reachable_area_m2: float = Field(0.0, ge=0.0, allow_inf_nan=False)  # of the agent's main walkable region
+    nav_cell_m: float | None = Field(None, gt=0.0)
+    label_names: dict[int, str] = Field(default_factory=dict)  # semantic id -> class name; -1 is not listed
     rooms: list[RoomInfo] = Field(default_factory=list)
+    objects: list[ObjectInfo] = Field(default_factory=list)
     start_pose: Pose | None = None
+
+    def room(self, name: str) -> RoomInfo:
+        for r in self.rooms:
+            if r.name == name:
+                return r
+        raise KeyError(name)
 
 
 class LoadSceneRequest(Message):
@@ -525,7 +554,7 @@ class Decision(Message):
     fallback: bool = False
 
 
-class MissionState(StrEnum):
+class JobState(StrEnum):
     QUEUED = "queued"
     RUNNING = "running"
     SUCCEEDED = "succeeded"  # the policy stopped (whether at the goal is in the metrics)
@@ -576,8 +605,10 @@ class MissionRequest(Message):
     options: MissionOptions = Field(default_factory=MissionOptions)
 
 
-class MissionAccepted(Message):
-    mission_id: str
+class JobAccepted(Message):
+    """A job's submission answered: accepted (its events follow on its events key) or refused, with why."""
+
+    job_id: str
     accepted: bool
     reason: str = ""
     instance: str = ""  # the worker instance that took the job ("" : not said; the gateway then looks it up)
@@ -587,7 +618,7 @@ class CancelRequest(Message):
     mission_id: str
 
 
-class MissionEventKind(StrEnum):
+class JobEventKind(StrEnum):
     STARTED = "started"
     STEP = "step"
     PROGRESS = "progress"
@@ -633,7 +664,7 @@ class EpisodeMetricsData(BaseModel):
 
 class EventPayload(BaseModel):
     """Base of every job event payload. ``type`` tells the payloads apart on the wire; ``KINDS`` are the
-    event kinds a payload may travel with (checked by :class:`MissionEvent`)."""
+    event kinds a payload may travel with (checked by :class:`JobEvent`)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     KINDS: ClassVar[tuple[str, ...]] = ()
@@ -725,6 +756,26 @@ class ExplorationFinished(EventPayload):
     timings_s: dict[str, Duration_s] = Field(default_factory=dict)
 
 
+class MapBuildProgress(EventPayload):
+    """A map build's stage (collecting frames, reconstructing region k of n, storing)."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("progress",)
+    type: Literal["map_build_progress"] = "map_build_progress"
+    stage: str
+    progress: float = Field(ge=0.0, le=1.0)
+    message: str = ""
+    region: int | None = Field(None, ge=-1, le=100_000)
+    regions: Count | None = None
+
+
+class MapBuildFinished(EventPayload):
+    """The map version a build stored."""
+
+    KINDS: ClassVar[tuple[str, ...]] = ("finished",)
+    type: Literal["map_build_finished"] = "map_build_finished"
+    info: MapInfo
+
+
 class JobCancelled(EventPayload):
     KINDS: ClassVar[tuple[str, ...]] = ("finished",)
     type: Literal["job_cancelled"] = "job_cancelled"
@@ -741,24 +792,24 @@ class JobFailed(EventPayload):
 
 EventData = Annotated[
     MissionStarted | MissionStep | MissionFinished | ExplorationStarted | ExplorationProgress
-    | ExplorationFinished | JobCancelled | JobFailed,
+    | ExplorationFinished | MapBuildProgress | MapBuildFinished | JobCancelled | JobFailed,
     Field(discriminator="type"),
 ]
 
 
-class MissionEvent(Message):
-    """One thing that happened to a mission or an exploration (``mission_id`` is then the
-    exploration id); ``seq`` orders the events of one job, gap-free from 0.
+class JobEvent(Message):
+    """One thing that happened to a job (a mission, an exploration, a map build); ``seq`` orders the
+    events of one job, gap-free from 0, and exactly one event has a terminal state.
 
     ``data`` is the kind's typed payload (None only for events that carry nothing); pictures travel
     JPEG-encoded in ``images`` (name -> bytes) so the gateway can store them once and serve them by URL
     instead of inlining them in every event.
     """
 
-    mission_id: str
+    job_id: str
     seq: int = Field(ge=0, le=SEQ_LIMIT)
-    kind: MissionEventKind
-    state: MissionState
+    kind: JobEventKind
+    state: JobState
     step: int = Field(0, ge=0, le=100_000)
     timestamp_s: Seconds = Field(default_factory=time.time)
     data: EventData | None = None
@@ -788,8 +839,12 @@ class ExplorationRequest(Message):
 
 
 class BuildMapRequest(Message):
-    """Mapper -> reconstructor: the recorded tours of an exploration are complete; build the map."""
+    """Mapper -> reconstructor: the recorded tours of an exploration are complete; build the map.
 
+    A build is a job: the reply is a :class:`JobAccepted`, its events follow on ``MAP_BUILD_EVENTS``
+    under ``build_id``."""
+
+    build_id: str
     exploration_id: str
     map_id: str
     recordings: list[TourRecording] = Field(max_length=BUILD_MAX_RECORDINGS)

@@ -20,7 +20,7 @@ from services.gateway.store import EventRejected, GatewayStore, StoredEvent, ima
 from shared import keys
 from shared.bus.base import Closeable
 from shared.bus.typed import TypedBus
-from shared.schemas import MissionEvent
+from shared.schemas import JobEvent
 
 log = logging.getLogger(__name__)
 
@@ -123,33 +123,33 @@ class EventIngest:
         self._subs: list[Closeable] = [
             # history: events published while this gateway was down come back from the
             # publishers' caches; the store ignores the ones it already has.
-            bus.subscribe(key.pattern(robot=robot), MissionEvent,
+            bus.subscribe(key.pattern(robot=robot), JobEvent,
                           lambda k, ev, kind=kind: self._on_event(kind, ev, k), history=True)
             for kind, key in self._KEYS.items()
         ]
 
-    def _reject(self, kind: JobKind, key: str, event: MissionEvent, why: str, detail: str) -> None:
+    def _reject(self, kind: JobKind, key: str, event: JobEvent, why: str, detail: str) -> None:
         self.rejected[why] += 1
         log.warning("rejected %s event on %s (seq %d, %s/%s): %s", kind.value, key, event.seq, event.kind.value,
                     event.state.value, detail)
 
-    def _on_event(self, kind: JobKind, event: MissionEvent, key: str | None = None) -> None:
+    def _on_event(self, kind: JobKind, event: JobEvent, key: str | None = None) -> None:
         if key is not None:
             parts = self._KEYS[kind].parse(key)
             job_id = parts[self._ID_PART[kind]] if parts else None
-            if job_id != event.mission_id:
+            if job_id != event.job_id:
                 self._reject(kind, key, event, "id_mismatch",
-                             f"the event names {event.mission_id!r}, its key {job_id!r}")
+                             f"the event names {event.job_id!r}, its key {job_id!r}")
                 return
         try:
             stored = self.store.append_event(kind, event)
         except EventRejected as exc:
-            self._reject(kind, key or event.mission_id, event, _why(exc.reason), exc.reason)
+            self._reject(kind, key or event.job_id, event, _why(exc.reason), exc.reason)
             return
         if stored is not None:
             self.stored += 1
             # Encoded once here, sent by every stream of the job.
-            self.hub.publish(event.mission_id, stored.seq, sse_frame(kind, stored))
+            self.hub.publish(event.job_id, stored.seq, sse_frame(kind, stored))
         else:
             self.duplicates += 1
 

@@ -30,13 +30,13 @@ from services.gateway.store import EventRejected, GatewayStore, JobRow
 from shared import keys
 from shared.bus.base import Closeable
 from shared.bus.typed import RemoteError, TypedBus
-from shared.schemas import JobCancelled, JobFailed, MissionEvent, MissionEventKind, MissionState, Ping, ServiceInfo
+from shared.schemas import JobCancelled, JobFailed, JobEvent, JobEventKind, JobState, Ping, ServiceInfo
 
 log = logging.getLogger(__name__)
 
 WORKERS = {"planner": JobKind.MISSION, "mapper": JobKind.EXPLORATION}
 SERVICE_OF = {kind: service for service, kind in WORKERS.items()}
-_OPEN = [MissionState.QUEUED, MissionState.RUNNING]
+_OPEN = [JobState.QUEUED, JobState.RUNNING]
 
 
 def live_workers(bus: TypedBus, service: str, timeout_s: float) -> tuple[set[str], dict[str, float]]:
@@ -163,14 +163,14 @@ class JobReaper:
             self.reaped += n
             return n
 
-    def fail(self, kind: JobKind, job_id: str, reason: str, state: MissionState = MissionState.FAILED) -> int:
+    def fail(self, kind: JobKind, job_id: str, reason: str, state: JobState = JobState.FAILED) -> int:
         """End one open job with ``reason`` (a final event when its seq is free); 1 when it ended here."""
         row = self.store.get_job(job_id, kind)
         if row is None or row.terminal:
             return 0
-        ev_kind = MissionEventKind.ERROR if state == MissionState.FAILED else MissionEventKind.FINISHED
-        data = JobFailed(error=reason) if state == MissionState.FAILED else JobCancelled(message=reason)
-        event = MissionEvent(mission_id=row.id, seq=row.last_seq + 1, kind=ev_kind, state=state, step=row.step,
+        ev_kind = JobEventKind.ERROR if state == JobState.FAILED else JobEventKind.FINISHED
+        data = JobFailed(error=reason) if state == JobState.FAILED else JobCancelled(message=reason)
+        event = JobEvent(job_id=row.id, seq=row.last_seq + 1, kind=ev_kind, state=state, step=row.step,
                              data=data)
         try:
             stored = self.store.append_event(kind, event)
@@ -182,7 +182,7 @@ class JobReaper:
         row = self.store.get_job(job_id, kind)
         if row is None or row.terminal:
             return 0
-        self.store.mark(row.id, state, reason if state == MissionState.FAILED else None)
+        self.store.mark(row.id, state, reason if state == JobState.FAILED else None)
         self.hub.notify(row.id)
         return 1
 

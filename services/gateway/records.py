@@ -1,7 +1,7 @@
 """What the HTTP API returns, and how a job's record is folded from its events.
 
 A mission's (or exploration's) record is *derived* from its event stream: :func:`apply_event` folds
-one :class:`~shared.schemas.MissionEvent` into a JSON-friendly summary that the store keeps beside the
+one :class:`~shared.schemas.JobEvent` into a JSON-friendly summary that the store keeps beside the
 events, so ``GET /missions/{id}`` is one row read and is the same after a gateway restart. Each event
 kind carries its typed payload (:data:`shared.schemas.EventData`), so the fold is one case per payload.
 """
@@ -14,18 +14,18 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from shared.schemas import (
-    ExplorationFinished, ExplorationProgress, ExplorationStarted, JobCancelled, JobFailed, MissionEvent, MissionEventKind,
-    MissionFinished, MissionStarted, MissionState, MissionStep, Pose,
+    ExplorationFinished, ExplorationProgress, ExplorationStarted, JobCancelled, JobFailed, JobEvent, JobEventKind,
+    MissionFinished, MissionStarted, JobState, MissionStep, Pose,
 )
 
-TERMINAL = frozenset({MissionState.SUCCEEDED, MissionState.FAILED, MissionState.CANCELLED})
+TERMINAL = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED})
 # The states an event of each kind can carry; anything else is refused at ingest.
 KIND_STATES = {
-    MissionEventKind.STARTED: frozenset({MissionState.QUEUED, MissionState.RUNNING}),
-    MissionEventKind.STEP: frozenset({MissionState.RUNNING}),
-    MissionEventKind.PROGRESS: frozenset({MissionState.QUEUED, MissionState.RUNNING}),
-    MissionEventKind.FINISHED: TERMINAL,
-    MissionEventKind.ERROR: frozenset({MissionState.FAILED}),
+    JobEventKind.STARTED: frozenset({JobState.QUEUED, JobState.RUNNING}),
+    JobEventKind.STEP: frozenset({JobState.RUNNING}),
+    JobEventKind.PROGRESS: frozenset({JobState.QUEUED, JobState.RUNNING}),
+    JobEventKind.FINISHED: TERMINAL,
+    JobEventKind.ERROR: frozenset({JobState.FAILED}),
 }
 MAX_DECISIONS_KEPT = 1000  # a record stays small enough to serve 200 pollers; events keep everything
 
@@ -46,13 +46,13 @@ class MissionOutcome(StrEnum):
     FAILED = "failed"
 
 
-def outcome_of(state: MissionState, outcome: str | None) -> str | None:
+def outcome_of(state: JobState, outcome: str | None) -> str | None:
     """The folded outcome, or the one a terminal state implies when no event said more (a job ended
     by the gateway itself)."""
     if outcome is not None:
         return outcome
-    return {MissionState.CANCELLED: MissionOutcome.CANCELLED.value,
-            MissionState.FAILED: MissionOutcome.FAILED.value}.get(state)
+    return {JobState.CANCELLED: MissionOutcome.CANCELLED.value,
+            JobState.FAILED: MissionOutcome.FAILED.value}.get(state)
 
 
 # --- folding -------------------------------------------------------------------------------------
@@ -73,7 +73,7 @@ def _set_pose(summary: dict[str, Any], pose: Pose) -> None:
         summary["trajectory"].append(xyz)
 
 
-def apply_event(summary: dict[str, Any], event: MissionEvent, image_urls: dict[str, str]) -> dict[str, Any]:
+def apply_event(summary: dict[str, Any], event: JobEvent, image_urls: dict[str, str]) -> dict[str, Any]:
     """Fold one event into ``summary`` (mutated and returned); ``image_urls`` name -> URL of its images.
 
     The payload was validated against its kind's schema when the event was decoded, so each case reads
@@ -125,7 +125,7 @@ def apply_event(summary: dict[str, Any], event: MissionEvent, image_urls: dict[s
         case JobFailed():
             summary["error"] = d.error
             summary["outcome"] = MissionOutcome.FAILED.value
-    if event.state == MissionState.SUCCEEDED and summary.get("progress") is not None:
+    if event.state == JobState.SUCCEEDED and summary.get("progress") is not None:
         summary["progress"] = 1.0
     if image_urls:
         summary["images"].update(image_urls)
@@ -139,7 +139,7 @@ def apply_event(summary: dict[str, Any], event: MissionEvent, image_urls: dict[s
 
 class JobCreated(BaseModel):
     id: str
-    state: MissionState
+    state: JobState
     url: str = Field(description="where to poll the job")
     events_url: str = Field(description="its Server-Sent Events stream")
 
@@ -162,7 +162,7 @@ class PoseRecord(BaseModel):
 class JobRecord(BaseModel):
     id: str
     kind: JobKind
-    state: MissionState
+    state: JobState
     step: int
     last_seq: int = Field(description="seq of the newest stored event (-1: none yet)")
     created_s: float
@@ -201,7 +201,7 @@ class ExplorationRecord(JobRecord):
 
 class MissionSummary(BaseModel):
     id: str
-    state: MissionState
+    state: JobState
     outcome: MissionOutcome | None = None
     success: bool | None = None
     step: int
@@ -232,7 +232,7 @@ class EventRecord(BaseModel):
     mission_id: str
     seq: int
     kind: str
-    state: MissionState
+    state: JobState
     step: int
     timestamp_s: float
     data: dict[str, Any]

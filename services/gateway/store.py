@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from services.gateway.records import KIND_STATES, TERMINAL, JobKind, apply_event, empty_summary
-from shared.schemas import MissionEvent, MissionState
+from shared.schemas import JobEvent, JobState
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ def image_url(kind: JobKind, job_id: str, seq: int, name: str) -> str:
 class JobRow:
     id: str
     kind: JobKind
-    state: MissionState
+    state: JobState
     step: int
     last_seq: int
     request: dict[str, Any]
@@ -116,7 +116,7 @@ class StoredEvent:
     job_id: str
     seq: int
     kind: str
-    state: MissionState
+    state: JobState
     step: int
     timestamp_s: float
     data_json: str
@@ -132,7 +132,7 @@ class JobMeta:
     """What the store knows of a job without reading it: ``revision`` changes on every write."""
 
     revision: int
-    state: MissionState
+    state: JobState
     last_seq: int
 
 
@@ -181,10 +181,10 @@ class GatewayStore:
         return conn
 
     # --- in-memory job metadata ---------------------------------------------------------------------
-    def _set_meta(self, job_id: str, state: MissionState | str, last_seq: int) -> None:
+    def _set_meta(self, job_id: str, state: JobState | str, last_seq: int) -> None:
         # Called after COMMIT: a reader that sees the new revision also sees the new row.
         with self._meta_lock:
-            self._meta[job_id] = JobMeta(next(self._revisions), MissionState(state), last_seq)
+            self._meta[job_id] = JobMeta(next(self._revisions), JobState(state), last_seq)
 
     def _adopt(self, row: JobRow) -> int:
         """Register a job read from the file; returns its revision, or -1 when a write raced the read
@@ -218,11 +218,11 @@ class GatewayStore:
                 self._writer.execute(
                     "INSERT INTO jobs (id, kind, state, step, last_seq, request, summary, created_s, updated_s)"
                     " VALUES (?, ?, ?, 0, -1, ?, ?, ?, ?)",
-                    (job_id, kind.value, MissionState.QUEUED.value, _json(request), _json(empty_summary()),
+                    (job_id, kind.value, JobState.QUEUED.value, _json(request), _json(empty_summary()),
                      now, now))
             except sqlite3.IntegrityError:
                 raise JobExists(f"{kind.value} {job_id!r} already exists") from None
-            self._set_meta(job_id, MissionState.QUEUED, -1)
+            self._set_meta(job_id, JobState.QUEUED, -1)
         row = self.get_job(job_id)
         assert row is not None
         return row
@@ -253,7 +253,7 @@ class GatewayStore:
                                  (_json(summary), time.time(), job_id))
             self._set_meta(job_id, row[1], row[2])
 
-    def mark(self, job_id: str, state: MissionState, error: str | None = None) -> None:
+    def mark(self, job_id: str, state: JobState, error: str | None = None) -> None:
         """Set a job's state from the gateway itself (e.g. the planner lost it)."""
         with self._write_lock:
             row = self._writer.execute("SELECT summary, last_seq FROM jobs WHERE id = ?", (job_id,)).fetchone()
@@ -268,7 +268,7 @@ class GatewayStore:
 
     @staticmethod
     def _row(r: tuple) -> JobRow:
-        return JobRow(id=r[0], kind=JobKind(r[1]), state=MissionState(r[2]), step=r[3], last_seq=r[4],
+        return JobRow(id=r[0], kind=JobKind(r[1]), state=JobState(r[2]), step=r[3], last_seq=r[4],
                       request=json.loads(r[5]), summary=json.loads(r[6]), created_s=r[7], updated_s=r[8])
 
     _COLS = "id, kind, state, step, last_seq, request, summary, created_s, updated_s"
@@ -279,7 +279,7 @@ class GatewayStore:
             return None
         return self._row(r)
 
-    def job_progress(self, job_id: str) -> tuple[MissionState, int] | None:
+    def job_progress(self, job_id: str) -> tuple[JobState, int] | None:
         """(state, last_seq) of a job: what an SSE stream checks on every wake-up (a dict lookup
         once the job is known to this process)."""
         meta = self._meta.get(job_id)
@@ -291,7 +291,7 @@ class GatewayStore:
         self._adopt(row)
         return row.state, row.last_seq
 
-    def list_jobs(self, kind: JobKind, *, states: list[MissionState] | None = None, limit: int = 50,
+    def list_jobs(self, kind: JobKind, *, states: list[JobState] | None = None, limit: int = 50,
                   offset: int = 0) -> tuple[list[JobRow], int]:
         """Newest first; returns (page, total matching)."""
         where, args = "kind = ?", [kind.value]
@@ -305,7 +305,7 @@ class GatewayStore:
         return [self._row(r) for r in rows], total
 
     # --- events ------------------------------------------------------------------------------------
-    def append_event(self, kind: JobKind, event: MissionEvent) -> StoredEvent | None:
+    def append_event(self, kind: JobKind, event: JobEvent) -> StoredEvent | None:
         """Store one event, its images and the refolded record; returns the event as stored (what a
         stream sends), or None when it was already stored (a redelivery: ingest is idempotent).
 
@@ -315,26 +315,26 @@ class GatewayStore:
         increase, or its kind contradicts its state (a ``step`` that is ``succeeded``).
         """
         if event.state not in KIND_STATES[event.kind]:
-            raise EventRejected(event.mission_id, event.seq,
+            raise EventRejected(event.job_id, event.seq,
                                 f"a {event.kind.value} event cannot be {event.state.value}")
         names = [n for n in event.images if _IMAGE_NAME.match(n)]
         if len(names) != len(event.images):
-            log.warning("event %s/%d: dropped images with invalid names %s", event.mission_id, event.seq,
+            log.warning("event %s/%d: dropped images with invalid names %s", event.job_id, event.seq,
                         sorted(set(event.images) - set(names)))
-        urls = {n: image_url(kind, event.mission_id, event.seq, n) for n in names}
+        urls = {n: image_url(kind, event.job_id, event.seq, n) for n in names}
         data_json = _json(event.data_json())
         with self._write_lock:
             db = self._writer
             db.execute("BEGIN IMMEDIATE")
             try:
                 r = db.execute("SELECT state, last_seq, summary, kind, step FROM jobs WHERE id = ?",
-                               (event.mission_id,)).fetchone()
+                               (event.job_id,)).fetchone()
                 reason = None
                 if r is None or r[3] != kind.value:
-                    reason = f"no {kind.value} {event.mission_id!r} here"
+                    reason = f"no {kind.value} {event.job_id!r} here"
                 elif event.seq <= r[1] or r[0] in _TERMINAL_VALUES:
                     seen = db.execute("SELECT 1 FROM events WHERE job_id = ? AND seq = ?",
-                                      (event.mission_id, event.seq)).fetchone()
+                                      (event.job_id, event.seq)).fetchone()
                     if seen is not None:  # a redelivery of what we hold
                         db.execute("ROLLBACK")
                         return None
@@ -343,36 +343,36 @@ class GatewayStore:
                 elif event.step < r[4] and event.state not in TERMINAL:
                     reason = f"step {event.step} goes back (at {r[4]})"
                 if reason is not None:  # rolled back below
-                    raise EventRejected(event.mission_id, event.seq, reason)
+                    raise EventRejected(event.job_id, event.seq, reason)
                 cur = db.execute(
                     "INSERT OR IGNORE INTO events (job_id, seq, kind, state, step, timestamp_s, data, images)"
                     " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                    (event.mission_id, event.seq, event.kind.value, event.state.value, event.step,
+                    (event.job_id, event.seq, event.kind.value, event.state.value, event.step,
                      event.timestamp_s, data_json, _json(names)))
                 if cur.rowcount == 0:
                     db.execute("ROLLBACK")
                     return None
                 db.executemany("INSERT OR REPLACE INTO images (job_id, seq, name, jpeg) VALUES (?, ?, ?, ?)",
-                               [(event.mission_id, event.seq, n, bytes(event.images[n])) for n in names])
+                               [(event.job_id, event.seq, n, bytes(event.images[n])) for n in names])
                 summary = apply_event(json.loads(r[2]), event, urls)
                 state = event.state.value
                 # The step never goes back: a final event that says 0 keeps the steps walked.
                 step = max(event.step, r[4])
                 db.execute("UPDATE jobs SET state = ?, step = ?, last_seq = ?, summary = ?, updated_s = ? WHERE id = ?",
-                           (state, step, event.seq, _json(summary), time.time(), event.mission_id))
+                           (state, step, event.seq, _json(summary), time.time(), event.job_id))
                 db.execute("COMMIT")
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
-            self._set_meta(event.mission_id, state, event.seq)
-        return StoredEvent(job_id=event.mission_id, seq=event.seq, kind=event.kind.value, state=event.state,
+            self._set_meta(event.job_id, state, event.seq)
+        return StoredEvent(job_id=event.job_id, seq=event.seq, kind=event.kind.value, state=event.state,
                            step=event.step, timestamp_s=event.timestamp_s, data_json=data_json, image_names=names)
 
     def events(self, job_id: str, after_seq: int = -1, limit: int = 1000) -> list[StoredEvent]:
         rows = self._reader().execute(
             "SELECT job_id, seq, kind, state, step, timestamp_s, data, images FROM events"
             " WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?", (job_id, after_seq, limit)).fetchall()
-        return [StoredEvent(job_id=r[0], seq=r[1], kind=r[2], state=MissionState(r[3]), step=r[4],
+        return [StoredEvent(job_id=r[0], seq=r[1], kind=r[2], state=JobState(r[3]), step=r[4],
                             timestamp_s=r[5], data_json=r[6], image_names=json.loads(r[7])) for r in rows]
 
     def image(self, job_id: str, seq: int, name: str) -> bytes | None:

@@ -1,8 +1,9 @@
 """reconstructor service: collects recorded tours, builds grounded maps, owns the map store.
 
 * subscribes to every robot's tour frames (``IO_FRAMES``) and keeps them per recording;
-* ``MAP_BUILD``: waits for a build request's recordings to be complete, reconstructs, aligns and
-  integrates them (the core), stores the map atomically and announces it on ``MAP_UPDATED``;
+* ``MAP_BUILD``: accepts a build job (:mod:`shared.jobs`); the job (``core.build_job``) waits for the
+  recordings to be complete, reconstructs, aligns and integrates them, stores the map atomically and
+  announces it on ``MAP_UPDATED``, reporting its progress on ``MAP_BUILD_EVENTS``;
 * ``MAP_LIST`` / ``MAP_INFO`` / ``MAP_CHUNK`` / ``MAP_IMPORT``: the map store over the bus.
 """
 
@@ -19,11 +20,14 @@ from shared.cloud import CloudFormatError
 from services.reconstructor.core import (
     DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig, Reconstructor, region_from_frames,
 )
+from services.reconstructor.core.build_job import build_map
 from shared import keys
 from shared.bus.typed import NotFound
+from shared.jobs import JobRunner
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    BuildMapRequest, Frame, MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, Ping,
+    BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply,
+    MapRequest, Ping,
 )
 
 log = logging.getLogger(__name__)
@@ -34,6 +38,7 @@ class ReconstructorSettings(ServiceSettings):
     frame_buffer_mb: int = Field(2048, ge=16, description="recorded frames kept in memory, all recordings")
     frames_timeout_s: float = Field(30.0, gt=0, description="wait this long for a recording's last frames")
     merge_voxel_m: float = Field(0.03, gt=0, le=1.0)
+    max_queued_builds: int = Field(4, ge=1, le=100, description="map builds waiting behind the running one")
 
 
 class FrameBuffer:
@@ -80,7 +85,7 @@ class FrameBuffer:
             self._bytes -= sum(self._size(f) for f in frames.values())
 
 
-class ReconstructorService(Service):
+class ReconstructorService(Service[ReconstructorSettings]):
     name = "reconstructor"
     Settings = ReconstructorSettings
 
@@ -89,6 +94,7 @@ class ReconstructorService(Service):
         self.store = MapStore(settings.store_dir)
         self.frames = FrameBuffer(settings.frame_buffer_mb * 1024 * 1024)
         self._node: Node | None = None
+        self._builds: JobRunner | None = None
 
     def backends(self) -> dict[str, str]:
         return {"reconstruction": DEFAULT_RECONSTRUCTOR, "store": str(self.store.root)}
@@ -104,7 +110,14 @@ class ReconstructorService(Service):
         node.serve(keys.MAP_INFO.pattern(), MapRequest, self.info)
         node.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self.chunk)
         node.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self.import_map, workers=1)
+        # One build at a time: reconstruction holds every frame of an exploration in memory.
+        self._builds = JobRunner(node.bus, name="map build", workers=1,
+                                 max_queued=self.settings.max_queued_builds)
         node.serve(keys.MAP_BUILD.pattern(), BuildMapRequest, self.build, workers=1)
+
+    def stop(self) -> None:
+        if self._builds is not None:
+            self._builds.close()
 
     def _on_frame(self, key: str, frame: Frame) -> None:
         self.frames.add(key.rsplit("/", 1)[-1], frame)
@@ -138,25 +151,15 @@ class ReconstructorService(Service):
         self._node.bus.publish(keys.MAP_UPDATED.format(map=info.map_id), info)
 
     # --- building ------------------------------------------------------------------------------------
-    def build(self, req: BuildMapRequest) -> MapInfo:
+    def build(self, req: BuildMapRequest) -> JobAccepted:
         keys.validate_segment(req.map_id, "map id")
+        keys.validate_segment(req.build_id, "build id")
         if not req.recordings:
             raise ValueError("a build needs at least one recording")
-        s: ReconstructorSettings = self.settings  # type: ignore[assignment]
-        regions = []
-        for rec in req.recordings:
-            frames = self.frames.wait(rec.recording, rec.frame_count, s.frames_timeout_s)
-            if len(frames) < rec.frame_count:
-                log.warning("recording %s: %d of %d frames arrived", rec.recording, len(frames), rec.frame_count)
-            regions.append(region_from_frames(rec.region, rec.start_pose, frames))
+        s = self.settings
         config = ReconstructionConfig.model_validate(
             {"backend": req.reconstruction, "merge_voxel_m": s.merge_voxel_m, **req.options})
-        with Reconstructor(config) as recon:
-            built = recon.build(regions, req.label_names)
-        info = self.store.save(req.map_id, built.cloud, source=req.source or f"exploration {req.exploration_id}",
-                               regions=len(built.regions), scale_factors=built.scale_factors,
-                               timings_s=built.timings_s, details=built.details())
-        for rec in req.recordings:
-            self.frames.drop(rec.recording)
-        self._announce(info)
-        return info
+        assert self._builds is not None
+        return self._builds.submit(req.build_id, lambda ctx: build_map(
+            ctx, req, frames=self.frames, store=self.store, config=config, announce=self._announce,
+            frames_timeout_s=s.frames_timeout_s), keys.MAP_BUILD_EVENTS.format(map=req.map_id, build=req.build_id))

@@ -107,7 +107,7 @@ class MapCache:
             raise
 
 
-class RendererService(Service):
+class RendererService(Service[RendererSettings]):
     name = "renderer"
     Settings = RendererSettings
 

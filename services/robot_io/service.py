@@ -25,7 +25,7 @@ from shared import keys
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
     Frame, GeodesicReply, GeodesicRequest, LoadSceneRequest, MoveRequest, MoveResult, ObserveRequest, Panorama, Ping,
-    PoseReply, RecordReply, RecordRequest, ResetRequest, RoomInfo, SceneSummary, TurnRequest,
+    PoseReply, RecordReply, RecordRequest, ResetRequest, SceneSummary, TurnRequest,
 )
 
 log = logging.getLogger(__name__)
@@ -42,24 +42,6 @@ class RobotIoSettings(ServiceSettings):
 
 def _config_fields(backend: str) -> set[str]:
     return set(ROBOTS.config_class(backend).model_fields)
-
-
-def scene_summary(info: Any) -> SceneSummary:
-    """The backend's scene description, as the bus message (backends may return a model or a dict)."""
-    d = info.model_dump() if hasattr(info, "model_dump") else dict(info)
-    rooms = []
-    for r in d.get("rooms", []):
-        z = float(r.get("floor_z_m", 0.0))
-        lo, hi = r.get("min_xy_m", (0, 0)), r.get("max_xy_m", (0, 0))
-        rooms.append(RoomInfo(name=r["name"], room_type=r.get("type") or r.get("room_type", ""),
-                              floor=int(r.get("floor", 0)), bounds_min_m=(lo[0], lo[1], z),
-                              bounds_max_m=(hi[0], hi[1], z + 2.5)))
-    return SceneSummary(
-        scene=str(d.get("name", "")), bounds_min_m=tuple(d["bounds_min_m"]), bounds_max_m=tuple(d["bounds_max_m"]),
-        floors=int(d.get("floors", 1)), reachable_area_m2=float(d.get("reachable_area_m2", 0.0)),
-        label_names={int(k): str(v) for k, v in d.get("label_names", {}).items()}, rooms=rooms,
-        start_pose=d.get("start_pose"),
-    )
 
 
 def downscale_frame(frame: Frame, max_width_px: int | None) -> Frame:
@@ -82,7 +64,7 @@ def downscale_frame(frame: Frame, max_width_px: int | None) -> Frame:
     return frame.model_copy(update={"rgb": rgb, "depth_m": depth, "semantic": sem, "camera": cam})
 
 
-class RobotIoService(Service):
+class RobotIoService(Service[RobotIoSettings]):
     name = "robot_io"
     Settings = RobotIoSettings
 
@@ -195,7 +177,7 @@ class RobotIoService(Service):
         return GeodesicReply(distance_m=d, path_m=None if path is None else np.asarray(path, np.float64), **off)
 
     def scene(self, _: Ping) -> SceneSummary:
-        return scene_summary(self.robot.scene_info())
+        return self.robot.scene_info()
 
     def _check_scene_path(self, spec: str) -> None:
         """A scene file must lie inside a configured scene directory: the bus must not become a way to
@@ -213,7 +195,7 @@ class RobotIoService(Service):
             raise ValueError(f"scene files are loaded only from the configured scene directories ({len(roots)})")
 
     def load_scene(self, req: LoadSceneRequest) -> SceneSummary:
-        s: RobotIoSettings = self.settings  # type: ignore[assignment]
+        s = self.settings
         if "scene" not in _config_fields(s.robot_backend):
             raise ValueError(f"the {s.robot_backend!r} robot backend cannot load scenes")
         self._check_scene_path(req.scene)
@@ -229,4 +211,4 @@ class RobotIoService(Service):
             old, self.robot = self.robot, robot
             old.close()
         self._publish_pose()
-        return scene_summary(self.robot.scene_info())
+        return self.robot.scene_info()

@@ -19,7 +19,7 @@ from tests.waiting import wait_until
 from deploy.launcher import free_port
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from services.gateway.testing import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
+from tests.doubles.scripted_services import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
 

@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from deploy.launcher import Launcher
-from services.gateway.testing import ScriptedReconstructor
+from tests.doubles.scripted_services import ScriptedReconstructor
 from shared import keys
 from shared.bus.typed import TypedBus
 from shared.bus.zenoh_bus import ZenohBus

@@ -12,7 +12,7 @@ import httpx
 from deploy.launcher import free_port
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from services.gateway.testing import ScriptedRobotIo
+from tests.doubles.scripted_services import ScriptedRobotIo
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.typed import TypedBus
 from tests.unit.gateway.conftest import World

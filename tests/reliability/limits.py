@@ -23,7 +23,7 @@ from tests.reliability.fuzzing import _envelope, _header_of
 
 NUMERIC = (int, float)
 # Published messages that services consume: as untrusted as a request.
-CONSUMED = ("Frame", "MapInfo", "MissionEvent", "TourRecording")
+CONSUMED = ("Frame", "MapInfo", "JobEvent", "TourRecording")
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,7 @@ def samples(map_id: str = "m", panorama: schemas.Panorama | None = None) -> dict
         S.RecordRequest(recording="fuzz-rec", start=False, rate_hz=5.0, max_width_px=64), panorama,
         S.ExplorationRequest(exploration_id="x-fuzz", map_id=map_id, max_steps=5, options={"k": 1.5}),
         S.MapRequest(map_id=map_id, version=1), S.MapChunkRequest(map_id=map_id, version=1, index=0, max_points=1000),
-        S.BuildMapRequest(exploration_id="x-fuzz", map_id="fuzz-build", recordings=[tour], label_names={1: "wall"},
+        S.BuildMapRequest(build_id="b-fuzz", exploration_id="x-fuzz", map_id="fuzz-build", recordings=[tour], label_names={1: "wall"},
                           options={"k": 1.5}),
         S.RenderRequest(map_id=map_id, views=[S.ViewPose(position_m=(1.0, 2.0, 0.0), heading_rad=0.2, pitch_rad=0.1)],
                         camera=cam, camera_height_m=1.2),
@@ -171,25 +171,25 @@ def samples(map_id: str = "m", panorama: schemas.Panorama | None = None) -> dict
                         cache_hits=1)
     metrics = S.EpisodeMetricsData(ne_m=1.0, success=True, oracle_success=True, oracle_ne_m=0.5, tl_m=3.0, spl=0.5,
                                    ndtw=0.5, sdtw=0.5, shortest_m=2.0, stop_called=True, steps=3, goal_reachable=True)
-    R, F = S.MissionState.RUNNING, S.MissionState.SUCCEEDED
-    K = S.MissionEventKind
+    R, F = S.JobState.RUNNING, S.JobState.SUCCEEDED
+    K = S.JobEventKind
     events = {
-        "MissionEvent": (K.STEP, R, S.MissionStep(
+        "JobEvent": (K.STEP, R, S.MissionStep(
             pose=pose, candidates=[cand], usage=usage, timings_s={"policy": 0.1},
             decision=S.Decision(candidate_index=0, kind=S.CandidateKind.WAYPOINT, prompt_tokens=3,
                                 completion_tokens=2, cost_usd=0.01))),
-        "MissionEvent:started": (K.STARTED, R, S.MissionStarted(
+        "JobEvent:started": (K.STARTED, R, S.MissionStarted(
             pose=pose, instruction="go", map_id=map_id, options=out_by_name["MissionRequest"].options)),
-        "MissionEvent:finished": (K.FINISHED, F, S.MissionFinished(
+        "JobEvent:finished": (K.FINISHED, F, S.MissionFinished(
             stop_called=True, steps=3, trajectory_m=[(1.0, 2.0, 0.0)], metrics=metrics, usage=usage,
             step_latency_s=[0.1])),
-        "MissionEvent:progress": (K.PROGRESS, R, S.ExplorationProgress(
+        "JobEvent:progress": (K.PROGRESS, R, S.ExplorationProgress(
             stage="touring", progress=0.5, region=1, frames=3, nodes=4, regions=2, timings_s={"t": 1.0})),
-        "MissionEvent:explored": (K.FINISHED, F, S.ExplorationFinished(
+        "JobEvent:explored": (K.FINISHED, F, S.ExplorationFinished(
             map_id=map_id, version=1, points=5, regions=1, skipped_regions=[2], nodes=3, wall_s=1.0,
             timings_s={"t": 1.0})),
     }
     for name, (kind, state, data) in events.items():
-        out_by_name[name] = S.MissionEvent(mission_id="m-fuzz", seq=0, kind=kind, state=state, step=1,
+        out_by_name[name] = S.JobEvent(job_id="m-fuzz", seq=0, kind=kind, state=state, step=1,
                                            timestamp_s=1.0, data=data)
     return out_by_name

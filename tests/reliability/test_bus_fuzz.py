@@ -70,7 +70,7 @@ def fuzz(system, tally, per_key: int, seed: int, oversized_bytes: int) -> dict[s
     by_cat = {c: sum(1 for _, cat, _ in jobs if cat == c) for c in CATEGORIES}
     # Bad samples on every subscribed publication: dropped by the subscribers, who keep going.
     for i, key in enumerate(SUBSCRIBED):
-        for _cat, payload in bad_payloads("MissionEvent" if "events" in key else "Frame", per_key, 1000 + i,
+        for _cat, payload in bad_payloads("JobEvent" if "events" in key else "Frame", per_key, 1000 + i,
                                           oversized_bytes=oversized_bytes):
             system.bus.publish(key, payload)
             tally.add("bus_samples_fuzzed")

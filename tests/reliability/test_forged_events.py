@@ -12,15 +12,15 @@ import itertools
 
 from services.gateway.records import KIND_STATES, JobKind
 from shared import keys
-from shared.schemas import MissionEvent, MissionEventKind, MissionState
+from shared.schemas import JobEvent, JobEventKind, JobState
 from tests.reliability.live import LIVE_MAP, ROBOT
 from tests.waiting import wait_until
 
-KINDS = list(MissionEventKind)
-STATES = list(MissionState)
+KINDS = list(JobEventKind)
+STATES = list(JobState)
 
 
-def publish(live, kind: str, key_id: str, event: MissionEvent) -> None:
+def publish(live, kind: str, key_id: str, event: JobEvent) -> None:
     key = (keys.MISSION_EVENTS.format(robot=ROBOT, mission=key_id) if kind == "mission"
            else keys.EXPLORATION_EVENTS.format(robot=ROBOT, exploration=key_id))
     live.typed.publish(key, event)
@@ -58,37 +58,37 @@ def test_forged_and_replayed_events_of_every_kind_are_never_accepted(live, live_
         # An exploration the gateway knows, still running (its row as the gateway creates it).
         store.create_job(JobKind.EXPLORATION, "x-live", {"map_id": LIVE_MAP})
         start = handled(ingest)
-        publish(live, "exploration", "x-live", MissionEvent(mission_id="x-live", seq=0, kind=MissionEventKind.STARTED,
-                                                            state=MissionState.RUNNING))
+        publish(live, "exploration", "x-live", JobEvent(job_id="x-live", seq=0, kind=JobEventKind.STARTED,
+                                                            state=JobState.RUNNING))
         settle(ingest, start, 1)
         running = record(client, "exploration", "x-live")
         assert running["state"] == "running" and ingest.stored >= 1
 
-        forged: list[tuple[str, str, MissionEvent]] = []
+        forged: list[tuple[str, str, JobEvent]] = []
         for kind, state in itertools.product(KINDS, STATES):
             # On the finished mission: every kind and state, next seq, step 999.
-            forged.append(("mission", mission, MissionEvent(mission_id=mission, seq=ended["last_seq"] + 1, kind=kind,
+            forged.append(("mission", mission, JobEvent(job_id=mission, seq=ended["last_seq"] + 1, kind=kind,
                                                             state=state, step=999, data={"error": "forged"})))
             # An unknown id, and an event on mission A's key naming B: neither may create a job.
-            forged.append(("mission", "m-unknown", MissionEvent(mission_id="m-unknown", seq=0, kind=kind, state=state)))
-            forged.append(("mission", mission, MissionEvent(mission_id="m-other", seq=0, kind=kind, state=state)))
-            forged.append(("exploration", "x-unknown", MissionEvent(mission_id="x-unknown", seq=0, kind=kind,
+            forged.append(("mission", "m-unknown", JobEvent(job_id="m-unknown", seq=0, kind=kind, state=state)))
+            forged.append(("mission", mission, JobEvent(job_id="m-other", seq=0, kind=kind, state=state)))
+            forged.append(("exploration", "x-unknown", JobEvent(job_id="x-unknown", seq=0, kind=kind,
                                                                     state=state)))
-            forged.append(("exploration", "x-live", MissionEvent(mission_id="x-other", seq=1, kind=kind, state=state)))
+            forged.append(("exploration", "x-live", JobEvent(job_id="x-other", seq=1, kind=kind, state=state)))
             # The mission's id on the exploration key (the wrong kind of job).
-            forged.append(("exploration", mission, MissionEvent(mission_id=mission, seq=99, kind=kind, state=state)))
+            forged.append(("exploration", mission, JobEvent(job_id=mission, seq=99, kind=kind, state=state)))
         # On the running exploration: a kind that contradicts its state.
         for kind, state in itertools.product(KINDS, STATES):
             if state in KIND_STATES[kind]:
                 continue
-            forged.append(("exploration", "x-live", MissionEvent(mission_id="x-live", seq=1, kind=kind, state=state)))
+            forged.append(("exploration", "x-live", JobEvent(job_id="x-live", seq=1, kind=kind, state=state)))
         # Replays: every stored event of the mission again, and altered copies of old seqs.
-        replayed = [("mission", mission, MissionEvent(mission_id=mission, seq=e["seq"], kind=e["kind"], state=e["state"],
+        replayed = [("mission", mission, JobEvent(job_id=mission, seq=e["seq"], kind=e["kind"], state=e["state"],
                                                       step=e["step"], data=e["data"])) for e in history]
-        replayed += [("mission", mission, MissionEvent(mission_id=mission, seq=e["seq"], kind=MissionEventKind.STEP,
-                                                       state=MissionState.RUNNING, step=999)) for e in history]
-        replayed.append(("exploration", "x-live", MissionEvent(mission_id="x-live", seq=0, kind=MissionEventKind.PROGRESS,
-                                                               state=MissionState.RUNNING, step=5)))
+        replayed += [("mission", mission, JobEvent(job_id=mission, seq=e["seq"], kind=JobEventKind.STEP,
+                                                       state=JobState.RUNNING, step=999)) for e in history]
+        replayed.append(("exploration", "x-live", JobEvent(job_id="x-live", seq=0, kind=JobEventKind.PROGRESS,
+                                                               state=JobState.RUNNING, step=5)))
         start = handled(ingest)
         stored_before = ingest.stored
         for kind, key_id, ev in forged + replayed:
@@ -108,11 +108,11 @@ def test_forged_and_replayed_events_of_every_kind_are_never_accepted(live, live_
         assert len(client.get(f"/missions/{mission}/history").json()) == len(history)
         assert {"terminal", "unknown_job", "id_mismatch", "kind_state"} <= set(ingest.rejected)
         # The real next events of the running exploration are still taken, and its end is final.
-        publish(live, "exploration", "x-live", MissionEvent(mission_id="x-live", seq=1, kind=MissionEventKind.FINISHED,
-                                                            state=MissionState.SUCCEEDED))
+        publish(live, "exploration", "x-live", JobEvent(job_id="x-live", seq=1, kind=JobEventKind.FINISHED,
+                                                            state=JobState.SUCCEEDED))
         wait_until(lambda: record(client, "exploration", "x-live")["state"] == "succeeded", 20, "exploration ended")
         start = handled(ingest)
-        publish(live, "exploration", "x-live", MissionEvent(mission_id="x-live", seq=2, kind=MissionEventKind.STEP,
-                                                            state=MissionState.RUNNING, step=3))
+        publish(live, "exploration", "x-live", JobEvent(job_id="x-live", seq=2, kind=JobEventKind.STEP,
+                                                            state=JobState.RUNNING, step=3))
         settle(ingest, start, 1)
         assert record(client, "exploration", "x-live")["state"] == "succeeded"

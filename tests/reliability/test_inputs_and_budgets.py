@@ -14,7 +14,7 @@ from services.gateway.errors import remote_status
 from shared import keys
 from shared.bus.typed import RemoteError
 from shared.schemas import (
-    BuildMapRequest, CameraIntrinsics, ErrorCode, MapChunk, MapChunkRequest, MapInfo, ObserveRequest, Panorama,
+    BuildMapRequest, CameraIntrinsics, ErrorCode, JobAccepted, MapChunk, MapChunkRequest, MapInfo, ObserveRequest, Panorama,
     RenderRequest, RenderResult, TourRecording, ViewPose,
 )
 from tests.reliability.live import LIVE_MAP, ROBOT
@@ -76,7 +76,8 @@ def budget_cases(live):
         ("map chunk points", keys.MAP_CHUNK.format(map=LIVE_MAP),
          MapChunkRequest(map_id=LIVE_MAP, max_points=10_000_000), MapChunk),
         ("build frames", keys.MAP_BUILD.format(map="budget-build"),
-         BuildMapRequest(exploration_id="x", map_id="budget-build", recordings=[tour, tour]), MapInfo),
+         BuildMapRequest(build_id="b-budget", exploration_id="x", map_id="budget-build", recordings=[tour, tour]),
+         JobAccepted),
     ]
 
 

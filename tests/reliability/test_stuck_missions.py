@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from shared.schemas import MissionState
+from shared.schemas import JobState
 from tests.reliability.live import LIVE_MAP
 from tests.waiting import wait_until
 
@@ -65,7 +65,7 @@ def test_cancelling_an_orphan_succeeds_and_a_second_cancel_says_already_cancelle
         live.start("planner")
         r = client.post(f"/missions/{mission}/cancel")
         assert r.status_code == 202, r.text
-        assert r.json()["state"] == MissionState.CANCELLED.value
+        assert r.json()["state"] == JobState.CANCELLED.value
         rec = client.get(f"/missions/{mission}").json()
         assert rec["state"] == "cancelled" and rec["step"] >= 1
         again = client.post(f"/missions/{mission}/cancel")

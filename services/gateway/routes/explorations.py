@@ -18,7 +18,7 @@ from services.gateway.routes.missions import (
 )
 from services.gateway.store import JobRow
 from shared import keys
-from shared.schemas import ExplorationRequest, MissionAccepted, MissionState
+from shared.schemas import ExplorationRequest, JobAccepted, JobState
 
 router = APIRouter(prefix="/explorations", tags=["explorations"])
 JobId = Annotated[str, Path(pattern=SEGMENT, description="exploration id")]
@@ -65,15 +65,15 @@ def submit(body: ExplorationCreate, http_request: Request, bus: BusDep, store: S
               lambda: bus.request(keys.MAPPER_EXPLORE.format(robot=settings.robot),
                                   ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
                                                      reconstruction=body.reconstruction, options=body.options),
-                                  MissionAccepted, timeout_s=settings.request_timeout_s))
+                                  JobAccepted, timeout_s=settings.request_timeout_s))
     response.headers["Location"] = f"/explorations/{job_id}"
-    return JobCreated(id=job_id, state=MissionState.QUEUED, url=f"/explorations/{job_id}",
+    return JobCreated(id=job_id, state=JobState.QUEUED, url=f"/explorations/{job_id}",
                       events_url=f"/explorations/{job_id}/events")
 
 
 @router.get("", response_model=ExplorationPage)
 async def list_explorations(store: StoreDep,
-                      state: Annotated[list[MissionState] | None, Query()] = None,
+                      state: Annotated[list[JobState] | None, Query()] = None,
                       limit: Annotated[int, Query(ge=1, le=500)] = 50,
                       offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> ExplorationPage:
     """Explorations, newest first."""

@@ -24,8 +24,8 @@ from services.gateway.store import JobRow
 from shared import keys
 from shared.bus.typed import NoReplyError, RemoteError
 from shared.schemas import (
-    CancelRequest, ErrorCode, GeodesicReply, GeodesicRequest, Instruction, MapInfo, MapRequest, MissionAccepted,
-    MissionOptions, MissionRequest, MissionState,
+    CancelRequest, ErrorCode, GeodesicReply, GeodesicRequest, Instruction, MapInfo, MapRequest, JobAccepted,
+    MissionOptions, MissionRequest, JobState,
 )
 
 log = logging.getLogger(__name__)
@@ -81,7 +81,7 @@ def _get(store, job_id: str) -> JobRow:
 
 
 def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_request: Request, noun: str,
-              service: str, send: Callable[[], MissionAccepted]) -> None:
+              service: str, send: Callable[[], JobAccepted]) -> None:
     """Create the job's row, then hand the job to its service (``send``).
 
     The row exists before the service hears of the job, so its first event has a home; it is
@@ -153,16 +153,16 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
               lambda: bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
                                   MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
                                                  options=body.options),
-                                  MissionAccepted, timeout_s=settings.request_timeout_s))
+                                  JobAccepted, timeout_s=settings.request_timeout_s))
     url, events_url = _links(job_id)
     response.headers["Location"] = url
     row = store.get_job(job_id)
-    return JobCreated(id=job_id, state=row.state if row else MissionState.QUEUED, url=url, events_url=events_url)
+    return JobCreated(id=job_id, state=row.state if row else JobState.QUEUED, url=url, events_url=events_url)
 
 
 @router.get("", response_model=MissionPage)
 async def list_missions(store: StoreDep,
-                  state: Annotated[list[MissionState] | None, Query(description="keep these states")] = None,
+                  state: Annotated[list[JobState] | None, Query(description="keep these states")] = None,
                   limit: Annotated[int, Query(ge=1, le=500)] = 50,
                   offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> MissionPage:
     """Missions, newest first, paged and filterable by state (``?state=running&state=queued``)."""
@@ -192,14 +192,14 @@ def cancel(mission_id: JobId, request: Request, bus: BusDep, store: StoreDep, se
     """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream. A mission no
     live planner runs (an orphan: its planner died or restarted) is cancelled here at once."""
     row = _get(store, mission_id)
-    if row.state == MissionState.CANCELLED:
+    if row.state == JobState.CANCELLED:
         raise GatewayError(f"mission {mission_id!r} is already cancelled", 409)
     if row.terminal:
         raise GatewayError(f"mission {mission_id!r} has already ended ({row.state.value})", 409)
     # Every planner is asked: with replicas, the one zenoh would pick need not be the one running it.
     answers = bus.request_all(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
-                              MissionAccepted, timeout_s=settings.request_timeout_s)
-    if not any(isinstance(a, MissionAccepted) and a.accepted for a in answers):
+                              JobAccepted, timeout_s=settings.request_timeout_s)
+    if not any(isinstance(a, JobAccepted) and a.accepted for a in answers):
         failures = [a for a in answers if isinstance(a, RemoteError) and a.code != ErrorCode.NOT_FOUND]
         if failures and len(failures) == len(answers):
             raise GatewayError(remote_detail(failures[0], "cannot cancel"), remote_status(failures[0]))
@@ -207,7 +207,7 @@ def cancel(mission_id: JobId, request: Request, bus: BusDep, store: StoreDep, se
         # finish, so it ends here, cancelled as asked.
         why = "no planner answered" if not answers else "no planner runs it any more"
         request.app.state.reaper.fail(JobKind.MISSION, mission_id, f"cancelled on request; {why}",
-                                      state=MissionState.CANCELLED)
+                                      state=JobState.CANCELLED)
     url, events_url = _links(mission_id)
     row = _get(store, mission_id)
     return JobCreated(id=mission_id, state=row.state, url=url, events_url=events_url)

@@ -21,12 +21,12 @@ from services.gateway.records import JobKind
 from services.gateway.store import GatewayStore
 from shared import keys
 from shared.bus.typed import RemoteError
-from shared.schemas import LoadSceneRequest, MissionState, Ping, SceneSummary
+from shared.schemas import LoadSceneRequest, JobState, Ping, SceneSummary
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/robot", tags=["robot"])
 
-OPEN_STATES = [MissionState.QUEUED, MissionState.RUNNING]
+OPEN_STATES = [JobState.QUEUED, JobState.RUNNING]
 
 
 class SceneLoad(BaseModel):

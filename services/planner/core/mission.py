@@ -20,10 +20,12 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from shared.jobs import Cancelled, JobContext, JobEnd
 from shared.vln_metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
-    CameraIntrinsics, Candidate, CandidateKind, Decision, MissionEventKind, MissionOptions, MissionStarted,
-    MissionState, MissionStep, MoveResult, Panorama, Pose, RenderResult, SpatialMapResult, UsageData, ViewPose,
+    CameraIntrinsics, Candidate, CandidateKind, Decision, JobEventKind, JobState, MapInfo, MissionFinished,
+    MissionOptions, MissionRequest, MissionStarted, MissionStep, MoveResult, Panorama, Pose, RenderResult,
+    SpatialMapResult, UsageData, ViewPose,
 )
 
 from .context import Ablation, OracleInfo, StepContext, build_candidate_views, with_stop_and_backtrack
@@ -56,13 +58,13 @@ class RendererPort(Protocol):
 Emit = Callable[..., Any]
 
 
-class MissionCancelled(Exception):
-    pass
+class MissionCancelled(Cancelled):
+    """The mission's cancel was requested (the job runner ends it cancelled, at the step reached)."""
 
 
 @dataclass
 class MissionOutcome:
-    state: MissionState
+    state: JobState
     stop_called: bool
     steps: int
     trajectory_m: np.ndarray
@@ -128,7 +130,7 @@ class MissionLoop:
         stop_called = False
         step = 0
         boxed_in_at: int | None = None  # last step at which stop was the only action left
-        self.emit(MissionEventKind.STARTED, MissionState.RUNNING, step=0,
+        self.emit(JobEventKind.STARTED, JobState.RUNNING, step=0,
                   data=MissionStarted(pose=pano.pose, instruction=instruction, map_id=map_id, options=opts))
         for step in range(opts.max_steps):
             if self.cancel.is_set():
@@ -194,7 +196,7 @@ class MissionLoop:
             t_obs = time.perf_counter()
             pano = self.robot.observe()
             observe_s = time.perf_counter() - t_obs
-        state = MissionState.SUCCEEDED if stop_called else MissionState.FAILED
+        state = JobState.SUCCEEDED if stop_called else JobState.FAILED
         reason = "" if stop_called else f"step budget of {opts.max_steps} exhausted without a stop"
         if stop_called and boxed_in_at == len(decisions) - 1:
             # The policy had no other choice: say so, the stop is not a judgement that the goal is here.
@@ -221,7 +223,7 @@ class MissionLoop:
                     images[f"cand_{v.index}_observed"] = self.jpeg(_thumb(v.observed_rgb, self.thumb_px))
                 if v.anticipated_rgb is not None:
                     images[f"cand_{v.index}_anticipated"] = self.jpeg(_thumb(v.anticipated_rgb, self.thumb_px))
-        self.emit(MissionEventKind.STEP, MissionState.RUNNING, step=step, images=images, data=MissionStep(
+        self.emit(JobEventKind.STEP, JobState.RUNNING, step=step, images=images, data=MissionStep(
             pose=pano.pose, candidates=[v.candidate for v in ctx.candidates], decision=decision,
             timings_s={k: round(v, 4) for k, v in timings.items()}, usage=UsageData(**self.policy.usage.to_dict()),
         ))
@@ -231,3 +233,29 @@ def _towards(pose: Pose, target_m) -> Candidate:
     """A candidate from ``pose`` to the floor point ``target_m`` (for the blocked-move check)."""
     return Candidate(index=0, kind=CandidateKind.BACKTRACK, dx_m=float(target_m[0]) - pose.position_m[0],
                      dy_m=float(target_m[1]) - pose.position_m[1])
+
+
+class MapInfoPort(Protocol):
+    def info(self, map_id: str, version: int | None = None) -> MapInfo: ...
+
+
+def run_mission(ctx: JobContext, req: MissionRequest, *, robot: RobotPort, predictor: PredictorPort,
+                renderer: RendererPort | None, maps: MapInfoPort, policy: Policy,
+                jpeg: Callable[[np.ndarray], bytes] | None = None) -> JobEnd:
+    """The mission job (a body for :class:`shared.jobs.JobRunner`): the loop, then its typed end.
+
+    A failed mission (step budget exhausted) carries its cause as the error; a stop with a caveat (boxed
+    in) as the reason."""
+    info = maps.info(req.map_id)
+    loop = MissionLoop(robot=robot, predictor=predictor, renderer=renderer, policy=policy,
+                       emit=lambda kind, state, *, step=0, data=None, images=None:
+                       ctx.emit(kind, data, step=step, images=images),
+                       cancel=ctx.cancel, label_names=info.label_names, jpeg=jpeg)
+    out = loop.run(req.mission_id, req.instruction, req.map_id, req.options)
+    failed = out.state == JobState.FAILED
+    return JobEnd(out.state, MissionFinished(
+        stop_called=out.stop_called, steps=out.steps, trajectory_m=[tuple(p) for p in out.trajectory_m.tolist()],
+        metrics=out.metrics, usage=UsageData(**policy.usage.to_dict()),
+        step_latency_s=[round(x, 4) for x in out.step_latency_s],
+        reason="" if failed else out.reason, error=out.reason if failed else ""), step=out.steps)
+

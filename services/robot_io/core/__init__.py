@@ -28,7 +28,7 @@ from .errors import (
     SceneNotFoundError,
 )
 from .house import HouseSpec, generate_house
-from .info import ObjectInfo, RoomInfo, SceneInfo
+from .info import describe_scene
 from .navgrid import AgentShape, NavGrid
 from .render import Intrinsics, RenderOutput, SceneRenderer
 from .robot import ROBOTS, Robot, SimConfig, SimRobot
@@ -37,8 +37,8 @@ from .sensors import SensorNoiseConfig
 
 __all__ = [
     "ROBOTS", "AgentShape", "Episode", "EpisodeDataset", "EpisodeFormatError", "EpisodeGenerationError",
-    "GroundTruth", "HouseSpec", "Intrinsics", "NavGrid", "NavigationError", "NoWalkableAreaError", "ObjectInfo", "PoseOffGroundError", "RenderOutput", "Robot",
-    "RobotIOError", "Room", "RoomInfo", "Scene", "SceneError", "SceneFormatError", "SceneInfo", "SceneNotFoundError",
+    "GroundTruth", "HouseSpec", "Intrinsics", "NavGrid", "NavigationError", "NoWalkableAreaError", "PoseOffGroundError", "RenderOutput", "Robot",
+    "RobotIOError", "Room", "Scene", "SceneError", "SceneFormatError", "describe_scene", "SceneNotFoundError",
     "SceneObject", "SceneRenderer", "SensorNoiseConfig", "SimConfig", "SimRobot", "follow_path", "generate_episodes",
     "generate_house", "ground_truth_for", "load_scene", "read_episodes", "read_ground_truth", "write_episodes",
     "write_ground_truth",

@@ -43,10 +43,10 @@ from pydantic import Field, field_validator
 
 from shared.geometry import panorama_headings, wrap_angle
 from shared.registry import BackendConfig, Registry
-from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose
+from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
 from .errors import NoWalkableAreaError, PoseOffGroundError, RobotIOError
-from .info import SceneInfo
+from .info import describe_scene
 from .navgrid import AgentShape, NavGrid
 from .render import SceneRenderer
 from .scene import Scene, load_scene
@@ -91,7 +91,7 @@ class Robot(ABC):
         """Place the agent at ``pose`` (snapped to walkable ground) or the scene's start pose."""
 
     @abstractmethod
-    def scene_info(self) -> SceneInfo:
+    def scene_info(self) -> SceneSummary:
         """What the robot knows about its world: name, bounds, rooms, objects, labels, walkable area."""
 
     @abstractmethod
@@ -209,8 +209,8 @@ class SimRobot(Robot):
         """Simulated time (s) since creation; advances with motion."""
         return self._clock_s
 
-    def scene_info(self) -> SceneInfo:
-        return SceneInfo.from_scene(self.scene, self.nav)
+    def scene_info(self) -> SceneSummary:
+        return describe_scene(self.scene, self.nav)
 
     def reset(self, pose: Pose | None = None) -> Pose:
         if pose is None:

@@ -9,10 +9,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from evaluation.gateway_client import GatewayClient
-from evaluation.testing import ScriptedNavPlanner, ScriptedRobotIo
+from tests.doubles.scripted_eval import ScriptedNavPlanner, ScriptedRobotIo
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from services.gateway.testing import ScriptedMapper, ScriptedReconstructor
+from tests.doubles.scripted_services import ScriptedMapper, ScriptedReconstructor
 from services.robot_io.core import Episode, Scene
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.typed import TypedBus

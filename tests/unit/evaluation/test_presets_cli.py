@@ -11,7 +11,7 @@ from tests.unit.evaluation.conftest import box_scene
 from evaluation.cli import build_parser, main, run_config
 from evaluation.errors import ConfigError
 from evaluation.presets import presets, run_preset
-from evaluation.runner import MapCache, MapSource, RunConfig
+from evaluation.runner import SceneMapIndex, MapSource, RunConfig
 
 
 def test_presets_mirror_the_paper(monkeypatch):
@@ -30,7 +30,7 @@ def test_presets_mirror_the_paper(monkeypatch):
 def test_hfov_preset_runs_every_variant_and_writes_table_and_plot(world, gateway, episodes, tmp_path):
     with gateway() as gw:
         rep = run_preset("hfov", episodes, None, RunConfig(poll_s=0.01), tmp_path, gw, world.robot,
-                         map_cache=MapCache(tmp_path / "maps.json"), progress=False)
+                         map_cache=SceneMapIndex(tmp_path / "maps.json"), progress=False)
     hfovs = sorted({r.options.anticipation_hfov_deg for r in world.planner.requests})
     assert hfovs == [60.0, 90.0, 120.0] and len(world.planner.requests) == 3 * 4
     assert len(world.reconstructor.maps) == 2  # maps shared by the variants

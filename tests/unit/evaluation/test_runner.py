@@ -12,7 +12,7 @@ from tests.unit.evaluation.conftest import box_scene, make_episode
 from evaluation.errors import ConfigError, SceneSwitchError
 from shared.vln_metrics import episode_metrics, euclidean_geodesic
 from evaluation.results import ResultsLog
-from evaluation.runner import EvalRunner, MapCache, MapSource, RunConfig, episode_seed, group_by_scene, map_id_for
+from evaluation.runner import EvalRunner, SceneMapIndex, MapSource, RunConfig, episode_seed, group_by_scene, map_id_for
 from services.robot_io.core import GroundTruth
 
 FAST = {"poll_s": 0.01}
@@ -136,7 +136,7 @@ def test_errors_are_recorded_and_retried_on_resume(world, gateway, tmp_path):
 
 
 def test_maps_are_built_once_per_scene_and_source_and_reused(world, gateway, episodes, tmp_path):
-    cache = MapCache(tmp_path / "maps.json")
+    cache = SceneMapIndex(tmp_path / "maps.json")
     with gateway() as gw:
         for source, out in (("reconstructed", "a"), ("curated", "b"), ("curated", "c")):
             EvalRunner(gw, world.robot, RunConfig(map_source=source, **FAST), tmp_path / out, map_cache=cache,

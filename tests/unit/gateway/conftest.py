@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from services.gateway.testing import ScriptedGround, ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
+from tests.doubles.scripted_services import ScriptedGround, ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.typed import TypedBus
 

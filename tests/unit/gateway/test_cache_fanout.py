@@ -15,17 +15,17 @@ from services.gateway.routes.explorations import exploration_record
 from services.gateway.routes.missions import mission_record
 from services.gateway.store import GatewayStore
 from shared.schemas import (
-    CandidateKind, Decision, MissionEvent, MissionEventKind, MissionFinished, MissionState, MissionStep, Pose,
+    CandidateKind, Decision, JobEvent, JobEventKind, MissionFinished, JobState, MissionStep, Pose,
 )
 from tests.unit.gateway.conftest import World, wait_state
 from tests.unit.gateway.test_missions import sse_events, submit
 
 
-def _event(job: str, seq: int, state=MissionState.RUNNING) -> MissionEvent:
-    if state == MissionState.SUCCEEDED:
-        return MissionEvent(mission_id=job, seq=seq, kind=MissionEventKind.FINISHED, state=state, step=seq,
+def _event(job: str, seq: int, state=JobState.RUNNING) -> JobEvent:
+    if state == JobState.SUCCEEDED:
+        return JobEvent(job_id=job, seq=seq, kind=JobEventKind.FINISHED, state=state, step=seq,
                             data=MissionFinished(stop_called=True, steps=seq))
-    return MissionEvent(mission_id=job, seq=seq, kind=MissionEventKind.STEP, state=state, step=seq,
+    return JobEvent(job_id=job, seq=seq, kind=JobEventKind.STEP, state=state, step=seq,
                         data=MissionStep(pose=Pose(position_m=(float(seq), 0.0, 0.0)), candidates=[],
                                          decision=Decision(candidate_index=0, kind=CandidateKind.WAYPOINT)))
 
@@ -87,7 +87,7 @@ def test_cache_follows_every_kind_of_write(store):
     store.append_event(JobKind.MISSION, _event("m1", 0))
     e1 = cache.get("m1", JobKind.MISSION, mission_record)
     assert e1.etag != e0.etag and json.loads(e1.body)["last_seq"] == 0
-    store.mark("m1", MissionState.FAILED, "lost")
+    store.mark("m1", JobState.FAILED, "lost")
     e2 = cache.get("m1", JobKind.MISSION, mission_record)
     assert json.loads(e2.body)["state"] == "failed" and json.loads(e2.body)["error"] == "lost"
     assert store.append_event(JobKind.MISSION, _event("m1", 0)) is None  # a duplicate changes nothing
@@ -107,12 +107,12 @@ def test_jobs_written_by_an_earlier_process_are_adopted(tmp_path):
         old.append_event(JobKind.MISSION, _event("m1", 0))
     with GatewayStore(tmp_path / "gw.sqlite3") as store:
         assert store.revision("m1") is None
-        assert store.job_progress("m1") == (MissionState.RUNNING, 0)
+        assert store.job_progress("m1") == (JobState.RUNNING, 0)
         rev = store.revision("m1")
         row, rev2 = store.get_job_revision("m1")
         assert rev is not None and rev2 == rev and row.last_seq == 0
-        store.append_event(JobKind.MISSION, _event("m1", 1, MissionState.SUCCEEDED))
-        assert store.revision("m1") > rev and store.job_progress("m1") == (MissionState.SUCCEEDED, 1)
+        store.append_event(JobKind.MISSION, _event("m1", 1, JobState.SUCCEEDED))
+        assert store.revision("m1") > rev and store.job_progress("m1") == (JobState.SUCCEEDED, 1)
         assert store.job_progress("nope") is None
 
 
@@ -124,7 +124,7 @@ def test_etag_matching():
 
 def test_spliced_event_json_equals_the_plain_encoding(store):
     store.create_job(JobKind.MISSION, "m1", {})
-    ev = MissionEvent(mission_id="m1", seq=0, kind=MissionEventKind.STEP, state=MissionState.RUNNING, step=1,
+    ev = JobEvent(job_id="m1", seq=0, kind=JobEventKind.STEP, state=JobState.RUNNING, step=1,
                       data=MissionStep(pose=Pose(position_m=(0.0, 0.0, 0.0)), candidates=[], decision=Decision(
                           candidate_index=0, kind=CandidateKind.WAYPOINT, reasoning='say "hi" \u00e9')),
                       images={"panorama": b"\xff\xd8jpeg"})
@@ -173,8 +173,8 @@ def test_live_streams_share_frames_and_do_not_read_the_db(store, monkeypatch):
         await asyncio.sleep(0.05)
         assert len(reads) == 20  # each replayed event 0 from the database ...
         for seq in range(1, 6):
-            stored = store.append_event(JobKind.MISSION, _event("m1", seq, MissionState.SUCCEEDED if seq == 5
-                                                                 else MissionState.RUNNING))
+            stored = store.append_event(JobKind.MISSION, _event("m1", seq, JobState.SUCCEEDED if seq == 5
+                                                                 else JobState.RUNNING))
             hub.publish("m1", seq, sse_frame(JobKind.MISSION, stored))
             await asyncio.sleep(0.01)
         results = await asyncio.wait_for(asyncio.gather(*streams), 5.0)
@@ -195,8 +195,8 @@ def test_a_stream_behind_the_hub_reads_the_db_and_misses_nothing(store):
     async def run():
         hub = EventHub(asyncio.get_running_loop(), tail_frames=2)
         for seq in range(6):
-            stored = store.append_event(JobKind.MISSION, _event("m1", seq, MissionState.SUCCEEDED if seq == 5
-                                                                 else MissionState.RUNNING))
+            stored = store.append_event(JobKind.MISSION, _event("m1", seq, JobState.SUCCEEDED if seq == 5
+                                                                 else JobState.RUNNING))
             hub.publish("m1", seq, sse_frame(JobKind.MISSION, stored))
         await asyncio.sleep(0)
         out = [f async for f in sse_stream(store, hub, JobKind.MISSION, "m1", 0, keepalive_s=1.0, batch=2)]

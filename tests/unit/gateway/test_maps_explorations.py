@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from services.gateway.testing import ply_bytes
+from tests.doubles.scripted_services import ply_bytes
 from tests.waiting import wait_until
 
 

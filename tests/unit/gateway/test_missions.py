@@ -149,12 +149,12 @@ def test_events_of_a_mission_the_gateway_did_not_submit_create_nothing(world, ga
     # Issue 15: an event for an unknown id used to create a mission. Events never create jobs: the
     # gateway creates a job's row before its service hears of it, so only forgeries lack one.
     from shared import keys
-    from shared.schemas import MissionRequest, MissionAccepted
+    from shared.schemas import MissionRequest, JobAccepted
 
     with gateway() as client:
         reply = world.planner.bus.request(keys.MISSION_SUBMIT.format(robot="robot0"),
                                           MissionRequest(mission_id="m-direct", instruction="go", map_id="house"),
-                                          MissionAccepted)
+                                          JobAccepted)
         assert reply.accepted
         ingest = client.app.state.ingest
         wait_until(lambda: ingest.rejected["unknown_job"] >= 5, 10, "the mission's events refused")

@@ -14,18 +14,18 @@ from services.gateway.store import GatewayStore
 from shared.bus.typed import NoReplyError, TypedBus
 from shared.events import EventStream
 from shared.schemas import (
-    Candidate, CandidateKind, Decision, EpisodeMetricsData, JobCancelled, JobFailed, MissionEvent, MissionEventKind,
-    MissionFinished, MissionStarted, MissionState, MissionStep, MissionOptions, Pose, Ping,
+    Candidate, CandidateKind, Decision, EpisodeMetricsData, JobCancelled, JobFailed, JobEvent, JobEventKind,
+    MissionFinished, MissionStarted, JobState, MissionStep, MissionOptions, Pose, Ping,
 )
 
 POSE = Pose(position_m=(1.0, 1.0, 0.0))
-K, S = MissionEventKind, MissionState
+K, S = JobEventKind, JobState
 
 
-def step(seq: int, kinds: list[CandidateKind]) -> MissionEvent:
+def step(seq: int, kinds: list[CandidateKind]) -> JobEvent:
     cands = [Candidate(index=i, kind=k, dx_m=0.5 if k == CandidateKind.WAYPOINT else 0.0) for i, k in enumerate(kinds)]
     stop = next(i for i, k in enumerate(kinds) if k == CandidateKind.STOP)
-    return MissionEvent(mission_id="m1", seq=seq, kind=K.STEP, state=S.RUNNING, step=seq, data=MissionStep(
+    return JobEvent(job_id="m1", seq=seq, kind=K.STEP, state=S.RUNNING, step=seq, data=MissionStep(
         pose=POSE, candidates=cands, decision=Decision(candidate_index=stop, kind=CandidateKind.STOP)))
 
 
@@ -59,14 +59,14 @@ CASES = [
 def test_how_a_mission_ended_is_apart_from_success(tmp_path, events, state, outcome, success):
     with GatewayStore(tmp_path / "gw.sqlite3") as store:
         store.create_job(JobKind.MISSION, "m1", {"instruction": "go", "map_id": "h"})
-        store.append_event(JobKind.MISSION, MissionEvent(mission_id="m1", seq=0, kind=K.STARTED, state=S.RUNNING,
+        store.append_event(JobKind.MISSION, JobEvent(job_id="m1", seq=0, kind=K.STARTED, state=S.RUNNING,
                                                          data=MissionStarted(pose=POSE, instruction="go", map_id="h",
                                                                              options=MissionOptions())))
         seq = 1
         for ev in events:
             if isinstance(ev, tuple):
                 kind, st, data = ev
-                ev = MissionEvent(mission_id="m1", seq=seq, kind=kind, state=st, step=seq, data=data)
+                ev = JobEvent(job_id="m1", seq=seq, kind=kind, state=st, step=seq, data=data)
             store.append_event(JobKind.MISSION, ev)
             seq += 1
         rec = mission_record(store.get_job("m1"))
@@ -76,7 +76,7 @@ def test_how_a_mission_ended_is_apart_from_success(tmp_path, events, state, outc
 def test_a_job_ended_by_the_gateway_gets_the_outcome_its_state_implies(tmp_path):
     with GatewayStore(tmp_path / "gw.sqlite3") as store:
         store.create_job(JobKind.MISSION, "m1", {})
-        store.mark("m1", MissionState.CANCELLED)
+        store.mark("m1", JobState.CANCELLED)
         assert mission_record(store.get_job("m1")).outcome == MissionOutcome.CANCELLED
         assert mission_record(store.get_job("m1")).success is None
 

@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from services.gateway.testing import ScriptedRobotIo
+from tests.doubles.scripted_services import ScriptedRobotIo
 from shared.bus import FakeBus
 from shared.bus.typed import TypedBus
 from tests.unit.gateway.conftest import World, wait_state
@@ -88,7 +88,7 @@ def test_409_while_a_mission_runs_then_allowed_once_it_ended(net, robot_io, gate
 
 
 def test_409_while_an_exploration_runs(net, robot_io, gateway):
-    from services.gateway.testing import ScriptedMapper
+    from tests.doubles.scripted_services import ScriptedMapper
 
     bus = FakeBus(net)
     mapper = ScriptedMapper(TypedBus(bus, "slow-mapper"), stages=3, stage_interval_s=0.5)

@@ -15,7 +15,7 @@ from services.planner.core.mission import MissionLoop, MissionOutcome
 from services.planner.core.policy import Policy
 from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
-from shared.schemas import CandidateKind, MissionEventKind, MissionOptions, MissionState, MoveResult, MoveStatus
+from shared.schemas import CandidateKind, JobEventKind, MissionOptions, JobState, MoveResult, MoveStatus
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -84,10 +84,10 @@ def test_zero_candidates_from_the_start_offers_only_stop_and_ends_with_a_reason(
     policy = Scripted()
     out, events = _run(world, NoCandidates(), policy)
     assert policy.offered == [[CandidateKind.STOP]]  # no previous node: no backtrack either
-    assert out.state == MissionState.SUCCEEDED and out.stop_called and out.steps == 1
+    assert out.state == JobState.SUCCEEDED and out.stop_called and out.steps == 1
     assert "boxed in" in out.reason and "step 0" in out.reason
     assert out.trajectory_m.shape == (1, 3)
-    assert [e[0] for e in events.items] == [MissionEventKind.STARTED, MissionEventKind.STEP]
+    assert [e[0] for e in events.items] == [JobEventKind.STARTED, JobEventKind.STEP]
 
 
 def test_zero_candidates_after_a_move_offers_backtrack_then_stop(world):
@@ -96,7 +96,7 @@ def test_zero_candidates_after_a_move_offers_backtrack_then_stop(world):
     assert policy.offered[0][0] == CandidateKind.WAYPOINT
     assert policy.offered[1] == [CandidateKind.BACKTRACK, CandidateKind.STOP]
     assert policy.offered[2] == [CandidateKind.STOP]
-    assert out.state == MissionState.SUCCEEDED and out.steps == 3 and "boxed in" in out.reason
+    assert out.state == JobState.SUCCEEDED and out.steps == 3 and "boxed in" in out.reason
     # Backtrack went back to the start node.
     assert np.linalg.norm(out.trajectory_m[-1, :2] - out.trajectory_m[0, :2]) < 0.3
     assert np.linalg.norm(out.trajectory_m[1, :2] - out.trajectory_m[0, :2]) > 0.3
@@ -133,7 +133,7 @@ def test_a_free_stop_has_no_reason(world):
             return self._decision(ctx, ctx.stop_candidate.index, "here")
 
     out, _ = _run(world, PREDICTORS.create("geometric"), StopNow())
-    assert out.stop_called and out.reason == "" and out.state == MissionState.SUCCEEDED
+    assert out.stop_called and out.reason == "" and out.state == JobState.SUCCEEDED
 
 
 def test_step_budget_without_stop_fails_with_a_reason(world):
@@ -143,7 +143,7 @@ def test_step_budget_without_stop_fails_with_a_reason(world):
             return self._decision(ctx, (movable or ctx.candidates)[0].index, "on")
 
     out, _ = _run(world, PREDICTORS.create("geometric"), NeverStop(), max_steps=2)
-    assert out.state == MissionState.FAILED and not out.stop_called and "budget of 2" in out.reason
+    assert out.state == JobState.FAILED and not out.stop_called and "budget of 2" in out.reason
 
 
 # --- an LLM that times out or answers garbage ---------------------------------------------------------------
@@ -160,12 +160,12 @@ def test_llm_timeout_falls_back_to_the_heuristic_every_step_and_the_mission_comp
     with FakeChatServer([("sleep", 1.0)] * steps * 2) as srv, _openai(srv.url, timeout_s=0.25) as policy:
         out, events = _run(world, PREDICTORS.create("geometric"), policy, max_steps=steps)
         usage = policy.usage
-    assert out.state in (MissionState.SUCCEEDED, MissionState.FAILED) and 1 <= out.steps <= steps
+    assert out.state in (JobState.SUCCEEDED, JobState.FAILED) and 1 <= out.steps <= steps
     assert all(d.fallback and "fallback (heuristic)" in d.reasoning and "Timeout" in d.reasoning
                for d in out.decisions)
     assert usage.fallbacks == out.steps and usage.reasks == 0
     assert len(srv.requests) == out.steps  # retries=0: one try per step, no re-ask after a timeout
-    step_events = [kw for kind, _, kw in events.items if kind == MissionEventKind.STEP]
+    step_events = [kw for kind, _, kw in events.items if kind == JobEventKind.STEP]
     assert [e["data"].usage.fallbacks for e in step_events] == list(range(1, out.steps + 1))
 
 
@@ -183,7 +183,7 @@ def test_llm_garbage_is_reasked_once_then_falls_back_and_the_mission_completes(w
     with FakeChatServer(script) as srv, _openai(srv.url) as policy:
         out, events = _run(world, PREDICTORS.create("geometric"), policy, max_steps=steps)
         usage = policy.usage
-    assert out.state in (MissionState.SUCCEEDED, MissionState.FAILED) and 1 <= out.steps <= steps
+    assert out.state in (JobState.SUCCEEDED, JobState.FAILED) and 1 <= out.steps <= steps
     assert all(d.fallback and "fallback (heuristic)" in d.reasoning for d in out.decisions)
     # Each step paid for the answer and its one re-ask.
     assert usage.reasks == out.steps and usage.calls == 2 * out.steps and usage.fallbacks == out.steps
@@ -191,5 +191,5 @@ def test_llm_garbage_is_reasked_once_then_falls_back_and_the_mission_completes(w
     assert len(srv.requests) == 2 * out.steps
     reask = srv.requests[1]["messages"]
     assert reask[-2] == {"role": "assistant", "content": "I would go left, probably."}
-    last = [kw for kind, _, kw in events.items if kind == MissionEventKind.STEP][-1]
+    last = [kw for kind, _, kw in events.items if kind == JobEventKind.STEP][-1]
     assert last["data"].usage.reasks == out.steps

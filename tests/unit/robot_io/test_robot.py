@@ -171,10 +171,10 @@ def test_registry_and_missing_scene(tmp_path):
 def test_scene_info_is_typed_and_json_friendly(two_floor_robot):
     import json
 
-    from services.robot_io.core.info import SceneInfo
+    from shared.schemas import SceneSummary
 
     info = two_floor_robot.scene_info()
-    assert isinstance(info, SceneInfo)
+    assert isinstance(info, SceneSummary)
     scene = two_floor_robot.scene
     assert info.floors == 2 and info.triangle_count == len(scene.triangles)
     assert [r.name for r in info.rooms] == [r.name for r in scene.rooms]
@@ -187,4 +187,11 @@ def test_scene_info_is_typed_and_json_friendly(two_floor_robot):
     dumped = info.model_dump()
     assert dumped["rooms"][0]["room_type"] and dumped["start_pose"]["position_m"] == scene.start_pose.position_m
     text = json.dumps(info.model_dump(mode="json"))
-    assert SceneInfo.model_validate_json(text) == info
+    assert SceneSummary.model_validate_json(text) == info
+    # Rooms reach from their floor to the storey above (or the scene's top), as the scene says.
+    ground = [r for r in info.rooms if r.floor == 0]
+    upper = [r for r in info.rooms if r.floor == 1]
+    assert ground and upper
+    assert all(r.bounds_max_m[2] == pytest.approx(upper[0].bounds_min_m[2]) for r in ground)
+    assert all(r.bounds_max_m[2] == pytest.approx(hi[2]) for r in upper)
+    assert info.room(ground[0].name) == ground[0]

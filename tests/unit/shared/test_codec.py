@@ -3,8 +3,8 @@ import pytest
 
 from shared.codec import CodecError, decode, decode_any, encode, peek
 from shared.schemas import (
-    CameraIntrinsics, Candidate, CandidateKind, Decision, ErrorReply, MapChunk, MissionEvent, MissionEventKind,
-    MissionState, MissionStep, Panorama, Pose,
+    CameraIntrinsics, Candidate, CandidateKind, Decision, ErrorReply, MapChunk, JobEvent, JobEventKind,
+    JobState, MissionStep, Panorama, Pose,
 )
 
 
@@ -44,11 +44,11 @@ def test_arrays_are_aligned_for_their_dtype():
 
 
 def test_nested_models_enums_and_optional_none():
-    ev = MissionEvent(mission_id="m1", seq=3, kind=MissionEventKind.STEP, state=MissionState.RUNNING,
+    ev = JobEvent(job_id="m1", seq=3, kind=JobEventKind.STEP, state=JobState.RUNNING,
                       data=MissionStep(pose=Pose(position_m=(1.0, 2.0, 0.0)),
                                        candidates=[Candidate(index=0, kind=CandidateKind.STOP)],
                                        decision=Decision(candidate_index=0, kind=CandidateKind.STOP)))
-    back = decode(encode(ev), MissionEvent)
+    back = decode(encode(ev), JobEvent)
     assert back == ev and isinstance(back.data, MissionStep) and back.data.candidates[0].kind == CandidateKind.STOP
     p = panorama(semantic=False)
     assert decode(encode(p), Panorama).semantic is None

@@ -1,10 +1,10 @@
 """Write a picture of a stored map (top-down spatial map + an oblique splat view), or build one first.
 
     # explore, tour, reconstruct and store a generated house, then draw it:
-    python -m services.reconstructor.tools.pictures --build generated:3:area=50 --root runs/maps \\
+    python -m tools.map_pictures --build generated:3:area=50 --root runs/maps \\
         --map-id house3 --backend mono-sim --out runs/house3.png
     # draw an existing map:
-    python -m services.reconstructor.tools.pictures --root runs/maps --map-id house3 --out map.png
+    python -m tools.map_pictures --root runs/maps --map-id house3 --out map.png
 """
 
 from __future__ import annotations

@@ -23,8 +23,8 @@ from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
     CancelRequest, Candidate, CandidateKind, Decision, EpisodeMetricsData, ExplorationFinished, ExplorationProgress,
     ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled, LoadSceneRequest, MapChunk, MapChunkRequest,
-    MapImportRequest, MapInfo, MapListReply, MapRequest, MissionAccepted, MissionEvent, MissionEventKind,
-    MissionFinished, MissionRequest, MissionStarted, MissionState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
+    MapImportRequest, MapInfo, MapListReply, MapRequest, JobAccepted, JobEvent, JobEventKind,
+    MissionFinished, MissionRequest, MissionStarted, JobState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
 )
 
 _PALETTE = np.array([[66, 135, 245], [245, 166, 35], [80, 200, 120], [220, 80, 90], [160, 110, 220],
@@ -109,23 +109,23 @@ class ScriptedPlanner:
             bus.serve(keys.MISSION_CANCEL.format(robot=robot), CancelRequest, self._cancel),
         ]
 
-    def _submit(self, req: MissionRequest) -> MissionAccepted:
+    def _submit(self, req: MissionRequest) -> JobAccepted:
         if "refuse" in req.instruction:
-            return MissionAccepted(mission_id=req.mission_id, accepted=False, reason="scripted refusal")
+            return JobAccepted(job_id=req.mission_id, accepted=False, reason="scripted refusal")
         if req.map_id.startswith("broken"):
             raise ValueError(f"map {req.map_id!r} cannot be navigated")
         run = _Run(req)
         run.thread = threading.Thread(target=self._walk, args=(run,), daemon=True, name=f"walk-{req.mission_id}")
         self.runs[req.mission_id] = run
         run.thread.start()
-        return MissionAccepted(mission_id=req.mission_id, accepted=True)
+        return JobAccepted(job_id=req.mission_id, accepted=True)
 
-    def _cancel(self, req: CancelRequest) -> MissionAccepted:
+    def _cancel(self, req: CancelRequest) -> JobAccepted:
         run = self.runs.get(req.mission_id)
         if run is None:
             raise NotFound(f"no mission {req.mission_id!r}")
         run.cancel.set()
-        return MissionAccepted(mission_id=req.mission_id, accepted=True)
+        return JobAccepted(job_id=req.mission_id, accepted=True)
 
     def _walk(self, run: _Run) -> None:
         req, mid = run.request, run.request.mission_id
@@ -134,19 +134,19 @@ class ScriptedPlanner:
 
         def emit(kind, state, step, data, images=None):
             nonlocal seq
-            self.bus.publish(key, MissionEvent(mission_id=mid, seq=seq, kind=kind, state=state, step=step,
+            self.bus.publish(key, JobEvent(job_id=mid, seq=seq, kind=kind, state=state, step=step,
                                                data=data, images=images or {}))
             seq += 1
 
         pos, heading = np.zeros(3), 0.0
         traj = [(0.0, 0.0)]
-        emit(MissionEventKind.STARTED, MissionState.RUNNING, 0,
+        emit(JobEventKind.STARTED, JobState.RUNNING, 0,
              MissionStarted(pose=Pose(position_m=tuple(pos.tolist()), heading_rad=heading),
                             instruction=req.instruction, map_id=req.map_id, options=req.options))
         steps = min(self.steps, req.options.max_steps)
         for step in range(1, steps + 1):
             if run.cancel.wait(self.step_interval_s):
-                emit(MissionEventKind.FINISHED, MissionState.CANCELLED, step - 1, JobCancelled(message="cancelled"))
+                emit(JobEventKind.FINISHED, JobState.CANCELLED, step - 1, JobCancelled(message="cancelled"))
                 return
             n = self.n_candidates
             cands = [Candidate(index=i, dx_m=float(1.5 * math.cos(heading + (i - n // 2) * 0.7)),
@@ -166,7 +166,7 @@ class ScriptedPlanner:
                 pos = pos + np.array([choice.dx_m, choice.dy_m, 0.0])
                 heading = math.atan2(choice.dy_m, choice.dx_m)
                 traj.append((float(pos[0]), float(pos[1])))
-            emit(MissionEventKind.STEP, MissionState.RUNNING, step,
+            emit(JobEventKind.STEP, JobState.RUNNING, step,
                  MissionStep(pose=Pose(position_m=tuple(pos.tolist()), heading_rad=heading), candidates=cands,
                              decision=decision, timings_s={"observe": 0.05, "render": 0.12, "policy": 0.3}), images)
         metrics = None
@@ -177,7 +177,7 @@ class ScriptedPlanner:
                                          spl=0.8 * ok, ndtw=0.7, sdtw=0.7 * ok, shortest_m=1.5 * (steps - 1),
                                          stop_called=True, steps=steps, goal_reachable=True)
         traj_m = [(x, y, 0.0) for x, y in traj]
-        emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED, steps,
+        emit(JobEventKind.FINISHED, JobState.SUCCEEDED, steps,
              MissionFinished(stop_called=True, steps=steps, trajectory_m=traj_m, metrics=metrics))
 
     def _images(self, step: int, px: int, n: int, traj, pos, cands) -> dict[str, bytes]:
@@ -216,27 +216,26 @@ class ScriptedMapper:
         self._threads: list[threading.Thread] = []
         self._entities = [bus.serve(keys.MAPPER_EXPLORE.format(robot=robot), ExplorationRequest, self._submit)]
 
-    def _submit(self, req: ExplorationRequest) -> MissionAccepted:
+    def _submit(self, req: ExplorationRequest) -> JobAccepted:
         t = threading.Thread(target=self._run, args=(req,), daemon=True)
         self._threads.append(t)
         t.start()
-        return MissionAccepted(mission_id=req.exploration_id, accepted=True)
+        return JobAccepted(job_id=req.exploration_id, accepted=True)
 
     def _run(self, req: ExplorationRequest) -> None:
         key = keys.EXPLORATION_EVENTS.format(robot=self.robot, exploration=req.exploration_id)
         names = ["discovery", "tours", "reconstruction"]
-        self.bus.publish(key, MissionEvent(mission_id=req.exploration_id, seq=0, kind=MissionEventKind.STARTED,
-                                           state=MissionState.RUNNING, data=ExplorationStarted(map_id=req.map_id)))
+        self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=0, kind=JobEventKind.STARTED,
+                                           state=JobState.RUNNING, data=ExplorationStarted(map_id=req.map_id)))
         for i in range(1, self.stages + 1):
             time.sleep(self.interval_s)
-            self.bus.publish(key, MissionEvent(
-                mission_id=req.exploration_id, seq=i, kind=MissionEventKind.PROGRESS, state=MissionState.RUNNING,
+            self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=i, kind=JobEventKind.PROGRESS, state=JobState.RUNNING,
                 step=i * 10, data=ExplorationProgress(stage=names[min(i, len(names)) - 1], progress=i / (self.stages + 1)),
                 images={"map": jpeg(spatial_map([(0, 0), (i, 0)], []))}))
         if self.reconstructor is not None:
             self.reconstructor.add_random(req.map_id, 2000)
-        self.bus.publish(key, MissionEvent(mission_id=req.exploration_id, seq=self.stages + 1,
-                                           kind=MissionEventKind.FINISHED, state=MissionState.SUCCEEDED,
+        self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=self.stages + 1,
+                                           kind=JobEventKind.FINISHED, state=JobState.SUCCEEDED,
                                            step=self.stages * 10, data=ExplorationFinished(map_id=req.map_id, version=1, points=2000,
                                                                                   regions=self.stages)))
 

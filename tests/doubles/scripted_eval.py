@@ -18,8 +18,8 @@ from shared.vln_metrics import episode_metrics, euclidean_geodesic
 from shared import keys
 from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
-    CancelRequest, Decision, JobCancelled, JobFailed, LoadSceneRequest, MissionAccepted, MissionEvent,
-    MissionEventKind, MissionFinished, MissionRequest, MissionStarted, MissionState, MissionStep, Pose, SceneSummary,
+    CancelRequest, Decision, JobCancelled, JobFailed, LoadSceneRequest, JobAccepted, JobEvent,
+    JobEventKind, MissionFinished, MissionRequest, MissionStarted, JobState, MissionStep, Pose, SceneSummary,
     UsageData,
 )
 
@@ -57,20 +57,20 @@ class ScriptedNavPlanner:
             bus.serve(keys.MISSION_CANCEL.format(robot=robot), CancelRequest, self._cancel_req),
         ]
 
-    def _submit(self, req: MissionRequest) -> MissionAccepted:
+    def _submit(self, req: MissionRequest) -> JobAccepted:
         self.requests.append(req)
         self._cancel[req.mission_id] = threading.Event()
         t = threading.Thread(target=self._walk, args=(req,), daemon=True)
         self._threads.append(t)
         t.start()
-        return MissionAccepted(mission_id=req.mission_id, accepted=True)
+        return JobAccepted(job_id=req.mission_id, accepted=True)
 
-    def _cancel_req(self, req: CancelRequest) -> MissionAccepted:
+    def _cancel_req(self, req: CancelRequest) -> JobAccepted:
         ev = self._cancel.get(req.mission_id)
         if ev is None:
             raise NotFound(f"no mission {req.mission_id!r}")
         ev.set()
-        return MissionAccepted(mission_id=req.mission_id, accepted=True)
+        return JobAccepted(job_id=req.mission_id, accepted=True)
 
     def _walk(self, req: MissionRequest) -> None:
         mid, opts = req.mission_id, req.options
@@ -80,27 +80,27 @@ class ScriptedNavPlanner:
 
         def emit(kind, state, step, data):
             nonlocal seq
-            self.bus.publish(key, MissionEvent(mission_id=mid, seq=seq, kind=kind, state=state, step=step, data=data))
+            self.bus.publish(key, JobEvent(job_id=mid, seq=seq, kind=kind, state=state, step=step, data=data))
             seq += 1
 
         pos = np.array(opts.start_pose.position_m if opts.start_pose else (0.0, 0.0, 0.0), float)
         goal = np.array(opts.goal_m, float) if opts.goal_m is not None else pos.copy()
         traj, lat = [pos.copy()], []
-        emit(MissionEventKind.STARTED, MissionState.RUNNING, 0,
+        emit(JobEventKind.STARTED, JobState.RUNNING, 0,
              MissionStarted(pose=Pose(position_m=tuple(pos.tolist())), instruction=req.instruction, map_id=req.map_id,
                             options=opts))
         if "crash" in req.instruction:
-            emit(MissionEventKind.ERROR, MissionState.FAILED, 0, JobFailed(error="scripted crash"))
+            emit(JobEventKind.ERROR, JobState.FAILED, 0, JobFailed(error="scripted crash"))
             return
         if "hang" in req.instruction:
             cancel.wait(60.0)
-            emit(MissionEventKind.FINISHED, MissionState.CANCELLED, 0, JobCancelled())
+            emit(JobEventKind.FINISHED, JobState.CANCELLED, 0, JobCancelled())
             return
         stop = False
         for step in range(1, opts.max_steps + 1):
             t0 = time.perf_counter()
             if cancel.wait(self.interval_s) if self.interval_s else cancel.is_set():
-                emit(MissionEventKind.FINISHED, MissionState.CANCELLED, step - 1, JobCancelled())
+                emit(JobEventKind.FINISHED, JobState.CANCELLED, step - 1, JobCancelled())
                 return
             d = goal - pos
             dist = float(np.linalg.norm(d))
@@ -109,7 +109,7 @@ class ScriptedNavPlanner:
                 pos = pos + d * min(1.0, self.step_m / dist)
                 traj.append(pos.copy())
             lat.append(time.perf_counter() - t0 + 0.01)
-            emit(MissionEventKind.STEP, MissionState.RUNNING, step,
+            emit(JobEventKind.STEP, JobState.RUNNING, step,
                  MissionStep(pose=Pose(position_m=tuple(pos.tolist())), candidates=[], decision=Decision(
                      candidate_index=0, kind="stop" if stop else "waypoint", backend=opts.policy,
                      reasoning="stop at the goal" if stop else "towards the goal",
@@ -119,7 +119,7 @@ class ScriptedNavPlanner:
         m = episode_metrics(np.array(traj), goal, geodesic=euclidean_geodesic, stop_called=stop,
                             reference_path_m=opts.reference_path_m)
         steps = len(lat)
-        emit(MissionEventKind.FINISHED, MissionState.SUCCEEDED if stop else MissionState.FAILED, steps,
+        emit(JobEventKind.FINISHED, JobState.SUCCEEDED if stop else JobState.FAILED, steps,
              MissionFinished(stop_called=stop, steps=steps, error="" if stop else "step budget exhausted",
                              trajectory_m=[tuple(p) for p in np.array(traj).tolist()], metrics=m.to_dict(),
                              usage=UsageData(calls=steps, prompt_tokens=100 * steps, completion_tokens=10 * steps,

@@ -1,7 +1,7 @@
 """Debug picture of a discovery: occupancy, graph coloured by region, hubs and tours, per floor.
 
-    python -m services.mapper.tools.pictures --scene generated:0 --out DIR [--size 64]
-    python -m services.mapper.tools.pictures --scene boxworld --out DIR
+    python -m tools.exploration_pictures --scene generated:0 --out DIR [--size 64]
+    python -m tools.exploration_pictures --scene boxworld --out DIR
 """
 
 from __future__ import annotations

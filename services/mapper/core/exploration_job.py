@@ -1,0 +1,109 @@
+"""The exploration job: Algorithm 1 on a robot, its region tours recorded, and the map built from them.
+
+A job body for :class:`shared.jobs.JobRunner`, written against ports (a robot that records tours
+remotely, a map builder, two publishers), so the mapper service only wires bus clients into it:
+
+1. frontier DFS over the waypoint predictor's candidates, regions, hubs and tours (:func:`discover`);
+2. one recorded tour per region: the robot publishes the frames, the reconstructor collects them; a
+   region whose start cannot be reached is skipped and reported, the map is built from the rest;
+3. the map build, itself a job of the reconstructor, whose progress is relayed as this job's.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+from shared.jobs import JobContext, JobEnd
+from shared.schemas import (
+    BuildMapRequest, ExplorationFinished, ExplorationProgress, ExplorationRequest, JobEvent, JobState, MapBuildProgress,
+    MapInfo, NavGraph, RecordReply, SceneSummary, Tour, TourRecording,
+)
+
+from .discovery import DiscoveryConfig, discover
+from .execute import RegionRecording, TourRobot, execute_tours
+
+log = logging.getLogger(__name__)
+
+
+class RecordingRobot(TourRobot, Protocol):
+    """A robot whose tour recordings go elsewhere (robot-io publishes them): after each recording,
+    ``last_recording`` says what was recorded and how many frames."""
+
+    last_recording: RecordReply | None
+
+    def scene(self) -> SceneSummary: ...
+
+
+class MapBuilder(Protocol):
+    def build(self, req: BuildMapRequest, *, on_event: Callable[[JobEvent], None] | None = None) -> MapInfo: ...
+
+
+# Where each stage sits in the exploration's progress (0-1): discovery, tours, the map build.
+_TOURS_AT, _BUILD_AT, _BUILD_SPAN = 0.3, 0.8, 0.2
+
+
+def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, maps: MapBuilder,
+            publish_graph: Callable[[NavGraph], None], publish_tour: Callable[[Tour], None],
+            tour_rate_hz: float) -> JobEnd:
+    t0 = time.perf_counter()
+    cfg = DiscoveryConfig.model_validate(req.options.get("discovery", {}))
+    cfg.exploration.max_steps = req.max_steps
+    ctx.progress(ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
+    disc = discover(robot, cfg)
+    ctx.check_cancelled()
+    publish_graph(disc.nav_graph())
+    for tour in disc.tour_messages():
+        publish_tour(tour)
+    nodes = len(disc.result.graph.graph)
+    timings_s = {k: round(v, 3) for k, v in disc.timings_s.items()}
+    n_tours = max(1, len(disc.tours))
+    ctx.progress(ExplorationProgress(stage="touring", progress=_TOURS_AT, nodes=nodes, regions=len(disc.tours),
+                                     timings_s=timings_s,
+                                     message=f"explored {nodes} nodes; recording {len(disc.tours)} region tours"))
+
+    recordings: list[TourRecording] = []
+    skipped: list[int] = []
+
+    def tours_progress() -> float:
+        return _TOURS_AT + (_BUILD_AT - _TOURS_AT) * (len(recordings) + len(skipped)) / n_tours
+
+    def on_recording(rec: RegionRecording) -> None:
+        last = robot.last_recording
+        if last is None:
+            raise RuntimeError(f"region {rec.region}: the robot reported no recording")
+        recordings.append(TourRecording(exploration_id=req.exploration_id, recording=last.recording,
+                                        region=rec.region, start_pose=rec.start_pose, frame_count=last.frame_count))
+        ctx.progress(ExplorationProgress(
+            stage="touring", progress=tours_progress(), region=rec.region, frames=last.frame_count,
+            message=f"region {rec.region}: {last.frame_count} frames ({len(recordings)}/{len(disc.tours)})"))
+        ctx.check_cancelled()
+
+    def on_skip(pt, exc) -> None:
+        skipped.append(pt.tour.region)
+        ctx.progress(ExplorationProgress(stage="touring", progress=tours_progress(), region=pt.tour.region,
+                                         message=f"region {pt.tour.region} skipped: {exc}"))
+
+    execute_tours(robot, disc.tours, disc.scene, rate_hz=tour_rate_hz, on_recording=on_recording, on_skip=on_skip)
+    if not recordings:
+        raise RuntimeError(f"no region tour could be recorded ({len(skipped)} skipped)")
+    ctx.progress(ExplorationProgress(stage="reconstructing", progress=_BUILD_AT,
+                                     message=f"reconstructing {len(recordings)} regions"))
+
+    def on_build_event(ev: JobEvent) -> None:
+        if isinstance(ev.data, MapBuildProgress):
+            ctx.progress(ExplorationProgress(stage="reconstructing", progress=_BUILD_AT + _BUILD_SPAN * ev.data.progress
+                                             * 0.99, region=ev.data.region, regions=ev.data.regions,
+                                             message=ev.data.message))
+
+    scene = robot.scene()
+    info = maps.build(BuildMapRequest(
+        build_id=req.exploration_id, exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
+        reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
+        label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene}"),
+        on_event=on_build_event)
+    return JobEnd(JobState.SUCCEEDED, ExplorationFinished(
+        map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),
+        skipped_regions=skipped, nodes=nodes, timings_s=timings_s, wall_s=round(time.perf_counter() - t0, 2)))

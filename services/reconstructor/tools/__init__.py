@@ -1,1 +1,0 @@
-"""Command-line tools of the reconstructor (pictures of stored maps, an offline end-to-end build)."""
