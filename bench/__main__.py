@@ -7,8 +7,8 @@ import sys
 import time
 
 # Each entry is a module with a main(); the order runs the cheap ones first.
-BENCHES = ["bench.bus", "bench.robot_io", "bench.renderer", "bench.mapper", "bench.reconstructor",
-           "bench.planner", "bench.gateway", "bench.replicas", "bench.reliability"]
+BENCHES = ["bench.bus", "bench.robot_io", "bench.scene_files", "bench.renderer", "bench.mapper", "bench.reconstructor",
+           "bench.planner", "bench.gateway", "bench.replicas", "bench.reliability", "bench.export"]
 
 
 def main(argv: list[str]) -> int:

@@ -104,6 +104,10 @@ class Launcher:
             "ANT_ZENOH__MULTICAST_SCOUTING": "false",
             "ANT_INSTANCE": instance,
             "PYTHONUNBUFFERED": "1",
+            # A launched system keeps its state in its own run directory unless told otherwise: two
+            # systems (a test and a demo, say) never share a gateway database or a map store.
+            "ANT_DB_PATH": str(self.run_dir / "gateway.sqlite3"),
+            "ANT_STORE_DIR": str(self.run_dir / "maps"),
         })
         if self.auth and user:
             # Through the router, as its own user: the ACL applies to router traffic only.

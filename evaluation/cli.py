@@ -52,6 +52,7 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps", type=Path, help="map-id cache shared between runs (default: <out>/maps.json)")
     p.add_argument("--no-retry-errors", action="store_true", help="on resume, keep episodes that errored")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--record", action="store_true", help="record every mission (.rrd) into <out>/recordings/")
     _system_args(p)
 
 
@@ -87,7 +88,7 @@ def run_config(a: argparse.Namespace) -> RunConfig:
         anticipation_hfov_deg=a.hfov_deg, spatial_map=not a.no_spatial_map, map_source=MapSource(a.map_source),
         seed=a.seed, reference=a.reference, limit=a.limit, scenes_dir=a.scenes_dir,
         mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
-        exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors)
+        exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors, record=a.record)
 
 
 def load_episodes(a: argparse.Namespace):

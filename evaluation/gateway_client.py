@@ -47,7 +47,7 @@ class GatewayClient:
         self.close()
 
     # --- plumbing ------------------------------------------------------------------------------------
-    def _call(self, method: str, url: str, **kw) -> Any:
+    def _call(self, method: str, url: str, raw: bool = False, **kw) -> Any:
         headers = {**self.headers, **kw.pop("headers", {})}
         for attempt in range(self.retries + 1):
             try:
@@ -67,6 +67,8 @@ class GatewayClient:
                 except ValueError:
                     detail = r.text
                 raise GatewayError(f"{method} {url}: {r.status_code} {detail}", r.status_code)
+            if raw:
+                return r.content
             return r.json() if r.content else None
         raise AssertionError("unreachable")
 
@@ -88,6 +90,10 @@ class GatewayClient:
 
     def history(self, mission_id: str, after: int = -1, limit: int = 1000) -> list[dict[str, Any]]:
         return self._call("GET", f"/missions/{mission_id}/history", params={"after": after, "limit": limit})
+
+    def recording(self, mission_id: str) -> bytes:
+        """The mission's Rerun recording (``.rrd`` bytes); 404 unless it was recorded."""
+        return self._call("GET", f"/missions/{mission_id}/recording.rrd", raw=True)
 
     def cancel_mission(self, mission_id: str) -> None:
         try:

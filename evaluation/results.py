@@ -58,6 +58,7 @@ class EpisodeResult(BaseModel):
     cost_usd: float = 0.0
     wall_s: float = 0.0
     finished_at_s: float = 0.0
+    recording: str | None = None  # the mission's .rrd, relative to the run folder (runs with --record)
 
     def episode_metrics(self) -> EpisodeMetrics | None:
         return None if self.metrics is None else metrics_from_dict(self.metrics)

@@ -76,6 +76,7 @@ class RunConfig(BaseModel):
     curated_max_points: int = Field(1_000_000, ge=1000)
     poll_s: float = Field(0.5, gt=0, le=30)
     retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")
+    record: bool = Field(False, description="record every mission (.rrd) and keep a copy in <run>/recordings/")
 
     def experiment_key(self) -> dict[str, Any]:
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
@@ -254,6 +255,7 @@ class EvalRunner:
         row = summary_row(results, self.label)
         tables = write_tables([row], self.out_dir / SUMMARY_STEM, title=f"Evaluation: {self.label}")
         self._append_skipped(tables[0], results)
+        self._write_pictures_and_predictions(selected, results, gt or {}, tables[0])
         return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps)
 
     @staticmethod
@@ -265,6 +267,31 @@ class EvalRunner:
         lines += [f"| {e} | {s} | {r.replace('|', '/')} |" for e, s, r in rows]
         with open(md, "a", encoding="utf-8") as f:
             f.write("\n".join(lines) + "\n")
+
+    def _write_pictures_and_predictions(self, selected: Sequence[Episode], results: Sequence[EpisodeResult],
+                                        gt: dict[str, GroundTruth], md: Path) -> None:
+        """A top-down plot per episode in ``plots/`` (linked from summary.md) and the VLN-CE prediction file."""
+        import numpy as np
+
+        from evaluation.plots import EpisodeGeometry, plots_markdown, write_episode_plots
+        from evaluation.predictions import PREDICTIONS_FILE, write_predictions
+
+        geometry: dict[str, EpisodeGeometry] = {}
+        for e in selected:
+            try:
+                ref = self.reference_for(e, gt.get(str(e.episode_id)))
+            except ConfigError:
+                ref = None
+            geometry[str(e.episode_id)] = EpisodeGeometry(np.asarray(e.start_pose.position_m), np.asarray(e.goal_m),
+                                                          None if ref is None else np.asarray(ref))
+        rows = write_episode_plots(results, geometry, self.out_dir)
+        path, written, left_out = write_predictions(
+            results, self.out_dir / PREDICTIONS_FILE, {str(e.episode_id): e.start_pose.heading_rad for e in selected})
+        with open(md, "a", encoding="utf-8") as f:
+            f.write(f"\nVLN-CE prediction file: [{PREDICTIONS_FILE}]({PREDICTIONS_FILE}) ({written} episodes"
+                    + (f"; {left_out} not run are left out" if left_out else "") + ")\n")
+            f.write(plots_markdown(rows))
+        log.info("%d episode plots in %s, predictions in %s", len(rows), self.out_dir / "plots", path)
 
     # --- one scene -----------------------------------------------------------------------------------
     def _base(self, e: Episode, **kw) -> EpisodeResult:
@@ -372,7 +399,7 @@ class EvalRunner:
             anticipation=cfg.anticipation, anticipation_hfov_deg=cfg.anticipation_hfov_deg,
             spatial_map=cfg.spatial_map, goal_m=tuple(float(v) for v in e.goal_m),
             reference_path_m=self.reference_for(e, gt), start_pose=e.start_pose,
-            seed=episode_seed(cfg.seed, e.episode_id))
+            seed=episode_seed(cfg.seed, e.episode_id), record=True if cfg.record else None)
 
     def run_episode(self, e: Episode, map_id: str, gt: GroundTruth | None = None) -> EpisodeResult:
         """One mission, start to end; never raises for a failure of the system (it becomes ``error``)."""
@@ -398,7 +425,25 @@ class EvalRunner:
         except GatewayError as exc:
             return self._base(e, status="error", reason=f"lost the mission: {exc}", mission_id=mid,
                               wall_s=time.monotonic() - t0, **base)
-        return self._result(e, mid, rec, time.monotonic() - t0, base)
+        result = self._result(e, mid, rec, time.monotonic() - t0, base)
+        if cfg.record:
+            result.recording = self._keep_recording(e, mid)
+        return result
+
+    def _keep_recording(self, e: Episode, mid: str) -> str | None:
+        """Copy the mission's .rrd into ``<run>/recordings/`` (a missing one is logged, not an error)."""
+        from evaluation.plots import plot_name
+
+        rel = f"recordings/{plot_name(e.episode_id)[:-4]}.rrd"
+        try:
+            data = self.gateway.recording(mid)
+        except GatewayError as exc:
+            log.warning("no recording of %s (episode %s): %s", mid, e.episode_id, exc)
+            return None
+        path = self.out_dir / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+        return rel
 
     def _final_event(self, mid: str, rec: dict[str, Any]) -> MissionFinished | None:
         """The mission's typed end (None when it ended without one: failed, cancelled, reaped)."""

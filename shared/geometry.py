@@ -16,6 +16,12 @@ reconstructor and the planner agree to the last pixel:
   paper), pitch 0.
 * Habitat / R2R-CE data is y-up (x right, y up, z backwards): :func:`habitat_to_world` and
   :func:`world_to_habitat` are the only conversion, used at the data boundary.
+* Scene files: :func:`scene_file_to_world` is the linear map from a file's own axes to the world.
+  **Invariant**: it is ``habitat_to_world`` applied after the transform Habitat itself gives the file
+  (its ``up`` to Habitat +y, its ``front`` to Habitat -z, then ``scale``), so a vertex and an R2R-CE
+  position that Habitat puts at the same place land at the same world point. For a file in Habitat's
+  own frame (up +y, front -z, scale 1) it *is* ``habitat_to_world``; for a z-up file with front +y
+  (Matterport3D, Replica) it is the identity.
 """
 
 from __future__ import annotations
@@ -154,6 +160,40 @@ def habitat_to_world(points_h) -> np.ndarray:
 def world_to_habitat(points_w) -> np.ndarray:
     """Inverse of :func:`habitat_to_world`."""
     return np.asarray(points_w, dtype=np.float64) @ _HAB_TO_WORLD
+
+
+def habitat_alignment(up, front) -> np.ndarray:
+    """The rotation Habitat applies to an asset whose own up / front axes are ``up`` / ``front``.
+
+    It maps ``up`` onto Habitat's +y (against gravity) and ``front`` onto Habitat's -z, like
+    habitat-sim's stage and object ``up`` / ``front`` attributes. ``front`` is made orthogonal to
+    ``up`` first; parallel or zero vectors raise ``ValueError``.
+    """
+    u = np.asarray(up, dtype=np.float64).reshape(3)
+    f = np.asarray(front, dtype=np.float64).reshape(3)
+    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(f))) or np.linalg.norm(u) < 1e-9:
+        raise ValueError(f"up must be a finite non-zero vector, got {tuple(u)}")
+    u = u / np.linalg.norm(u)
+    f = f - np.dot(f, u) * u
+    if np.linalg.norm(f) < 1e-6:
+        raise ValueError(f"front {tuple(front)} must not be parallel to up {tuple(up)}")
+    f = f / np.linalg.norm(f)
+    right = np.cross(f, u)  # Habitat: front (-z) x up (+y) = right (+x)
+    # Rows: the asset axes that become Habitat x (right), y (up) and z (back).
+    return np.stack([right, u, -f])
+
+
+def scene_file_to_world(up=(0.0, 1.0, 0.0), front=(0.0, 0.0, -1.0), scale=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """3x3 map from a scene file's coordinates to the world: ``habitat_to_world . alignment . scale``.
+
+    See the module docstring for the invariant; ``scale`` is per file axis (Habitat's stage
+    ``scale`` times ``units_to_meters``).
+    """
+    s = np.asarray(scale, dtype=np.float64).reshape(-1)
+    s = np.broadcast_to(s, (3,)) if s.size == 1 else s.reshape(3)
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ValueError(f"scale must be finite and positive, got {tuple(s)}")
+    return _HAB_TO_WORLD @ habitat_alignment(up, front) @ np.diag(s)
 
 
 def habitat_quaternion_to_heading(q_xyzw) -> float:

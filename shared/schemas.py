@@ -590,6 +590,7 @@ class MissionOptions(BaseModel):
     reference_path_m: list[Xyz_m] | None = Field(None, max_length=PATH_MAX_POINTS)
     start_pose: Pose | None = None
     seed: int = Field(0, ge=0, le=2**32 - 1)
+    record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
 
     @field_validator("policy_config")
     @classmethod
@@ -834,6 +835,7 @@ class ExplorationRequest(Message):
     max_steps: int = Field(400, ge=1, le=10_000)
     reconstruction: str = Field("rgbd", description="regional reconstruction backend (rgbd, mono, ...)")
     options: dict[str, Any] = Field(default_factory=dict)
+    record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
 
     FREE_FORM: ClassVar[tuple[str, ...]] = ("options",)
 

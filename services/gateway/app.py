@@ -24,7 +24,7 @@ from services.gateway.cache import RecordCache
 from services.gateway.events import EventHub, EventIngest
 from services.gateway.limits import BodyLimit
 from services.gateway.reaper import JobReaper
-from services.gateway.routes import dashboard, explorations, health, maps, metrics, missions, robot, status
+from services.gateway.routes import dashboard, downloads, explorations, health, maps, metrics, missions, robot, status
 from services.gateway.settings import GatewaySettings
 from services.gateway.store import GatewayStore
 from shared.bus.base import Bus
@@ -77,10 +77,12 @@ def create_app(settings: GatewaySettings | None = None,
         # Jobs whose worker is gone (died, or restarted and forgot them) end as failed, with the reason:
         # checked at start, periodically and whenever a worker's token drops.
         app.state.reaper = JobReaper(running.node.bus, store, hub, interval_s=settings.reconcile_interval_s)
+        app.state.recordings = downloads.RecordingWriter(running.node.bus, store, settings)
         log.info("gateway on %s:%d, database %s", settings.host, settings.port, settings.db_path)
         try:
             yield
         finally:
+            app.state.recordings.close()
             app.state.reaper.close()
             app.state.ingest.close()
             hub.close()
@@ -98,7 +100,7 @@ def create_app(settings: GatewaySettings | None = None,
     errors.install(app)
     for module in (health, dashboard):  # liveness probes and the page itself stay open
         app.include_router(module.router)
-    for module in (status, metrics, missions, explorations, maps, robot):
+    for module in (status, metrics, missions, explorations, maps, robot, downloads):
         app.include_router(module.router, dependencies=[deps.ReadAuthorized])
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     return app

@@ -37,3 +37,7 @@ class GatewaySettings(ServiceSettings):
     reconcile_interval_s: float = Field(5.0, gt=0, le=3600,
                                         description="how often open jobs are checked against the live workers")
     shutdown_grace_s: float = Field(3.0, ge=0, le=60, description="open streams get this long at shutdown")
+    record_jobs: bool = Field(False, description="record missions and explorations to .rrd unless a job says otherwise")
+    recordings_dir: Path | None = Field(None, description="where the .rrd recordings go (None: beside db_path)")
+    recording_max_points: int = Field(500_000, ge=0, le=10_000_000,
+                                      description="map points kept in a recording (0: no map cloud)")

@@ -44,11 +44,12 @@ def test_observe_move_and_pose_over_the_bus(system):
 
 def test_recording_publishes_frames_and_counts_them(system):
     bus = TypedBus(FakeBus(system))
-    robot = RobotClient(bus, "robot0")
+    robot = RobotClient(bus, "robot0", recording_px=32, recording_prefix="tour")
     robot.reset()
     got: list[Frame] = []
     bus.subscribe(keys.IO_FRAMES.pattern(robot="robot0"), Frame, lambda k, f: got.append(f))
-    with robot.recording(rate_hz=5.0, recording="t1", max_width_px=32):
+    with robot.recording(rate_hz=5.0) as name:
+        assert name == "tour-r0"  # the client names a job's recordings, so they can be told apart
         robot.turn(1.0)
         robot.look_around()
     n = robot.last_recording.frame_count

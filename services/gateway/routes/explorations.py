@@ -33,6 +33,7 @@ class ExplorationCreate(BaseModel):
     max_steps: int = Field(400, ge=1, le=10_000)
     reconstruction: str = Field("rgbd", pattern=SEGMENT, description="regional reconstruction backend")
     options: dict[str, Any] = Field(default_factory=dict)
+    record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
 
 
 def exploration_record(row: JobRow) -> ExplorationRecord:
@@ -64,7 +65,8 @@ def submit(body: ExplorationCreate, http_request: Request, bus: BusDep, store: S
               "exploration", "mapper",
               lambda: bus.request(keys.MAPPER_EXPLORE.format(robot=settings.robot),
                                   ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
-                                                     reconstruction=body.reconstruction, options=body.options),
+                                                     reconstruction=body.reconstruction, options=body.options,
+                                                     record=body.record),
                                   JobAccepted, timeout_s=settings.request_timeout_s))
     response.headers["Location"] = f"/explorations/{job_id}"
     return JobCreated(id=job_id, state=JobState.QUEUED, url=f"/explorations/{job_id}",

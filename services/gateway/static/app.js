@@ -69,6 +69,7 @@ async function refreshMaps() {
         el("span", "meta", `${points(m.point_count)} · v${m.version}`));
       li.title = `source ${m.source || "?"}; click to download the cloud`;
       li.onclick = () => { window.location.href = `/maps/${encodeURIComponent(m.map_id)}/cloud.ply`; };
+      li.append(mapDownloads(m.map_id));
       return li;
     }) : [el("li", "muted", "no maps yet")]));
   } catch (e) {
@@ -91,6 +92,31 @@ async function refreshMissions() {
       return li;
     }) : [el("li", "muted", "no missions yet")]));
   } catch (e) { /* keep the last list */ }
+}
+
+// --- downloads ------------------------------------------------------------------------------------
+function link(name, url, title) {
+  const a = el("a", "dl", name);
+  a.href = url; a.setAttribute("download", ""); if (title) a.title = title;
+  a.onclick = (e) => e.stopPropagation();  // inside a clickable list row
+  return a;
+}
+
+function mapDownloads(mapId) {
+  const base = `/maps/${encodeURIComponent(mapId)}`, box = el("span", "downloads");
+  box.append(link("PLY", `${base}/cloud.ply`, "binary PLY cloud"), link("PCD", `${base}/cloud.pcd`, "binary PCD cloud"),
+    link("Nav2", `${base}/nav2.zip`, "Nav2 map_server map (PGM + YAML) of the lowest floor"));
+  return box;
+}
+
+async function renderDownloads(kind, id) {
+  const box = $("#m-downloads");
+  try {
+    const list = await api(`/${kind}s/${encodeURIComponent(id)}/downloads`);
+    if (current !== id) return;
+    box.replaceChildren(...list.items.map((d) => d.available ? link(d.name, d.url)
+      : el("span", "dl off", d.name + " - " + d.reason)));
+  } catch (e) { box.replaceChildren(el("span", "muted", "downloads unavailable (" + e.message + ")")); }
 }
 
 // --- one mission ------------------------------------------------------------------------------------
@@ -257,10 +283,11 @@ async function select(id) {
   Object.assign(record, { _seen: -1, trajectory: [], images: {}, prompt_tokens: 0, completion_tokens: 0, cost_usd: 0 });
   renderHead();
   renderMetrics(record.metrics);
+  renderDownloads("mission", id);
   stream = new EventSource(`/missions/${encodeURIComponent(id)}/events`);
   const handler = (msg) => onEvent(JSON.parse(msg.data));
   for (const k of ["started", "step", "progress", "finished", "error"]) stream.addEventListener(k, handler);
-  stream.addEventListener("end", () => { stream.close(); stream = null; refreshMissions(); });
+  stream.addEventListener("end", () => { stream.close(); stream = null; refreshMissions(); renderDownloads("mission", id); });
 }
 
 async function submit(e) {
@@ -272,6 +299,7 @@ async function submit(e) {
     instruction: $("#instruction").value.trim(), map_id: $("#map-select").value,
     options: { policy: $("#policy").value.trim() || "heuristic", max_steps: parseInt($("#max-steps").value, 10) || 40 },
   };
+  if ($("#record").checked) body.options.record = true;
   if (!body.instruction) { err.textContent = "write an instruction first"; return; }
   if (!body.map_id) { err.textContent = "no map to navigate: explore or upload one first"; return; }
   btn.disabled = true;

@@ -125,6 +125,19 @@ class SceneRenderer:
         out = self._rc.cast_rays(o3d.core.Tensor(np.atleast_2d(rays)), nthreads=self.nthreads)
         return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
 
+    def cast_shaded(self, origins: np.ndarray, directions: np.ndarray, with_semantic: bool = False):
+        """Cast rays (..., 3) and colour the hits like :meth:`render` does (textures, vertex and
+        material colours): ``(t_hit (...) with inf at misses, rgb (..., 3) uint8, labels or None)``."""
+        directions = np.asarray(directions, dtype=np.float32)
+        shape = directions.shape[:-1]
+        rays = np.concatenate([np.broadcast_to(np.asarray(origins, np.float32), directions.shape), directions], axis=-1)
+        hit = self._rc.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays.reshape(-1, 6))), nthreads=self.nthreads)
+        t = hit["t_hit"].numpy().copy()
+        depth = t.copy()
+        prim = hit["primitive_ids"].numpy().copy()
+        rgb, sem = shade(self._tables, prim, hit["primitive_uvs"].numpy(), depth, with_semantic, use_kernel=self.use_kernel)
+        return t.reshape(shape), rgb.reshape(*shape, 3), None if sem is None else sem.reshape(shape)
+
     def first_hit_distance(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Distance (in units of the direction length) to the first hit; inf where none."""
         directions = np.asarray(directions, dtype=np.float64)

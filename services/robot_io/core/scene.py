@@ -2,19 +2,23 @@
 
 A :class:`Scene` is what the simulator renders and what the navigation grid is built from. It comes
 either from the procedural house generator (:mod:`.house`, labelled rooms and objects) or from any
-mesh file open3d reads (``.ply``, ``.obj``, ``.glb``; labels unknown, ``-1``).
+mesh file open3d reads (``.ply``, ``.obj``, ``.glb``; labels where the dataset ships them, else ``-1``).
 
 Scene specs (the ``scene`` field of the simulator config, the ``scene_id`` of an episode):
 
 * ``generated:<seed>`` or ``generated:<seed>:floors=2:area=200`` - a procedural house;
-* a path to a mesh file, absolute or relative to the configured scenes directory.
+* a path to a mesh file, absolute or relative to the configured scenes directory, optionally
+  with frame options: ``chair.glb:up=y``, ``scan.ply:up=z:scale=0.001`` (:mod:`.scene_files`
+  decides a file's frame and reads its colours; :mod:`.scene_semantics` its labels).
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -22,6 +26,7 @@ import open3d as o3d
 from shared.schemas import Pose
 
 from .errors import SceneFormatError, SceneNotFoundError
+from .scene_files import SceneFrame, read_mesh_file, resolve_frame, scan_name, split_scene_spec
 
 log = logging.getLogger(__name__)
 
@@ -191,63 +196,56 @@ def resolve_scene_path(spec: str, scenes_dir: Path | str | None = None) -> Path:
     raise SceneNotFoundError(candidates[0], scenes_dir)
 
 
-def load_scene(spec: str, scenes_dir: Path | str | None = None) -> Scene:
-    """Build or load the scene named by ``spec`` (see the module docstring)."""
+def load_scene(spec: str, scenes_dir: Path | str | None = None, frame: Mapping[str, Any] | SceneFrame | None = None) -> Scene:
+    """Build or load the scene named by ``spec`` (see the module docstring).
+
+    A mesh spec may carry frame options (``x.glb:up=z:scale=0.01``, see :mod:`.scene_files`);
+    ``frame`` overrides them in turn.
+    """
     if is_generated_spec(spec):
         from .house import HouseSpec, generate_house
 
         return generate_house(HouseSpec.parse(spec))
-    return load_mesh_scene(resolve_scene_path(spec, scenes_dir))
+    path_spec, options = split_scene_spec(spec)
+    if isinstance(frame, SceneFrame):
+        frame = frame.model_dump(exclude_unset=True)
+    return load_mesh_scene(resolve_scene_path(path_spec, scenes_dir), {**options, **(frame or {})} or None)
 
 
-def load_mesh_scene(path: Path | str) -> Scene:
-    """Load any mesh open3d reads, with vertex colours or a texture; labels are unknown (-1)."""
+def load_mesh_scene(path: Path | str, frame: Mapping[str, Any] | SceneFrame | None = None) -> Scene:
+    """Load a mesh file upright, in metres and in its colours; labels where the dataset ships them.
+
+    The frame comes from :func:`.scene_files.resolve_frame` (``frame`` overrides what the file's
+    configs and the rules say); colours from :func:`.scene_files.read_mesh_file`; semantics (MP3D
+    ``.house``, HM3D ``.semantic.glb`` + ``.semantic.txt``) from :mod:`.scene_semantics`.
+    """
+    from .scene_semantics import load_semantics
+
     path = Path(path)
     if not path.is_file():
         raise SceneNotFoundError(path, None)
-    mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False)
-    if not mesh.has_triangles():
-        # read_triangle_mesh returns an empty mesh rather than raising on unreadable files
-        raise SceneFormatError(f"{path} holds no triangle mesh open3d can read")
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    triangles = np.asarray(mesh.triangles, dtype=np.int32)
-    if mesh.has_vertex_colors():
-        colors = np.asarray(mesh.vertex_colors, dtype=np.float32)
-    else:
-        colors = np.full_like(vertices, 0.7, dtype=np.float32)
+    resolved = resolve_frame(path, frame)
+    data = read_mesh_file(path)
+    to_world = resolved.frame.matrix()
+    vertices = data.vertices @ to_world.T
     texture = None
-    if mesh.has_triangle_uvs() and mesh.has_textures():
-        images = [_image_rgb(np.asarray(t)) for t in mesh.textures]
-        images_ok = [im for im in images if im.size > 0]
-        if images_ok:
-            uvs = np.asarray(mesh.triangle_uvs, dtype=np.float32).reshape(-1, 3, 2)
-            if mesh.has_triangle_material_ids():
-                mids = np.asarray(mesh.triangle_material_ids, dtype=np.int32)
-            else:
-                mids = np.zeros(len(triangles), dtype=np.int32)
-            # Materials without an image fall back to vertex colours (index -1).
-            mids = np.where((mids >= 0) & (mids < len(images)), mids, -1)
-            valid = np.array([im.size > 0 for im in images])
-            mids = np.where(mids >= 0, np.where(valid[np.clip(mids, 0, None)], mids, -1), -1)
-            texture = Texture(uvs, mids.astype(np.int32), [im if im.size else np.zeros((1, 1, 3), np.uint8) for im in images])
-    log.info("loaded %s: %d vertices, %d triangles, texture=%s", path, len(vertices), len(triangles), texture is not None)
+    if data.images:
+        texture = Texture(data.triangle_uvs, data.material_ids, data.images)
+    labels = np.full(len(data.triangles), -1, dtype=np.int32)
+    sem = load_semantics(path, to_world, vertices, data.triangles)
+    log.info("loaded %s: %d vertices, %d triangles, %d materials, texture=%s, frame from %s, semantics=%s",
+             path, len(vertices), len(data.triangles), data.materials, texture is not None, resolved.source,
+             sem.source if sem else None)
     return Scene(
-        name=path.stem,
+        name=scan_name(path),
         vertices=vertices,
-        triangles=triangles,
-        vertex_colors=colors,
-        triangle_labels=np.full(len(triangles), -1, dtype=np.int32),
+        triangles=data.triangles,
+        vertex_colors=data.vertex_colors,
+        triangle_labels=sem.triangle_labels if sem else labels,
+        label_names=sem.label_names if sem else {},
+        rooms=sem.rooms if sem else [],
+        objects=sem.objects if sem else [],
         texture=texture,
         source=str(path),
+        floors=sem.floors if sem else 1,
     )
-
-
-def _image_rgb(img: np.ndarray) -> np.ndarray:
-    if img.size == 0:
-        return np.zeros((0, 0, 3), np.uint8)
-    if img.dtype != np.uint8:
-        scale = 255.0 if img.dtype.kind == "f" else 255.0 / np.iinfo(img.dtype).max
-        img = np.clip(img.astype(np.float32) * scale, 0, 255).astype(np.uint8)
-    if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
-    return np.ascontiguousarray(img[:, :, :3])
