@@ -19,8 +19,18 @@ LONG = {"instruction": "Walk through every room of the house and stop in the kit
         "options": {"max_steps": 300}}
 
 
-def running_mission(client) -> str:
-    r = client.post("/missions", json=LONG)
+def far_goal(live) -> list[float]:
+    """The walkable point farthest from the robot: an oracle walk there takes many steps."""
+    import numpy as np
+
+    robot = live.service("robot_io").robot
+    pts = robot.nav.sample_navigable(np.random.default_rng(0), 400)
+    return [float(v) for v in pts[np.argmax(np.linalg.norm(pts[:, :2] - robot.true_pose.xyz[:2], axis=1))]]
+
+
+def running_mission(client, live) -> str:
+    body = {**LONG, "options": {**LONG["options"], "policy": "oracle", "goal_m": far_goal(live)}}
+    r = client.post("/missions", json=body)
     assert r.status_code == 202, r.text
     mission = r.json()["id"]
     wait_until(lambda: client.get(f"/missions/{mission}").json()["step"] >= 1, 90, "mission under way")
@@ -29,7 +39,7 @@ def running_mission(client) -> str:
 
 def test_a_mission_whose_planner_restarted_ends_failed_with_the_reason(live, live_gateway, tally):
     with live_gateway(reconcile_interval_s=0.5) as client:
-        mission = running_mission(client)
+        mission = running_mission(client, live)
         assert client.get(f"/missions/{mission}").json()["state"] == "running"
         live.kill("planner")
         live.start("planner")  # same instance name, a new incarnation that never heard of the mission
@@ -45,7 +55,7 @@ def test_a_mission_whose_planner_restarted_ends_failed_with_the_reason(live, liv
 
 def test_stale_running_rows_are_failed_when_the_gateway_and_planner_restart_together(live, live_gateway, tally):
     with live_gateway(reconcile_interval_s=60) as client:
-        mission = running_mission(client)
+        mission = running_mission(client, live)
     # The gateway is gone; its planner dies too, and comes back (a kill pair).
     live.kill("planner")
     live.start("planner")
@@ -60,7 +70,7 @@ def test_stale_running_rows_are_failed_when_the_gateway_and_planner_restart_toge
 def test_cancelling_an_orphan_succeeds_and_a_second_cancel_says_already_cancelled(live, live_gateway, tally):
     with live_gateway(reconcile_interval_s=3600) as client:
         client.app.state.reaper._stop.set()  # no reconciliation: the orphan stays until cancelled
-        mission = running_mission(client)
+        mission = running_mission(client, live)
         live.kill("planner")
         live.start("planner")
         r = client.post(f"/missions/{mission}/cancel")
