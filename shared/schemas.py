@@ -72,6 +72,13 @@ FREE_FORM_MAX_ITEMS = 10_000  # values in a free-form dict (options, policy conf
 FREE_FORM_MAX_ABS = 1e15  # |number| in a free-form dict; the typed config that reads it narrows it
 
 
+def check_free_form(value: Any, what: str) -> Any:
+    """``value`` (a free-form dict from HTTP or the bus) if every number in it is finite and in range
+    and it is not absurdly large; else ValueError. What request models use on their ``dict[str, Any]``."""
+    _free_form_check(value, what, [FREE_FORM_MAX_ITEMS])
+    return value
+
+
 def _free_form_check(value: Any, what: str, budget: list[int]) -> None:
     """Free-form (``dict[str, Any]``) fields escape the typed checks: refuse non-finite and huge
     numbers and absurd sizes in them too (the typed config that reads them narrows the ranges)."""

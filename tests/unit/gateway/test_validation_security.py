@@ -150,3 +150,14 @@ def test_nul_and_control_characters_in_upload_filenames_are_refused(world, gatew
             r = client.post("/maps", params={"map_id": "m", "filename": name}, content=b"ply\n",
                             headers={"Content-Type": "application/octet-stream"})
             assert r.status_code == 422, (name, r.text)
+
+
+def test_huge_or_non_finite_numbers_in_free_form_options_are_422_not_500(world, gateway):
+    """Found by schemathesis: the bus message refused them, the HTTP model did not (a 500)."""
+    with gateway() as client:
+        for options in ({"a": 1e300}, {"a": [1, {"b": -1e16}]}):
+            r = client.post("/explorations", json={"options": options})
+            assert r.status_code == 422, r.text
+        r = client.post("/missions", json={"instruction": "go to the kitchen", "map_id": "house",
+                                           "options": {"policy_config": {"t": 1e300}}})
+        assert r.status_code == 422, r.text
