@@ -20,7 +20,20 @@ ROWS = [
     ("http_5xx", "  ... 5xx answers"), ("auth_refusals_checked", "unauthenticated mutations refused"),
     ("missions_checked", "missions checked across a gateway kill"), ("events_checked", "  ... their events"),
     ("missions_lost", "missions lost"), ("events_lost", "events lost"),
+    # issue 15: poisoned state, forged events, stuck missions, budgets
+    ("bus_numbers_fuzzed", "bad numbers on every queryable (nan/inf/huge)"),
+    ("bus_numbers_refused", "  ... refused bad_request"), ("probes_after_fuzz", "  ... each followed by a probe"),
+    ("poisoned_states", "poisoned states"),
+    ("forged_announcements", "forged map announcements"), ("forged_announcements_ignored", "  ... ignored"),
+    ("forged_events_sent", "forged events (every kind x state)"), ("replayed_events_sent", "replayed events"),
+    ("forged_or_replayed_accepted", "forged or replayed events accepted"),
+    ("kill_pairs", "kill pairs (gateway + planner, planner restart)"), ("stuck_missions", "stuck missions"),
+    ("orphans_cancelled", "orphans cancelled"), ("budget_abuse_attempts", "budget abuse attempts"),
+    ("budget_refused_typed", "  ... refused budget_exceeded"), ("http_bad_inputs_checked", "bad HTTP inputs (422)"),
 ]
+# Must be 0 for the verdict to be OK.
+MUST_BE_ZERO = ("missions_lost", "events_lost", "http_5xx", "poisoned_states", "forged_or_replayed_accepted",
+                "stuck_missions")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nreliability report ({'quick' if args.quick else 'full'}, {time.time() - t0:.0f} s, tests rc={rc})")
     for key, label in ROWS:
         print(f"  {label:<42} {counts.get(key, 0):>7}")
-    lost = counts.get("missions_lost", 0) + counts.get("events_lost", 0) + counts.get("http_5xx", 0)
+    lost = sum(counts.get(k, 0) for k in MUST_BE_ZERO)
     print(f"  {'verdict':<42} {'OK' if rc == 0 and lost == 0 else 'FAILED':>7}")
     return 0 if rc == 0 and lost == 0 else 1
 

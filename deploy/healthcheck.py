@@ -71,6 +71,8 @@ def check_bus(service: str, settings: ZenohSettings, *, instance: str | None = N
             raise Unhealthy(f"{service}/{name} is alive but its info queryable failed: {exc}") from exc
         if info.service != service:
             raise Unhealthy(f"{service}/{name} answered as {info.service!r}")
+        if not info.healthy:
+            raise Unhealthy(f"{service}/{name} is alive but its state is broken: {info.problem}")
         return name
 
 
@@ -94,7 +96,8 @@ def client_settings() -> ZenohSettings:
 
     env = ServiceSettings().zenoh
     connect = env.connect or ["tcp/127.0.0.1:7447"]
-    return ZenohSettings(mode="client", connect=connect, config_file=env.config_file)
+    # The service's own credentials: an authenticated router refuses an anonymous session.
+    return env.model_copy(update={"mode": "client", "connect": connect})
 
 
 def main(argv: list[str] | None = None) -> int:

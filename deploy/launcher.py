@@ -3,6 +3,11 @@
 Used by ``make demo`` and the end-to-end tests. It waits for every service's liveliness token with a
 deadline, restarts a service that crashes (exponential backoff), and stops everything cleanly -
 SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C.
+
+The bus is authenticated by default, as in production (it costs nothing on loopback): credentials
+are generated in ``<run_dir>/zenoh`` at first start (:mod:`deploy.credentials`), the router applies
+the generated ACL, and every service connects in client mode as its own user, so a stranger on the
+port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from deploy.credentials import ensure_credentials
 from shared import keys
 from shared.bus.config import ZenohSettings
 from shared.bus.zenoh_bus import ZenohBus
@@ -104,7 +110,8 @@ class Launcher:
     def __init__(self, run_dir: Path, *, replicas: dict[str, int] | None = None,
                  router_port: int | None = None, gateway_port: int | None = None,
                  extra_env: dict[str, str] | None = None, restart: bool = True,
-                 services: list[str] | None = None, standin: StandIn | None = None):
+                 services: list[str] | None = None, standin: StandIn | None = None,
+                 auth: bool | None = None):
         self.run_dir = Path(run_dir)
         self.router_port = router_port or free_port()
         self.gateway_port = gateway_port or free_port()
@@ -118,12 +125,20 @@ class Launcher:
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
         self.bus: ZenohBus | None = None
+        self.auth = os.environ.get("ANT_BUS_AUTH", "1").lower() not in ("0", "false", "no") if auth is None else auth
+        if self.auth and standin is not None:
+            # The ROS 2 topics come from the robot's profile, not from shared/keys.py, so the generated
+            # ACL cannot grant them yet (and the ROS side joins without our credentials): a system with
+            # the ROS 2 stand-in runs its loopback bus open. deploy/README "On a real robot" says so.
+            log.warning("bus authentication is off for the ROS 2 stand-in: its topics are outside the ACL")
+            self.auth = False
+        self.users: dict[str, str] = {}
 
     @property
     def gateway_url(self) -> str:
         return f"http://127.0.0.1:{self.gateway_port}"
 
-    def _env(self, instance: str) -> dict[str, str]:
+    def _env(self, instance: str, user: str | None = None) -> dict[str, str]:
         env = dict(os.environ)
         env.update({
             "ANT_ZENOH__MODE": "peer",
@@ -136,13 +151,42 @@ class Launcher:
             "ANT_DB_PATH": str(self.run_dir / "gateway.sqlite3"),
             "ANT_STORE_DIR": str(self.run_dir / "maps"),
         })
+        if self.auth and user:
+            # Through the router, as its own user: the ACL applies to router traffic only.
+            env.update({"ANT_ZENOH__MODE": "client", "ANT_ZENOH__USERNAME": user,
+                        "ANT_ZENOH__PASSWORD_FILE": str(self.credentials_dir / f"{user}.password")})
         env.update(self.extra_env)
         return env
 
+    @property
+    def credentials_dir(self) -> Path:
+        return self.run_dir / "zenoh"
+
+    def client_settings(self, user: str = "operator") -> ZenohSettings:
+        """How a tool or test joins this system's bus (the read-only ``operator`` by default)."""
+        if not self.auth:
+            return ZenohSettings(connect=[self.endpoint])
+        return ZenohSettings(mode="client", connect=[self.endpoint], username=user,
+                             password_file=str(self.credentials_dir / f"{user}.password"))
+
+    def client_env(self, user: str = "operator") -> dict[str, str]:
+        """The environment of a tool process (a healthcheck, say) joining this system's bus."""
+        env = self._env("tool", user=user)
+        env.pop("ANT_INSTANCE", None)
+        return env
+
+    def _router_argv(self, py: str) -> list[str]:
+        argv = [py, "-m", "deploy.router", "--listen", self.endpoint]
+        if self.auth:
+            instances = {n: [f"{n.replace('_', '-')}-{i}" for i in range(self.replicas.get(n, 1))]
+                         for n in ("renderer",) if n in self.services}
+            self.users = ensure_credentials(self.credentials_dir, listen=[self.endpoint], instances=instances)
+            argv += ["--config", str(self.credentials_dir / "router.json5")]
+        return argv
+
     def start(self, deadline_s: float = 60.0) -> None:
         py = sys.executable
-        router = Proc("router", [py, "-m", "deploy.router", "--listen", self.endpoint], self._env("router"),
-                      self.run_dir / "logs" / "router.log")
+        router = Proc("router", self._router_argv(py), self._env("router"), self.run_dir / "logs" / "router.log")
         router.start()
         self.procs.append(router)
         wait_tcp(self.router_port, 20.0)
@@ -154,7 +198,7 @@ class Launcher:
         for name in self.services:
             for i in range(self.replicas.get(name, 1)):
                 argv = [py, "-m", f"services.{name}"]
-                env = self._env(f"{name.replace('_', '-')}-{i}")
+                env = self._env(f"{name.replace('_', '-')}-{i}", user=name)
                 if name == "gateway":
                     env["ANT_PORT"] = str(self.gateway_port)
                 if name == "robot_io" and self.standin is not None:
@@ -162,7 +206,7 @@ class Launcher:
                 proc = Proc(f"{name}-{i}", argv, env, self.run_dir / "logs" / f"{name}-{i}.log")
                 proc.start()
                 self.procs.append(proc)
-        self.bus = ZenohBus(ZenohSettings(connect=[self.endpoint]))
+        self.bus = ZenohBus(self.client_settings())
         self.wait_alive(deadline_s)
         if self.restart:
             self._monitor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)

@@ -166,7 +166,10 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[list[Lane]]:
         for k in range(a.robots):
             run_dir = out / ("system" if a.robots == 1 else f"system-robot{k}")
             log.info("starting the system of robot%d (logs in %s)", k, run_dir)
-            launcher = Launcher(run_dir, extra_env={"ANT_ROBOT": f"robot{k}"})
+            env = {"ANT_ROBOT": f"robot{k}"}
+            if a.scenes_dir:  # robot-io loads scene files only from its configured directories (issue 15)
+                env["ANT_SCENE_DIRS"] = json.dumps([str(a.scenes_dir.resolve())])
+            launcher = Launcher(run_dir, extra_env=env)
             stack.callback(launcher.stop)
             launchers.append(launcher)
         t0 = time.monotonic()

@@ -34,13 +34,18 @@ class EventStream:
         self._seq = 0
         self._lock = threading.Lock()
         self.state = JobState.QUEUED
+        self.step = 0
 
-    def emit(self, kind: JobEventKind, state: JobState, *, step: int = 0,
+    def emit(self, kind: JobEventKind, state: JobState, *, step: int | None = None,
              data: EventPayload | None = None, images: dict[str, bytes] | None = None) -> JobEvent:
+        """``step`` None: the job's step so far (a final event of a job cancelled or failed at step 7
+        says 7, not 0)."""
         with self._lock:
+            step = self.step if step is None else max(step, 0)
             ev = JobEvent(job_id=self.job_id, seq=self._seq, kind=kind, state=state, step=step,
                               data=data, images=images or {})
             self._seq += 1
             self.state = state
+            self.step = max(self.step, step)
             self.bus.publish(self.key, ev, cache=self.CACHE_EVENTS)
         return ev

@@ -76,6 +76,23 @@ class Key:
         values = {p: validate_segment(parts[p], p) if p in parts else "*" for p in self.parts}
         return self.template.format(**values)
 
+    def parse(self, key: str) -> dict[str, str] | None:
+        """The parts of a concrete key of this template (None: not one of its keys). What a
+        subscriber trusts about a sample's identity: the key it came on, not the payload's claims."""
+        names, segs = self.template.split("/"), key.split("/")
+        if len(names) != len(segs):
+            return None
+        out: dict[str, str] = {}
+        for name, seg in zip(names, segs):
+            if name.startswith("{") and name.endswith("}"):
+                try:
+                    out[name[1:-1]] = validate_segment(seg)
+                except KeyExprError:
+                    return None
+            elif name != seg:
+                return None
+        return out
+
 
 _R = ROOT + "/{robot}"
 

@@ -113,6 +113,11 @@ class Service(ABC, Generic[S]):
         """Names of the backends this instance runs (shown in ``info`` and ``GET /status``)."""
         return {}
 
+    def health(self) -> str | None:
+        """None while this instance's state is usable, else what is wrong (``info`` then says
+        ``healthy: false``; ``GET /status`` and the container healthcheck report it)."""
+        return None
+
     @abstractmethod
     def start(self, node: Node) -> None:
         """Declare queryables/subscriptions. Must return promptly; long work goes to threads."""
@@ -130,8 +135,16 @@ class RunningService:
         started = time.time()
         info = ServiceInfo(service=service.name, version=shared.__version__, instance=self.node.instance,
                            backends=service.backends(), started_s=started)
+
+        def current_info(_: Ping) -> ServiceInfo:
+            try:
+                problem = service.health()
+            except Exception as exc:  # a health check that fails is itself a problem to report
+                problem = f"health check failed: {type(exc).__name__}: {exc}"
+            return info if problem is None else info.model_copy(update={"healthy": False, "problem": problem})
+
         parts = {"service": service.name, "instance": self.node.instance}
-        self.node.serve(keys.INFO.format(**parts), Ping, lambda _: info, workers=1, name="info")
+        self.node.serve(keys.INFO.format(**parts), Ping, current_info, workers=1, name="info")
         self.node.serve(keys.METRICS.format(**parts), Ping, lambda _: self.node.telemetry.snapshot(),
                         workers=1, name="metrics")
         service.start(self.node)

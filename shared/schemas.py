@@ -13,28 +13,114 @@ from __future__ import annotations
 
 import math
 import time
+import unicodedata
 from enum import StrEnum
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from shared.arrays import Array
 from shared.geometry import PinholeCamera
 
 
+# --- limits -----------------------------------------------------------------------------------------
+# Every number a request carries is finite (``allow_inf_nan=False`` on every model) and inside a stated
+# range, checked when the message is decoded: a value outside it can only be a mistake or an attack,
+# and once inside a robot's pose or a map it would poison every later request.
+
+WORLD_LIMIT_M = 2.0e7  # |coordinate|: UTM northings reach 1e7 m; 1e300 is a mistake (nearness to the
+# scene is checked where the scene is known: a start pose 1e6 m away gets a 422 with its distance)
+ANGLE_LIMIT_RAD = 4.0 * math.pi  # |heading| or |turn|: two full turns either way
+PITCH_LIMIT_RAD = math.pi / 2.0
+TIME_LIMIT_S = 1.0e11  # timestamps: epoch seconds (~1.7e9) or simulated seconds (>= 0)
+SEQ_LIMIT = 2**31 - 1  # ids, versions, sequence numbers, counts
+LABEL_LIMIT = 2**31 - 1
+
+Metres = Annotated[float, Field(ge=-WORLD_LIMIT_M, le=WORLD_LIMIT_M)]
+Distance_m = Annotated[float, Field(ge=0.0, le=WORLD_LIMIT_M)]
+Radians = Annotated[float, Field(ge=-ANGLE_LIMIT_RAD, le=ANGLE_LIMIT_RAD)]
+Pitch_rad = Annotated[float, Field(ge=-PITCH_LIMIT_RAD, le=PITCH_LIMIT_RAD)]
+Seconds = Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]
+Xyz_m = tuple[Metres, Metres, Metres]
+LabelId = Annotated[int, Field(ge=-1, le=LABEL_LIMIT)]
+Count = Annotated[int, Field(ge=0, le=SEQ_LIMIT)]
+Cost_usd = Annotated[float, Field(ge=0.0, le=1e6)]
+Duration_s = Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]
+
+
+class BudgetExceeded(ValueError):
+    """A well-formed request asks for more work or data than one request may (pixels, views, points,
+    frames, bytes); the bus answers ``budget_exceeded`` and the gateway 413."""
+
+    def __init__(self, what: str, asked: float, limit: float, unit: str = ""):
+        u = f" {unit}" if unit else ""
+        super().__init__(f"{what}: {asked:,.0f}{u} asked, at most {limit:,.0f}{u} per request")
+        self.what, self.asked, self.limit = what, asked, limit
+
+
+# Per-request budgets (data, not code): what one request may cost the service that answers it.
+RENDER_MAX_PIXELS = 64 * 256 * 256  # views x width x height of one RenderRequest (~50 MB of reply)
+PANORAMA_MAX_PIXELS = 12 * 512 * 512  # views x width x height of one panorama sent for prediction (~25 MB)
+VIEW_MAX_PIXELS = 512 * 512  # one view of an observed panorama (the robot's own config sets the views)
+MAP_CHUNK_MAX_POINTS = 2_000_000  # points of one MapChunk (~30 MB)
+BUILD_MAX_RECORDINGS = 256
+BUILD_MAX_FRAMES = 500_000  # frames of every recording of one BuildMapRequest together
+IMPORT_MAX_BYTES = 256 << 20  # an imported cloud file
+PATH_MAX_POINTS = 10_000  # trajectories and reference paths
+FREE_FORM_MAX_ITEMS = 10_000  # values in a free-form dict (options, policy configs, event data)
+FREE_FORM_MAX_ABS = 1e15  # |number| in a free-form dict; the typed config that reads it narrows it
+
+
+def check_free_form(value: Any, what: str) -> Any:
+    """``value`` (a free-form dict from HTTP or the bus) if every number in it is finite and in range
+    and it is not absurdly large; else ValueError. What request models use on their ``dict[str, Any]``."""
+    _free_form_check(value, what, [FREE_FORM_MAX_ITEMS])
+    return value
+
+
+def _free_form_check(value: Any, what: str, budget: list[int]) -> None:
+    """Free-form (``dict[str, Any]``) fields escape the typed checks: refuse non-finite and huge
+    numbers and absurd sizes in them too (the typed config that reads them narrows the ranges)."""
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise ValueError(f"{what}: more than {FREE_FORM_MAX_ITEMS} values")
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not math.isfinite(value):
+            raise ValueError(f"{what} must be finite, got {value}")
+        if abs(value) > FREE_FORM_MAX_ABS:
+            raise ValueError(f"{what} must be within +-{FREE_FORM_MAX_ABS:g}, got {value:g}")
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            _free_form_check(v, f"{what}.{k}", budget)
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _free_form_check(v, f"{what}[{i}]", budget)
+
+
 class Message(BaseModel):
     """Base of every bus message."""
 
-    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid", frozen=False)
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid", frozen=False, allow_inf_nan=False)
     SCHEMA: ClassVar[str] = "message"
     VERSION: ClassVar[int] = 1
+    FREE_FORM: ClassVar[tuple[str, ...]] = ()  # dict[str, Any] fields, checked by _free_form_check
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         # Schema names default to the class name so that no two messages share one by accident.
         if "SCHEMA" not in cls.__dict__:
             cls.SCHEMA = cls.__name__
+
+    @model_validator(mode="after")
+    def _free_form_finite(self):
+        for name in self.FREE_FORM:
+            _free_form_check(getattr(self, name), name, [FREE_FORM_MAX_ITEMS])
+        return self
+
+    def check_budget(self) -> None:
+        """Raise :class:`BudgetExceeded` when this request asks for more than one request may
+        (the serving side calls it after decoding, before any work)."""
 
 
 def _finite(values: tuple[float, ...] | float, what: str):
@@ -63,18 +149,8 @@ def _finite_array(arr: np.ndarray | None, what: str, non_negative: bool = False)
 class Pose(Message):
     """Agent pose: floor point under the agent (metres, world z-up) and heading."""
 
-    position_m: tuple[float, float, float]
-    heading_rad: float = 0.0
-
-    @field_validator("position_m")
-    @classmethod
-    def _pos_finite(cls, v):
-        return _finite(v, "position_m")
-
-    @field_validator("heading_rad")
-    @classmethod
-    def _heading_finite(cls, v):
-        return _finite(v, "heading_rad")
+    position_m: Xyz_m
+    heading_rad: Radians = 0.0
 
     @property
     def xyz(self) -> np.ndarray:
@@ -93,14 +169,9 @@ class CameraIntrinsics(Message):
 class ViewPose(Message):
     """A camera to render from: agent floor position, heading and pitch."""
 
-    position_m: tuple[float, float, float]
-    heading_rad: float = 0.0
-    pitch_rad: float = 0.0
-
-    @model_validator(mode="after")
-    def _finite(self):
-        _finite((*self.position_m, self.heading_rad, self.pitch_rad), "view pose")
-        return self
+    position_m: Xyz_m
+    heading_rad: Radians = 0.0
+    pitch_rad: Pitch_rad = 0.0
 
 
 # --- robot-io ------------------------------------------------------------------------------------
@@ -115,7 +186,7 @@ class Panorama(Message):
     rgb: Array("uint8", 4, 3)  # (V, H, W, 3)
     depth_m: Array("float32", 3)  # (V, H, W), z-depth, 0 = no measurement
     semantic: Array("int32", 3) | None = None  # (V, H, W) class ids, -1 = unknown
-    timestamp_s: float = Field(default_factory=time.time)
+    timestamp_s: Seconds = Field(default_factory=time.time)
 
     @model_validator(mode="after")
     def _shapes(self):
@@ -130,18 +201,22 @@ class Panorama(Message):
             raise ValueError(f"semantic shape {self.semantic.shape} != {(v, *hw)}")
         _finite_array(self.headings_rad, "headings_rad")
         _finite_array(self.depth_m, "depth_m", non_negative=True)
-        _finite(self.timestamp_s, "timestamp_s")
         return self
+
+    def check_budget(self) -> None:
+        px = self.rgb.shape[0] * self.camera.width_px * self.camera.height_px
+        if px > PANORAMA_MAX_PIXELS:
+            raise BudgetExceeded("panorama pixels (views x width x height)", px, PANORAMA_MAX_PIXELS, "px")
 
 
 class Frame(Message):
     """One recorded video frame of a tour (RGB, optional depth, pose and IMU heading)."""
 
-    index: int = Field(ge=0)
-    timestamp_s: float
+    index: int = Field(ge=0, le=SEQ_LIMIT)
+    timestamp_s: Seconds
     pose: Pose
-    pitch_rad: float = 0.0
-    imu_heading_rad: float
+    pitch_rad: Pitch_rad = 0.0
+    imu_heading_rad: Radians
     camera: CameraIntrinsics
     rgb: Array("uint8", 3, 3)
     depth_m: Array("float32", 2) | None = None
@@ -149,7 +224,6 @@ class Frame(Message):
 
     @model_validator(mode="after")
     def _finite_values(self):
-        _finite((self.timestamp_s, self.pitch_rad, self.imu_heading_rad), "frame timestamp/pitch/IMU heading")
         _finite_array(self.depth_m, "depth_m", non_negative=True)
         return self
 
@@ -163,16 +237,20 @@ class ObserveRequest(Message):
     camera: CameraIntrinsics | None = None  # None: the robot's configured camera
     with_semantic: bool = True
 
+    def check_budget(self) -> None:
+        px = 0 if self.camera is None else self.camera.width_px * self.camera.height_px
+        if px > VIEW_MAX_PIXELS:
+            raise BudgetExceeded("pixels per observed view", px, VIEW_MAX_PIXELS, "px")
+
 
 class MoveRequest(Message):
     """Walk to a waypoint given as an offset in world axes (paper: p + (dx, dy))."""
 
-    dx_m: float
-    dy_m: float
+    dx_m: float = Field(ge=-20.0, le=20.0)
+    dy_m: float = Field(ge=-20.0, le=20.0)
 
     @model_validator(mode="after")
-    def _finite(self):
-        _finite((self.dx_m, self.dy_m), "move offset")
+    def _within_reach(self):
         if math.hypot(self.dx_m, self.dy_m) > 20.0:
             raise ValueError("a single move_to is limited to 20 m")
         return self
@@ -186,7 +264,7 @@ class MoveResult(Message):
 
 
 class TurnRequest(Message):
-    angle_rad: float  # positive turns left (counter-clockwise)
+    angle_rad: Radians  # positive turns left (counter-clockwise)
 
 
 class ResetRequest(Message):
@@ -271,13 +349,17 @@ class LoadSceneRequest(Message):
 
 
 class GeodesicRequest(Message):
-    start_m: tuple[float, float, float]
-    goal_m: tuple[float, float, float]
+    start_m: Xyz_m
+    goal_m: Xyz_m
 
 
 class GeodesicReply(Message):
     distance_m: float | None  # None: no path (unreachable goal)
     path_m: Array("float64", 2) | None = None
+    # How far each end lies from walkable ground (None: the backend cannot tell): what a caller
+    # checks before trusting a start pose or a goal (a point 1e6 m away snaps to some corner).
+    start_off_m: float | None = None
+    goal_off_m: float | None = None
 
 
 # --- candidates, graphs, tours -------------------------------------------------------------------
@@ -292,13 +374,13 @@ class CandidateKind(StrEnum):
 class Candidate(Message):
     """A possible action: a waypoint (dx, dy) in world axes, a backtrack, or stop."""
 
-    index: int = Field(ge=0)
+    index: int = Field(ge=0, le=10_000)
     kind: CandidateKind = CandidateKind.WAYPOINT
-    dx_m: float = 0.0
-    dy_m: float = 0.0
-    angle_rad: float = 0.0  # relative to the agent heading, positive = left
-    distance_m: float = 0.0
-    score: float = 0.0
+    dx_m: Metres = 0.0
+    dy_m: Metres = 0.0
+    angle_rad: Radians = 0.0  # relative to the agent heading, positive = left
+    distance_m: Distance_m = 0.0
+    score: float = Field(0.0, ge=-1e9, le=1e9)
 
 
 class CandidateSet(Message):
@@ -339,9 +421,9 @@ class TourRecording(Message):
 
     exploration_id: str
     recording: str
-    region: int
+    region: int = Field(ge=-1, le=100_000)
     start_pose: Pose
-    frame_count: int = Field(ge=0)
+    frame_count: int = Field(ge=0, le=BUILD_MAX_FRAMES)
 
 
 # --- maps ------------------------------------------------------------------------------------------
@@ -349,17 +431,17 @@ class TourRecording(Message):
 
 class MapInfo(Message):
     map_id: str
-    version: int = Field(ge=1)
-    point_count: int = Field(ge=0)
-    bounds_min_m: tuple[float, float, float]
-    bounds_max_m: tuple[float, float, float]
+    version: int = Field(ge=1, le=SEQ_LIMIT)
+    point_count: int = Field(ge=0, le=SEQ_LIMIT)
+    bounds_min_m: Xyz_m
+    bounds_max_m: Xyz_m
     source: str = ""
     has_labels: bool = False
-    label_names: dict[int, str] = Field(default_factory=dict)
-    regions: int = 0
-    scale_factors: list[float] = Field(default_factory=list)
-    timings_s: dict[str, float] = Field(default_factory=dict)
-    created_s: float = Field(default_factory=time.time)
+    label_names: dict[LabelId, str] = Field(default_factory=dict)
+    regions: int = Field(0, ge=0, le=100_000)
+    scale_factors: list[Annotated[float, Field(gt=0.0, le=1e6)]] = Field(default_factory=list)
+    timings_s: dict[str, Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]] = Field(default_factory=dict)
+    created_s: Seconds = Field(default_factory=time.time)
 
 
 class MapListReply(Message):
@@ -374,8 +456,12 @@ class MapRequest(Message):
 class MapChunkRequest(Message):
     map_id: str
     version: int | None = Field(None, ge=1, le=2**31 - 1)
-    index: int = Field(0, ge=0)
+    index: int = Field(0, ge=0, le=SEQ_LIMIT)
     max_points: int = Field(1_000_000, ge=1, le=10_000_000)
+
+    def check_budget(self) -> None:
+        if self.max_points > MAP_CHUNK_MAX_POINTS:
+            raise BudgetExceeded("map chunk points", self.max_points, MAP_CHUNK_MAX_POINTS, "points")
 
 
 class MapChunk(Message):
@@ -411,6 +497,11 @@ class RenderRequest(Message):
     # candidate on the stairs or another storey is seen from its own height); 0 keeps z as given.
     floor_search_m: float = Field(1.5, ge=0.0, le=5.0)
 
+    def check_budget(self) -> None:
+        px = len(self.views) * self.camera.width_px * self.camera.height_px
+        if px > RENDER_MAX_PIXELS:
+            raise BudgetExceeded("rendered pixels (views x width x height)", px, RENDER_MAX_PIXELS, "px")
+
 
 class RenderResult(Message):
     map_id: str
@@ -427,10 +518,26 @@ class SpatialMapRequest(Message):
     version: int | None = Field(None, ge=1, le=2**31 - 1)
     pose: Pose
     trajectory_m: Array("float64", 2) | None = None  # (T, 3)
-    candidates: list[Candidate] = Field(default_factory=list)
+    candidates: list[Candidate] = Field(default_factory=list, max_length=1000)
     agent_up: bool = False
     size_px: int = Field(512, ge=64, le=2048)
-    radius_m: float | None = Field(None, gt=0.0)  # None: the whole floor
+    radius_m: float | None = Field(None, gt=0.0, le=WORLD_LIMIT_M)  # None: the whole floor
+
+    @model_validator(mode="after")
+    def _trajectory(self):
+        t = self.trajectory_m
+        if t is not None and t.size:
+            if t.ndim != 2 or t.shape[1] != 3:
+                raise ValueError(f"trajectory_m must be (T, 3), got {t.shape}")
+            _finite_array(t, "trajectory_m")
+            if np.abs(t).max() > WORLD_LIMIT_M:
+                raise ValueError(f"trajectory_m: coordinates beyond +-{WORLD_LIMIT_M:.0f} m")
+        return self
+
+    def check_budget(self) -> None:
+        n = 0 if self.trajectory_m is None else len(self.trajectory_m)
+        if n > PATH_MAX_POINTS:
+            raise BudgetExceeded("trajectory points", n, PATH_MAX_POINTS, "points")
 
 
 class SpatialMapResult(Message):
@@ -447,13 +554,13 @@ class SpatialMapResult(Message):
 class Decision(Message):
     """What the policy chose at one step."""
 
-    candidate_index: int
+    candidate_index: int = Field(ge=0, le=10_000)
     kind: CandidateKind
     reasoning: str = ""
     backend: str = ""
-    prompt_tokens: int = 0
-    completion_tokens: int = 0
-    cost_usd: float = 0.0
+    prompt_tokens: Count = 0
+    completion_tokens: Count = 0
+    cost_usd: Cost_usd = 0.0
     fallback: bool = False
 
 
@@ -465,25 +572,46 @@ class JobState(StrEnum):
     CANCELLED = "cancelled"
 
 
-class MissionOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+def _meaningful_instruction(text: str) -> str:
+    """An instruction is words: surrounding space is dropped, control characters (NUL, ...) are
+    refused, and it must hold at least one letter (a NUL, "   " or "?!" tell a robot nothing)."""
+    text = text.strip()
+    bad = [c for c in text if unicodedata.category(c) == "Cc" and c not in "\t\n\r"]
+    if bad:
+        raise ValueError(f"instruction holds control characters ({', '.join(sorted({repr(c) for c in bad}))})")
+    if not any(c.isalpha() for c in text):
+        raise ValueError("instruction holds no words")
+    return text
 
-    policy: str = "heuristic"
+
+Instruction = Annotated[str, Field(min_length=1, max_length=4000), AfterValidator(_meaningful_instruction)]
+
+
+class MissionOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    policy: str = Field("heuristic", max_length=100)
     policy_config: dict[str, Any] = Field(default_factory=dict, description="the policy backend's config")
     max_steps: int = Field(40, ge=1, le=500)
     anticipation: bool = True
     anticipation_hfov_deg: float = Field(90.0, ge=30.0, le=150.0)
     spatial_map: bool = True
-    goal_m: tuple[float, float, float] | None = None
-    reference_path_m: list[tuple[float, float, float]] | None = None
+    goal_m: Xyz_m | None = None
+    reference_path_m: list[Xyz_m] | None = Field(None, max_length=PATH_MAX_POINTS)
     start_pose: Pose | None = None
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
+
+    @field_validator("policy_config")
+    @classmethod
+    def _policy_config(cls, v: dict[str, Any]) -> dict[str, Any]:
+        _free_form_check(v, "policy_config", [FREE_FORM_MAX_ITEMS])
+        return v
 
 
 class MissionRequest(Message):
     mission_id: str
-    instruction: str = Field(min_length=1, max_length=4000)
+    instruction: Instruction
     map_id: str
     options: MissionOptions = Field(default_factory=MissionOptions)
 
@@ -494,6 +622,7 @@ class JobAccepted(Message):
     job_id: str
     accepted: bool
     reason: str = ""
+    instance: str = ""  # the worker instance that took the job ("" : not said; the gateway then looks it up)
 
 
 class CancelRequest(Message):
@@ -514,33 +643,33 @@ class JobEventKind(StrEnum):
 class UsageData(BaseModel):
     """The policy's running cost: LLM calls, tokens and dollars so far (all counters, so >= 0)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    calls: int = Field(0, ge=0)
-    prompt_tokens: int = Field(0, ge=0)
-    completion_tokens: int = Field(0, ge=0)
-    cost_usd: float = Field(0.0, ge=0.0, allow_inf_nan=False)
-    reasks: int = Field(0, ge=0)
-    fallbacks: int = Field(0, ge=0)
-    cache_hits: int = Field(0, ge=0)
+    calls: Count = 0
+    prompt_tokens: Count = 0
+    completion_tokens: Count = 0
+    cost_usd: Cost_usd = 0.0
+    reasks: Count = 0
+    fallbacks: Count = 0
+    cache_hits: Count = 0
 
 
 class EpisodeMetricsData(BaseModel):
     """The VLN-CE metrics of one mission (:class:`shared.vln_metrics.EpisodeMetrics` on the wire)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    ne_m: float | None = Field(ge=0.0, allow_inf_nan=False)
+    ne_m: Distance_m | None
     success: bool
     oracle_success: bool
-    oracle_ne_m: float | None = Field(ge=0.0, allow_inf_nan=False)
-    tl_m: float = Field(ge=0.0, allow_inf_nan=False)
+    oracle_ne_m: Distance_m | None
+    tl_m: Distance_m
     spl: float = Field(ge=0.0, le=1.0)
     ndtw: float | None = Field(ge=0.0, le=1.0)
     sdtw: float | None = Field(ge=0.0, le=1.0)
-    shortest_m: float | None = Field(ge=0.0, allow_inf_nan=False)
+    shortest_m: Distance_m | None
     stop_called: bool
-    steps: int = Field(ge=0)
+    steps: Count
     goal_reachable: bool
 
 
@@ -548,7 +677,7 @@ class EventPayload(BaseModel):
     """Base of every job event payload. ``type`` tells the payloads apart on the wire; ``KINDS`` are the
     event kinds a payload may travel with (checked by :class:`JobEvent`)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     KINDS: ClassVar[tuple[str, ...]] = ()
 
 
@@ -575,7 +704,7 @@ class MissionStep(EventPayload):
     pose: Pose
     candidates: list[Candidate]
     decision: Decision
-    timings_s: dict[str, float] = Field(default_factory=dict)
+    timings_s: dict[str, Duration_s] = Field(default_factory=dict)
     usage: UsageData = Field(default_factory=UsageData)
 
 
@@ -586,11 +715,11 @@ class MissionFinished(EventPayload):
     KINDS: ClassVar[tuple[str, ...]] = ("finished",)
     type: Literal["mission_finished"] = "mission_finished"
     stop_called: bool
-    steps: int = Field(ge=0)
-    trajectory_m: list[tuple[float, float, float]] = Field(default_factory=list)
+    steps: Count
+    trajectory_m: list[Xyz_m] = Field(default_factory=list, max_length=PATH_MAX_POINTS)
     metrics: EpisodeMetricsData | None = None
     usage: UsageData = Field(default_factory=UsageData)
-    step_latency_s: list[float] = Field(default_factory=list)
+    step_latency_s: list[Duration_s] = Field(default_factory=list, max_length=PATH_MAX_POINTS)
     reason: str = ""
     error: str = ""
 
@@ -620,19 +749,24 @@ class ExplorationOutcome(BaseModel):
     open_stairs: int = Field(0, ge=0)  # stair nodes past the last explored floor: a flight leads on
 
 
-class ExplorationProgress(EventPayload):
-    """A stage of an exploration (exploring, touring, reconstructing) and how far it has come."""
+class StageProgress(EventPayload):
+    """How far a long job has come: its stage, a fraction in [0, 1], and the region it is at."""
 
     KINDS: ClassVar[tuple[str, ...]] = ("progress",)
-    type: Literal["exploration_progress"] = "exploration_progress"
     stage: str
     progress: float = Field(ge=0.0, le=1.0)
     message: str = ""
-    region: int | None = None
-    frames: int | None = Field(None, ge=0)
-    nodes: int | None = Field(None, ge=0)
-    regions: int | None = Field(None, ge=0)
-    timings_s: dict[str, float] = Field(default_factory=dict)
+    region: int | None = Field(None, ge=-1, le=100_000)
+    regions: Count | None = None
+
+
+class ExplorationProgress(StageProgress):
+    """A stage of an exploration (exploring, touring, reconstructing)."""
+
+    type: Literal["exploration_progress"] = "exploration_progress"
+    frames: Count | None = None
+    nodes: Count | None = None
+    timings_s: dict[str, Duration_s] = Field(default_factory=dict)
     outcome: ExplorationOutcome | None = None
 
 
@@ -644,26 +778,20 @@ class ExplorationFinished(EventPayload):
     stage: str = "done"
     progress: float = Field(1.0, ge=0.0, le=1.0)
     map_id: str
-    version: int = Field(ge=1)
-    points: int = Field(ge=0)
-    regions: int = Field(ge=0)
-    skipped_regions: list[int] = Field(default_factory=list)
-    nodes: int = Field(0, ge=0)
-    wall_s: float = Field(0.0, ge=0.0, allow_inf_nan=False)
-    timings_s: dict[str, float] = Field(default_factory=dict)
+    version: int = Field(ge=1, le=SEQ_LIMIT)
+    points: Count
+    regions: Count
+    skipped_regions: list[Annotated[int, Field(ge=-1, le=100_000)]] = Field(default_factory=list)
+    nodes: Count = 0
+    wall_s: Duration_s = 0.0
+    timings_s: dict[str, Duration_s] = Field(default_factory=dict)
     outcome: ExplorationOutcome | None = None
 
 
-class MapBuildProgress(EventPayload):
+class MapBuildProgress(StageProgress):
     """A map build's stage (collecting frames, reconstructing region k of n, storing)."""
 
-    KINDS: ClassVar[tuple[str, ...]] = ("progress",)
     type: Literal["map_build_progress"] = "map_build_progress"
-    stage: str
-    progress: float = Field(ge=0.0, le=1.0)
-    message: str = ""
-    region: int | None = None
-    regions: int | None = Field(None, ge=0)
 
 
 class MapBuildFinished(EventPayload):
@@ -705,11 +833,11 @@ class JobEvent(Message):
     """
 
     job_id: str
-    seq: int = Field(ge=0)
+    seq: int = Field(ge=0, le=SEQ_LIMIT)
     kind: JobEventKind
     state: JobState
-    step: int = Field(0, ge=0)
-    timestamp_s: float = Field(default_factory=time.time, allow_inf_nan=False)
+    step: int = Field(0, ge=0, le=100_000)
+    timestamp_s: Seconds = Field(default_factory=time.time)
     data: EventData | None = None
     images: dict[str, bytes] = Field(default_factory=dict)
 
@@ -736,6 +864,8 @@ class ExplorationRequest(Message):
     options: dict[str, Any] = Field(default_factory=dict)
     record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
 
+    FREE_FORM: ClassVar[tuple[str, ...]] = ("options",)
+
 
 class BuildMapRequest(Message):
     """Mapper -> reconstructor: the recorded tours of an exploration are complete; build the map.
@@ -746,19 +876,30 @@ class BuildMapRequest(Message):
     build_id: str
     exploration_id: str
     map_id: str
-    recordings: list[TourRecording]
+    recordings: list[TourRecording] = Field(max_length=BUILD_MAX_RECORDINGS)
     reconstruction: str = "rgbd"
-    label_names: dict[int, str] = Field(default_factory=dict, description="semantic ids of the frames")
+    label_names: dict[LabelId, str] = Field(default_factory=dict, description="semantic ids of the frames")
     source: str = ""
     options: dict[str, Any] = Field(default_factory=dict)
+
+    FREE_FORM: ClassVar[tuple[str, ...]] = ("options",)
+
+    def check_budget(self) -> None:
+        frames = sum(r.frame_count for r in self.recordings)
+        if frames > BUILD_MAX_FRAMES:
+            raise BudgetExceeded("frames of the recordings", frames, BUILD_MAX_FRAMES, "frames")
 
 
 class MapImportRequest(Message):
     """Store a user's own cloud (PLY or PCD bytes) as a map."""
 
     map_id: str
-    filename: str = Field(pattern=r"^[^/\\]{1,200}\.(ply|pcd)$")
+    filename: str = Field(pattern=r"^[^/\\\x00-\x1f]{1,200}\.(ply|pcd)$")
     data: bytes = Field(min_length=1)
+
+    def check_budget(self) -> None:
+        if len(self.data) > IMPORT_MAX_BYTES:
+            raise BudgetExceeded("imported cloud bytes", len(self.data), IMPORT_MAX_BYTES, "bytes")
 
 
 # --- service plumbing ------------------------------------------------------------------------------
@@ -774,6 +915,8 @@ class ServiceInfo(Message):
     instance: str
     backends: dict[str, str] = Field(default_factory=dict)
     started_s: float = 0.0
+    healthy: bool = True  # False: alive, but its state is broken (``problem`` says how)
+    problem: str = ""
 
 
 class EndpointStats(Message):
@@ -797,6 +940,7 @@ class ErrorCode(StrEnum):
     UNAVAILABLE = "unavailable"
     INTERNAL = "internal"
     TIMEOUT = "timeout"
+    BUDGET_EXCEEDED = "budget_exceeded"  # a well-formed request over a per-request budget
 
 
 class ErrorReply(Message):

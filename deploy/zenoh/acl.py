@@ -56,6 +56,9 @@ def owned_key_exprs(service: str, instances: Sequence[str] = ()) -> list[str]:
            keys.METRICS.pattern(service=service)]
     owned = [k for k in keys.CATALOGUE if k.owner == service]
     out += [_expr(k) for k in owned]
+    # zenoh-ext's advanced publishers (the event caches late subscribers recover from) declare their
+    # token and cache queryable under the verbatim chunk ``@adv`` below the key: list it explicitly.
+    out += [f"{_expr(k)}/@adv/**" for k in owned if k.usage == keys.Usage.PUBLICATION]
     for inst in instances:
         out += [keys.routed(_expr(k), inst) for k in owned if k.usage == keys.Usage.QUERYABLE]
     return list(dict.fromkeys(out))
@@ -69,10 +72,11 @@ def routed_key_exprs(instances: Mapping[str, Sequence[str]]) -> list[str]:
 
 def acl_config(services: Iterable[str] = SERVICES,
                instances: Mapping[str, Sequence[str]] | None = None,
-               default_permission: str = "deny") -> dict[str, Any]:
+               default_permission: str = "deny", readers: Sequence[str] = ()) -> dict[str, Any]:
     """The router's ``access_control`` section (zenoh 1.x: rules, subjects, policies).
 
-    Subjects match the ``usrpwd`` user name, which must equal the service name.
+    Subjects match the ``usrpwd`` user name, which must equal the service name. ``readers`` are extra
+    users (tools, tests) that may read and query everything but publish, serve or declare nothing.
     """
     services = list(services)
     instances = dict(REPLICATED if instances is None else instances)
@@ -81,7 +85,8 @@ def acl_config(services: Iterable[str] = SERVICES,
             raise AclError(f"instances given for {svc!r}, which is not among {services}")
         for n in names:
             keys.validate_segment(n, "instance")
-    everywhere = [f"{keys.ROOT}/**", *routed_key_exprs(instances)]
+    # "@adv": advanced subscribers' tokens and history queries (a verbatim chunk no wildcard matches).
+    everywhere = [f"{keys.ROOT}/**", f"{keys.ROOT}/**/@adv/**", *routed_key_exprs(instances)]
     rules: list[dict[str, Any]] = [
         {"id": "read", "permission": "allow", "flows": ["ingress", "egress"], "messages": READ_MESSAGES,
          "key_exprs": everywhere},
@@ -89,7 +94,9 @@ def acl_config(services: Iterable[str] = SERVICES,
          "key_exprs": everywhere},
     ]
     subjects: list[dict[str, Any]] = []
-    policies: list[dict[str, Any]] = [{"id": "everyone", "rules": ["read", "deliver"], "subjects": services}]
+    policies: list[dict[str, Any]] = [{"id": "everyone", "rules": ["read", "deliver"],
+                                       "subjects": [*services, *readers]}]
+    subjects += [{"id": r, "usernames": [r]} for r in readers]
     for svc in services:
         rules.append({"id": f"own-{svc}", "permission": "allow", "flows": ["ingress"], "messages": OWN_MESSAGES,
                       "key_exprs": owned_key_exprs(svc, instances.get(svc, ()))})
@@ -101,14 +108,14 @@ def acl_config(services: Iterable[str] = SERVICES,
 
 def router_config(listen: Sequence[str] = ("tcp/[::]:7447",), *, users_file: str = "/etc/zenoh/users.txt",
                   services: Iterable[str] = SERVICES, instances: Mapping[str, Sequence[str]] | None = None,
-                  ) -> dict[str, Any]:
+                  readers: Sequence[str] = ()) -> dict[str, Any]:
     """A complete router configuration with user/password authentication and the ACL."""
     return {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"auth": {"usrpwd": {"dictionary_file": users_file}}},
-        "access_control": acl_config(services, instances),
+        "access_control": acl_config(services, instances, readers=readers),
     }
 
 

@@ -19,7 +19,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
 import shared
-from services.gateway import errors
+from services.gateway import deps, errors
 from services.gateway.cache import RecordCache
 from services.gateway.events import EventHub, EventIngest
 from services.gateway.limits import BodyLimit
@@ -74,8 +74,9 @@ def create_app(settings: GatewaySettings | None = None,
         app.state.scene_lock = threading.Lock()
         # Subscribed before the first request: every event published from now on is stored.
         app.state.ingest = EventIngest(running.node.bus, store, hub, settings.robot)
-        # A mission whose planner died can never finish: it ends as failed, with the reason.
-        app.state.reaper = JobReaper(bus, store, hub)
+        # Jobs whose worker is gone (died, or restarted and forgot them) end as failed, with the reason:
+        # checked at start, periodically and whenever a worker's token drops.
+        app.state.reaper = JobReaper(running.node.bus, store, hub, interval_s=settings.reconcile_interval_s)
         app.state.recordings = downloads.RecordingWriter(running.node.bus, store, settings)
         log.info("gateway on %s:%d, database %s", settings.host, settings.port, settings.db_path)
         try:
@@ -97,7 +98,9 @@ def create_app(settings: GatewaySettings | None = None,
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
                            allow_headers=["*"], expose_headers=["Location"])
     errors.install(app)
-    for module in (health, status, metrics, missions, explorations, maps, robot, dashboard, downloads):
+    for module in (health, dashboard):  # liveness probes and the page itself stay open
         app.include_router(module.router)
+    for module in (status, metrics, missions, explorations, maps, robot, downloads):
+        app.include_router(module.router, dependencies=[deps.ReadAuthorized])
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     return app

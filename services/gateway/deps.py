@@ -51,9 +51,26 @@ def require_token(request: Request,
                             headers={"WWW-Authenticate": "Bearer"})
 
 
+def require_read(request: Request,
+                 credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+    """With ``ANT_READ_TOKEN`` set, reading (missions, images, maps, status) needs that token or the API
+    token, as ``Authorization: Bearer`` or ``?access_token=`` (an EventSource or an <img> cannot send
+    headers). Without it, reads stay open."""
+    settings = request.app.state.settings
+    if not settings.read_token:
+        return
+    given = credentials.credentials if credentials else request.query_params.get("access_token", "")
+    ok = any(t and secrets.compare_digest(given.encode(), t.encode()) for t in (settings.read_token, settings.api_token))
+    if not ok:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED,
+                            "missing or wrong read token" if given else "reading needs a bearer token",
+                            headers={"WWW-Authenticate": "Bearer"})
+
+
 BusDep = Annotated[TypedBus, Depends(get_bus)]
 SettingsDep = Annotated[GatewaySettings, Depends(get_settings)]
 StoreDep = Annotated[GatewayStore, Depends(get_store)]
 HubDep = Annotated[EventHub, Depends(get_hub)]
 CacheDep = Annotated[RecordCache, Depends(get_cache)]
 Authorized = Depends(require_token)
+ReadAuthorized = Depends(require_read)

@@ -1,7 +1,7 @@
 """How failures become HTTP answers: every one a clear status and reason, never a bare 500.
 
 Bus errors map by what they mean for the caller: nobody answered -> 503, the service said the input
-was bad -> 422, not found -> 404, timeout -> 504, the service itself failed -> 502 (the gateway is fine,
+was bad -> 422, over a per-request budget -> 413, not found -> 404, timeout -> 504, the service itself failed -> 502 (the gateway is fine,
 what stands behind it is not).
 """
 
@@ -25,6 +25,7 @@ _STATUS = {
     ErrorCode.UNAVAILABLE: 503,
     ErrorCode.TIMEOUT: 504,
     ErrorCode.INTERNAL: 502,
+    ErrorCode.BUDGET_EXCEEDED: 413,
 }
 
 

@@ -12,11 +12,11 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import AsyncIterator
 
 from services.gateway.records import TERMINAL, JobKind
-from services.gateway.store import GatewayStore, StoredEvent, image_url
+from services.gateway.store import EventRejected, GatewayStore, StoredEvent, image_url
 from shared import keys
 from shared.bus.base import Closeable
 from shared.bus.typed import TypedBus
@@ -104,23 +104,48 @@ class EventHub:
 
 
 class EventIngest:
-    """Subscriptions that persist every event of ``robot``'s missions and explorations."""
+    """Subscriptions that persist every event of ``robot``'s missions and explorations.
+
+    Nothing an event claims is taken on trust: the job id is the one of the key it came on (an event
+    on mission A's key naming mission B is refused), and the store refuses an event for a job it
+    does not hold, for a job that has ended, with a seq that does not increase, or whose kind
+    contradicts its state. Refusals are counted by reason (``rejected``) and logged.
+    """
+
+    _KEYS = {JobKind.MISSION: keys.MISSION_EVENTS, JobKind.EXPLORATION: keys.EXPLORATION_EVENTS}
+    _ID_PART = {JobKind.MISSION: "mission", JobKind.EXPLORATION: "exploration"}
 
     def __init__(self, bus: TypedBus, store: GatewayStore, hub: EventHub, robot: str):
         self.store, self.hub = store, hub
         self.stored = 0
         self.duplicates = 0
+        self.rejected: Counter[str] = Counter()
         self._subs: list[Closeable] = [
             # history: events published while this gateway was down come back from the
             # publishers' caches; the store ignores the ones it already has.
-            bus.subscribe(keys.MISSION_EVENTS.pattern(robot=robot), JobEvent,
-                          lambda _k, ev: self._on_event(JobKind.MISSION, ev), history=True),
-            bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=robot), JobEvent,
-                          lambda _k, ev: self._on_event(JobKind.EXPLORATION, ev), history=True),
+            bus.subscribe(key.pattern(robot=robot), JobEvent,
+                          lambda k, ev, kind=kind: self._on_event(kind, ev, k), history=True)
+            for kind, key in self._KEYS.items()
         ]
 
-    def _on_event(self, kind: JobKind, event: JobEvent) -> None:
-        stored = self.store.append_event(kind, event)
+    def _reject(self, kind: JobKind, key: str, event: JobEvent, why: str, detail: str) -> None:
+        self.rejected[why] += 1
+        log.warning("rejected %s event on %s (seq %d, %s/%s): %s", kind.value, key, event.seq, event.kind.value,
+                    event.state.value, detail)
+
+    def _on_event(self, kind: JobKind, event: JobEvent, key: str | None = None) -> None:
+        if key is not None:
+            parts = self._KEYS[kind].parse(key)
+            job_id = parts[self._ID_PART[kind]] if parts else None
+            if job_id != event.job_id:
+                self._reject(kind, key, event, "id_mismatch",
+                             f"the event names {event.job_id!r}, its key {job_id!r}")
+                return
+        try:
+            stored = self.store.append_event(kind, event)
+        except EventRejected as exc:
+            self._reject(kind, key or event.job_id, event, _why(exc.reason), exc.reason)
+            return
         if stored is not None:
             self.stored += 1
             # Encoded once here, sent by every stream of the job.
@@ -132,6 +157,15 @@ class EventIngest:
         for s in self._subs:
             s.close()
         self._subs.clear()
+
+
+def _why(reason: str) -> str:
+    """A short counter name for a rejection reason."""
+    for word, name in (("no ", "unknown_job"), ("already ended", "terminal"), ("does not increase", "replayed"),
+                       ("goes back", "step_back"), ("cannot be", "kind_state")):
+        if word in reason:
+            return name
+    return "other"
 
 
 def event_json(kind: JobKind, ev: StoredEvent) -> dict:

@@ -1,85 +1,194 @@
-"""Jobs whose worker died: a mission (exploration) the planner (mapper) was running when its process
-went away can never finish, so the gateway ends it as failed, with the reason, instead of leaving it
-``running`` forever.
+"""Jobs whose worker is gone: a mission (exploration) whose planner (mapper) died, or restarted and so
+forgot it, can never finish; the gateway ends it as failed, with the reason, instead of leaving it
+``running`` forever (a running job also blocks ``POST /robot/scene``).
 
-The gateway watches the liveliness of the planner and the mapper. When one of their tokens drops and,
-after a short grace, no instance of that service is alive, every job of that kind that has not ended
-gets a final ``error`` event (seq = last + 1, state ``failed``): the record, the SSE stream (which then
-ends) and the history all say why. A restarted service does not know the jobs of its previous life, so
-there is nothing to resume.
+Each job records its *owner* when it is accepted: the worker instance and the ``started_s`` of its
+incarnation (from its ``info`` queryable), so a worker restarted under the same instance name is told
+apart from the one that took the job. :meth:`JobReaper.reconcile` compares every job that has not
+ended with the live workers:
+
+* the owner's liveliness token is gone, or its ``info`` answers with another ``started_s``: orphan;
+* a job whose owner is unknown (accepted by a worker that cannot be identified) is an orphan only
+  when no instance of its service is alive at all.
+
+An orphan must be seen twice, ``confirm_s`` apart, before it is failed (a worker that is only slow to
+be seen after a gateway start is not one). Reconciliation runs at start, every ``interval_s``, and
+after a worker's liveliness token drops; the failure is a final ``error`` event (seq = last + 1,
+state ``failed``) so the record, the SSE stream and the history all say why.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
+from typing import Any
 
 from services.gateway.events import EventHub, sse_frame
 from services.gateway.records import JobKind
-from services.gateway.store import GatewayStore
+from services.gateway.store import EventRejected, GatewayStore, JobRow
 from shared import keys
-from shared.bus.base import Bus, Closeable
-from shared.schemas import JobFailed, JobEvent, JobEventKind, JobState
+from shared.bus.base import Closeable
+from shared.bus.typed import RemoteError, TypedBus
+from shared.schemas import JobCancelled, JobFailed, JobEvent, JobEventKind, JobState, Ping, ServiceInfo
 
 log = logging.getLogger(__name__)
 
 WORKERS = {"planner": JobKind.MISSION, "mapper": JobKind.EXPLORATION}
+SERVICE_OF = {kind: service for service, kind in WORKERS.items()}
 _OPEN = [JobState.QUEUED, JobState.RUNNING]
 
 
-class JobReaper:
-    """Fail the open jobs of a service that has no live instance left (see the module docstring)."""
+def live_workers(bus: TypedBus, service: str, timeout_s: float) -> tuple[set[str], dict[str, float]]:
+    """(instances whose liveliness token is up, instance -> started_s of those whose info answered)."""
+    alive = {t.rsplit("/", 1)[-1] for t in bus.raw.alive(keys.ALIVE.pattern(service=service), timeout_s=timeout_s)}
+    started = {}
+    for r in bus.request_all(keys.INFO.pattern(service=service), Ping(), ServiceInfo, timeout_s=timeout_s):
+        if not isinstance(r, RemoteError) and r.service == service:
+            started[r.instance] = r.started_s
+    return alive, started
 
-    def __init__(self, bus: Bus, store: GatewayStore, hub: EventHub, *, grace_s: float = 0.5):
-        self.bus, self.store, self.hub, self.grace_s = bus, store, hub, grace_s
+
+def find_owner(bus: TypedBus, service: str, instance: str = "", timeout_s: float = 2.0) -> dict[str, Any] | None:
+    """The worker that accepted a job: ``instance`` when the reply named it, else the one live
+    instance of ``service`` (None when there are several, or none answers)."""
+    try:
+        _, started = live_workers(bus, service, timeout_s)
+    except Exception:  # the job is accepted either way; an unknown owner is reconciled coarsely
+        log.exception("cannot identify the %s that accepted a job", service)
+        return None
+    if instance:
+        return {"service": service, "instance": instance, "started_s": started.get(instance)}
+    if len(started) == 1:
+        ((name, started_s),) = started.items()
+        return {"service": service, "instance": name, "started_s": started_s}
+    return None
+
+
+def orphan_reason(owner: dict[str, Any] | None, service: str, alive: set[str], started: dict[str, float], *,
+                  dropped: bool = False) -> str | None:
+    """Why a job of ``service`` can never finish, or None while it still can. A job without a known
+    owner is judged only after a worker's token was seen to drop (``dropped``): a worker that
+    announces no liveliness at all (a test double) is not taken for a dead one."""
+    if not owner or not owner.get("instance"):
+        return f"no {service} is running any more" if dropped and not alive else None
+    name = owner["instance"]
+    if name not in alive:
+        return f"the {service} {name} that ran it went away"
+    was, now = owner.get("started_s"), started.get(name)
+    if was is not None and now is not None and abs(now - was) > 1e-3:
+        at = time.strftime("%H:%M:%S", time.gmtime(now))
+        return f"the {service} {name} that ran it restarted (at {at} UTC) and lost it"
+    return None
+
+
+class JobReaper:
+    """Reconcile the jobs that have not ended with the live workers (see the module docstring)."""
+
+    def __init__(self, bus: TypedBus, store: GatewayStore, hub: EventHub, *, grace_s: float = 0.5,
+                 interval_s: float = 5.0, startup_s: float = 2.0, confirm_s: float = 1.0, timeout_s: float = 2.0,
+                 min_age_s: float = 2.0):
+        self.bus, self.store, self.hub = bus, store, hub
+        self.grace_s, self.interval_s, self.confirm_s, self.timeout_s = grace_s, interval_s, confirm_s, timeout_s
+        self.min_age_s = min_age_s
         self.reaped = 0
+        self.rounds = 0
         self._stop = threading.Event()
+        self._lock = threading.Lock()  # one reconciliation at a time
         self._watches: list[Closeable] = [
-            bus.watch_liveliness(keys.ALIVE.pattern(service=service),
-                                 lambda token, alive, s=service: self._on_token(s, token, alive))
+            bus.raw.watch_liveliness(keys.ALIVE.pattern(service=service),
+                                     lambda token, alive, s=service: self._on_token(s, token, alive))
             for service in WORKERS
         ]
+        self._thread = threading.Thread(target=self._loop, args=(startup_s,), name="reconcile", daemon=True)
+        self._thread.start()
 
     def _on_token(self, service: str, token: str, alive: bool) -> None:
         if not alive and not self._stop.is_set():
-            # Off the bus's callback thread: the check below queries the bus.
-            threading.Thread(target=self._check, args=(service, token), name=f"reap-{service}", daemon=True).start()
+            # Off the bus's callback thread: reconciling queries the bus.
+            threading.Thread(target=self._after_drop, args=(service, token), name=f"reap-{service}",
+                             daemon=True).start()
 
-    def _check(self, service: str, token: str) -> None:
+    def _after_drop(self, service: str, token: str) -> None:
         if self._stop.wait(self.grace_s):
             return
         try:
-            if self.bus.alive(keys.ALIVE.pattern(service=service), timeout_s=1.0):
-                return  # another replica lives on; its jobs still report
-            self.reap(service, f"the {service} stopped ({token.rsplit('/', 1)[-1]} went away) while this ran")
+            self.reconcile(services=[service], confirm_s=self.grace_s, dropped=True)
         except Exception:  # never let a failed check take the gateway down
-            log.exception("checking open jobs of %s failed", service)
+            log.exception("reconciling the jobs of %s after %s went away failed", service, token)
 
-    def reap(self, service: str, reason: str) -> int:
-        """End every open job of ``service``'s kind as failed with ``reason``; returns how many."""
+    def _loop(self, startup_s: float) -> None:
+        wait = startup_s
+        while not self._stop.wait(wait):
+            try:
+                self.reconcile()
+            except Exception:
+                log.exception("reconciling open jobs failed")
+            wait = self.interval_s
+
+    def _orphans(self, service: str, dropped: bool) -> dict[str, tuple[JobRow, str]]:
         kind = WORKERS[service]
-        n = 0
+        alive, started = live_workers(self.bus, service, self.timeout_s)
+        now = time.time()
+        out: dict[str, tuple[JobRow, str]] = {}
+        offset = 0
         while True:
-            rows, _ = self.store.list_jobs(kind, states=_OPEN, limit=500, offset=0)
-            if not rows:
-                break
+            rows, _ = self.store.list_jobs(kind, states=_OPEN, limit=500, offset=offset)
             for row in rows:
-                event = JobEvent(job_id=row.id, seq=row.last_seq + 1, kind=JobEventKind.ERROR,
-                                     state=JobState.FAILED, step=row.step, data=JobFailed(error=reason))
-                stored = self.store.append_event(kind, event)
-                if stored is not None:
-                    n += 1
-                    self.hub.publish(row.id, stored.seq, sse_frame(kind, stored))
-                else:  # the worker's own event took that seq in between: mark without an event
-                    self.store.mark(row.id, JobState.FAILED, reason)
-                    self.hub.notify(row.id)
-        if n:
-            log.warning("%d open %s(s) ended as failed: %s", n, kind.value, reason)
-        self.reaped += n
-        return n
+                if now - row.created_s < self.min_age_s:
+                    continue  # just submitted: its owner is being recorded
+                reason = orphan_reason(row.summary.get("owner"), service, alive, started, dropped=dropped)
+                if reason:
+                    out[row.id] = (row, reason)
+            if len(rows) < 500:
+                return out
+            offset += 500
+
+    def reconcile(self, services: list[str] | None = None, confirm_s: float | None = None,
+                  dropped: bool = False) -> int:
+        """Fail the jobs whose worker is gone, seen so twice ``confirm_s`` apart; returns how many."""
+        with self._lock:
+            n = 0
+            for service in services or list(WORKERS):
+                first = self._orphans(service, dropped)
+                if not first or self._stop.wait(self.confirm_s if confirm_s is None else confirm_s):
+                    continue
+                second = self._orphans(service, dropped)
+                for job_id, (row, reason) in second.items():
+                    if job_id in first:
+                        n += self.fail(WORKERS[service], job_id, f"{reason} while this ran")
+            self.rounds += 1
+            if n:
+                log.warning("%d open job(s) ended as failed: their workers are gone", n)
+            self.reaped += n
+            return n
+
+    def fail(self, kind: JobKind, job_id: str, reason: str, state: JobState = JobState.FAILED) -> int:
+        """End one open job with ``reason`` (a final event when its seq is free); 1 when it ended here."""
+        row = self.store.get_job(job_id, kind)
+        if row is None or row.terminal:
+            return 0
+        ev_kind = JobEventKind.ERROR if state == JobState.FAILED else JobEventKind.FINISHED
+        data = JobFailed(error=reason) if state == JobState.FAILED else JobCancelled(message=reason)
+        event = JobEvent(job_id=row.id, seq=row.last_seq + 1, kind=ev_kind, state=state, step=row.step,
+                             data=data)
+        try:
+            stored = self.store.append_event(kind, event)
+        except EventRejected:  # it ended (or moved on) in between: look again
+            stored = None
+        if stored is not None:
+            self.hub.publish(row.id, stored.seq, sse_frame(kind, stored))
+            return 1
+        row = self.store.get_job(job_id, kind)
+        if row is None or row.terminal:
+            return 0
+        self.store.mark(row.id, state, reason if state == JobState.FAILED else None)
+        self.hub.notify(row.id)
+        return 1
 
     def close(self) -> None:
         self._stop.set()
         for w in self._watches:
             w.close()
         self._watches.clear()
+        self._thread.join(self.timeout_s * 2 + self.confirm_s + 1)

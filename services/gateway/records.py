@@ -14,17 +14,45 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from shared.schemas import (
-    ExplorationFinished, ExplorationProgress, ExplorationStarted, JobCancelled, JobFailed, JobEvent,
+    ExplorationFinished, ExplorationProgress, ExplorationStarted, JobCancelled, JobFailed, JobEvent, JobEventKind,
     MissionFinished, MissionStarted, JobState, MissionStep, Pose,
 )
 
 TERMINAL = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED})
+# The states an event of each kind can carry; anything else is refused at ingest.
+KIND_STATES = {
+    JobEventKind.STARTED: frozenset({JobState.QUEUED, JobState.RUNNING}),
+    JobEventKind.STEP: frozenset({JobState.RUNNING}),
+    JobEventKind.PROGRESS: frozenset({JobState.QUEUED, JobState.RUNNING}),
+    JobEventKind.FINISHED: TERMINAL,
+    JobEventKind.ERROR: frozenset({JobState.FAILED}),
+}
 MAX_DECISIONS_KEPT = 1000  # a record stays small enough to serve 200 pollers; events keep everything
 
 
 class JobKind(StrEnum):
     MISSION = "mission"
     EXPLORATION = "exploration"
+
+
+class MissionOutcome(StrEnum):
+    """How a mission ended - apart from whether it reached its goal (``success``, known only when the
+    mission has a goal): ``succeeded`` says only that the policy stopped, never that it was right."""
+
+    POLICY_STOPPED = "policy_stopped"  # the policy chose stop
+    NO_WAY_TO_MOVE = "no_way_to_move"  # stop was the only action left (boxed in)
+    MAX_STEPS = "max_steps"  # the step budget ran out without a stop
+    CANCELLED = "cancelled"
+    FAILED = "failed"
+
+
+def outcome_of(state: JobState, outcome: str | None) -> str | None:
+    """The folded outcome, or the one a terminal state implies when no event said more (a job ended
+    by the gateway itself)."""
+    if outcome is not None:
+        return outcome
+    return {JobState.CANCELLED: MissionOutcome.CANCELLED.value,
+            JobState.FAILED: MissionOutcome.FAILED.value}.get(state)
 
 
 # --- folding -------------------------------------------------------------------------------------
@@ -34,7 +62,7 @@ def empty_summary() -> dict[str, Any]:
     return {"trajectory": [], "decisions": [], "metrics": None, "prompt_tokens": 0, "completion_tokens": 0,
             "cost_usd": 0.0, "progress": None, "stage": None, "message": None, "error": None,
             "map_id": None, "images": {}, "started_s": None, "finished_s": None, "last_step_seq": None,
-            "candidates": [], "pose": None}
+            "candidates": [], "pose": None, "outcome": None, "success": None}
 
 
 def _set_pose(summary: dict[str, Any], pose: Pose) -> None:
@@ -71,6 +99,12 @@ def apply_event(summary: dict[str, Any], event: JobEvent, image_urls: dict[str, 
             summary["completion_tokens"] += dec.completion_tokens
             summary["cost_usd"] += dec.cost_usd
         case MissionFinished():
+            boxed_in = d.stop_called and bool(summary["candidates"]) and all(
+                c.get("kind") == "stop" for c in summary["candidates"])
+            summary["outcome"] = (MissionOutcome.NO_WAY_TO_MOVE if boxed_in else MissionOutcome.POLICY_STOPPED
+                                  if d.stop_called else MissionOutcome.MAX_STEPS).value
+            # Success exists only where a goal is known (the metrics come with one).
+            summary["success"] = d.metrics.success if d.metrics is not None else None
             if d.metrics is not None:
                 summary["metrics"] = d.metrics.model_dump(mode="json")
             if d.error:
@@ -87,8 +121,10 @@ def apply_event(summary: dict[str, Any], event: JobEvent, image_urls: dict[str, 
             summary["message"] = f"map {d.map_id} v{d.version}: {d.points} points from {d.regions} regions"
         case JobCancelled():
             summary["message"] = d.message
+            summary["outcome"] = MissionOutcome.CANCELLED.value
         case JobFailed():
             summary["error"] = d.error
+            summary["outcome"] = MissionOutcome.FAILED.value
     if event.state == JobState.SUCCEEDED and summary.get("progress") is not None:
         summary["progress"] = 1.0
     if image_urls:
@@ -148,6 +184,8 @@ class MissionRecord(JobRecord):
     trajectory: list[list[float]] = Field(default_factory=list, description="visited positions (x, y, z) m")
     candidates: list[dict[str, Any]] = Field(default_factory=list, description="the latest step's candidates")
     decisions: list[DecisionRecord] = Field(default_factory=list)
+    outcome: MissionOutcome | None = Field(None, description="how it ended (None while it runs)")
+    success: bool | None = Field(None, description="whether it reached its goal; None without a goal")
     metrics: dict[str, Any] | None = Field(None, description="VLN-CE metrics when the episode has a goal")
     prompt_tokens: int = 0
     completion_tokens: int = 0
@@ -164,6 +202,8 @@ class ExplorationRecord(JobRecord):
 class MissionSummary(BaseModel):
     id: str
     state: JobState
+    outcome: MissionOutcome | None = None
+    success: bool | None = None
     step: int
     instruction: str
     map_id: str

@@ -28,11 +28,12 @@ from itertools import count
 from pathlib import Path
 from typing import Any
 
-from services.gateway.records import TERMINAL, JobKind, apply_event, empty_summary
+from services.gateway.records import KIND_STATES, TERMINAL, JobKind, apply_event, empty_summary
 from shared.schemas import JobEvent, JobState
 
 log = logging.getLogger(__name__)
 
+_TERMINAL_VALUES = frozenset(s.value for s in TERMINAL)
 _IMAGE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 _SCHEMA = """
@@ -76,6 +77,15 @@ class StoreError(Exception):
 
 class JobExists(StoreError):
     pass
+
+
+class EventRejected(StoreError):
+    """An event that cannot be true of its job (unknown job, the job already ended, a seq that does
+    not increase, a kind that contradicts its state): stored nowhere, counted by the ingest."""
+
+    def __init__(self, job_id: str, seq: int, reason: str):
+        super().__init__(f"event {job_id}/{seq} rejected: {reason}")
+        self.job_id, self.seq, self.reason = job_id, seq, reason
 
 
 def image_url(kind: JobKind, job_id: str, seq: int, name: str) -> str:
@@ -231,6 +241,18 @@ class GatewayStore:
             with self._meta_lock:
                 self._meta.pop(job_id, None)
 
+    def set_owner(self, job_id: str, owner: dict[str, Any] | None) -> None:
+        """Record the worker instance (and its incarnation) that accepted the job (see the reaper)."""
+        with self._write_lock:
+            row = self._writer.execute("SELECT summary, state, last_seq FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                return
+            summary = json.loads(row[0])
+            summary["owner"] = owner
+            self._writer.execute("UPDATE jobs SET summary = ?, updated_s = ? WHERE id = ?",
+                                 (_json(summary), time.time(), job_id))
+            self._set_meta(job_id, row[1], row[2])
+
     def mark(self, job_id: str, state: JobState, error: str | None = None) -> None:
         """Set a job's state from the gateway itself (e.g. the planner lost it)."""
         with self._write_lock:
@@ -285,11 +307,16 @@ class GatewayStore:
     # --- events ------------------------------------------------------------------------------------
     def append_event(self, kind: JobKind, event: JobEvent) -> StoredEvent | None:
         """Store one event, its images and the refolded record; returns the event as stored (what a
-        stream sends), or None when it was already stored.
+        stream sends), or None when it was already stored (a redelivery: ingest is idempotent).
 
-        An event for a job the gateway did not submit (another client, or before a gateway restart
-        lost nothing but the submission) creates that job's row, so nothing published is lost.
+        Raises :class:`EventRejected` for an event that cannot be true: its job is unknown here or of
+        another kind (events never create jobs: the gateway creates a job's row before its service
+        hears of it), the job has already ended (terminal states are final), its seq does not
+        increase, or its kind contradicts its state (a ``step`` that is ``succeeded``).
         """
+        if event.state not in KIND_STATES[event.kind]:
+            raise EventRejected(event.job_id, event.seq,
+                                f"a {event.kind.value} event cannot be {event.state.value}")
         names = [n for n in event.images if _IMAGE_NAME.match(n)]
         if len(names) != len(event.images):
             log.warning("event %s/%d: dropped images with invalid names %s", event.job_id, event.seq,
@@ -300,6 +327,23 @@ class GatewayStore:
             db = self._writer
             db.execute("BEGIN IMMEDIATE")
             try:
+                r = db.execute("SELECT state, last_seq, summary, kind, step FROM jobs WHERE id = ?",
+                               (event.job_id,)).fetchone()
+                reason = None
+                if r is None or r[3] != kind.value:
+                    reason = f"no {kind.value} {event.job_id!r} here"
+                elif event.seq <= r[1] or r[0] in _TERMINAL_VALUES:
+                    seen = db.execute("SELECT 1 FROM events WHERE job_id = ? AND seq = ?",
+                                      (event.job_id, event.seq)).fetchone()
+                    if seen is not None:  # a redelivery of what we hold
+                        db.execute("ROLLBACK")
+                        return None
+                    reason = (f"the {kind.value} has already ended ({r[0]})" if r[0] in _TERMINAL_VALUES
+                              else f"seq {event.seq} does not increase (last {r[1]})")
+                elif event.step < r[4] and event.state not in TERMINAL:
+                    reason = f"step {event.step} goes back (at {r[4]})"
+                if reason is not None:  # rolled back below
+                    raise EventRejected(event.job_id, event.seq, reason)
                 cur = db.execute(
                     "INSERT OR IGNORE INTO events (job_id, seq, kind, state, step, timestamp_s, data, images)"
                     " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
@@ -310,29 +354,17 @@ class GatewayStore:
                     return None
                 db.executemany("INSERT OR REPLACE INTO images (job_id, seq, name, jpeg) VALUES (?, ?, ?, ?)",
                                [(event.job_id, event.seq, n, bytes(event.images[n])) for n in names])
-                r = db.execute("SELECT state, last_seq, summary, kind FROM jobs WHERE id = ?",
-                               (event.job_id,)).fetchone()
-                if r is None:
-                    now = time.time()
-                    db.execute(
-                        "INSERT INTO jobs (id, kind, state, step, last_seq, request, summary, created_s,"
-                        " updated_s) VALUES (?, ?, ?, 0, -1, ?, ?, ?, ?)",
-                        (event.job_id, kind.value, JobState.QUEUED.value, _json({}),
-                         _json(empty_summary()), event.timestamp_s, now))
-                    r = (JobState.QUEUED.value, -1, _json(empty_summary()), kind.value)
                 summary = apply_event(json.loads(r[2]), event, urls)
-                # A late, out-of-order event enriches the record but does not roll its state back.
-                newest = event.seq >= r[1]
-                state = event.state.value if newest else r[0]
-                db.execute(
-                    "UPDATE jobs SET state = ?, step = CASE WHEN ? THEN ? ELSE step END, last_seq = MAX(last_seq, ?),"
-                    " summary = ?, updated_s = ? WHERE id = ?",
-                    (state, newest, event.step, event.seq, _json(summary), time.time(), event.job_id))
+                state = event.state.value
+                # The step never goes back: a final event that says 0 keeps the steps walked.
+                step = max(event.step, r[4])
+                db.execute("UPDATE jobs SET state = ?, step = ?, last_seq = ?, summary = ?, updated_s = ? WHERE id = ?",
+                           (state, step, event.seq, _json(summary), time.time(), event.job_id))
                 db.execute("COMMIT")
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
-            self._set_meta(event.job_id, state, max(r[1], event.seq))
+            self._set_meta(event.job_id, state, event.seq)
         return StoredEvent(job_id=event.job_id, seq=event.seq, kind=event.kind.value, state=event.state,
                            step=event.step, timestamp_s=event.timestamp_s, data_json=data_json, image_names=names)
 

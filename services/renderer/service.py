@@ -1,8 +1,10 @@
 """renderer service: anticipated views and spatial maps from stored maps.
 
 Maps are fetched from the map store (the reconstructor) by id in chunks and indexed once per
-(map, version); ``MAP_UPDATED`` tells us when "latest" moved. Several renderer instances can run
-side by side: each serves the same keys and keeps its own cache.
+(map, version); ``MAP_UPDATED`` tells us when "latest" may have moved. An announcement is only a
+hint - anyone on the bus can publish one - so its version is never taken on trust: it makes the next
+request for "latest" ask the store again, and a version the store does not hold is never used.
+Several renderer instances can run side by side: each serves the same keys and keeps its own cache.
 """
 
 from __future__ import annotations
@@ -44,20 +46,30 @@ class MapCache:
         self._latest: dict[str, int] = {}
         self._fetching: dict[tuple[str, int], threading.Lock] = {}
 
-    def forget_latest(self, map_id: str, version: int | None = None) -> None:
+    def forget_latest(self, map_id: str) -> None:
+        """Latest may have moved (a ``MAP_UPDATED`` announcement): the next request asks the store."""
         with self._lock:
-            if version is None:
-                self._latest.pop(map_id, None)
-            else:
+            self._latest.pop(map_id, None)
+
+    def _latest_version(self, map_id: str) -> int:
+        version = self._latest.get(map_id)
+        if version is None:
+            version = self._info(map_id, None).version  # the store's word, never an announcement's
+            with self._lock:
                 self._latest[map_id] = version
+        return version
 
     def get(self, map_id: str, version: int | None) -> tuple[IndexedCloud, int]:
-        if version is None:
-            version = self._latest.get(map_id)
-            if version is None:
-                version = self._info(map_id, None).version
-                with self._lock:
-                    self._latest[map_id] = version
+        if version is not None:
+            return self._get(map_id, version)
+        try:
+            return self._get(map_id, self._latest_version(map_id))
+        except NotFound:
+            # The version we took for latest is gone from the store: ask it again, once.
+            self.forget_latest(map_id)
+            return self._get(map_id, self._latest_version(map_id))
+
+    def _get(self, map_id: str, version: int) -> tuple[IndexedCloud, int]:
         key = (map_id, version)
         with self._lock:
             if key in self._items:
@@ -68,10 +80,15 @@ class MapCache:
             with self._lock:
                 if key in self._items:
                     return self._items[key], version
-            info = self._info(map_id, version)
-            t0 = time.perf_counter()
-            cloud = PointCloud.from_chunks(self.maps.chunks(map_id, version), info.label_names)
-            index = IndexedCloud(cloud)
+            try:
+                info = self._info(map_id, version)
+                t0 = time.perf_counter()
+                cloud = PointCloud.from_chunks(self.maps.chunks(map_id, version), info.label_names)
+                index = IndexedCloud(cloud)
+            except BaseException:
+                with self._lock:  # a version that does not exist leaves nothing behind
+                    self._fetching.pop(key, None)
+                raise
             log.info("indexed map %s v%d: %d points in %.2f s", map_id, version, len(cloud.xyz),
                      time.perf_counter() - t0)
             with self._lock:
@@ -107,8 +124,9 @@ class RendererService(Service[RendererSettings]):
         # Compile the splatting kernels now, not on the first request of a mission.
         log.info("renderer kernels ready in %.2f s", self.renderer.warm_up())
         self.cache = MapCache(MapClient(node.bus), self.settings.cache_maps)
+        # Only the map id of the key is used: what the announcement claims is checked with the store.
         node.own(node.bus.subscribe(keys.MAP_UPDATED.pattern(), MapInfo,
-                                    lambda _k, info: self.cache.forget_latest(info.map_id, info.version)))
+                                    lambda k, _info: self.cache.forget_latest(k.split("/")[-2])))
         node.serve(keys.RENDER_VIEWS.format(), RenderRequest, self.views, replicated=True)
         node.serve(keys.RENDER_MAP.format(), SpatialMapRequest, self.spatial_map, replicated=True)
 

@@ -7,8 +7,11 @@ emits are published on ``IO_FRAMES/{recording}`` for the reconstructor.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -17,6 +20,7 @@ from pydantic import Field
 
 from services.robot_io import ros2_zenoh  # noqa: F401  (registers the zenoh transport of the ros2 backend)
 from services.robot_io.core import ROBOTS, Robot, SceneError, SceneNotFoundError
+from services.robot_io.core.scene import is_generated_spec
 from shared.bus.typed import NotFound
 from shared import keys
 from shared.runner import Node, Service, ServiceSettings
@@ -32,6 +36,9 @@ class RobotIoSettings(ServiceSettings):
     # Field names are unique across services so that one environment can configure them all.
     robot_backend: str = Field("sim", description="robot backend (registered in services.robot_io.core.ROBOTS)")
     robot_config: dict[str, Any] = Field(default_factory=dict, description="the backend's typed config")
+    scene_dirs: list[str] = Field(default_factory=list, description=(
+        "directories scene files may be loaded from over the bus (besides the backend's scenes_dir); "
+        "a path elsewhere is refused without looking at it"))
 
 
 def _config_fields(backend: str) -> set[str]:
@@ -101,30 +108,42 @@ class RobotIoService(Service[RobotIoSettings]):
         if self._node:
             self._node.bus.publish(keys.IO_POSE.format(robot=self._node.robot), self.robot.pose)
 
+    def health(self) -> str | None:
+        # Without the lock: a reading taken beside a running motion is still a reading, and the
+        # info queryable must answer while a long sweep holds the body.
+        return self.robot.health()
+
+    @contextlib.contextmanager
+    def _body(self) -> Iterator[None]:
+        """One request on the robot's one body: serialised, and undone when it fails (a failed
+        request leaves the robot's state exactly as it was)."""
+        with self._lock, self.robot.transaction():
+            yield
+
     def observe(self, req: ObserveRequest) -> Panorama:
-        with self._lock:
+        with self._body():
             return self.robot.observe(req.camera, with_semantic=req.with_semantic)
 
     def move_to(self, req: MoveRequest) -> MoveResult:
-        with self._lock:
+        with self._body():
             result = self.robot.move_to(req.dx_m, req.dy_m)
         self._publish_pose()
         return result
 
     def turn(self, req: TurnRequest) -> PoseReply:
-        with self._lock:
+        with self._body():
             pose = self.robot.turn(req.angle_rad)
         self._publish_pose()
         return PoseReply(pose=pose)
 
     def look_around(self, _: Ping) -> PoseReply:
         # The sweep's frames reach subscribers through an open recording; the reply is the pose.
-        with self._lock:
+        with self._body():
             self.robot.look_around()
             return PoseReply(pose=self.robot.pose)
 
     def reset(self, req: ResetRequest) -> PoseReply:
-        with self._lock:
+        with self._body():
             pose = self.robot.reset(req.pose)
         self._publish_pose()
         return PoseReply(pose=pose)
@@ -153,19 +172,36 @@ class RobotIoService(Service[RobotIoSettings]):
             return RecordReply(recording=req.recording, recording_on=False, frame_count=counter[0])
 
     def geodesic(self, req: GeodesicRequest) -> GeodesicReply:
+        off = {"start_off_m": self.robot.off_ground_m(req.start_m), "goal_off_m": self.robot.off_ground_m(req.goal_m)}
         d = float(self.robot.geodesic_distance(req.start_m, req.goal_m))
         if not np.isfinite(d):
-            return GeodesicReply(distance_m=None)
+            return GeodesicReply(distance_m=None, **off)
         path = self.robot.shortest_path(req.start_m, req.goal_m)
-        return GeodesicReply(distance_m=d, path_m=None if path is None else np.asarray(path, np.float64))
+        return GeodesicReply(distance_m=d, path_m=None if path is None else np.asarray(path, np.float64), **off)
 
     def scene(self, _: Ping) -> SceneSummary:
         return self.robot.scene_info()
+
+    def _check_scene_path(self, spec: str) -> None:
+        """A scene file must lie inside a configured scene directory: the bus must not become a way to
+        probe which paths exist on this host (the answer to a path elsewhere never depends on it)."""
+        if is_generated_spec(spec):
+            return
+        s: RobotIoSettings = self.settings  # type: ignore[assignment]
+        dirs = [*s.scene_dirs, *([s.robot_config["scenes_dir"]] if s.robot_config.get("scenes_dir") else [])]
+        if not dirs:
+            raise ValueError("no scene directory is configured: only generated:<seed> scenes can be loaded")
+        p = Path(spec)
+        roots = [Path(d).resolve() for d in dirs]
+        candidates = [p.resolve()] if p.is_absolute() else [(r / p).resolve() for r in roots]
+        if not any(c.is_relative_to(r) for c in candidates for r in roots):
+            raise ValueError(f"scene files are loaded only from the configured scene directories ({len(roots)})")
 
     def load_scene(self, req: LoadSceneRequest) -> SceneSummary:
         s = self.settings
         if "scene" not in _config_fields(s.robot_backend):
             raise ValueError(f"the {s.robot_backend!r} robot backend cannot load scenes")
+        self._check_scene_path(req.scene)
         with self._lock:
             if self._recordings:
                 raise ValueError("cannot switch scenes while a recording is on")

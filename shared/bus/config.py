@@ -22,6 +22,8 @@ class ZenohSettings(BaseModel):
     multicast_scouting: bool = False  # off by default: explicit endpoints are predictable and test-safe
     username: str | None = Field(None, description="usrpwd login at the router (with an ACL: the service name)")
     password: SecretStr | None = Field(None, description="usrpwd password (ANT_ZENOH__PASSWORD)")
+    password_file: str | None = Field(None, description="a file holding the password (ANT_ZENOH__PASSWORD_FILE): "
+                                                        "what a container gets from a secrets volume")
     config_file: str | None = Field(
         default_factory=lambda: os.environ.get("ZENOH_CONFIG") or None,
         description="a zenoh JSON5 config file (ZENOH_CONFIG); the fields above override it",
@@ -38,7 +40,11 @@ def zenoh_config(settings: ZenohSettings):
     if settings.listen:
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
-    if settings.username and settings.password:
+    password = settings.password.get_secret_value() if settings.password else None
+    if password is None and settings.password_file:
+        with open(settings.password_file) as f:
+            password = f.read().strip()
+    if settings.username and password:
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(settings.username))
-        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(settings.password.get_secret_value()))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
     return conf

@@ -1,6 +1,7 @@
 """Typed messaging over any :class:`~shared.bus.base.Bus`: encode, decode, typed errors.
 
-* :meth:`TypedBus.serve` decodes the request, calls the handler and encodes its result; *any*
+* :meth:`TypedBus.serve` decodes the request (which checks every number's range and finiteness),
+  checks its budget (:meth:`~shared.schemas.Message.check_budget`), calls the handler and encodes its result; *any*
   exception (bad payload, validation, a bug) becomes an :class:`~shared.schemas.ErrorReply`, so a bad
   request never kills a service and the asker always learns why.
 * :meth:`TypedBus.request` raises :class:`RemoteError` with that code when the other side failed and
@@ -18,7 +19,7 @@ from typing import TypeVar
 from shared import keys
 from shared.bus.base import Bus, Closeable, QueryFailed, QueryTarget, Reply
 from shared.codec import CodecError, decode, decode_any, encode
-from shared.schemas import ErrorCode, ErrorReply, Message
+from shared.schemas import BudgetExceeded, ErrorCode, ErrorReply, Message
 from shared.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
@@ -36,10 +37,16 @@ class RemoteError(RuntimeError):
 
 
 class NoReplyError(RemoteError):
-    """Nobody answered within the timeout (no service, or it is busy or dead)."""
+    """Nobody answered: within the timeout (a service busy or hung), or - when the query ended early -
+    because nobody serves the key any more (a service that is gone)."""
 
-    def __init__(self, key: str, timeout_s: float):
-        super().__init__(ErrorCode.UNAVAILABLE, f"no reply within {timeout_s:.1f} s", "", key)
+    def __init__(self, key: str, timeout_s: float, elapsed_s: float | None = None):
+        if elapsed_s is not None and elapsed_s < 0.9 * timeout_s:
+            what = f"nobody serves it (the query ended after {elapsed_s:.1f} s without a reply)"
+        else:
+            what = f"no reply within {timeout_s:.1f} s"
+        super().__init__(ErrorCode.UNAVAILABLE, what, "", key)
+        self.timeout_s, self.elapsed_s = timeout_s, elapsed_s
 
 
 class NotFound(LookupError):
@@ -52,6 +59,8 @@ def error_for(exc: BaseException) -> tuple[ErrorCode, str]:
         return ErrorCode.BAD_REQUEST, str(exc)
     if isinstance(exc, NotFound):
         return ErrorCode.NOT_FOUND, str(exc)
+    if isinstance(exc, BudgetExceeded):
+        return ErrorCode.BUDGET_EXCEEDED, str(exc)
     if isinstance(exc, (ValueError, TypeError)):
         return ErrorCode.BAD_REQUEST, f"{type(exc).__name__}: {exc}"
     if isinstance(exc, TimeoutError):
@@ -153,7 +162,9 @@ class TypedBus:
             try:
                 if payload is None:
                     raise CodecError("empty", "the query carries no payload")
-                result = handler(decode(payload, model, self.max_request_bytes))
+                request = decode(payload, model, self.max_request_bytes)
+                request.check_budget()  # before any work: an over-budget request costs nothing
+                result = handler(request)
                 out = encode(result)
             except Exception as exc:
                 code, message = error_for(exc)
@@ -202,9 +213,10 @@ class TypedBus:
                 except RemoteError as exc:
                     if exc.code != ErrorCode.UNAVAILABLE:
                         raise
+        t0 = time.monotonic()
         replies = self.raw.query(key, payload, timeout_s=timeout_s, target=QueryTarget.BEST)
         if not replies:
-            raise NoReplyError(key, timeout_s)
+            raise NoReplyError(key, timeout_s, time.monotonic() - t0)
         return self._decode_reply(key, replies[0], model)
 
     @staticmethod

@@ -22,7 +22,7 @@ from shared.bus.base import Closeable
 from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
     CancelRequest, Candidate, CandidateKind, Decision, EpisodeMetricsData, ExplorationFinished, ExplorationProgress,
-    ExplorationRequest, ExplorationStarted, JobCancelled, LoadSceneRequest, MapChunk, MapChunkRequest,
+    ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled, LoadSceneRequest, MapChunk, MapChunkRequest,
     MapImportRequest, MapInfo, MapListReply, MapRequest, JobAccepted, JobEvent, JobEventKind,
     MissionFinished, MissionRequest, MissionStarted, JobState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
 )
@@ -244,6 +244,27 @@ class ScriptedMapper:
             e.close()
         for t in self._threads:
             t.join(5.0)
+
+
+class ScriptedGround:
+    """Serves IO_GEODESIC over a flat square of walkable ground (``[0, size_m]^2`` at z = 0): straight-line
+    distances, and how far each end lies off that ground - what the gateway checks poses against."""
+
+    def __init__(self, bus: TypedBus, robot: str = "robot0", *, size_m: float = 12.0):
+        self.size_m = size_m
+        self._entity = bus.serve(keys.IO_GEODESIC.format(robot=robot), GeodesicRequest, self._geodesic)
+
+    def off_m(self, p) -> float:
+        p = np.asarray(p, np.float64)
+        q = np.array([min(max(p[0], 0.0), self.size_m), min(max(p[1], 0.0), self.size_m), 0.0])
+        return float(np.linalg.norm(p - q))
+
+    def _geodesic(self, req: GeodesicRequest) -> GeodesicReply:
+        d = float(np.linalg.norm(np.subtract(req.goal_m, req.start_m)))
+        return GeodesicReply(distance_m=d, start_off_m=self.off_m(req.start_m), goal_off_m=self.off_m(req.goal_m))
+
+    def close(self) -> None:
+        self._entity.close()
 
 
 class ScriptedRobotIo:

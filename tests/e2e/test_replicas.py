@@ -7,7 +7,6 @@ scripted reconstructor, on a zenoh session in this process.
 from __future__ import annotations
 
 import math
-import os
 import subprocess
 import sys
 import threading
@@ -19,7 +18,6 @@ import pytest
 from deploy.launcher import Launcher
 from tests.doubles.scripted_services import ScriptedReconstructor
 from shared import keys
-from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
 from shared.bus.zenoh_bus import ZenohBus
 from shared.schemas import CameraIntrinsics, Ping, RenderRequest, RenderResult, ServiceMetrics, ViewPose
@@ -41,7 +39,8 @@ def cluster(tmp_path):
     """Two renderers (renderer-0, renderer-1), a map source and a client on the launcher's router."""
     launcher = Launcher(tmp_path, replicas={"renderer": 2}, services=["renderer"], restart=False)
     with launcher:
-        bus = ZenohBus(ZenohSettings(connect=[launcher.endpoint]))
+        # The map source plays the reconstructor: it joins as that user, so the ACL lets it serve maps.
+        bus = ZenohBus(launcher.client_settings("reconstructor"))
         maps = ScriptedReconstructor(TypedBus(bus, "reconstructor"))
         maps.add_random("house", 20_000, seed=3)
         client = TypedBus(bus, "test")
@@ -97,8 +96,7 @@ def test_two_renderers_share_200_requests_and_none_is_lost(cluster):
 
 def test_container_healthcheck_sees_a_live_instance_through_the_router(cluster):
     launcher, _ = cluster
-    env = {**os.environ, "ANT_ZENOH__CONNECT": f'["{launcher.endpoint}"]'}
-    env.pop("ANT_INSTANCE", None)
+    env = launcher.client_env()
 
     def check(*args):
         return subprocess.run([sys.executable, "-m", "deploy.healthcheck", *args], env=env, capture_output=True,

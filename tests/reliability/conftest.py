@@ -86,3 +86,31 @@ def system(tmp_path_factory):
             assert r.status_code == 201, r.text
         launcher.run_dir_path = run_dir
         yield launcher
+
+
+@pytest.fixture(scope="session")
+def live(tmp_path_factory):
+    """Every service that serves a queryable, in this process, each on its own zenoh session behind a
+    real zenoh router (see tests/reliability/live.py), with one map imported."""
+    from tests.reliability.live import live_system
+
+    with live_system(tmp_path_factory.mktemp("live"), map_ply=scene_ply(density_per_m2=20.0)) as system:
+        yield system
+
+
+@pytest.fixture
+def live_gateway(live, tmp_path):
+    """``live_gateway(**settings)``: a TestClient of a gateway on its own zenoh session of ``live``."""
+    from contextlib import contextmanager
+
+    from fastapi.testclient import TestClient
+
+    from services.gateway.app import create_app
+    from tests.reliability.live import gateway_settings
+
+    @contextmanager
+    def make(**overrides):
+        with TestClient(create_app(gateway_settings(live, tmp_path, **overrides))) as client:
+            yield client
+
+    return make

@@ -147,7 +147,8 @@ def test_load_scene_without_walkable_area_over_the_bus_is_bad_request_and_the_se
     o3d.io.write_triangle_mesh(str(good), o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(room.vertices), o3d.utility.Vector3iVector(room.triangles)))
     net = FakeNetwork()
-    settings = RobotIoSettings(instance="io-bad", robot_config={"scene": str(good), "camera": _SMALL_CAM})
+    settings = RobotIoSettings(instance="io-bad", robot_config={"scene": str(good), "camera": _SMALL_CAM},
+                               scene_dirs=[str(tmp_path)])
     with RunningService(RobotIoService(settings), FakeBus(net)):
         robot = RobotClient(TypedBus(FakeBus(net)), "robot0", timeout_s=10.0)
         before = robot.scene()

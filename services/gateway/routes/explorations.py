@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
@@ -18,7 +18,7 @@ from services.gateway.routes.missions import (
 )
 from services.gateway.store import JobRow
 from shared import keys
-from shared.schemas import ExplorationRequest, JobAccepted, JobState
+from shared.schemas import ExplorationRequest, JobAccepted, JobState, check_free_form
 
 router = APIRouter(prefix="/explorations", tags=["explorations"])
 JobId = Annotated[str, Path(pattern=SEGMENT, description="exploration id")]
@@ -34,6 +34,11 @@ class ExplorationCreate(BaseModel):
     reconstruction: str = Field("rgbd", pattern=SEGMENT, description="regional reconstruction backend")
     options: dict[str, Any] = Field(default_factory=dict)
     record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
+
+    @field_validator("options")
+    @classmethod
+    def _options(cls, v: dict[str, Any]) -> dict[str, Any]:
+        return check_free_form(v, "options")  # the bus message refuses the same: a 422 here, not a 500
 
 
 def exploration_record(row: JobRow) -> ExplorationRecord:

@@ -92,7 +92,7 @@ def download_cloud(map_id: MapId, bus: BusDep, settings: SettingsDep, version: V
                  "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
 async def upload_cloud(request: Request, bus: BusDep, settings: SettingsDep, response: Response,
                        map_id: Annotated[str, Query(pattern=SEGMENT, description="name of the new map")],
-                       filename: Annotated[str, Query(pattern=r"^[^/\\]{1,200}\.(ply|pcd)$")] = "cloud.ply",
+                       filename: Annotated[str, Query(pattern=r"^[^/\\\x00-\x1f]{1,200}\.(ply|pcd)$")] = "cloud.ply",
                        ) -> MapInfo:
     """Store a PLY or PCD cloud as a map: the file is the raw body
     (``curl --data-binary @room.ply -H 'Content-Type: application/octet-stream' '/maps?map_id=room'``)."""

@@ -9,21 +9,23 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Path, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.events import event_json, parse_last_event_id, sse_stream
+from services.gateway.reaper import find_owner
 from services.gateway.records import (
-    EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary,
+    EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary, outcome_of,
 )
 from services.gateway.routes.robot import refuse_while_switching
 from services.gateway.store import JobRow
 from shared import keys
-from shared.bus.typed import RemoteError
+from shared.bus.typed import NoReplyError, RemoteError
 from shared.schemas import (
-    CancelRequest, ErrorCode, MapInfo, MapRequest, JobAccepted, MissionOptions, MissionRequest, JobState,
+    CancelRequest, ErrorCode, GeodesicReply, GeodesicRequest, Instruction, MapInfo, MapRequest, JobAccepted,
+    MissionOptions, MissionRequest, JobState,
 )
 
 log = logging.getLogger(__name__)
@@ -39,7 +41,7 @@ class MissionCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    instruction: Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=4000)]
+    instruction: Instruction
     map_id: str = Field(pattern=SEGMENT, description="a map listed by GET /maps")
     options: MissionOptions = Field(default_factory=MissionOptions)
 
@@ -59,12 +61,14 @@ def mission_record(row: JobRow) -> MissionRecord:
         url=url, events_url=events_url, instruction=req.get("instruction", ""), map_id=req.get("map_id", ""),
         options=req.get("options", {}), pose=s.get("pose"), trajectory=s.get("trajectory", []),
         candidates=s.get("candidates", []), decisions=s.get("decisions", []), metrics=s.get("metrics"),
+        outcome=outcome_of(row.state, s.get("outcome")), success=s.get("success"),
         prompt_tokens=s.get("prompt_tokens", 0), completion_tokens=s.get("completion_tokens", 0),
         cost_usd=s.get("cost_usd", 0.0))
 
 
 def _summary(row: JobRow) -> MissionSummary:
-    return MissionSummary(id=row.id, state=row.state, step=row.step, instruction=row.request.get("instruction", ""),
+    return MissionSummary(id=row.id, state=row.state, outcome=outcome_of(row.state, row.summary.get("outcome")),
+                          success=row.summary.get("success"), step=row.step, instruction=row.request.get("instruction", ""),
                           map_id=row.request.get("map_id", ""), created_s=row.created_s, updated_s=row.updated_s,
                           url=f"/missions/{row.id}")
 
@@ -82,7 +86,8 @@ def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_reques
 
     The row exists before the service hears of the job, so its first event has a home; it is
     removed again when the job cannot start (a scene switch under way, the service absent or
-    refusing), so a refused request leaves nothing behind.
+    refusing), so a refused request leaves nothing behind. Once accepted, the job records its owner
+    (the worker instance and incarnation) for the reaper's reconciliation.
     """
     store.create_job(kind, job_id, request_json)
     try:
@@ -96,6 +101,35 @@ def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_reques
     except BaseException:
         store.delete_job(job_id)
         raise
+    settings = http_request.app.state.settings
+    store.set_owner(job_id, find_owner(http_request.app.state.bus, service, reply.instance,
+                                       timeout_s=settings.status_timeout_s))
+
+
+def check_poses(bus, settings, options: MissionOptions) -> None:
+    """A start pose or a goal must lie on (or near) walkable ground: robot-io would otherwise snap
+    (1e6, 1e6) to some corner where the robot cannot move. 422 with the distance when it does not."""
+    start = options.start_pose.position_m if options.start_pose is not None else None
+    goal = options.goal_m
+    if start is None and goal is None:
+        return
+    try:
+        reply = bus.request(keys.IO_GEODESIC.format(robot=settings.robot),
+                            GeodesicRequest(start_m=start or goal, goal_m=goal or start), GeodesicReply,
+                            timeout_s=settings.request_timeout_s)
+    except NoReplyError:
+        # No robot-io serves the scene: nothing to check against here; the mission itself then fails
+        # with that reason when it starts.
+        log.warning("no robot-io answered: start_pose/goal_m not checked against the scene")
+        return
+    except RemoteError as exc:
+        raise GatewayError(remote_detail(exc, "cannot check start_pose/goal_m against the scene"),
+                           remote_status(exc)) from None
+    tol = settings.pose_tolerance_m
+    for name, value, off in (("options.start_pose", start, reply.start_off_m), ("options.goal_m", goal, reply.goal_off_m)):
+        if value is not None and off is not None and off > tol:
+            raise GatewayError(f"{name} {tuple(round(v, 3) for v in value)} is {off:.2f} m from walkable ground "
+                               f"(tolerance {tol:.2f} m)", 422)
 
 
 @router.post("", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED, dependencies=[Authorized],
@@ -113,6 +147,7 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
             if exc.code == ErrorCode.NOT_FOUND:
                 raise GatewayError(f"unknown map {body.map_id!r} (see GET /maps)", 422) from None
             raise GatewayError(remote_detail(exc, "cannot check the map"), remote_status(exc)) from None
+    check_poses(bus, settings, body.options)
     job_id = f"m-{uuid.uuid4().hex[:16]}"
     start_job(store, JobKind.MISSION, job_id, body.model_dump(mode="json"), request, "mission", "planner",
               lambda: bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
@@ -153,24 +188,26 @@ async def get_mission(mission_id: JobId, cache: CacheDep, if_none_match: IfNoneM
 
 @router.post("/{mission_id}/cancel", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED,
              dependencies=[Authorized], responses={401: {}, 404: {}, 409: {}, 503: {}})
-def cancel(mission_id: JobId, bus: BusDep, store: StoreDep, hub: HubDep, settings: SettingsDep) -> JobCreated:
-    """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream."""
+def cancel(mission_id: JobId, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep) -> JobCreated:
+    """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream. A mission no
+    live planner runs (an orphan: its planner died or restarted) is cancelled here at once."""
     row = _get(store, mission_id)
+    if row.state == JobState.CANCELLED:
+        raise GatewayError(f"mission {mission_id!r} is already cancelled", 409)
     if row.terminal:
         raise GatewayError(f"mission {mission_id!r} has already ended ({row.state.value})", 409)
-    try:
-        reply = bus.request(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
-                            JobAccepted, timeout_s=settings.request_timeout_s)
-    except RemoteError as exc:
-        if exc.code == ErrorCode.NOT_FOUND:
-            # The planner no longer knows it (it restarted): the mission cannot finish any more.
-            store.mark(mission_id, JobState.CANCELLED, "cancelled; the planner no longer ran it")
-            hub.notify(mission_id)  # its streams end now
-        else:
-            raise GatewayError(remote_detail(exc, "cannot cancel"), remote_status(exc)) from None
-    else:
-        if not reply.accepted:
-            raise GatewayError(f"the planner refused to cancel: {reply.reason or 'no reason given'}", 409)
+    # Every planner is asked: with replicas, the one zenoh would pick need not be the one running it.
+    answers = bus.request_all(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
+                              JobAccepted, timeout_s=settings.request_timeout_s)
+    if not any(isinstance(a, JobAccepted) and a.accepted for a in answers):
+        failures = [a for a in answers if isinstance(a, RemoteError) and a.code != ErrorCode.NOT_FOUND]
+        if failures and len(failures) == len(answers):
+            raise GatewayError(remote_detail(failures[0], "cannot cancel"), remote_status(failures[0]))
+        # No planner runs it (none answered, or each said it has no such mission): it can never
+        # finish, so it ends here, cancelled as asked.
+        why = "no planner answered" if not answers else "no planner runs it any more"
+        request.app.state.reaper.fail(JobKind.MISSION, mission_id, f"cancelled on request; {why}",
+                                      state=JobState.CANCELLED)
     url, events_url = _links(mission_id)
     row = _get(store, mission_id)
     return JobCreated(id=mission_id, state=row.state, url=url, events_url=events_url)

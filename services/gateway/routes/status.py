@@ -18,6 +18,8 @@ class InstanceStatus(BaseModel):
     version: str | None = None
     backends: dict[str, str] = Field(default_factory=dict)
     uptime_s: float | None = None
+    healthy: bool | None = Field(None, description="False: alive but its state is broken; None: info did not answer")
+    problem: str = ""
 
 
 class ServiceStatus(BaseModel):
@@ -29,6 +31,7 @@ class ServiceStatus(BaseModel):
 class SystemStatus(BaseModel):
     services: list[ServiceStatus]
     all_alive: bool
+    all_healthy: bool = Field(description="every expected service alive, and no instance reports a broken state")
     expected: list[str]
 
 
@@ -58,6 +61,9 @@ def status(bus: BusDep, settings: SettingsDep) -> SystemStatus:
             version=info.version if info else None,
             backends=info.backends if info else {},
             uptime_s=round(now - info.started_s, 3) if info else None,
+            healthy=info.healthy if info else None, problem=info.problem if info else "",
         ))
     services = [ServiceStatus(service=s, instances=len(v), details=v) for s, v in sorted(by_service.items())]
-    return SystemStatus(services=services, all_alive=set(EXPECTED) <= by_service.keys(), expected=EXPECTED)
+    all_alive = set(EXPECTED) <= by_service.keys()
+    healthy = all_alive and all(d.healthy is not False for v in by_service.values() for d in v)
+    return SystemStatus(services=services, all_alive=all_alive, all_healthy=healthy, expected=EXPECTED)

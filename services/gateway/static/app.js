@@ -18,6 +18,12 @@ let record = null;       // its record, kept up to date from events
 
 function token() { return localStorage.getItem("ant-token") || ""; }
 
+// 3 -> "3 pts", 48210 -> "48.2k pts", 2.1e6 -> "2.1M pts" (a 3-point map is not "0.0k").
+function points(n) {
+  if (n < 1000) return `${n} pts`;
+  return n < 1e6 ? `${(n / 1000).toFixed(1)}k pts` : `${(n / 1e6).toFixed(1)}M pts`;
+}
+
 async function api(path, opts = {}) {
   const headers = Object.assign({ "Accept": "application/json" }, opts.headers || {});
   if (opts.body) headers["Content-Type"] = "application/json";
@@ -60,7 +66,7 @@ async function refreshMaps() {
     list.replaceChildren(...(maps.length ? maps.map((m) => {
       const li = el("li");
       li.append(el("span", "text", m.map_id),
-        el("span", "meta", `${(m.point_count / 1000).toFixed(1)}k pts · v${m.version}`));
+        el("span", "meta", `${points(m.point_count)} · v${m.version}`));
       li.title = `source ${m.source || "?"}; click to download the cloud`;
       li.onclick = () => { window.location.href = `/maps/${encodeURIComponent(m.map_id)}/cloud.ply`; };
       li.append(mapDownloads(m.map_id));
@@ -125,7 +131,18 @@ function renderHead() {
   badge.className = "badge " + record.state;
   $("#m-step").textContent = `step ${record.step}`;
   $("#cancel").hidden = TERMINAL.has(record.state);
+  // How it ended is not whether it was right: success exists only when the mission had a goal.
+  const outcome = $("#m-outcome");
+  outcome.hidden = !record.outcome;
+  if (record.outcome) {
+    const goal = record.success === true ? "goal reached" : record.success === false ? "goal missed" : "no goal given";
+    outcome.textContent = `${OUTCOMES[record.outcome] || record.outcome} · ${goal}`;
+    outcome.className = "badge outcome " + (record.success === true ? "ok" : record.success === false ? "miss" : "");
+  }
 }
+
+const OUTCOMES = { policy_stopped: "policy stopped", no_way_to_move: "no way to move", max_steps: "step budget used up",
+                   cancelled: "cancelled", failed: "failed" };
 
 function renderImages(images) {
   setImage($("#panorama"), images.panorama);
@@ -235,6 +252,11 @@ function onEvent(ev) {
   }
   if (d.metrics) record.metrics = d.metrics;
   Object.assign(record.images, ev.images || {});
+  if (TERMINAL.has(ev.state)) {
+    // The outcome and success are the gateway's reading of the end: take them from the record.
+    api(`/missions/${record.id}`).then((r) => { record.outcome = r.outcome; record.success = r.success; renderHead(); })
+      .catch(() => {});
+  }
   renderHead();
   renderImages(record.images);
   if (d.candidates) {
@@ -303,7 +325,8 @@ function showExploration(rec) {
   box.className = "job " + rec.state;
   $("#explore-progress").value = rec.progress == null ? 0 : rec.progress;
   const pct = rec.progress == null ? "" : ` ${Math.round(100 * rec.progress)}%`;
-  const what = rec.error ? `: ${rec.error}` : rec.stage ? ` · ${rec.stage}` : "";
+  // A finished exploration shows how it ended, not the last stage it was in ("reconstructing 10 regions").
+  const what = rec.error ? `: ${rec.error}` : TERMINAL.has(rec.state) ? "" : rec.stage ? ` · ${rec.stage}` : "";
   $("#explore-status").textContent = `${rec.state}${pct}${what}`;
   $("#explore-status").dataset.state = rec.state;
 }

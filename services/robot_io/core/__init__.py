@@ -21,6 +21,7 @@ from .errors import (
     EpisodeGenerationError,
     NavigationError,
     NoWalkableAreaError,
+    PoseOffGroundError,
     RobotIOError,
     SceneError,
     SceneFormatError,
@@ -36,7 +37,7 @@ from .sensors import SensorNoiseConfig
 
 __all__ = [
     "ROBOTS", "AgentShape", "Episode", "EpisodeDataset", "EpisodeFormatError", "EpisodeGenerationError",
-    "GroundTruth", "HouseSpec", "Intrinsics", "NavGrid", "NavigationError", "NoWalkableAreaError", "RenderOutput", "Robot",
+    "GroundTruth", "HouseSpec", "Intrinsics", "NavGrid", "NavigationError", "NoWalkableAreaError", "PoseOffGroundError", "RenderOutput", "Robot",
     "RobotIOError", "Room", "Scene", "SceneError", "SceneFormatError", "describe_scene", "SceneNotFoundError",
     "SceneObject", "SceneRenderer", "SensorNoiseConfig", "SimConfig", "SimRobot", "follow_path", "generate_episodes",
     "generate_house", "ground_truth_for", "load_scene", "read_episodes", "read_ground_truth", "write_episodes",

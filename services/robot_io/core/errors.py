@@ -34,6 +34,15 @@ class NavigationError(RobotIOError):
     """A navigation query cannot be answered (e.g. a point far from any walkable surface)."""
 
 
+class PoseOffGroundError(NavigationError, ValueError):
+    """A pose asked for lies farther from walkable ground than the tolerance (a ``ValueError``: the
+    caller's input is wrong, answered ``bad_request``)."""
+
+    def __init__(self, distance_m: float, tolerance_m: float):
+        super().__init__(f"the pose is {distance_m:.2f} m from walkable ground (tolerance {tolerance_m:.2f} m)")
+        self.distance_m, self.tolerance_m = distance_m, tolerance_m
+
+
 class NoWalkableAreaError(SceneError, NavigationError, ValueError):
     """A scene has nowhere this agent can stand (only a ceiling or walls, a floor smaller than the
     agent, no headroom). Also a ``ValueError``: the caller named an unusable scene, so the bus

@@ -27,6 +27,7 @@ turns are left (counter-clockwise), panorama view i looks at ``heading - i * 30 
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import math
 from abc import ABC, abstractmethod
@@ -39,7 +40,7 @@ from shared.geometry import panorama_headings, wrap_angle
 from shared.registry import BackendConfig, Registry
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
-from .errors import NoWalkableAreaError, RobotIOError
+from .errors import NoWalkableAreaError, PoseOffGroundError, RobotIOError
 from .info import describe_scene
 from .navgrid import AgentShape, NavGrid
 from .render import SceneRenderer
@@ -102,6 +103,20 @@ class Robot(ABC):
         """Stop any motion now, from any thread, even while a command runs (shutdown, SIGTERM).
         The command in progress ends with an error. A simulator has nothing to stop."""
 
+    def off_ground_m(self, p) -> float | None:
+        """How far ``p`` is from walkable ground (None: this backend cannot tell)."""
+        return None
+
+    def transaction(self) -> contextlib.AbstractContextManager[None]:
+        """Around one request: when it fails, the robot's state is left exactly as it was. A
+        simulator restores its state; a real robot cannot undo a motion and keeps reporting
+        where it really is."""
+        return contextlib.nullcontext()
+
+    def health(self) -> str | None:
+        """None while the robot's state is usable, else what is wrong with it (shown in ``info``)."""
+        return None
+
     def close(self) -> None:
         """Release the robot or simulator."""
 
@@ -136,6 +151,9 @@ class SimConfig(BackendConfig):
     noise: SensorNoiseConfig = Field(default_factory=SensorNoiseConfig)
     start_pose: Pose | None = None
     render_threads: int = Field(0, ge=0)  # 0: all cores
+    # reset() refuses a pose farther than this from walkable ground instead of snapping it to some
+    # corner (a start pose at (1e6, 1e6) is a mistake, not a place).
+    pose_tolerance_m: float = Field(1.0, gt=0.0, le=100.0)
 
     @field_validator("scene")
     @classmethod
@@ -203,13 +221,50 @@ class SimRobot(Robot):
             pose = Pose(position_m=tuple(main[np.argmin(np.linalg.norm(main - centre, axis=1))]), heading_rad=0.0)
         p = pose.xyz
         node = self.nav.locate(p, z_tol_m=0.3)
-        self._pos = self.nav.nodes_m[node].copy() if node >= 0 else self.nav.snap(p, main_only=True)
+        pos = self.nav.nodes_m[node].copy() if node >= 0 else self.nav.snap(p, main_only=True)
         if node >= 0:
-            self._pos[:2] = p[:2]  # keep the exact xy inside the cell
+            pos[:2] = p[:2]  # keep the exact xy inside the cell
+        off = float(np.linalg.norm(pos - p))
+        if off > self.config.pose_tolerance_m:
+            raise PoseOffGroundError(off, self.config.pose_tolerance_m)
+        self._pos = pos
         self._heading = float(wrap_angle(pose.heading_rad))
         self._pitch = 0.0
         self.noise.reset(self.true_pose)
         return self.pose
+
+    def off_ground_m(self, p) -> float:
+        """How far ``p`` is from the walkable ground of the main region (0 on it)."""
+        p = np.asarray(p, dtype=np.float64)
+        node = self.nav.locate(p, z_tol_m=0.3)
+        if node >= 0 and self.nav.component[node] == self.nav.main_component:
+            return 0.0
+        return float(np.linalg.norm(self.nav.snap(p, main_only=True) - p))
+
+    # --- atomicity and health ------------------------------------------------------------------------
+
+    def _state(self) -> tuple:
+        return (self._pos.copy(), self._heading, self._pitch, self._clock_s, self._next_frame_s,
+                self._frame_index, copy.deepcopy(self.noise))
+
+    @contextlib.contextmanager
+    def transaction(self) -> Iterator[None]:
+        saved = self._state()
+        try:
+            yield
+        except BaseException:
+            (self._pos, self._heading, self._pitch, self._clock_s, self._next_frame_s, self._frame_index,
+             self.noise) = saved
+            raise
+
+    def health(self) -> str | None:
+        values = (*self._pos, self._heading, self._pitch, self._clock_s)
+        if not all(math.isfinite(float(v)) for v in values):
+            return f"robot state is not finite (position {self._pos.tolist()}, heading {self._heading})"
+        off = self.off_ground_m(self._pos)
+        if off > self.config.pose_tolerance_m:
+            return f"the robot is {off:.2f} m from walkable ground"
+        return None
 
     # --- perception ----------------------------------------------------------------------------------
 

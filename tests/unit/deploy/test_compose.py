@@ -93,7 +93,7 @@ def test_state_lives_in_volumes_and_settings_come_from_the_environment(compose):
     assert "gateway-db:/data/gateway" in gw["volumes"]
     assert set(compose["volumes"]) >= {"maps", "gateway-db"}
     for name, spec in svcs.items():
-        if name == "router":
+        if name in ("router", "credentials"):
             continue
         env = spec["environment"]
         assert env["ANT_ZENOH__CONNECT"] == '["tcp/router:7447"]', name
@@ -128,3 +128,22 @@ def test_dockerfile_installs_the_lock_and_the_open3d_libraries():
     assert "pip install --extra-index-url" in text and "-r requirements.lock" in text
     ignored = (REPO_ROOT / ".dockerignore").read_text().split()
     assert {".venv", "runs", ".git"} <= set(ignored)
+
+
+def test_the_default_compose_is_authenticated_with_generated_credentials(compose):
+    """Issue 15: the bus runs usrpwd + the generated ACL by default; credentials are made at first start."""
+    svcs = compose["services"]
+    creds = svcs["credentials"]
+    assert creds["command"][:3] == ["python", "-m", "deploy.credentials"] and "creds:/creds" in creds["volumes"]
+    router = svcs["router"]
+    assert "/etc/zenoh/creds/router.json5" in " ".join(router["command"])
+    assert router["depends_on"]["credentials"]["condition"] == "service_completed_successfully"
+    for service in SERVICES:
+        for name in _variants(compose, service):
+            env = svcs[name]["environment"]
+            assert env["ANT_ZENOH__USERNAME"] == service, name
+            assert env["ANT_ZENOH__PASSWORD_FILE"] == f"/creds/{service}.password", name
+            assert "client" in env["ANT_ZENOH__MODE"], name
+            assert "creds:/creds:ro" in svcs[name]["volumes"], name
+    assert not list((REPO_ROOT / "deploy").rglob("*.password")) and not (REPO_ROOT / "deploy/zenoh/users.txt").exists()
+    assert (REPO_ROOT / "deploy/compose.open.yml").is_file()  # the documented opt-out

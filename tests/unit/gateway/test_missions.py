@@ -145,8 +145,9 @@ def test_record_and_events_survive_a_gateway_restart(world, gateway):
         assert second.get(after["images"]["panorama"]).status_code == 200
 
 
-def test_events_published_while_no_client_listens_are_stored(world, gateway):
-    # A mission submitted straight to the planner (not through the gateway) is still recorded.
+def test_events_of_a_mission_the_gateway_did_not_submit_create_nothing(world, gateway):
+    # Issue 15: an event for an unknown id used to create a mission. Events never create jobs: the
+    # gateway creates a job's row before its service hears of it, so only forgeries lack one.
     from shared import keys
     from shared.schemas import MissionRequest, JobAccepted
 
@@ -155,6 +156,7 @@ def test_events_published_while_no_client_listens_are_stored(world, gateway):
                                           MissionRequest(mission_id="m-direct", instruction="go", map_id="house"),
                                           JobAccepted)
         assert reply.accepted
-        rec = wait_state(client, "m-direct")
-        assert rec["last_seq"] == 4 and rec["instruction"] == ""
-        assert len(client.get("/missions/m-direct/history").json()) == 5
+        ingest = client.app.state.ingest
+        wait_until(lambda: ingest.rejected["unknown_job"] >= 5, 10, "the mission's events refused")
+        assert client.get("/missions/m-direct").status_code == 404
+        assert client.get("/missions").json()["total"] == 0

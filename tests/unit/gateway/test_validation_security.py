@@ -122,3 +122,42 @@ def test_openapi_documents_every_route_with_a_response_model(world, gateway):
         assert path in paths, path
     assert "$ref" in str(paths["/missions/{mission_id}"]["get"]["responses"]["200"])
     assert "text/event-stream" in paths["/missions/{mission_id}/events"]["get"]["responses"]["200"]["content"]
+
+
+def test_a_read_token_closes_every_get_but_health(world, gateway):
+    with gateway(api_token="write-secret", read_token="read-secret") as client:
+        r = client.post("/missions", json={"instruction": "go to the kitchen", "map_id": "house"},
+                        headers={"Authorization": "Bearer write-secret"})
+        assert r.status_code == 202, r.text
+        mission = r.json()["id"]
+        reads = ["/missions", f"/missions/{mission}", f"/missions/{mission}/history", "/maps", "/maps/house",
+                 "/explorations", "/status", "/metrics"]
+        for path in reads:
+            assert client.get(path).status_code == 401, path
+            assert client.get(path, headers={"Authorization": "Bearer wrong"}).status_code == 401, path
+            assert client.get(path, headers={"Authorization": "Bearer read-secret"}).status_code == 200, path
+            assert client.get(path, headers={"Authorization": "Bearer write-secret"}).status_code == 200, path
+        assert client.get(f"/missions/{mission}", params={"access_token": "read-secret"}).status_code == 200
+        assert client.get("/health").status_code == 200
+        # The read token does not write.
+        assert client.post("/missions", json={"instruction": "go", "map_id": "house"},
+                           headers={"Authorization": "Bearer read-secret"}).status_code == 401
+
+
+def test_nul_and_control_characters_in_upload_filenames_are_refused(world, gateway):
+    with gateway() as client:
+        for name in ("a\x00.ply", "a\nb.ply", "\x1f.pcd"):
+            r = client.post("/maps", params={"map_id": "m", "filename": name}, content=b"ply\n",
+                            headers={"Content-Type": "application/octet-stream"})
+            assert r.status_code == 422, (name, r.text)
+
+
+def test_huge_or_non_finite_numbers_in_free_form_options_are_422_not_500(world, gateway):
+    """Found by schemathesis: the bus message refused them, the HTTP model did not (a 500)."""
+    with gateway() as client:
+        for options in ({"a": 1e300}, {"a": [1, {"b": -1e16}]}):
+            r = client.post("/explorations", json={"options": options})
+            assert r.status_code == 422, r.text
+        r = client.post("/missions", json={"instruction": "go to the kitchen", "map_id": "house",
+                                           "options": {"policy_config": {"t": 1e300}}})
+        assert r.status_code == 422, r.text
