@@ -16,14 +16,15 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from shared import keys
-from shared.bus.typed import TypedBus
+from shared.bus.typed import RemoteError, TypedBus
 from shared.jobs import JobFailedError, await_job
 from shared.schemas import (
-    BuildMapRequest, CameraIntrinsics, Candidate, CandidateSet, Frame, GeodesicReply, GeodesicRequest, JobEvent,
-    LoadSceneRequest, MapBuildFinished,
+    BuildMapRequest, CameraIntrinsics, CancelRequest, Candidate, CandidateSet, ExplorationRequest, Frame,
+    GeodesicReply, GeodesicRequest, JobAccepted, JobEvent, LoadSceneRequest, MapBuildFinished, MapImportRequest,
+    MissionRequest,
     MapChunk, MapChunkRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
     Panorama, Ping, Pose, PoseReply, RecordReply, RecordRequest, RenderRequest, RenderResult, ResetRequest,
-    SceneSummary, SpatialMapRequest, SpatialMapResult, TurnRequest, ViewPose,
+    SceneSummary, ServiceInfo, ServiceMetrics, SpatialMapRequest, SpatialMapResult, TurnRequest, ViewPose,
 )
 
 _recording_ids = itertools.count()
@@ -85,10 +86,11 @@ class RobotClient:
     def scene(self) -> SceneSummary:
         return self.bus.request(self._k(keys.IO_SCENE), Ping(), SceneSummary, timeout_s=self.timeout_s)
 
-    def load_scene(self, scene: str) -> SceneSummary:
+    def load_scene(self, scene: str, timeout_s: float | None = None) -> SceneSummary:
+        """Switch the simulator's scene; loading a large mesh takes long (default: at least 120 s)."""
         self._pose = None
         return self.bus.request(self._k(keys.IO_LOAD_SCENE), LoadSceneRequest(scene=scene), SceneSummary,
-                                timeout_s=max(self.timeout_s, 120.0))
+                                timeout_s=timeout_s or max(self.timeout_s, 120.0))
 
     def geodesic(self, start_m, goal_m) -> GeodesicReply:
         return self.bus.request(self._k(keys.IO_GEODESIC),
@@ -119,6 +121,35 @@ class RobotClient:
                                                    timeout_s=self.timeout_s)
 
 
+class ServicesClient:
+    """Every service instance's plumbing: who is alive, their info and their metrics."""
+
+    def __init__(self, bus: TypedBus, *, timeout_s: float = 1.0):
+        self.bus, self.timeout_s = bus, timeout_s
+
+    def alive(self, service: str | None = None) -> list[tuple[str, str]]:
+        """(service, instance) of every liveliness token up (of one service when given)."""
+        pattern = keys.ALIVE.pattern(service=service) if service else keys.ALIVE.pattern()
+        out = []
+        for token in self.bus.raw.alive(pattern, timeout_s=self.timeout_s):
+            parts = token.split("/")
+            if len(parts) == 4:
+                out.append((parts[2], parts[3]))
+        return out
+
+    def infos(self, service: str | None = None) -> list[ServiceInfo]:
+        """The info of every instance that answered (of one service when given)."""
+        pattern = keys.INFO.pattern(service=service) if service else keys.INFO.pattern()
+        return [r for r in self.bus.request_all(pattern, Ping(), ServiceInfo, timeout_s=self.timeout_s)
+                if not isinstance(r, RemoteError) and (service is None or r.service == service)]
+
+    def metrics(self) -> tuple[list[ServiceMetrics], int]:
+        """Every instance's metrics, and how many instances answered with an error instead."""
+        answers = self.bus.request_all(keys.METRICS.pattern(), Ping(), ServiceMetrics, timeout_s=self.timeout_s)
+        good = [a for a in answers if not isinstance(a, RemoteError)]
+        return good, len(answers) - len(good)
+
+
 class MapperClient:
     def __init__(self, bus: TypedBus, robot: str, *, timeout_s: float = 10.0):
         self.bus, self.robot, self.timeout_s = bus, robot, timeout_s
@@ -126,6 +157,28 @@ class MapperClient:
     def predict(self, pano: Panorama) -> list[Candidate]:
         return self.bus.request(keys.MAPPER_PREDICT.format(robot=self.robot), pano, CandidateSet,
                                 timeout_s=self.timeout_s).candidates
+
+    def explore(self, req: ExplorationRequest) -> JobAccepted:
+        """Submit an exploration job; its events follow on ``EXPLORATION_EVENTS``."""
+        return self.bus.request(keys.MAPPER_EXPLORE.format(robot=self.robot), req, JobAccepted,
+                                timeout_s=self.timeout_s)
+
+
+class PlannerClient:
+    """The planner's missions of one robot."""
+
+    def __init__(self, bus: TypedBus, robot: str, *, timeout_s: float = 10.0):
+        self.bus, self.robot, self.timeout_s = bus, robot, timeout_s
+
+    def submit(self, req: MissionRequest) -> JobAccepted:
+        """Submit a mission job; its events follow on ``MISSION_EVENTS``."""
+        return self.bus.request(keys.MISSION_SUBMIT.format(robot=self.robot), req, JobAccepted,
+                                timeout_s=self.timeout_s)
+
+    def cancel_everywhere(self, mission_id: str) -> list[JobAccepted | RemoteError]:
+        """Ask every planner replica to cancel (the one zenoh would pick need not run the mission)."""
+        return self.bus.request_all(keys.MISSION_CANCEL.format(robot=self.robot), CancelRequest(mission_id=mission_id),
+                                    JobAccepted, timeout_s=self.timeout_s)
 
 
 class MapClient:
@@ -140,6 +193,11 @@ class MapClient:
     def info(self, map_id: str, version: int | None = None) -> MapInfo:
         return self.bus.request(keys.MAP_INFO.format(map=map_id), MapRequest(map_id=map_id, version=version),
                                 MapInfo, timeout_s=self.timeout_s)
+
+    def import_cloud(self, req: MapImportRequest, timeout_s: float | None = None) -> MapInfo:
+        """Store an uploaded PLY/PCD as a new map version (a large file takes a while: at least 60 s)."""
+        return self.bus.request(keys.MAP_IMPORT.format(map=req.map_id), req, MapInfo,
+                                timeout_s=timeout_s or max(self.timeout_s, 60.0))
 
     def chunks(self, map_id: str, version: int | None = None, max_points: int = 1_000_000) -> Iterator[MapChunk]:
         """Every chunk of one version of a map, in order."""
@@ -184,4 +242,4 @@ class RendererClient:
                                 balance="renderer")
 
 
-__all__ = ["MapClient", "MapperClient", "RendererClient", "RobotClient"]
+__all__ = ["MapClient", "MapperClient", "PlannerClient", "RendererClient", "RobotClient", "ServicesClient"]

@@ -738,15 +738,15 @@ class ExplorationStarted(EventPayload):
 class ExplorationOutcome(BaseModel):
     """How an exploration ended: on an exhausted frontier (``finished``), or on a safety budget."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     finished: bool
     stop_reason: Literal["exhausted", "steps", "moves", "time"]
-    steps: int = Field(ge=0)
-    step_budget: int = Field(ge=0)
-    moves: int = Field(ge=0)
-    discovered_m2: float = Field(ge=0.0, allow_inf_nan=False)
+    steps: Count
+    step_budget: Count
+    moves: Count
+    discovered_m2: float = Field(ge=0.0, le=WORLD_LIMIT_M**2)
     coverage_estimate: float = Field(ge=0.0, le=1.0)
-    open_stairs: int = Field(0, ge=0)  # stair nodes past the last explored floor: a flight leads on
+    open_stairs: Count = 0  # stair nodes past the last explored floor: a flight leads on
 
 
 class StageProgress(EventPayload):

@@ -53,6 +53,14 @@ def remote_detail(exc: RemoteError, what: str = "") -> str:
     return f"{what + ': ' if what else ''}{exc.message}"
 
 
+def ask(what: str, fn):
+    """``fn()``, with a bus failure turned into the matching HTTP answer (``what`` names the request)."""
+    try:
+        return fn()
+    except RemoteError as exc:
+        raise GatewayError(remote_detail(exc, what), remote_status(exc)) from None
+
+
 def install(app: FastAPI) -> None:
     async def on_remote(_request: Request, exc: RemoteError) -> JSONResponse:
         code = remote_status(exc)

@@ -15,6 +15,8 @@ import logging
 from collections import Counter, OrderedDict
 from collections.abc import AsyncIterator
 
+from starlette.concurrency import run_in_threadpool
+
 from services.gateway.records import TERMINAL, JobKind
 from services.gateway.store import EventRejected, GatewayStore, StoredEvent, image_url
 from shared import keys
@@ -206,7 +208,8 @@ async def sse_stream(store: GatewayStore, hub: EventHub, kind: JobKind, job_id: 
     yield f"retry: {retry_ms}\n\n"
     while True:
         wake = hub.token(job_id)  # taken before the reads: see EventHub
-        progress = store.job_progress(job_id)
+        # SQLite reads run in the threadpool: the event loop serves every other stream meanwhile.
+        progress = await run_in_threadpool(store.job_progress, job_id)
         if progress is None:
             return
         state, last_seq = progress
@@ -217,7 +220,7 @@ async def sse_stream(store: GatewayStore, hub: EventHub, kind: JobKind, job_id: 
                     last = seq
                     yield frame
                 continue
-            events = store.events(job_id, last, batch)
+            events = await run_in_threadpool(store.events, job_id, last, batch)
             for ev in events:
                 last = ev.seq
                 yield sse_frame(kind, ev)

@@ -29,8 +29,9 @@ from services.gateway.records import JobKind
 from services.gateway.store import EventRejected, GatewayStore, JobRow
 from shared import keys
 from shared.bus.base import Closeable
-from shared.bus.typed import RemoteError, TypedBus
-from shared.schemas import JobCancelled, JobFailed, JobEvent, JobEventKind, JobState, Ping, ServiceInfo
+from shared.bus.typed import TypedBus
+from shared.clients import ServicesClient
+from shared.schemas import JobCancelled, JobFailed, JobEvent, JobEventKind, JobState
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +42,9 @@ _OPEN = [JobState.QUEUED, JobState.RUNNING]
 
 def live_workers(bus: TypedBus, service: str, timeout_s: float) -> tuple[set[str], dict[str, float]]:
     """(instances whose liveliness token is up, instance -> started_s of those whose info answered)."""
-    alive = {t.rsplit("/", 1)[-1] for t in bus.raw.alive(keys.ALIVE.pattern(service=service), timeout_s=timeout_s)}
-    started = {}
-    for r in bus.request_all(keys.INFO.pattern(service=service), Ping(), ServiceInfo, timeout_s=timeout_s):
-        if not isinstance(r, RemoteError) and r.service == service:
-            started[r.instance] = r.started_s
+    client = ServicesClient(bus, timeout_s=timeout_s)
+    alive = {instance for _, instance in client.alive(service)}
+    started = {r.instance: r.started_s for r in client.infos(service)}
     return alive, started
 
 

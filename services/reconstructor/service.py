@@ -18,7 +18,7 @@ from pydantic import Field
 
 from shared.cloud import CloudFormatError
 from services.reconstructor.core import (
-    DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig, Reconstructor, region_from_frames,
+    DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig,
 )
 from services.reconstructor.core.build_job import build_map
 from shared import keys

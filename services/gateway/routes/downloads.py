@@ -22,14 +22,14 @@ from pathlib import Path as FsPath
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import BaseModel
 
 from services.gateway.deps import BusDep, SettingsDep, StoreDep
-from services.gateway.errors import GatewayError, remote_detail, remote_status
+from services.gateway.errors import GatewayError, ask
+from services.gateway.params import JobId, MapId, Version
 from services.gateway.records import TERMINAL, JobKind
-from services.gateway.routes.missions import SEGMENT
 from services.gateway.settings import GatewaySettings
 from services.gateway.store import GatewayStore, JobRow
 from shared import keys
@@ -40,13 +40,11 @@ from shared.export.nav2 import EmptyMapError
 from shared.export.pcd import pcd_header, pcd_records, record_size
 from shared.export.trajectory import trajectory_csv
 from shared.recording import RecordedEvent, RecordingInput, write_recording
-from shared.schemas import MapChunk, MapChunkRequest, MapInfo, MapRequest, JobEvent, JobEventKind
+from shared.clients import MapClient
+from shared.schemas import JobEvent, JobEventKind, MapChunk, MapInfo
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["downloads"])
-JobId = Annotated[str, Path(pattern=SEGMENT, description="job id")]
-MapId = Annotated[str, Path(pattern=SEGMENT, description="map id")]
-Version = Annotated[int | None, Query(ge=1, le=2**31 - 1, description="a stored version (default: the latest)")]
 _RRD = {200: {"content": {"application/octet-stream": {}}, "description": "Rerun recording (.rrd)"},
         404: {}, 409: {}, 503: {}}
 
@@ -75,15 +73,7 @@ def job_events(store: GatewayStore, job_id: str, with_images: bool = True, batch
 
 def map_chunks(bus: TypedBus, settings: GatewaySettings, map_id: str, version: int | None) -> Iterator[MapChunk]:
     """The map's chunks in order, all of the first chunk's version (raises RemoteError)."""
-    def ask(index: int, v: int | None) -> MapChunk:
-        return bus.request(keys.MAP_CHUNK.format(map=map_id),
-                           MapChunkRequest(map_id=map_id, version=v, index=index, max_points=settings.map_chunk_points),
-                           MapChunk, timeout_s=settings.request_timeout_s)
-
-    first = ask(0, version)
-    yield first
-    for i in range(1, first.count):
-        yield ask(i, first.version)
+    return MapClient(bus, timeout_s=settings.request_timeout_s).chunks(map_id, version, settings.map_chunk_points)
 
 
 def map_cloud(bus: TypedBus, settings: GatewaySettings, map_id: str,
@@ -92,13 +82,6 @@ def map_cloud(bus: TypedBus, settings: GatewaySettings, map_id: str,
     xyz = np.concatenate([c.xyz_m for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     rgb = np.concatenate([c.rgb for c in chunks]) if chunks else np.zeros((0, 3), np.uint8)
     return xyz, rgb, chunks[0].version
-
-
-def _ask(what: str, fn):
-    try:
-        return fn()
-    except RemoteError as exc:
-        raise GatewayError(remote_detail(exc, what), remote_status(exc)) from None
 
 
 # --- recordings ----------------------------------------------------------------------------------------
@@ -315,9 +298,7 @@ def mission_trajectory(mission_id: JobId, store: StoreDep) -> Response:
 
 
 def _map_info(bus: TypedBus, settings: GatewaySettings, map_id: str, version: int | None) -> MapInfo:
-    return _ask(f"map {map_id!r}", lambda: bus.request(keys.MAP_INFO.format(map=map_id),
-                                                       MapRequest(map_id=map_id, version=version), MapInfo,
-                                                       timeout_s=settings.request_timeout_s))
+    return ask(f"map {map_id!r}", lambda: MapClient(bus, timeout_s=settings.request_timeout_s).info(map_id, version))
 
 
 @router.get("/maps/{map_id}/cloud.pcd", response_class=StreamingResponse,
@@ -327,7 +308,7 @@ def map_pcd(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version 
     """The map's points as a binary PCD (x y z float, rgb packed as PCL does[, label uint]), streamed."""
     info = _map_info(bus, settings, map_id, version)
     chunks = map_chunks(bus, settings, map_id, info.version)
-    first = _ask(f"map {map_id!r}", lambda: next(chunks))
+    first = ask(f"map {map_id!r}", lambda: next(chunks))
     with_labels = first.labels is not None
     header = pcd_header(info.point_count, with_labels)
 
@@ -348,7 +329,7 @@ CellM = Annotated[float, Query(ge=0.01, le=1.0, description="map resolution, met
 
 def _nav2(map_id: str, bus: TypedBus, settings: GatewaySettings, version: int | None, floor_z_m: float | None,
           cell_m: float) -> tuple[dict[str, bytes], str]:
-    xyz, _, v = _ask(f"map {map_id!r}", lambda: map_cloud(bus, settings, map_id, version))
+    xyz, _, v = ask(f"map {map_id!r}", lambda: map_cloud(bus, settings, map_id, version))
     try:
         grid = occupancy_from_cloud(xyz, floor_z_m, OccupancyConfig(cell_m=cell_m))
     except EmptyMapError as exc:

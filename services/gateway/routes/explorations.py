@@ -5,7 +5,7 @@ from __future__ import annotations
 import uuid
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Header, Path, Query, Request, Response, status
+from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -13,15 +13,15 @@ from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError
 from services.gateway.records import ExplorationPage, ExplorationRecord, JobCreated, JobKind
-from services.gateway.routes.missions import (
-    RECORD_DOC, SEGMENT, SSE_DOC, IfNoneMatch, events_response, image_response, start_job,
+from services.gateway.jobs import events_response, image_response, start_job
+from services.gateway.params import (
+    IMAGE_DOC, RECORD_DOC, SEGMENT, SSE_DOC, After, ExplorationId, IfNoneMatch, ImageName, LastEventId, Seq,
 )
 from services.gateway.store import JobRow
-from shared import keys
-from shared.schemas import ExplorationRequest, JobAccepted, JobState, check_free_form
+from shared.clients import MapperClient
+from shared.schemas import ExplorationRequest, JobState, check_free_form
 
 router = APIRouter(prefix="/explorations", tags=["explorations"])
-JobId = Annotated[str, Path(pattern=SEGMENT, description="exploration id")]
 
 
 class ExplorationCreate(BaseModel):
@@ -68,18 +68,16 @@ def submit(body: ExplorationCreate, http_request: Request, bus: BusDep, store: S
     map_id = body.map_id or f"map-{job_id[2:10]}"
     start_job(store, JobKind.EXPLORATION, job_id, {**body.model_dump(mode="json"), "map_id": map_id}, http_request,
               "exploration", "mapper",
-              lambda: bus.request(keys.MAPPER_EXPLORE.format(robot=settings.robot),
-                                  ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
-                                                     reconstruction=body.reconstruction, options=body.options,
-                                                     record=body.record),
-                                  JobAccepted, timeout_s=settings.request_timeout_s))
+              lambda: MapperClient(bus, settings.robot, timeout_s=settings.request_timeout_s).explore(
+                  ExplorationRequest(exploration_id=job_id, map_id=map_id, max_steps=body.max_steps,
+                                     reconstruction=body.reconstruction, options=body.options, record=body.record)))
     response.headers["Location"] = f"/explorations/{job_id}"
     return JobCreated(id=job_id, state=JobState.QUEUED, url=f"/explorations/{job_id}",
                       events_url=f"/explorations/{job_id}/events")
 
 
 @router.get("", response_model=ExplorationPage)
-async def list_explorations(store: StoreDep,
+def list_explorations(store: StoreDep,
                       state: Annotated[list[JobState] | None, Query()] = None,
                       limit: Annotated[int, Query(ge=1, le=500)] = 50,
                       offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> ExplorationPage:
@@ -89,7 +87,7 @@ async def list_explorations(store: StoreDep,
 
 
 @router.get("/{exploration_id}", response_model=ExplorationRecord, responses=RECORD_DOC)
-async def get_exploration(exploration_id: JobId, cache: CacheDep, if_none_match: IfNoneMatch = None) -> Response:
+def get_exploration(exploration_id: ExplorationId, cache: CacheDep, if_none_match: IfNoneMatch = None) -> Response:
     """State, stage and progress (0-1); ``map_id`` names the map it builds. ETag / 304 as for missions."""
     entry = cache.get(exploration_id, JobKind.EXPLORATION, exploration_record)
     if entry is None:
@@ -98,15 +96,12 @@ async def get_exploration(exploration_id: JobId, cache: CacheDep, if_none_match:
 
 
 @router.get("/{exploration_id}/events", response_class=StreamingResponse, responses=SSE_DOC)
-async def exploration_events(exploration_id: JobId, store: StoreDep, hub: HubDep, settings: SettingsDep,
-                             last_event_id: Annotated[str | None, Header()] = None,
-                             after: Annotated[int | None, Query(ge=-1, le=2**31 - 1)] = None):
+def exploration_events(exploration_id: ExplorationId, store: StoreDep, hub: HubDep, settings: SettingsDep,
+                       last_event_id: LastEventId = None, after: After = None):
     """Server-Sent Events of the exploration, resumable with ``Last-Event-ID``."""
     return events_response(JobKind.EXPLORATION, exploration_id, store, hub, settings, last_event_id, after)
 
 
-@router.get("/{exploration_id}/events/{seq}/images/{name}.jpg", response_class=Response,
-            responses={200: {"content": {"image/jpeg": {}}}, 404: {}})
-async def exploration_image(exploration_id: JobId, seq: Annotated[int, Path(ge=0, le=2**31 - 1)],
-                      name: Annotated[str, Path(pattern=SEGMENT)], store: StoreDep) -> Response:
+@router.get("/{exploration_id}/events/{seq}/images/{name}.jpg", response_class=Response, responses=IMAGE_DOC)
+def exploration_image(exploration_id: ExplorationId, seq: Seq, name: ImageName, store: StoreDep) -> Response:
     return image_response(store, exploration_id, seq, name)

@@ -6,45 +6,31 @@ import logging
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Query, Request, Response, status
+from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from services.gateway.deps import Authorized, BusDep, SettingsDep
-from services.gateway.errors import GatewayError, remote_detail, remote_status
-from services.gateway.routes.missions import SEGMENT
-from shared import keys
-from shared.bus.typed import RemoteError, TypedBus
+from services.gateway.errors import GatewayError, ask
+from services.gateway.params import SEGMENT, MapId, Version
 from shared import cloud as ply
-from shared.schemas import MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply, MapRequest, Ping
+from shared.clients import MapClient
+from shared.schemas import MapImportRequest, MapInfo
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/maps", tags=["maps"])
-MapId = Annotated[str, Path(pattern=SEGMENT, description="map id")]
-Version = Annotated[int | None, Query(ge=1, le=2**31 - 1, description="a stored version (default: the latest)")]
-
-
-def _ask(bus: TypedBus, what: str, fn):
-    try:
-        return fn()
-    except RemoteError as exc:
-        raise GatewayError(remote_detail(exc, what), remote_status(exc)) from None
 
 
 @router.get("", response_model=list[MapInfo], responses={503: {}})
 def list_maps(bus: BusDep, settings: SettingsDep) -> list[MapInfo]:
     """Every stored map (latest versions), as the reconstructor reports them."""
-    reply = _ask(bus, "cannot list maps", lambda: bus.request(keys.MAP_LIST.format(), Ping(), MapListReply,
-                                                              timeout_s=settings.request_timeout_s))
-    return reply.maps
+    return ask("cannot list maps", lambda: MapClient(bus, timeout_s=settings.request_timeout_s).list())
 
 
 @router.get("/{map_id}", response_model=MapInfo, responses={404: {}, 503: {}})
 def get_map(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version = None) -> MapInfo:
     """Metadata of one map: points, bounds, labels, regions, metric scale factors, timings."""
-    return _ask(bus, f"map {map_id!r}", lambda: bus.request(
-        keys.MAP_INFO.format(map=map_id), MapRequest(map_id=map_id, version=version), MapInfo,
-        timeout_s=settings.request_timeout_s))
+    return ask(f"map {map_id!r}", lambda: MapClient(bus, timeout_s=settings.request_timeout_s).info(map_id, version))
 
 
 @router.get("/{map_id}/cloud.ply", response_class=StreamingResponse,
@@ -53,17 +39,12 @@ def get_map(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version 
 def download_cloud(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version = None) -> StreamingResponse:
     """The map's points as a binary little-endian PLY (x y z float, red green blue uchar[, label int]),
     streamed chunk by chunk so a large cloud never sits whole in the gateway's memory."""
-    timeout_s = settings.request_timeout_s
-
-    def chunk(index: int, v: int | None) -> MapChunk:
-        return bus.request(keys.MAP_CHUNK.format(map=map_id),
-                           MapChunkRequest(map_id=map_id, version=v, index=index, max_points=settings.map_chunk_points),
-                           MapChunk, timeout_s=timeout_s)
-
     info = get_map(map_id, bus, settings, version)
     # The first chunk before the response starts: an error is still a clean status code, and it
-    # tells whether the cloud has labels; later chunks are pinned to its version.
-    first = _ask(bus, f"map {map_id!r}", lambda: chunk(0, info.version))
+    # tells whether the cloud has labels; the client pins later chunks to its version.
+    chunks = MapClient(bus, timeout_s=settings.request_timeout_s).chunks(map_id, info.version,
+                                                                          settings.map_chunk_points)
+    first = ask(f"map {map_id!r}", lambda: next(chunks))
     with_labels = first.labels is not None
     header = ply.header(info.point_count, with_labels, info.label_names, f"SpatialAnt map {map_id} version {first.version}")
     size = len(header) + info.point_count * ply.vertex_dtype(with_labels).itemsize
@@ -72,8 +53,7 @@ def download_cloud(map_id: MapId, bus: BusDep, settings: SettingsDep, version: V
         yield header
         sent = len(first.xyz_m)
         yield ply.records(first.xyz_m, first.rgb, first.labels, with_labels)
-        for i in range(1, first.count):
-            c = chunk(i, first.version)  # an error here ends the stream short of Content-Length
+        for c in chunks:  # an error here ends the stream short of Content-Length
             sent += len(c.xyz_m)
             yield ply.records(c.xyz_m, c.rgb, c.labels, with_labels)
         if sent != info.point_count:
@@ -106,7 +86,7 @@ async def upload_cloud(request: Request, bus: BusDep, settings: SettingsDep, res
         raise GatewayError(f"{filename!r}: the body is not a {filename.rsplit('.', 1)[-1].upper()} file", 415)
     msg = MapImportRequest(map_id=map_id, filename=filename, data=data)
     # Blocking bus request: off the event loop.
-    info = await run_in_threadpool(_ask, bus, f"cannot import {filename!r}", lambda: bus.request(
-        keys.MAP_IMPORT.format(map=map_id), msg, MapInfo, timeout_s=max(settings.request_timeout_s, 60.0)))
+    info = await run_in_threadpool(ask, f"cannot import {filename!r}", lambda: MapClient(
+        bus, timeout_s=settings.request_timeout_s).import_cloud(msg))
     response.headers["Location"] = f"/maps/{map_id}"
     return info

@@ -15,9 +15,8 @@ from fastapi import APIRouter
 from fastapi.responses import PlainTextResponse
 
 from services.gateway.deps import BusDep, SettingsDep
-from shared import keys
-from shared.bus.typed import RemoteError
-from shared.schemas import Ping, ServiceMetrics
+from shared.clients import ServicesClient
+from shared.schemas import ServiceMetrics
 
 router = APIRouter(tags=["metrics"])
 
@@ -79,7 +78,6 @@ def metrics(bus: BusDep, settings: SettingsDep) -> PlainTextResponse:
     A sync route: the bus query blocks, so FastAPI runs it in its thread pool.
     """
     t0 = time.perf_counter()
-    answers = bus.request_all(keys.METRICS.pattern(), Ping(), ServiceMetrics, timeout_s=settings.status_timeout_s)
-    good = [a for a in answers if not isinstance(a, RemoteError)]
-    text = prometheus_text(good, scrape_errors=len(answers) - len(good), scrape_s=time.perf_counter() - t0)
+    good, errors = ServicesClient(bus, timeout_s=settings.status_timeout_s).metrics()
+    text = prometheus_text(good, scrape_errors=errors, scrape_s=time.perf_counter() - t0)
     return PlainTextResponse(text, media_type=CONTENT_TYPE)

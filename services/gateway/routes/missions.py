@@ -4,36 +4,31 @@ from __future__ import annotations
 
 import logging
 import uuid
-from collections.abc import Callable
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Path, Query, Request, Response, status
+from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError, remote_detail, remote_status
-from services.gateway.events import event_json, parse_last_event_id, sse_stream
-from services.gateway.reaper import find_owner
+from services.gateway.events import event_json
+from services.gateway.jobs import events_response, image_response, start_job
+from services.gateway.params import (
+    IMAGE_DOC, RECORD_DOC, SEGMENT, SSE_DOC, After, IfNoneMatch, ImageName, LastEventId, MissionId, Seq,
+)
 from services.gateway.records import (
     EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary, outcome_of,
 )
-from services.gateway.routes.robot import refuse_while_switching
 from services.gateway.store import JobRow
-from shared import keys
 from shared.bus.typed import NoReplyError, RemoteError
-from shared.schemas import (
-    CancelRequest, ErrorCode, GeodesicReply, GeodesicRequest, Instruction, MapInfo, MapRequest, JobAccepted,
-    MissionOptions, MissionRequest, JobState,
-)
+from shared.clients import MapClient, PlannerClient, RobotClient
+from shared.schemas import ErrorCode, Instruction, JobAccepted, JobState, MissionOptions, MissionRequest
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/missions", tags=["missions"])
 
-SEGMENT = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
-JobId = Annotated[str, Path(pattern=SEGMENT, description="mission id")]
-ImageName = Annotated[str, Path(pattern=SEGMENT)]
 
 
 class MissionCreate(BaseModel):
@@ -80,32 +75,6 @@ def _get(store, job_id: str) -> JobRow:
     return row
 
 
-def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_request: Request, noun: str,
-              service: str, send: Callable[[], JobAccepted]) -> None:
-    """Create the job's row, then hand the job to its service (``send``).
-
-    The row exists before the service hears of the job, so its first event has a home; it is
-    removed again when the job cannot start (a scene switch under way, the service absent or
-    refusing), so a refused request leaves nothing behind. Once accepted, the job records its owner
-    (the worker instance and incarnation) for the reaper's reconciliation.
-    """
-    store.create_job(kind, job_id, request_json)
-    try:
-        refuse_while_switching(http_request, noun)
-        try:
-            reply = send()
-        except RemoteError as exc:
-            raise GatewayError(remote_detail(exc, f"the {service} refused the {noun}"), remote_status(exc)) from None
-        if not reply.accepted:
-            raise GatewayError(f"the {service} refused the {noun}: {reply.reason or 'no reason given'}", 409)
-    except BaseException:
-        store.delete_job(job_id)
-        raise
-    settings = http_request.app.state.settings
-    store.set_owner(job_id, find_owner(http_request.app.state.bus, service, reply.instance,
-                                       timeout_s=settings.status_timeout_s))
-
-
 def check_poses(bus, settings, options: MissionOptions) -> None:
     """A start pose or a goal must lie on (or near) walkable ground: robot-io would otherwise snap
     (1e6, 1e6) to some corner where the robot cannot move. 422 with the distance when it does not."""
@@ -114,9 +83,8 @@ def check_poses(bus, settings, options: MissionOptions) -> None:
     if start is None and goal is None:
         return
     try:
-        reply = bus.request(keys.IO_GEODESIC.format(robot=settings.robot),
-                            GeodesicRequest(start_m=start or goal, goal_m=goal or start), GeodesicReply,
-                            timeout_s=settings.request_timeout_s)
+        reply = RobotClient(bus, settings.robot, timeout_s=settings.request_timeout_s).geodesic(start or goal,
+                                                                                               goal or start)
     except NoReplyError:
         # No robot-io serves the scene: nothing to check against here; the mission itself then fails
         # with that reason when it starts.
@@ -141,8 +109,7 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
         raise GatewayError(f"instruction longer than {settings.max_instruction_chars} characters", 422)
     if settings.validate_map:
         try:
-            bus.request(keys.MAP_INFO.format(map=body.map_id), MapRequest(map_id=body.map_id), MapInfo,
-                        timeout_s=settings.request_timeout_s)
+            MapClient(bus, timeout_s=settings.request_timeout_s).info(body.map_id)
         except RemoteError as exc:
             if exc.code == ErrorCode.NOT_FOUND:
                 raise GatewayError(f"unknown map {body.map_id!r} (see GET /maps)", 422) from None
@@ -150,10 +117,9 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
     check_poses(bus, settings, body.options)
     job_id = f"m-{uuid.uuid4().hex[:16]}"
     start_job(store, JobKind.MISSION, job_id, body.model_dump(mode="json"), request, "mission", "planner",
-              lambda: bus.request(keys.MISSION_SUBMIT.format(robot=settings.robot),
-                                  MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
-                                                 options=body.options),
-                                  JobAccepted, timeout_s=settings.request_timeout_s))
+              lambda: PlannerClient(bus, settings.robot, timeout_s=settings.request_timeout_s).submit(
+                  MissionRequest(mission_id=job_id, instruction=body.instruction, map_id=body.map_id,
+                                 options=body.options)))
     url, events_url = _links(job_id)
     response.headers["Location"] = url
     row = store.get_job(job_id)
@@ -161,7 +127,7 @@ def submit(body: MissionCreate, request: Request, bus: BusDep, store: StoreDep, 
 
 
 @router.get("", response_model=MissionPage)
-async def list_missions(store: StoreDep,
+def list_missions(store: StoreDep,
                   state: Annotated[list[JobState] | None, Query(description="keep these states")] = None,
                   limit: Annotated[int, Query(ge=1, le=500)] = 50,
                   offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> MissionPage:
@@ -170,12 +136,10 @@ async def list_missions(store: StoreDep,
     return MissionPage(items=[_summary(r) for r in rows], total=total, limit=limit, offset=offset)
 
 
-RECORD_DOC = {304: {"description": "not modified since the ETag given in If-None-Match"}, 404: {}}
-IfNoneMatch = Annotated[str | None, Header(description="an ETag of this record already held: 304 if unchanged")]
 
 
 @router.get("/{mission_id}", response_model=MissionRecord, responses=RECORD_DOC)
-async def get_mission(mission_id: JobId, cache: CacheDep, if_none_match: IfNoneMatch = None) -> Response:
+def get_mission(mission_id: MissionId, cache: CacheDep, if_none_match: IfNoneMatch = None) -> Response:
     """State, step, trajectory, decisions, metrics (when the episode has a goal), tokens and cost.
 
     Served encoded from a per-revision cache with an ``ETag``: poll with ``If-None-Match`` and an
@@ -188,7 +152,7 @@ async def get_mission(mission_id: JobId, cache: CacheDep, if_none_match: IfNoneM
 
 @router.post("/{mission_id}/cancel", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED,
              dependencies=[Authorized], responses={401: {}, 404: {}, 409: {}, 503: {}})
-def cancel(mission_id: JobId, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep) -> JobCreated:
+def cancel(mission_id: MissionId, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep) -> JobCreated:
     """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream. A mission no
     live planner runs (an orphan: its planner died or restarted) is cancelled here at once."""
     row = _get(store, mission_id)
@@ -197,8 +161,7 @@ def cancel(mission_id: JobId, request: Request, bus: BusDep, store: StoreDep, se
     if row.terminal:
         raise GatewayError(f"mission {mission_id!r} has already ended ({row.state.value})", 409)
     # Every planner is asked: with replicas, the one zenoh would pick need not be the one running it.
-    answers = bus.request_all(keys.MISSION_CANCEL.format(robot=settings.robot), CancelRequest(mission_id=mission_id),
-                              JobAccepted, timeout_s=settings.request_timeout_s)
+    answers = PlannerClient(bus, settings.robot, timeout_s=settings.request_timeout_s).cancel_everywhere(mission_id)
     if not any(isinstance(a, JobAccepted) and a.accepted for a in answers):
         failures = [a for a in answers if isinstance(a, RemoteError) and a.code != ErrorCode.NOT_FOUND]
         if failures and len(failures) == len(answers):
@@ -213,36 +176,17 @@ def cancel(mission_id: JobId, request: Request, bus: BusDep, store: StoreDep, se
     return JobCreated(id=mission_id, state=row.state, url=url, events_url=events_url)
 
 
-def events_response(kind: JobKind, job_id: str, store, hub, settings, last_event_id: str | None,
-                    after: int | None) -> StreamingResponse:
-    if store.get_job(job_id, kind) is None:
-        raise GatewayError(f"no {kind.value} {job_id!r}", 404)
-    try:
-        start = parse_last_event_id(last_event_id, after)
-    except ValueError as exc:
-        raise GatewayError(str(exc), 400) from None
-    stream = sse_stream(store, hub, kind, job_id, start, keepalive_s=settings.sse_keepalive_s,
-                        batch=settings.sse_batch)
-    # no-transform and X-Accel-Buffering: proxies must pass events through as they come.
-    return StreamingResponse(stream, media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache, no-transform", "X-Accel-Buffering": "no"})
-
-
-SSE_DOC = {200: {"content": {"text/event-stream": {}},
-                 "description": "``id: seq``, ``event: kind``, ``data: event JSON``; ``event: end`` closes"},
-           404: {}, 400: {}}
 
 
 @router.get("/{mission_id}/events", response_class=StreamingResponse, responses=SSE_DOC)
-async def mission_events(mission_id: JobId, store: StoreDep, hub: HubDep, settings: SettingsDep,
-                         last_event_id: Annotated[str | None, Header()] = None,
-                         after: Annotated[int | None, Query(ge=-1, le=2**31 - 1, description="resume after this seq")] = None):
+def mission_events(mission_id: MissionId, store: StoreDep, hub: HubDep, settings: SettingsDep,
+                   last_event_id: LastEventId = None, after: After = None):
     """Server-Sent Events: the stored events after ``Last-Event-ID`` (or ``?after=``), then live ones."""
     return events_response(JobKind.MISSION, mission_id, store, hub, settings, last_event_id, after)
 
 
 @router.get("/{mission_id}/history", response_model=list[EventRecord], responses={404: {}})
-async def mission_history(mission_id: JobId, store: StoreDep,
+def mission_history(mission_id: MissionId, store: StoreDep,
                     after: Annotated[int, Query(ge=-1, le=2**31 - 1)] = -1,
                     limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> list[EventRecord]:
     """The stored events as JSON (for clients that do not speak SSE), images by URL."""
@@ -250,16 +194,7 @@ async def mission_history(mission_id: JobId, store: StoreDep,
     return [EventRecord(**event_json(JobKind.MISSION, e)) for e in store.events(mission_id, after, limit)]
 
 
-def image_response(store, job_id: str, seq: int, name: str) -> Response:
-    jpeg = store.image(job_id, seq, name)
-    if jpeg is None:
-        raise GatewayError(f"no image {name!r} at event {seq} of {job_id!r}", 404)
-    # An event's image never changes once stored.
-    return Response(jpeg, media_type="image/jpeg", headers={"Cache-Control": "public, max-age=31536000, immutable"})
-
-
-@router.get("/{mission_id}/events/{seq}/images/{name}.jpg", response_class=Response,
-            responses={200: {"content": {"image/jpeg": {}}}, 404: {}})
-async def mission_image(mission_id: JobId, seq: Annotated[int, Path(ge=0, le=2**31 - 1)], name: ImageName, store: StoreDep) -> Response:
+@router.get("/{mission_id}/events/{seq}/images/{name}.jpg", response_class=Response, responses=IMAGE_DOC)
+def mission_image(mission_id: MissionId, seq: Seq, name: ImageName, store: StoreDep) -> Response:
     """One JPEG of one event (panorama, map, cand_<i>_observed, cand_<i>_anticipated, ...)."""
     return image_response(store, mission_id, seq, name)

@@ -9,25 +9,19 @@ running on this robot, and no mission or exploration may start while a switch is
 from __future__ import annotations
 
 import logging
-import threading
 from typing import Annotated
 
 from fastapi import APIRouter, Request
 from pydantic import BaseModel, ConfigDict, StringConstraints
 
 from services.gateway.deps import Authorized, BusDep, SettingsDep, StoreDep
-from services.gateway.errors import GatewayError, remote_detail, remote_status
-from services.gateway.records import JobKind
-from services.gateway.store import GatewayStore
-from shared import keys
-from shared.bus.typed import RemoteError
-from shared.schemas import LoadSceneRequest, JobState, Ping, SceneSummary
+from services.gateway.errors import GatewayError, ask
+from services.gateway.jobs import open_jobs, scene_lock
+from shared.clients import RobotClient
+from shared.schemas import SceneSummary
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/robot", tags=["robot"])
-
-OPEN_STATES = [JobState.QUEUED, JobState.RUNNING]
-
 
 class SceneLoad(BaseModel):
     """``POST /robot/scene``: ``generated:<seed>[:floors=2]`` or a mesh path robot-io can read."""
@@ -39,38 +33,11 @@ class SceneLoad(BaseModel):
                                             pattern=r"^[^\x00-\x1f\x7f]+$")]
 
 
-def open_jobs(store: GatewayStore, limit: int = 5) -> list[str]:
-    """Descriptions of up to ``limit`` missions and explorations not yet ended."""
-    out: list[str] = []
-    for kind in (JobKind.MISSION, JobKind.EXPLORATION):
-        rows, total = store.list_jobs(kind, states=OPEN_STATES, limit=limit)
-        out += [f"{kind.value} {r.id} ({r.state.value})" for r in rows]
-        if total > len(rows):
-            out.append(f"{total - len(rows)} more {kind.value}(s)")
-    return out
-
-
-def scene_lock(request: Request) -> threading.Lock:
-    return request.app.state.scene_lock
-
-
-def refuse_while_switching(request: Request, what: str) -> None:
-    """For job submissions: 409 while ``POST /robot/scene`` is loading a scene.
-
-    Called after the job's row exists, so that either the switch sees the job or the job sees the
-    switch, whatever the interleaving."""
-    if scene_lock(request).locked():
-        raise GatewayError(f"the robot is switching scenes: submit the {what} once it has finished", 409)
-
-
 @router.get("/scene", response_model=SceneSummary, responses={503: {}, 504: {}})
 def get_scene(bus: BusDep, settings: SettingsDep) -> SceneSummary:
     """The scene robot-io is in: name, bounds, floors, reachable area, rooms, start pose."""
-    try:
-        return bus.request(keys.IO_SCENE.format(robot=settings.robot), Ping(), SceneSummary,
-                           timeout_s=settings.request_timeout_s)
-    except RemoteError as exc:
-        raise GatewayError(remote_detail(exc, "robot-io cannot tell its scene"), remote_status(exc)) from None
+    return ask("robot-io cannot tell its scene",
+               lambda: RobotClient(bus, settings.robot, timeout_s=settings.request_timeout_s).scene())
 
 
 @router.post("/scene", response_model=SceneSummary, dependencies=[Authorized],
@@ -88,12 +55,8 @@ def load_scene(body: SceneLoad, request: Request, bus: BusDep, store: StoreDep, 
         busy = open_jobs(store)
         if busy:
             raise GatewayError("cannot switch scenes while jobs run on the robot: " + ", ".join(busy), 409)
-        try:
-            summary = bus.request(keys.IO_LOAD_SCENE.format(robot=settings.robot), LoadSceneRequest(scene=body.scene),
-                                  SceneSummary, timeout_s=settings.scene_timeout_s)
-        except RemoteError as exc:
-            raise GatewayError(remote_detail(exc, f"robot-io cannot load {body.scene!r}"),
-                               remote_status(exc)) from None
+        summary = ask(f"robot-io cannot load {body.scene!r}", lambda: RobotClient(bus, settings.robot).load_scene(
+            body.scene, timeout_s=settings.scene_timeout_s))
     finally:
         lock.release()
     log.info("robot %s switched to scene %s", settings.robot, summary.scene)

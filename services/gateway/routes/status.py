@@ -6,9 +6,8 @@ from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
 from services.gateway.deps import BusDep, SettingsDep
-from shared import keys
-from shared.bus.typed import RemoteError
-from shared.schemas import Ping, ServiceInfo
+from shared.clients import ServicesClient
+from shared.schemas import ServiceInfo
 
 router = APIRouter(tags=["status"])
 
@@ -43,18 +42,12 @@ def status(bus: BusDep, settings: SettingsDep) -> SystemStatus:
     """Every service instance seen alive through liveliness, with versions from its info queryable."""
     import time
 
-    alive = bus.raw.alive(keys.ALIVE.pattern(), timeout_s=settings.status_timeout_s)
-    infos: dict[tuple[str, str], ServiceInfo] = {}
-    for r in bus.request_all(keys.INFO.pattern(), Ping(), ServiceInfo, timeout_s=settings.status_timeout_s):
-        if not isinstance(r, RemoteError):
-            infos[(r.service, r.instance)] = r
+    services_client = ServicesClient(bus, timeout_s=settings.status_timeout_s)
+    alive = services_client.alive()
+    infos: dict[tuple[str, str], ServiceInfo] = {(r.service, r.instance): r for r in services_client.infos()}
     by_service: dict[str, list[InstanceStatus]] = defaultdict(list)
     now = time.time()
-    for token in alive:
-        parts = token.split("/")
-        if len(parts) != 4:
-            continue
-        service, instance = parts[2], parts[3]
+    for service, instance in alive:
         info = infos.get((service, instance))
         by_service[service].append(InstanceStatus(
             instance=instance,
