@@ -32,6 +32,8 @@ from .info import describe_scene
 from .navgrid import AgentShape, NavGrid
 from .render import Intrinsics, RenderOutput, SceneRenderer
 from .robot import ROBOTS, Robot, SimConfig, SimRobot
+# The ROS 2 backend registers itself as "ros2" in ROBOTS (its zenoh transport: services/robot_io/ros2_zenoh.py).
+from .ros2 import backend as _ros2_backend  # noqa: E402,F401
 from .scene import Room, Scene, SceneObject, load_scene
 from .sensors import SensorNoiseConfig
 

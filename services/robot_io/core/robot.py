@@ -449,7 +449,3 @@ class SimRobot(Robot):
 
     def shortest_path(self, start_m, goal_m) -> np.ndarray | None:
         return self.nav.shortest_path(start_m, goal_m)
-
-
-# The ROS 2 backend registers itself as "ros2" (its zenoh transport lives in services/robot_io/ros2_zenoh.py).
-from .ros2 import backend as _ros2_backend  # noqa: E402,F401

@@ -26,62 +26,12 @@ import open3d as o3d
 from shared.schemas import Pose
 
 from .errors import SceneFormatError, SceneNotFoundError
+from .scene_layout import Room, SceneObject
 from .scene_files import SceneFrame, read_mesh_file, resolve_frame, scan_name, split_scene_spec
 
 log = logging.getLogger(__name__)
 
 GENERATED_PREFIX = "generated:"
-
-
-@dataclass(frozen=True)
-class Room:
-    """A room of a floor plan: an axis-aligned box on the floor of storey ``floor``."""
-
-    name: str  # unique, e.g. "bedroom 2"
-    room_type: str  # bedroom, kitchen, bathroom, living room, hallway, office, dining room, staircase
-    floor: int
-    min_xy_m: tuple[float, float]
-    max_xy_m: tuple[float, float]
-    floor_z_m: float = 0.0
-
-    @property
-    def area_m2(self) -> float:
-        return (self.max_xy_m[0] - self.min_xy_m[0]) * (self.max_xy_m[1] - self.min_xy_m[1])
-
-    @property
-    def centre_m(self) -> np.ndarray:
-        return np.array(
-            [
-                (self.min_xy_m[0] + self.max_xy_m[0]) / 2.0,
-                (self.min_xy_m[1] + self.max_xy_m[1]) / 2.0,
-                self.floor_z_m,
-            ]
-        )
-
-    def contains(self, p: np.ndarray, z_tol_m: float = 1.0) -> bool:
-        p = np.asarray(p, dtype=np.float64)
-        return bool(
-            self.min_xy_m[0] <= p[0] <= self.max_xy_m[0]
-            and self.min_xy_m[1] <= p[1] <= self.max_xy_m[1]
-            and abs(p[2] - self.floor_z_m) <= z_tol_m
-        )
-
-
-@dataclass(frozen=True)
-class SceneObject:
-    """A piece of furniture: class label, colour name (for instructions), room and box."""
-
-    object_id: int
-    label: str
-    colour: str
-    room: str
-    position_m: tuple[float, float, float]  # centre of the footprint, on the floor
-    size_m: tuple[float, float, float]  # extent along world x, y, z
-    yaw_rad: float = 0.0
-
-    @property
-    def description(self) -> str:
-        return f"{self.colour} {self.label}" if self.colour else self.label
 
 
 @dataclass

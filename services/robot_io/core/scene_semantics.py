@@ -31,7 +31,7 @@ import numpy as np
 import open3d as o3d
 
 from .errors import SceneFormatError
-from .scene import Room, SceneObject
+from .scene_layout import Room, SceneObject
 from .scene_files import read_mesh_file, scan_name
 
 log = logging.getLogger(__name__)
