@@ -1,4 +1,4 @@
-"""Shared fixtures: the reference data beside the repo (skipped when absent)."""
+"""Shared fixtures: the reference data beside the repo (skipped when absent), two real zenoh peers."""
 
 from __future__ import annotations
 
@@ -16,3 +16,23 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"reference data not present at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture
+def peers():
+    """Two real zenoh peers in one process on loopback (a free port, multicast off); connected once a
+    token declared on one is visible from the other."""
+    from deploy.launcher import free_port
+    from shared.bus.config import ZenohSettings
+    from shared.bus.zenoh_bus import ZenohBus
+    from tests.waiting import wait_until
+
+    port = free_port()
+    a = ZenohBus(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]))
+    b = ZenohBus(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))
+    tok = a.liveliness_token("ant/alive/test/ready")
+    wait_until(lambda: b.alive("ant/alive/test/ready", timeout_s=0.5), what="peers connected")
+    tok.close()
+    yield a, b
+    b.close()
+    a.close()

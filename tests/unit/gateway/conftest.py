@@ -67,21 +67,3 @@ def gateway(net, tmp_path):
 def wait_state(client, mission_id: str, states=("succeeded", "failed", "cancelled"), timeout_s: float = 10.0):
     return wait_until(lambda: (r := client.get(f"/missions/{mission_id}").json())["state"] in states and r,
                     timeout_s, f"mission {mission_id} in {states}")
-
-
-@pytest.fixture
-def peers():
-    """Two real zenoh peers on loopback (a free port, multicast off)."""
-    from deploy.launcher import free_port
-    from shared.bus.config import ZenohSettings
-    from shared.bus.zenoh_bus import ZenohBus
-
-    port = free_port()
-    a = ZenohBus(ZenohSettings(listen=[f"tcp/127.0.0.1:{port}"]))
-    b = ZenohBus(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"]))
-    tok = a.liveliness_token("ant/alive/test/ready")
-    wait_until(lambda: b.alive("ant/alive/test/ready", timeout_s=0.5), what="peers connected")
-    tok.close()
-    yield a, b
-    b.close()
-    a.close()
