@@ -55,3 +55,18 @@ def test_cli_compares_run_folders(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| b | SR | 3 | 66.7 | 100.0 | +33.3 |" in out
     assert "+33.3" in (tmp_path / "t.md").read_text()
+
+
+def test_a_chunked_preset_interleaves_its_variants_and_compares_them(world, gateway, episodes, tmp_path):
+    from evaluation.presets import run_preset
+    from evaluation.runner import RunConfig, SceneMapIndex
+
+    with gateway() as gw:
+        rep = run_preset("anticipation", episodes, None, RunConfig(poll_s=0.01), tmp_path, gw, world.robot,
+                         map_cache=SceneMapIndex(tmp_path / "maps.json"), progress=False, chunk=2)
+    order = [r.options.anticipation for r in world.planner.requests]
+    # Rounds of 2 episodes of the file's 5 (limits 2, 4, 5; episode 3's scene is missing): the variants
+    # take turns instead of one running all its episodes first.
+    assert order == [True, True, False, False, True, False, True, False]
+    text = rep.table_md.read_text()
+    assert "Paired differences against **with anticipation**" in text and "| without anticipation | SR | 4 |" in text
