@@ -89,7 +89,7 @@ def test_the_heuristic_runs_on_map_and_true_scene_views(world):
     for source in ("map", "true-scene"):
         out = _loop(world, POLICIES.create("heuristic")).run(
             f"m-{source}", "walk forward 2 meters and stop", "local",
-            MissionOptions(max_steps=4, anticipation_views=source))
+            MissionOptions(max_steps=2, anticipation_views=source))
         assert out.steps >= 1
 
 
