@@ -132,20 +132,28 @@ class Host:
     def stop(self, names: list[str] | None = None, timeout_s: float = 20.0) -> dict[str, int]:
         procs = {n: p for n, p in self.procs.items() if names is None or n in names}
         for p in procs.values():
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGTERM)
+            _signal_group(p, signal.SIGTERM)
         codes, end = {}, time.monotonic() + timeout_s
         for name, p in procs.items():
             try:
                 codes[name] = p.wait(max(0.1, end - time.monotonic()))
             except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+                _signal_group(p, signal.SIGKILL)
                 codes[name] = p.wait(5)
         return codes
 
     def log_tail(self, name: str, lines: int = 30) -> str:
         path = self.logs / f"{name}.log"
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:]) if path.is_file() else ""
+
+
+def _signal_group(p: subprocess.Popen, sig: int) -> None:
+    """Signal the process group this test started for ``p`` (its own session), if it still runs."""
+    if p.poll() is None:
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            pass
 
 
 def service_env(endpoint: str, service: str, password_file: Path | None, state: Path) -> dict[str, str]:
