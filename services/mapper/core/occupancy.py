@@ -66,11 +66,13 @@ def build_occupancy(
     cell_m: float = 0.1,
     max_range_m: float = 5.0,
     pad_m: float = 0.5,
+    chunk_samples: int = 4_000_000,
 ) -> OccupancyGrid:
     """Ray-cast the scans of one floor into an occupancy grid.
 
     ``positions_m`` (S, 3), ``obstacle_m`` (S, A) ranges per relative angle ``angles_rad`` (A,),
-    ``headings_rad`` (S,) the agent headings the angles are relative to.
+    ``headings_rad`` (S,) the agent headings the angles are relative to. ``chunk_samples`` bounds
+    the ray samples held at once (memory only: the grid does not depend on it).
     """
     positions_m = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
     obstacle_m = np.asarray(obstacle_m, dtype=np.float64).reshape(len(positions_m), -1)
@@ -97,10 +99,10 @@ def build_occupancy(
     ny_ = shape[1]
     n_ang = len(angles_rad)
     cos_f, sin_f = dirs[..., 0].ravel(), dirs[..., 1].ravel()
-    chunk = max(1, 4_000_000 // max(1, len(angles_rad) * len(samples)))
+    chunk = max(1, chunk_samples // max(1, len(angles_rad) * len(samples)))
     for s0 in range(0, len(positions_m), chunk):
         sl = slice(s0, s0 + chunk)
-        k_max = int(n_free[sl].max(initial=0)) + 1
+        k_max = min(int(n_free[sl].max(initial=0)) + 1, len(samples))
         r = samples[:k_max]
         mask = seen[sl, :, None] & (r[None, None, :] < (rng[sl, :, None] - cell_m * 0.5))
         ray, ri = np.nonzero(mask.reshape(-1, k_max))

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from shared.schemas import Pose, Tour
 
 from services.mapper.core.errors import PlanningError
-from services.mapper.core.occupancy import OccupancyGrid, line_of_sight
+from services.mapper.core.occupancy import OCCUPIED, OccupancyGrid, line_of_sight
 from services.mapper.core.regions import SceneMap
 
 log = logging.getLogger(__name__)
@@ -147,20 +147,27 @@ def visibility_sparse(
     di, dj, samples = _ray_offsets(cell, radius_m, rays)
     sdi, sdj, sr, sa = _disk_stencil(cell, radius_m, rays)
     pad = int(max(np.abs(di).max(), np.abs(dj).max(), np.abs(sdi).max())) + 1
-    nx_, ny_ = occ.cells.shape
-    ny_p = ny_ + 2 * pad
-    # Outside the grid counts as blocked, as in a march that stops at the edge.
-    blocked = np.ones((nx_ + 2 * pad, ny_p), dtype=bool)
-    blocked[pad:-pad, pad:-pad] = occ.occupied
+    # The window of the grid the hubs' rays and disks can touch (a region's, not the floor's);
+    # outside the grid counts as blocked, as in a march that stops at the edge.
+    w0 = hubs_idx.min(axis=0) - pad
+    w1 = hubs_idx.max(axis=0) + pad + 1
+    g0 = np.maximum(w0, 0)
+    g1 = np.minimum(w1, occ.cells.shape)
+    blocked = np.ones(w1 - w0, dtype=bool)
+    blocked[g0[0] - w0[0] : g1[0] - w0[0], g0[1] - w0[1] : g1[1] - w0[1]] = (
+        occ.cells[g0[0] : g1[0], g0[1] : g1[1]] == OCCUPIED)
+    ny_p = blocked.shape[1]
     lookup = np.full(blocked.shape, -1, dtype=np.int64)
-    lookup[targets_idx[:, 0] + pad, targets_idx[:, 1] + pad] = np.arange(n_t)
+    tin = np.nonzero(np.all((targets_idx >= w0) & (targets_idx < w1), axis=1))[0]
+    lookup[targets_idx[tin, 0] - w0[0], targets_idx[tin, 1] - w0[1]] = tin
+    hubs_idx = hubs_idx - w0
     blocked, lookup = blocked.ravel(), lookup.ravel()
     ray_off = di * ny_p + dj  # (rays, S) flat offsets
     disk_off = sdi * ny_p + sdj  # (K,)
     seen_within = sr[None, :] - cell * 0.75  # target range minus the allowance
     rows, cols = [], []
     for b0 in range(0, n_h, batch):
-        h = hubs_idx[b0 : b0 + batch] + pad
+        h = hubs_idx[b0 : b0 + batch]
         hflat = h[:, 0] * ny_p + h[:, 1]
         hit = blocked[hflat[:, None, None] + ray_off[None]]  # (B, rays, S)
         first = np.where(hit.any(axis=2), samples[np.argmax(hit, axis=2)], np.inf)  # (B, rays)
@@ -515,16 +522,19 @@ def _hub_paths(rg, hub_nodes: np.ndarray, hub_cells: np.ndarray, cell_m: float, 
 
     A region's hubs lie close together, so each search stops at a distance limit well beyond the
     hubs' spread instead of sweeping the whole floor. Searches within a limit are exact for every
-    node they reach; a hub (or the entry cell) that some search did not reach gets its rows
-    recomputed without the limit, so the result is the unlimited one.
+    node they reach; the rows of a search that missed a hub (or the entry cell) are redone with
+    twice the limit, then without one, so the result is the unlimited one.
     """
     spread = float(np.ptp(hub_cells, axis=0).max()) * cell_m if len(hub_cells) > 1 else 0.0
-    limit = 2.0 * spread + 5.0
+    limit = 1.5 * spread + 3.0
     dist, pred = dijkstra(rg, indices=hub_nodes, return_predecessors=True, limit=limit)
     need = list(hub_nodes) + ([entry] if entry >= 0 else [])
-    missing = ~np.isfinite(dist[:, need]).all(axis=1)
-    if missing.any():
-        d2, p2 = dijkstra(rg, indices=hub_nodes[missing], return_predecessors=True)
+    for attempt in range(3):
+        missing = ~np.isfinite(dist[:, need]).all(axis=1)
+        if not missing.any():
+            break
+        limit = limit * 2.0 if attempt < 2 else np.inf
+        d2, p2 = dijkstra(rg, indices=hub_nodes[missing], return_predecessors=True, limit=limit)
         dist[missing], pred[missing] = d2, p2
     return dist, pred
 
