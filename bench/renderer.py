@@ -204,7 +204,7 @@ def scale(backend: str, specs: list[str], points_per_m2: float, clouds: list[str
             f"mesh samples, {points_per_m2:g}/m2", cloud, sc.rooms, renderer, reps)})
         print(rows[-1], flush=True)
     for item in clouds:
-        spec, path = item.split("=", 1)
+        spec, path = item.rsplit("=", 1)  # scene specs hold "=" themselves
         sc = load_scene(spec)
         rows.append({"scene": spec, "floors": sc.floors,
                      **_scale_row(f"map {path}", PointCloud.load(path), sc.rooms, renderer, reps)})
