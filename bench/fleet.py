@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--replica", action="append", default=[], metavar="SERVICE=N",
                     help="replicas of a shared service (planner, mapper, renderer)")
     ap.add_argument("--out", type=Path, default=Path("runs/bench/fleet"))
+    ap.add_argument("--start-timeout-s", type=float, default=600.0, help="deadline for the system to come up")
     a = ap.parse_args(argv)
     from deploy.launcher import Launcher
     from evaluation.cli import _replicas
@@ -110,7 +111,9 @@ def main(argv: list[str] | None = None) -> None:
                              *gateways, "--maps", str(maps), "--out", str(out), "--no-progress"])
             return rc, time.monotonic() - t0, llm.stats.by_outcome.get("ok", 0)
 
-    with Launcher(a.out / "system", robots=max(ns), replicas=_replicas(a.replica)) as launcher:
+    launcher = Launcher(a.out / "system", robots=max(ns), replicas=_replicas(a.replica))
+    try:
+        launcher.start(a.start_timeout_s)
         up_s = time.monotonic() - t_up
         rc, warm_s, _ = run(launcher, max(ns), a.out / "warm-up", 1)
         if rc != 0:
@@ -131,6 +134,8 @@ def main(argv: list[str] | None = None) -> None:
             rows.append((n, count, calls, round(phase, 1), round(rate[n], 2), round(wall, 1),
                          round(1000 * st["observe"]), round(1000 * st["candidates"]), round(1000 * st["anticipation"]),
                          round(1000 * st["map"]), round(1000 * st["move"]), round(cpu_step, 3), f"{load:.1f}"))
+    finally:
+        launcher.stop()
     rows.sort()
     low = min(ns)
     rows = [(*r[:5], round(rate[r[0]] / rate[low], 2), *r[5:]) for r in rows]

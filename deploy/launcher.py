@@ -187,8 +187,6 @@ class Launcher:
                 env["ANT_SERVE_ROBOTS"] = json.dumps(self.robots[i::n])
             if name == "renderer" and "ANT_CACHE_MAPS" not in self.extra_env:
                 env["ANT_CACHE_MAPS"] = str(max(4, len(self.robots)))  # a scene per robot stays indexed
-            if name in ("mapper", "renderer") and "ANT_WORKERS" not in self.extra_env:
-                env["ANT_WORKERS"] = str(min(8, max(2, len(self.robots))))
             out.append((f"{name}-{i}", env))
         return out
 
