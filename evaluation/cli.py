@@ -1,7 +1,8 @@
-"""``python -m evaluation {run,preset,generate,summarize}``: the experiment runner's command line.
+"""``python -m evaluation {run,preset,generate,subset,summarize}``: the experiment runner's command line.
 
 Without ``--gateway`` the runner starts the whole system itself (zenoh router and every service, via
-:class:`deploy.launcher.Launcher`, logs under ``<out>/system``) and stops it at the end; with
+:class:`deploy.launcher.Launcher`, logs under ``<out>/system``; with ``--robots N`` a robot-io and a
+gateway per robot and the other services shared) and stops it at the end; with
 ``--gateway URL`` it uses a running one (scenes are switched through the gateway's ``POST /robot/scene``).
 """
 
@@ -13,7 +14,6 @@ import logging
 import sys
 import time
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
@@ -29,9 +29,13 @@ def _system_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("system")
     g.add_argument("--gateway", action="append",
                    help="use a running gateway at this URL (default: start the system); repeat it for more "
-                        "robots (one system per robot, on any host): scenes are sharded over them")
+                        "robots (one gateway per robot, on any host): scenes are sharded over them")
     g.add_argument("--robots", type=int, default=1,
-                   help="without --gateway: start this many systems, robot0..robotN-1, and shard over them")
+                   help="without --gateway: start robot0..robotN-1 (a robot-io and a gateway each, the other "
+                        "services shared) and shard the scenes over them")
+    g.add_argument("--replica", action="append", metavar="SERVICE=N",
+                   help="without --gateway: run N replicas of a shared service (planner, mapper, renderer); "
+                        "planner and mapper replicas split the robots between them")
     g.add_argument("--token", help="the gateway's API token (ANT_API_TOKEN)")
     g.add_argument("--robot", default="robot0", help="robot id of the key expressions")
     g.add_argument("--start-timeout-s", type=float, default=120.0, help="deadline for the system to come up")
@@ -43,6 +47,8 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy", default="heuristic")
     p.add_argument("--policy-config", type=json.loads, default={}, help="JSON object")
     p.add_argument("--limit", type=int)
+    p.add_argument("--subset", help="run exactly a subset's episodes: a file written by `subset`, or a published "
+                                    "name (evaluation/subsets/<name>.json); refused when the file lacks them")
     p.add_argument("--scenes-dir", type=Path, help="where mesh scene ids (mp3d/X/X.glb) are looked up")
     p.add_argument("--map-source", choices=[m.value for m in MapSource], default=MapSource.RECONSTRUCTED.value)
     p.add_argument("--max-steps", type=int, default=40)
@@ -90,6 +96,19 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--seed", type=int, default=0)
     gen.add_argument("--area-m2", type=float)
     gen.add_argument("--no-gt", action="store_true", help="skip the *_gt.json.gz ground-truth file")
+    sset = sub.add_parser("subset", help="draw a deterministic subset (episode ids, seed, source sha256) from "
+                                         "an episode file")
+    sset.add_argument("--episodes", "--dataset", dest="episodes", type=Path, required=True,
+                      help="R2R-CE / RxR-CE episode file (.json.gz)")
+    sset.add_argument("--preset", help="a published rule (count, seed, strata, languages): "
+                                       "r2r-ce-val-unseen-100, rxr-ce-val-unseen-195, rxr-ce-val-unseen-195-en")
+    sset.add_argument("--count", type=int)
+    sset.add_argument("--seed", type=int)
+    sset.add_argument("--by", help="strata, comma-separated: scene, language (default: scene, plus language "
+                                   "when the episodes have one)")
+    sset.add_argument("--languages", help="keep these instruction languages (prefixes: 'en' = en-US, en-IN)")
+    sset.add_argument("--name", help="the subset's name (default: the preset's, or from the file name)")
+    sset.add_argument("--out", type=Path, required=True, help="the subset file (.json)")
     summ = sub.add_parser("summarize", help="print (and rewrite) the summary of result folders")
     summ.add_argument("dirs", nargs="+", type=Path)
     summ.add_argument("--out", type=Path, help="also write the combined table to <out>.md / .csv")
@@ -138,6 +157,13 @@ def load_episodes(a: argparse.Namespace):
     from services.robot_io.core import read_episodes, read_ground_truth
 
     ds = read_episodes(a.episodes)
+    if getattr(a, "subset", None):
+        from evaluation.dataset import Subset
+
+        subset = Subset.read(a.subset)
+        ds.episodes = subset.apply(ds.episodes, a.episodes)
+        log.info("subset %s: %d episodes (seed %d, drawn from %s)", subset.name, len(ds.episodes),
+                 subset.rule.seed, subset.source_name)
     gt_path = a.gt or gt_path_for(a.episodes)
     gt = read_ground_truth(gt_path) if gt_path.is_file() else None
     if a.gt and gt is None:
@@ -162,28 +188,35 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[list[Lane]]:
 
         if a.robots < 1:
             raise ConfigError(f"--robots must be >= 1, got {a.robots}")
-        launchers = []
-        for k in range(a.robots):
-            run_dir = out / ("system" if a.robots == 1 else f"system-robot{k}")
-            log.info("starting the system of robot%d (logs in %s)", k, run_dir)
-            env = {"ANT_ROBOT": f"robot{k}"}
-            if a.scenes_dir:  # robot-io loads scene files only from its configured directories (issue 15)
-                env["ANT_SCENE_DIRS"] = json.dumps([str(a.scenes_dir.resolve())])
-            launcher = Launcher(run_dir, extra_env=env)
-            stack.callback(launcher.stop)
-            launchers.append(launcher)
+        replicas = _replicas(a.replica or [])
+        run_dir = out / "system"
+        log.info("starting the system: %d robot(s), shared services %s (logs in %s)", a.robots,
+                 replicas or "x1", run_dir)
+        env = {}
+        if a.scenes_dir:  # robot-io loads scene files only from its configured directories (issue 15)
+            env["ANT_SCENE_DIRS"] = json.dumps([str(a.scenes_dir.resolve())])
+        # One system: robot-io and a light gateway per robot (robot0..robotN-1), the planner, mapper,
+        # renderer and reconstructor shared by all robots (deploy.launcher.PER_ROBOT).
+        launcher = Launcher(run_dir, extra_env=env, robots=a.robots, replicas=replicas)
+        stack.callback(launcher.stop)
         t0 = time.monotonic()
-        # The systems come up side by side (each waits on its own services' liveliness).
-        with ThreadPoolExecutor(max_workers=len(launchers)) as pool:
-            for future in [pool.submit(lc.start, a.start_timeout_s) for lc in launchers]:
-                future.result()
-        log.info("%d system(s) up in %.1f s, gateways %s", len(launchers), time.monotonic() - t0,
-                 ", ".join(lc.gateway_url for lc in launchers))
+        launcher.start(a.start_timeout_s)
+        log.info("system up in %.1f s, gateways %s", time.monotonic() - t0, ", ".join(launcher.gateway_urls))
         lanes = []
-        for launcher in launchers:
-            gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
+        for url in launcher.gateway_urls:
+            gateway = stack.enter_context(GatewayClient.connect(url, token=a.token))
             lanes.append(Lane(gateway, gateway))
         yield lanes
+
+
+def _replicas(specs: list[str]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for spec in specs:
+        name, _, count = spec.partition("=")
+        if name not in ("planner", "mapper", "renderer") or not count.isdigit() or not 1 <= int(count) <= 16:
+            raise ConfigError(f"--replica {spec!r}: want planner|mapper|renderer=<1..16>")
+        out[name] = int(count)
+    return out
 
 
 def cmd_estimate(a: argparse.Namespace, episodes) -> int:
@@ -259,6 +292,37 @@ def cmd_generate(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_subset(a: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from evaluation.dataset import SUBSET_PRESETS, SubsetRule, episode_language, make_subset
+    from services.robot_io.core import read_episodes
+
+    if a.preset and a.preset not in SUBSET_PRESETS:
+        raise ConfigError(f"unknown subset preset {a.preset!r}; known: {', '.join(SUBSET_PRESETS)}")
+    if not a.preset and a.count is None:
+        raise ConfigError("give --count (or --preset)")
+    rule = SUBSET_PRESETS[a.preset] if a.preset else None
+    if a.by:
+        strata = tuple(s.strip() for s in a.by.split(",") if s.strip())
+    elif rule:
+        strata = rule.strata
+    else:  # RxR-CE: languages are strata too, so each language keeps its share
+        has_lang = any(episode_language(e) for e in read_episodes(a.episodes).episodes)
+        strata = ("scene", "language") if has_lang else ("scene",)
+    languages = tuple(x.strip() for x in a.languages.split(",") if x.strip()) if a.languages else None
+    rule = replace(rule, strata=strata) if rule else SubsetRule(count=a.count, strata=strata)
+    rule = replace(rule, count=a.count if a.count is not None else rule.count,
+                   seed=a.seed if a.seed is not None else rule.seed,
+                   languages=languages if languages is not None else rule.languages)
+    subset = make_subset(a.episodes, rule, name=a.name or a.preset)
+    subset.write(a.out)
+    langs = f", languages {subset.languages}" if subset.languages else ""
+    print(f"{subset.name}: {len(subset.episode_ids)} of {subset.source_episodes} episodes, {len(subset.scenes)} "
+          f"scenes{langs}, seed {rule.seed}, source sha256 {subset.source_sha256} -> {a.out}")
+    return 0
+
+
 def cmd_summarize(a: argparse.Namespace) -> int:
     rows = []
     for d in a.dirs:
@@ -281,7 +345,8 @@ def main(argv: list[str] | None = None) -> int:
     for noisy in ("httpx", "httpx2", "httpcore"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
-        return {"run": cmd_run, "preset": cmd_preset, "generate": cmd_generate, "summarize": cmd_summarize}[
+        return {"run": cmd_run, "preset": cmd_preset, "generate": cmd_generate, "summarize": cmd_summarize,
+                "subset": cmd_subset}[
             a.command](a)
     except (EvaluationError, FileNotFoundError) as exc:
         log.error("%s", exc)
