@@ -67,6 +67,8 @@ MAP_CHUNK_MAX_POINTS = 2_000_000  # points of one MapChunk (~30 MB)
 BUILD_MAX_RECORDINGS = 256
 BUILD_MAX_FRAMES = 500_000  # frames of every recording of one BuildMapRequest together
 IMPORT_MAX_BYTES = 256 << 20  # an imported cloud file
+IMPORT_PART_BYTES = 4 << 20  # what a sender puts in one part of an upload (MapImportRequest.upload_id)
+IMPORT_PART_MAX_BYTES = 32 << 20  # the most one part may carry
 PATH_MAX_POINTS = 10_000  # trajectories and reference paths
 FREE_FORM_MAX_ITEMS = 10_000  # values in a free-form dict (options, policy configs, event data)
 FREE_FORM_MAX_ABS = 1e15  # |number| in a free-form dict; the typed config that reads it narrows it
@@ -891,15 +893,44 @@ class BuildMapRequest(Message):
 
 
 class MapImportRequest(Message):
-    """Store a user's own cloud (PLY or PCD bytes) as a map."""
+    """Store a user's own cloud (PLY or PCD bytes) as a map: whole in one request, or in parts.
+
+    In parts (``upload_id`` set), so that no side ever holds the file whole: each part carries the
+    bytes at ``offset`` (the parts in order, no gaps); the receiver appends them to a file on disk and
+    answers :class:`MapImportProgress`, and the ``last`` part's answer is the stored map's
+    :class:`MapInfo`. An ``abort`` part (no data) drops what was received. Any failure drops the
+    whole upload: a failed upload leaves neither a map nor a partial file."""
 
     map_id: str
     filename: str = Field(pattern=r"^[^/\\\x00-\x1f]{1,200}\.(ply|pcd)$")
-    data: bytes = Field(min_length=1)
+    data: bytes = b""
+    upload_id: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    offset: int = Field(0, ge=0, le=IMPORT_MAX_BYTES, description="bytes of the upload before this part")
+    last: bool = True
+    abort: bool = False
+
+    @model_validator(mode="after")
+    def _parts_agree(self):
+        if self.upload_id is None and (self.offset or self.abort or not self.last):
+            raise ValueError("offset, abort and last=False belong to an upload in parts (set upload_id)")
+        if self.abort and self.data:
+            raise ValueError("an abort part carries no data")
+        if not self.abort and not self.data:
+            raise ValueError("data: an import needs at least one byte")
+        return self
 
     def check_budget(self) -> None:
-        if len(self.data) > IMPORT_MAX_BYTES:
-            raise BudgetExceeded("imported cloud bytes", len(self.data), IMPORT_MAX_BYTES, "bytes")
+        if self.offset + len(self.data) > IMPORT_MAX_BYTES:
+            raise BudgetExceeded("imported cloud bytes", self.offset + len(self.data), IMPORT_MAX_BYTES, "bytes")
+        if self.upload_id is not None and len(self.data) > IMPORT_PART_MAX_BYTES:
+            raise BudgetExceeded("bytes of one upload part", len(self.data), IMPORT_PART_MAX_BYTES, "bytes")
+
+
+class MapImportProgress(Message):
+    """The answer to a part of an upload that is not the last (or to an abort)."""
+
+    upload_id: str
+    received_bytes: int = Field(ge=0, le=IMPORT_MAX_BYTES)
 
 
 # --- service plumbing ------------------------------------------------------------------------------
