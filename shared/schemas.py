@@ -710,14 +710,34 @@ class MissionStep(EventPayload):
     usage: UsageData = Field(default_factory=UsageData)
 
 
+class MissionEnd(StrEnum):
+    """How a mission ended - apart from whether it reached its goal (``success``, known only when the
+    mission has a goal): ``policy_stopped`` says only that the policy stopped, never that it was right."""
+
+    POLICY_STOPPED = "policy_stopped"  # the policy chose stop
+    NO_WAY_TO_MOVE = "no_way_to_move"  # stop was the only action left (boxed in)
+    MAX_STEPS = "max_steps"  # the step budget ran out without a stop
+    CANCELLED = "cancelled"
+    FAILED = "failed"
+
+
+_FINISHED_ENDS = {MissionEnd.POLICY_STOPPED: True, MissionEnd.NO_WAY_TO_MOVE: True, MissionEnd.MAX_STEPS: False}
+
+
 class MissionFinished(EventPayload):
     """The mission's end: the path walked, its metrics when a goal was known, the policy's total cost.
-    ``reason`` qualifies a stop (e.g. boxed in); ``error`` is the cause of a failure."""
+    ``reason`` qualifies a stop (e.g. boxed in); ``error`` is the cause of a failure.
+
+    ``outcome`` is the planner's word on how the loop ended (only the planner knows that stop was the
+    only action left); a sender that does not say gets the one ``stop_called`` implies. ``success``
+    exists only with a goal, and is the metrics' success."""
 
     KINDS: ClassVar[tuple[str, ...]] = ("finished",)
     type: Literal["mission_finished"] = "mission_finished"
     stop_called: bool
     steps: Count
+    outcome: MissionEnd | None = None
+    success: bool | None = None
     trajectory_m: list[Xyz_m] = Field(default_factory=list, max_length=PATH_MAX_POINTS)
     metrics: EpisodeMetricsData | None = None
     usage: UsageData = Field(default_factory=UsageData)
@@ -729,6 +749,23 @@ class MissionFinished(EventPayload):
     @classmethod
     def _trajectory_finite(cls, v):
         return _finite_xyz(v, "trajectory_m")
+
+    @model_validator(mode="after")
+    def _outcome_and_success(self):
+        if self.outcome is None:
+            self.outcome = MissionEnd.POLICY_STOPPED if self.stop_called else MissionEnd.MAX_STEPS
+        if self.outcome not in _FINISHED_ENDS:
+            raise ValueError(f"outcome {self.outcome.value!r}: a cancelled or failed mission ends with its own event")
+        if _FINISHED_ENDS[self.outcome] != self.stop_called:
+            raise ValueError(f"outcome {self.outcome.value!r} disagrees with stop_called={self.stop_called}")
+        if self.metrics is None:
+            if self.success is not None:
+                raise ValueError("success exists only when a goal is known (no metrics)")
+        elif self.success is None:
+            self.success = self.metrics.success
+        elif self.success != self.metrics.success:
+            raise ValueError(f"success={self.success} disagrees with the metrics' success={self.metrics.success}")
+        return self
 
 
 class ExplorationStarted(EventPayload):
