@@ -137,7 +137,7 @@ def test_outlined_text_is_drawn_once_with_its_halo_around_it():
     assert light[:, 1].max() <= dark[:, 1].max() + 2 and light[:, 1].min() >= dark[:, 1].min() - 2
 
 
-def test_the_legend_sits_on_an_opaque_panel_at_a_legible_size(spatial_cloud=None):
+def test_the_legend_sits_on_an_opaque_panel_at_a_legible_size():
     import numpy as np
 
     from services.renderer.core.spatial_map import SpatialMapper
