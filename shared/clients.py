@@ -158,6 +158,9 @@ class MapperClient:
         self.bus, self.robot, self.timeout_s = bus, robot, timeout_s
 
     def predict(self, pano: Panorama) -> list[Candidate]:
+        # The predictor reads depth only; the semantic array (int32, the largest of the panorama's arrays)
+        # would cross the bus at every step for nothing.
+        pano = pano.model_copy(update={"semantic": None})
         return self.bus.request(keys.MAPPER_PREDICT.format(robot=self.robot), pano, CandidateSet,
                                 timeout_s=self.timeout_s).candidates
 
