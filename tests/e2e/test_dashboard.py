@@ -21,18 +21,14 @@ from tests.waiting import wait_until
 from deploy.launcher import free_port
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
+from tests.e2e.browser import headless_chromium
 from tests.doubles.scripted_services import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
 
 pytestmark = pytest.mark.e2e
 
-CHROMIUM = "/usr/bin/chromium"
-LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-               "--disable-component-update", "--no-first-run"]
 REPO = Path(__file__).resolve().parents[2]
-
-
 
 
 @contextmanager
@@ -84,34 +80,27 @@ def live_gateway(tmp_path):
 
 
 def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_path):
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1440, "height": 1250})
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(f"{live_gateway}/dashboard")
-            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
-            page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
-            page.click("#submit")
-            # Steps arrive live over SSE: the first while the mission still runs ...
-            page.wait_for_selector("#steps li[data-seq='1']", timeout=15_000)
-            assert page.text_content("#m-state") == "running"
-            # ... then the rest, with pictures, candidates and the decision's reasoning.
-            page.wait_for_selector("#m-state.succeeded", timeout=30_000)
-            page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
-            page.wait_for_function(
-                "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
-                timeout=10_000)
-            steps = page.locator("#steps li").count()
-            cards = page.locator(".cand").count()
-            reasoning = page.text_content("#decision .reason")
-            shot = page.screenshot(full_page=True)
-        finally:
-            browser.close()
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1440, "height": 1250})
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{live_gateway}/dashboard")
+        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
+        page.click("#submit")
+        # Steps arrive live over SSE: the first while the mission still runs ...
+        page.wait_for_selector("#steps li[data-seq='1']", timeout=15_000)
+        assert page.text_content("#m-state") == "running"
+        # ... then the rest, with pictures, candidates and the decision's reasoning.
+        page.wait_for_selector("#m-state.succeeded", timeout=30_000)
+        page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
+        page.wait_for_function(
+            "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
+            timeout=10_000)
+        steps = page.locator("#steps li").count()
+        cards = page.locator(".cand").count()
+        reasoning = page.text_content("#decision .reason")
+        shot = page.screenshot(full_page=True)
     assert steps == 8  # started, 6 steps, finished
     assert cards == 3
     assert "stop" in (reasoning or "").lower()
@@ -126,34 +115,27 @@ def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_
 
 
 def test_dashboard_explores_a_new_map_with_progress(live_gateway):
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1440, "height": 1250})
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(f"{live_gateway}/dashboard")
-            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
-            page.fill("#explore-map", "explored-house")
-            page.click("#explore")
-            # Progress arrives over SSE while the exploration runs (stages 0.5 s apart) ...
-            page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'running'"
-                                   " && document.querySelector('#explore-progress').value > 0", timeout=15_000)
-            assert page.is_disabled("#explore")
-            # ... and at the end the new map is offered to the mission form.
-            page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'succeeded'",
-                                   timeout=20_000)
-            page.wait_for_selector("#map-select option[value='explored-house']", state="attached", timeout=10_000)
-            progress = page.eval_on_selector("#explore-progress", "e => e.value")
-            status = page.text_content("#explore-status")
-            selected = page.eval_on_selector("#map-select", "e => e.value")
-            enabled = not page.is_disabled("#explore")
-            shot = page.screenshot(full_page=True)
-        finally:
-            browser.close()
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1440, "height": 1250})
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{live_gateway}/dashboard")
+        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page.fill("#explore-map", "explored-house")
+        page.click("#explore")
+        # Progress arrives over SSE while the exploration runs (stages 0.5 s apart) ...
+        page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'running'"
+                               " && document.querySelector('#explore-progress').value > 0", timeout=15_000)
+        assert page.is_disabled("#explore")
+        # ... and at the end the new map is offered to the mission form.
+        page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'succeeded'",
+                               timeout=20_000)
+        page.wait_for_selector("#map-select option[value='explored-house']", state="attached", timeout=10_000)
+        progress = page.eval_on_selector("#explore-progress", "e => e.value")
+        status = page.text_content("#explore-status")
+        selected = page.eval_on_selector("#map-select", "e => e.value")
+        enabled = not page.is_disabled("#explore")
+        shot = page.screenshot(full_page=True)
     assert progress == 1 and status.startswith("succeeded 100%")
     assert selected == "explored-house" and enabled
     assert not errors, errors
@@ -168,37 +150,30 @@ def test_dashboard_with_a_read_token_sends_it_on_every_read_and_its_steps_agree(
     """With ANT_READ_TOKEN set, the page takes the token from a #token= link, sends it on every fetch,
     EventSource, image and download (none is refused), keeps it out of the address bar and the access
     log; and the header, the decision and the step list count the same steps."""
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api")
     caplog.set_level(logging.INFO, logger="uvicorn.access")
     secret = "api-secret-4711"
     with serve_gateway(tmp_path, read_token="read-secret-0815", api_token=secret) as url, \
-            sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1440, "height": 1250})
-            errors: list[str] = []
-            refused: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.on("response", lambda r: refused.append(r.url) if r.status == 401 else None)
-            page.goto(f"{url}/dashboard#token={secret}")
-            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
-            address = page.evaluate("location.href")
-            page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
-            page.click("#submit")
-            page.wait_for_selector("#m-state.succeeded", timeout=30_000)
-            page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
-            page.wait_for_function(
-                "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
-                timeout=10_000)
-            header = page.text_content("#m-step")
-            choice = page.text_content("#decision .choice")
-            last_step = page.locator("#steps li .k").filter(has_text="step").last.text_content()
-            download = page.get_attribute("#m-downloads a", "href") or ""
-            shot = page.screenshot(full_page=True)
-        finally:
-            browser.close()
+            headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1440, "height": 1250})
+        errors: list[str] = []
+        refused: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.on("response", lambda r: refused.append(r.url) if r.status == 401 else None)
+        page.goto(f"{url}/dashboard#token={secret}")
+        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        address = page.evaluate("location.href")
+        page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
+        page.click("#submit")
+        page.wait_for_selector("#m-state.succeeded", timeout=30_000)
+        page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
+        page.wait_for_function(
+            "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
+            timeout=10_000)
+        header = page.text_content("#m-step")
+        choice = page.text_content("#decision .choice")
+        last_step = page.locator("#steps li .k").filter(has_text="step").last.text_content()
+        download = page.get_attribute("#m-downloads a", "href") or ""
+        shot = page.screenshot(full_page=True)
     out = REPO / "runs" / "screenshots"
     out.mkdir(parents=True, exist_ok=True)
     (out / "dashboard_read_token.png").write_bytes(shot)
