@@ -21,7 +21,10 @@ import numpy as np
 from pydantic import Field
 
 from services.renderer.core.cloud import IndexedCloud
+from services.renderer.core.errors import RendererError
 from shared.cloud import EmptyCloudError
+from shared.export import nav2
+from shared.export.nav2 import OccupancyConfig, occupancy_from_cloud
 from shared.registry import BackendConfig
 from shared.schemas import Candidate, CandidateKind, Pose
 
@@ -43,13 +46,13 @@ _BACKTRACK = (160, 60, 200)
 class SpatialMapConfig(BackendConfig):
     """How the occupancy grid is built and drawn."""
 
-    cell_m: float = Field(0.05, gt=0.0, le=1.0)
+    cell_m: float = Field(0.05, ge=0.01, le=1.0)  # the bounds of shared.export.nav2.OccupancyConfig
     floor_band_m: tuple[float, float] = (-0.15, 0.15)  # relative to the agent's floor z
     obstacle_band_m: tuple[float, float] = (0.20, 1.60)
     min_obstacle_points: int = Field(3, ge=1)
     min_floor_points: int = Field(1, ge=1)
     floor_key_m: float = Field(0.25, gt=0.0)  # floors closer than this share one cached grid
-    margin_m: float = Field(0.5, ge=0.0)
+    margin_m: float = Field(0.5, ge=0.0, le=10.0)
     room_label_suffix: str = " floor"  # label names like "kitchen floor" name a room
 
 
@@ -103,39 +106,27 @@ class SpatialMapper:
         return index.cache[key]
 
     def _build_grid(self, index: IndexedCloud, floor_z: float) -> OccupancyGrid:
+        # The same cloud-to-grid rule as the Nav2 export (one mechanism: the grid the policy sees is the
+        # grid a user downloads); only the cell values and the corner the origin names differ.
         cfg = self.config
         cloud = index.cloud
         if len(cloud) == 0:
             raise EmptyCloudError("no points to map")
-        xyz = cloud.xyz
-        dz = xyz[:, 2] - np.float32(floor_z)
+        occupancy = OccupancyConfig(**cfg.model_dump(include=set(OccupancyConfig.model_fields)))
+        try:
+            nav = occupancy_from_cloud(cloud.xyz, floor_z, occupancy)
+        except ValueError as exc:  # a grid past max_cells: the cloud spans more than any building
+            raise RendererError(f"spatial map: {exc}") from exc
+        cells = np.full(nav.cells.shape, UNKNOWN, np.uint8)
+        cells[nav.cells == nav2.FREE] = FREE
+        cells[nav.cells == nav2.OCCUPIED] = OBSTACLE
+        rows = cells.shape[0]
+        top_left = (nav.origin_m[0], nav.origin_m[1] + rows * cfg.cell_m)
+        dz = cloud.xyz[:, 2] - np.float32(floor_z)
         on_floor = (dz >= cfg.floor_band_m[0]) & (dz <= cfg.floor_band_m[1])
-        obstacle = (dz >= cfg.obstacle_band_m[0]) & (dz <= cfg.obstacle_band_m[1])
-        relevant = on_floor | obstacle
-        xy = xyz[relevant, :2].astype(np.float64)
-        # Nothing at this floor's height (a tiny map, or an agent on a storey the map does not
-        # cover): the grid spans the map's footprint and every cell is unknown - all the agent knows.
-        extent = xy if len(xy) else xyz[:, :2].astype(np.float64)
-        if not len(xy):
-            log.debug("no points near the floor at z=%.2f m: the spatial map is all unknown", floor_z)
-        lo = extent.min(axis=0) - cfg.margin_m
-        hi = extent.max(axis=0) + cfg.margin_m
-        # At least one cell: a single point with margin_m = 0 spans no area.
-        cols = max(1, int(math.ceil((hi[0] - lo[0]) / cfg.cell_m)))
-        rows = max(1, int(math.ceil((hi[1] - lo[1]) / cfg.cell_m)))
-        col = np.clip(((xy[:, 0] - lo[0]) / cfg.cell_m).astype(np.int64), 0, cols - 1)
-        row = np.clip(((hi[1] - xy[:, 1]) / cfg.cell_m).astype(np.int64), 0, rows - 1)
-        flat = row * cols + col
-        kinds = obstacle[relevant]
-        n_obs = np.bincount(flat[kinds], minlength=rows * cols)
-        n_floor = np.bincount(flat[~kinds], minlength=rows * cols)
-        cells = np.full(rows * cols, UNKNOWN, np.uint8)
-        cells[n_floor >= cfg.min_floor_points] = FREE
-        cells[n_obs >= cfg.min_obstacle_points] = OBSTACLE
         rooms = self._rooms(index, on_floor)
-        log.debug("occupancy grid %dx%d at floor z=%.2f: %d rooms", rows, cols, floor_z, len(rooms))
-        return OccupancyGrid(cells.reshape(rows, cols), (float(lo[0]), float(hi[1])), cfg.cell_m,
-                             float(floor_z), rooms)
+        log.debug("occupancy grid %dx%d at floor z=%.2f: %d rooms", *cells.shape, floor_z, len(rooms))
+        return OccupancyGrid(cells, top_left, cfg.cell_m, float(floor_z), rooms)
 
     def _rooms(self, index: IndexedCloud, on_floor: np.ndarray) -> tuple[tuple[str, float, float], ...]:
         cloud, suffix = index.cloud, self.config.room_label_suffix
