@@ -36,7 +36,9 @@ class FrontierConfig(BaseModel):
     cell_m: float = Field(0.1, gt=0.0, le=1.0)
     max_range_m: float = Field(5.0, gt=0.0)  # the scans' range: beyond it nothing is known
     body_radius_m: float = Field(0.2, ge=0.0, le=1.0)  # clearance a reachable cell needs
-    min_frontier_cells: int = Field(4, ge=1)  # a border shorter than this is noise (a gap between rays)
+    min_frontier_cells: int = Field(6, ge=1)  # a border shorter than this is noise (a gap between rays)
+    wall_shadow_cells: int = Field(3, ge=0, le=10)  # unknown this close to a wall cell is behind it
+    frontier_join_cells: int = Field(2, ge=0, le=10)  # border pieces this close are one frontier
     max_backoff_m: float = Field(1.0, gt=0.0)  # a target stands this close to its frontier at most
     max_parent_m: float = Field(6.0, gt=0.0)  # straight move from a visited node to the target
     tries_per_frontier: int = Field(12, ge=1)  # its cells tried for a straight line from a visited node
@@ -175,11 +177,18 @@ class FreeSpaceMap:
         cells, origin, free, passable, reach, vidx = self._analyse(lv, vxy)
         if exclude_radius_m > 0.0:
             reach = reach & ~self._near_mask(cells.shape, origin, vxy, extra_xy, exclude_radius_m)
-        unknown = cells == UNKNOWN
+        # Unknown right beside a wall is the wall's far side seen through the gaps between rays
+        # (far away, neighbouring rays hit a wall tens of cm apart), not space left to explore.
+        behind_wall = ndimage.binary_dilation(cells == OCCUPIED, iterations=c.wall_shadow_cells)
+        unknown = (cells == UNKNOWN) & ~behind_wall
         border = free & ndimage.binary_dilation(unknown, structure=ndimage.generate_binary_structure(2, 1))
-        lab, n = ndimage.label(border, structure=np.ones((3, 3)))
+        # Border cells a few cells apart are one frontier (rays grazing a wall near the range's
+        # end break a border into pieces).
+        grown, n = ndimage.label(ndimage.binary_dilation(border, iterations=c.frontier_join_cells),
+                                 structure=np.ones((3, 3)))
         if n == 0:
             return []
+        lab = np.where(border, grown, 0)
         sizes = np.bincount(lab.ravel(), minlength=n + 1)
         # For every cell: the nearest border cell (and so its frontier) and how far it is.
         dist, (ix, iy) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
