@@ -1,4 +1,4 @@
-"""``python -m evaluation {run,preset,generate,summarize}``: the experiment runner's command line.
+"""``python -m evaluation {run,preset,generate,subset,summarize}``: the experiment runner's command line.
 
 Without ``--gateway`` the runner starts the whole system itself (zenoh router and every service, via
 :class:`deploy.launcher.Launcher`, logs under ``<out>/system``) and stops it at the end; with
@@ -43,6 +43,8 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy", default="heuristic")
     p.add_argument("--policy-config", type=json.loads, default={}, help="JSON object")
     p.add_argument("--limit", type=int)
+    p.add_argument("--subset", help="run exactly a subset's episodes: a file written by `subset`, or a published "
+                                    "name (evaluation/subsets/<name>.json); refused when the file lacks them")
     p.add_argument("--scenes-dir", type=Path, help="where mesh scene ids (mp3d/X/X.glb) are looked up")
     p.add_argument("--map-source", choices=[m.value for m in MapSource], default=MapSource.RECONSTRUCTED.value)
     p.add_argument("--max-steps", type=int, default=40)
@@ -90,6 +92,19 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--seed", type=int, default=0)
     gen.add_argument("--area-m2", type=float)
     gen.add_argument("--no-gt", action="store_true", help="skip the *_gt.json.gz ground-truth file")
+    sset = sub.add_parser("subset", help="draw a deterministic subset (episode ids, seed, source sha256) from "
+                                         "an episode file")
+    sset.add_argument("--episodes", "--dataset", dest="episodes", type=Path, required=True,
+                      help="R2R-CE / RxR-CE episode file (.json.gz)")
+    sset.add_argument("--preset", help="a published rule (count, seed, strata, languages): "
+                                       "r2r-ce-val-unseen-100, rxr-ce-val-unseen-195, rxr-ce-val-unseen-195-en")
+    sset.add_argument("--count", type=int)
+    sset.add_argument("--seed", type=int)
+    sset.add_argument("--by", help="strata, comma-separated: scene, language (default: scene, plus language "
+                                   "when the episodes have one)")
+    sset.add_argument("--languages", help="keep these instruction languages (prefixes: 'en' = en-US, en-IN)")
+    sset.add_argument("--name", help="the subset's name (default: the preset's, or from the file name)")
+    sset.add_argument("--out", type=Path, required=True, help="the subset file (.json)")
     summ = sub.add_parser("summarize", help="print (and rewrite) the summary of result folders")
     summ.add_argument("dirs", nargs="+", type=Path)
     summ.add_argument("--out", type=Path, help="also write the combined table to <out>.md / .csv")
@@ -138,6 +153,13 @@ def load_episodes(a: argparse.Namespace):
     from services.robot_io.core import read_episodes, read_ground_truth
 
     ds = read_episodes(a.episodes)
+    if getattr(a, "subset", None):
+        from evaluation.dataset import Subset
+
+        subset = Subset.read(a.subset)
+        ds.episodes = subset.apply(ds.episodes, a.episodes)
+        log.info("subset %s: %d episodes (seed %d, drawn from %s)", subset.name, len(ds.episodes),
+                 subset.rule.seed, subset.source_name)
     gt_path = a.gt or gt_path_for(a.episodes)
     gt = read_ground_truth(gt_path) if gt_path.is_file() else None
     if a.gt and gt is None:
@@ -259,6 +281,37 @@ def cmd_generate(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_subset(a: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from evaluation.dataset import SUBSET_PRESETS, SubsetRule, episode_language, make_subset
+    from services.robot_io.core import read_episodes
+
+    if a.preset and a.preset not in SUBSET_PRESETS:
+        raise ConfigError(f"unknown subset preset {a.preset!r}; known: {', '.join(SUBSET_PRESETS)}")
+    if not a.preset and a.count is None:
+        raise ConfigError("give --count (or --preset)")
+    rule = SUBSET_PRESETS[a.preset] if a.preset else None
+    if a.by:
+        strata = tuple(s.strip() for s in a.by.split(",") if s.strip())
+    elif rule:
+        strata = rule.strata
+    else:  # RxR-CE: languages are strata too, so each language keeps its share
+        has_lang = any(episode_language(e) for e in read_episodes(a.episodes).episodes)
+        strata = ("scene", "language") if has_lang else ("scene",)
+    languages = tuple(x.strip() for x in a.languages.split(",") if x.strip()) if a.languages else None
+    rule = replace(rule, strata=strata) if rule else SubsetRule(count=a.count, strata=strata)
+    rule = replace(rule, count=a.count if a.count is not None else rule.count,
+                   seed=a.seed if a.seed is not None else rule.seed,
+                   languages=languages if languages is not None else rule.languages)
+    subset = make_subset(a.episodes, rule, name=a.name or a.preset)
+    subset.write(a.out)
+    langs = f", languages {subset.languages}" if subset.languages else ""
+    print(f"{subset.name}: {len(subset.episode_ids)} of {subset.source_episodes} episodes, {len(subset.scenes)} "
+          f"scenes{langs}, seed {rule.seed}, source sha256 {subset.source_sha256} -> {a.out}")
+    return 0
+
+
 def cmd_summarize(a: argparse.Namespace) -> int:
     rows = []
     for d in a.dirs:
@@ -281,7 +334,8 @@ def main(argv: list[str] | None = None) -> int:
     for noisy in ("httpx", "httpx2", "httpcore"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
-        return {"run": cmd_run, "preset": cmd_preset, "generate": cmd_generate, "summarize": cmd_summarize}[
+        return {"run": cmd_run, "preset": cmd_preset, "generate": cmd_generate, "summarize": cmd_summarize,
+                "subset": cmd_subset}[
             a.command](a)
     except (EvaluationError, FileNotFoundError) as exc:
         log.error("%s", exc)

@@ -653,6 +653,11 @@ class UsageData(BaseModel):
     fallbacks: Count = 0
     cache_hits: Count = 0
 
+    def add(self, other: UsageData) -> None:
+        """Accumulate ``other`` into this one (a policy sums each step's usage into its mission's)."""
+        for name in type(self).model_fields:
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+
 
 class EpisodeMetricsData(BaseModel):
     """The VLN-CE metrics of one mission (:class:`shared.vln_metrics.EpisodeMetrics` on the wire)."""

@@ -21,7 +21,7 @@ from .history import ActionKind, ActionRecord, HistoryItem, HistoryRecorder, act
 from .instruction import ParsedInstruction, SubGoal, Turn, parse_instruction
 from .openai_policy import OpenAIConfig, OpenAIPolicy
 from .oracle import OracleConfig, OraclePolicy
-from .policy import POLICIES, Policy, Usage
+from .policy import POLICIES, Policy
 from .prompt import Prompt, PromptBuilder, PromptConfig, PromptImage, corrective_message, parse_answer
 from .replay import ReplayConfig, ReplayPolicy
 
@@ -30,7 +30,7 @@ __all__ = [
     "HeuristicConfig", "HeuristicPolicy", "HistoryItem", "HistoryRecorder", "OpenAIConfig", "OpenAIPolicy",
     "OracleConfig", "OracleInfo", "OraclePolicy", "ParsedInstruction", "PlannerError", "Policy",
     "PolicyBackendError", "Prompt", "PromptBuilder", "PromptConfig", "PromptImage", "ReplayConfig",
-    "ReplayMissError", "ReplayPolicy", "StepContext", "SubGoal", "Turn", "Usage", "action_for",
+    "ReplayMissError", "ReplayPolicy", "StepContext", "SubGoal", "Turn", "action_for",
     "build_candidate_views", "candidate_world_heading", "compress", "corrective_message",
     "nearest_view_index", "parse_answer", "parse_instruction", "with_stop_and_backtrack",
 ]

@@ -25,7 +25,7 @@ from shared.vln_metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
     CameraIntrinsics, Candidate, CandidateKind, Decision, JobEventKind, JobState, MapInfo, MissionFinished,
     MissionOptions, MissionRequest, MissionStarted, MissionStep, MoveResult, Panorama, Pose, RenderResult,
-    SpatialMapResult, UsageData, ViewPose,
+    SpatialMapResult, ViewPose,
 )
 
 from .context import Ablation, OracleInfo, StepContext, build_candidate_views, with_stop_and_backtrack
@@ -229,7 +229,7 @@ class MissionLoop:
                     images[f"cand_{v.index}_anticipated"] = self.jpeg(_thumb(v.anticipated_rgb, self.thumb_px))
         self.emit(JobEventKind.STEP, JobState.RUNNING, step=step, images=images, data=MissionStep(
             pose=pano.pose, candidates=[v.candidate for v in ctx.candidates], decision=decision,
-            timings_s={k: round(v, 4) for k, v in timings.items()}, usage=UsageData(**self.policy.usage.to_dict()),
+            timings_s={k: round(v, 4) for k, v in timings.items()}, usage=self.policy.usage.model_copy(),
         ))
 
 
@@ -259,7 +259,7 @@ def run_mission(ctx: JobContext, req: MissionRequest, *, robot: RobotPort, predi
     failed = out.state == JobState.FAILED
     return JobEnd(out.state, MissionFinished(
         stop_called=out.stop_called, steps=out.steps, trajectory_m=[tuple(p) for p in out.trajectory_m.tolist()],
-        metrics=out.metrics, usage=UsageData(**policy.usage.to_dict()),
+        metrics=out.metrics, usage=policy.usage.model_copy(),
         step_latency_s=[round(x, 4) for x in out.step_latency_s],
         reason="" if failed else out.reason, error=out.reason if failed else ""), step=out.steps)
 

@@ -21,11 +21,11 @@ from pydantic import Field, field_validator
 
 from shared.pricing import PriceTable
 from shared.registry import BackendConfig
-from shared.schemas import Decision
+from shared.schemas import Decision, UsageData
 
 from .context import StepContext
 from .errors import AnswerError, PolicyBackendError
-from .policy import POLICIES, Policy, Usage
+from .policy import POLICIES, Policy
 from .prompt import PromptBuilder, corrective_message, parse_answer
 
 log = logging.getLogger(__name__)
@@ -127,7 +127,7 @@ class OpenAIPolicy(Policy):
         pout = self.config.price_output_per_1m_usd
         return (base.input_per_1m_usd if pin is None else pin, base.output_per_1m_usd if pout is None else pout)
 
-    def _complete(self, messages: list[dict], usage: Usage) -> str:
+    def _complete(self, messages: list[dict], usage: UsageData) -> str:
         cfg = self.config
         kwargs: dict = {"model": cfg.model, "messages": messages}
         if cfg.temperature is not None:
@@ -176,7 +176,7 @@ class OpenAIPolicy(Policy):
         valid = prompt.candidate_indices
         cfg = self.config
         messages = prompt.to_openai_messages(cfg.image_format, cfg.jpeg_quality, cfg.image_detail)
-        step_usage = Usage()
+        step_usage = UsageData()
         answers: list[str] = []
         error: Exception | None = None
         try:
@@ -208,7 +208,7 @@ class OpenAIPolicy(Policy):
         self._save(prompt, ctx, answers, decision)
         return decision
 
-    def _usage_fields(self, step_usage: Usage) -> dict:
+    def _usage_fields(self, step_usage: UsageData) -> dict:
         self.usage.add(step_usage)
         return {
             "prompt_tokens": step_usage.prompt_tokens,
@@ -217,7 +217,7 @@ class OpenAIPolicy(Policy):
             "backend": f"openai:{self.config.model}",
         }
 
-    def _fallback_decision(self, ctx: StepContext, error: Exception | None, step_usage: Usage) -> Decision:
+    def _fallback_decision(self, ctx: StepContext, error: Exception | None, step_usage: UsageData) -> Decision:
         step_usage.fallbacks += 1
         fields = self._usage_fields(step_usage)
         reason = f"fallback ({self.config.fallback}) after: {error}"

@@ -9,32 +9,11 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 
 from shared.registry import Registry
-from shared.schemas import Decision
+from shared.schemas import Decision, UsageData
 
 from .context import StepContext
-
-
-@dataclass
-class Usage:
-    """LLM usage accumulated over one mission."""
-
-    calls: int = 0
-    prompt_tokens: int = 0
-    completion_tokens: int = 0
-    cost_usd: float = 0.0
-    reasks: int = 0
-    fallbacks: int = 0
-    cache_hits: int = 0
-
-    def add(self, other: Usage) -> None:
-        for name in self.__dataclass_fields__:
-            setattr(self, name, getattr(self, name) + getattr(other, name))
-
-    def to_dict(self) -> dict:
-        return {name: getattr(self, name) for name in self.__dataclass_fields__}
 
 
 class Policy(ABC):
@@ -44,12 +23,12 @@ class Policy(ABC):
 
     def __init__(self) -> None:
         self.mission_id = ""
-        self.usage = Usage()
+        self.usage = UsageData()
 
     def reset(self, mission_id: str) -> None:
         """Start a new mission: clears per-mission state and the usage counters."""
         self.mission_id = mission_id
-        self.usage = Usage()
+        self.usage = UsageData()
 
     @abstractmethod
     def decide(self, ctx: StepContext) -> Decision:
