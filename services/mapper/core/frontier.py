@@ -53,7 +53,7 @@ class FrontierTarget:
 
 
 class _Level:
-    """One floor level's grid, as chunks of hit counts (free rays, obstacle ends)."""
+    """One floor level's grid, as chunks of flags: crossed by a free ray, holding an obstacle end."""
 
     def __init__(self, z_m: float):
         self.z_m = z_m
@@ -61,17 +61,27 @@ class _Level:
         self.occ: dict[tuple[int, int], np.ndarray] = {}
 
     def add(self, idx: np.ndarray, store: dict) -> None:
+        """Mark cells (N, 2) in ``store``: on a local box first, then OR-ed into the chunks it spans
+        (a scan's cells lie within its range, so that is a handful of chunks and no sorting)."""
         if len(idx) == 0:
             return
-        chunk = np.floor_divide(idx, CHUNK)
-        keys, inv = np.unique(chunk, axis=0, return_inverse=True)
-        local = idx - chunk * CHUNK
-        for k, key in enumerate(map(tuple, keys)):
-            arr = store.get(key)
-            if arr is None:
-                arr = store[key] = np.zeros((CHUNK, CHUNK), np.int32)
-            sel = inv.ravel() == k
-            np.add.at(arr, (local[sel, 0], local[sel, 1]), 1)
+        lo = idx.min(axis=0)
+        box = np.zeros(tuple((idx.max(axis=0) - lo + 1).tolist()), bool)
+        box[idx[:, 0] - lo[0], idx[:, 1] - lo[1]] = True
+        c0 = np.floor_divide(lo, CHUNK)
+        c1 = np.floor_divide(lo + box.shape - 1, CHUNK)
+        for cx in range(int(c0[0]), int(c1[0]) + 1):
+            for cy in range(int(c0[1]), int(c1[1]) + 1):
+                # The chunk's cells [cx*CHUNK, ...) against the box's [lo, lo + shape).
+                x0, y0 = max(cx * CHUNK, lo[0]), max(cy * CHUNK, lo[1])
+                x1, y1 = min((cx + 1) * CHUNK, lo[0] + box.shape[0]), min((cy + 1) * CHUNK, lo[1] + box.shape[1])
+                part = box[x0 - lo[0]:x1 - lo[0], y0 - lo[1]:y1 - lo[1]]
+                if not part.any():
+                    continue
+                arr = store.get((cx, cy))
+                if arr is None:
+                    arr = store[(cx, cy)] = np.zeros((CHUNK, CHUNK), bool)
+                arr[x0 - cx * CHUNK:x1 - cx * CHUNK, y0 - cy * CHUNK:y1 - cy * CHUNK] |= part
 
     def dense(self) -> tuple[np.ndarray, np.ndarray]:
         """(cells, origin cell index): UNKNOWN / FREE / OCCUPIED over the chunks' bounding box."""
@@ -83,7 +93,7 @@ class _Level:
         for store, out in ((self.free, free), (self.occ, occ)):
             for (cx, cy), arr in store.items():
                 x0, y0 = (cx - lo[0]) * CHUNK, (cy - lo[1]) * CHUNK
-                out[x0:x0 + CHUNK, y0:y0 + CHUNK] |= arr > 0
+                out[x0:x0 + CHUNK, y0:y0 + CHUNK] |= arr
         cells = np.full(shape, UNKNOWN, np.uint8)
         cells[free] = FREE
         cells[occ] = OCCUPIED  # a wall seen once stays a wall
