@@ -218,7 +218,12 @@ class FreeSpaceMap:
         blocked = ~passable
         for lab_k in np.unique(cl):
             mine = np.flatnonzero(cl == lab_k)
-            mine = mine[np.argsort(dv_cells[mine], kind="stable")][: c.tries_per_frontier]
+            mine = mine[np.argsort(dv_cells[mine], kind="stable")]
+            # The nearest few first, then a spread over the rest (a long frontier may be in
+            # straight sight of a visited node only far along it).
+            spread = np.linspace(0, len(mine) - 1, min(len(mine), c.tries_per_frontier)).astype(int)
+            mine = mine[np.unique(np.r_[np.arange(min(len(mine), c.tries_per_frontier)), spread])]
+            mine = mine[np.argsort(dv_cells[mine], kind="stable")]
             for k in mine:
                 cell = cand[k]
                 xy = (origin + cell + 0.5) * c.cell_m
