@@ -237,15 +237,9 @@ class SpatialMapper:
 
         self._scale_bar(img, mpp, scale)
         title = "top-down map, agent heading up" if agent_up else "top-down map, +y up, +x right"
-        _text(img, title, (int(6 * scale), int(16 * scale)), 0.45 * scale, (0, 0, 0))
         legend = [("free", _COLOURS[FREE]), ("obstacle", _COLOURS[OBSTACLE]), ("unknown", _COLOURS[UNKNOWN]),
                   ("agent", _AGENT), ("path", _TRAJ), ("candidate", _CAND)]
-        y = int(34 * scale)
-        for name, colour in legend:
-            cv2.rectangle(img, (int(6 * scale), y - int(9 * scale)), (int(16 * scale), y), colour, -1)
-            cv2.rectangle(img, (int(6 * scale), y - int(9 * scale)), (int(16 * scale), y), (0, 0, 0), 1)
-            _text(img, name, (int(20 * scale), y), 0.38 * scale, (0, 0, 0))
-            y += int(14 * scale)
+        self._legend(img, title, legend, scale)
         return SpatialMapImage(img, mpp, w2p, agent_up)
 
     def _base_image(self, index: IndexedCloud, grid: OccupancyGrid) -> np.ndarray:
@@ -257,6 +251,29 @@ class SpatialMapper:
             cells[cv2.dilate((grid.cells == OBSTACLE).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0] = OBSTACLE
             index.cache[key] = lut[cells]
         return index.cache[key]
+
+    @staticmethod
+    def _legend(img: np.ndarray, title: str, legend: list[tuple[str, tuple]], scale: float) -> None:
+        """Title and colour key on an opaque white panel in the top-left corner: dark text on white
+        reads on any map (text straight on the grey unknown cells did not), at a size that stays
+        legible on a small map."""
+        font, fs = cv2.FONT_HERSHEY_SIMPLEX, max(0.4, 0.45 * scale)
+        (tw, th), _ = cv2.getTextSize(title, font, fs, 1)
+        line = th + max(6, round(8 * scale))
+        sw = th + 2  # swatch side
+        pad = max(4, round(6 * scale))
+        width = max(tw, sw + pad + max(cv2.getTextSize(n, font, fs, 1)[0][0] for n, _ in legend))
+        x0, y0 = pad, pad
+        x1, y1 = x0 + width + 2 * pad, y0 + pad + line * (1 + len(legend))
+        cv2.rectangle(img, (x0, y0), (x1, y1), (255, 255, 255), -1)
+        cv2.rectangle(img, (x0, y0), (x1, y1), (60, 60, 60), 1)
+        y = y0 + pad + th
+        cv2.putText(img, title, (x0 + pad, y), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
+        for name, colour in legend:
+            y += line
+            cv2.rectangle(img, (x0 + pad, y - sw + 1), (x0 + pad + sw, y + 1), colour, -1)
+            cv2.rectangle(img, (x0 + pad, y - sw + 1), (x0 + pad + sw, y + 1), (0, 0, 0), 1)
+            cv2.putText(img, name, (x0 + 2 * pad + sw, y), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
 
     @staticmethod
     def _scale_bar(img: np.ndarray, mpp: float, scale: float) -> None:
@@ -281,5 +298,8 @@ def _text(img, text, org, font_scale, colour, centred=False, outline=True) -> No
     if centred:
         x, y = x - tw // 2, y + th // 2
     if outline:
-        cv2.putText(img, text, (x, y), font, font_scale, (255, 255, 255), thick + 3, cv2.LINE_AA)
+        # The halo is the same text at the same thickness, shifted around it: a thicker stroke
+        # advances each glyph further, so a thick white copy drifted right of the text ("agentt").
+        for dx, dy in ((-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)):
+            cv2.putText(img, text, (x + dx, y + dy), font, font_scale, (255, 255, 255), thick, cv2.LINE_AA)
     cv2.putText(img, text, (x, y), font, font_scale, colour, thick, cv2.LINE_AA)
