@@ -5,6 +5,9 @@ RENDERERS ?= 1
 # ROBOT=ros2: robot-io's ros2 backend against the ROS 2 stand-in robot, in ROS2_KEYS style (bridge | rmw_zenoh).
 ROBOT ?= sim
 ROS2_KEYS ?= bridge
+# ROBOTS=N: robot0..robotN-1 at once (a robot-io and a gateway each; planner, mapper, renderer and
+# reconstructor shared by all), for `make demo` (each robot in its own generated house) and `make eval`.
+ROBOTS ?= 1
 
 .PHONY: setup demo up test test-unit test-contract test-e2e bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
 
@@ -12,7 +15,7 @@ setup:
 	@bash deploy/bootstrap.sh
 
 demo: setup
-	$(PY) -m deploy.demo --renderers $(RENDERERS) --robot $(ROBOT) --ros2-keys $(ROS2_KEYS)
+	$(PY) -m deploy.demo --renderers $(RENDERERS) --robot $(ROBOT) --ros2-keys $(ROS2_KEYS) --robots $(ROBOTS)
 
 # The whole system until Ctrl-C: prints the dashboard URL and the API token (PORT=8080 SCENE=generated:0).
 PORT ?= 8080
@@ -44,14 +47,14 @@ clean:
 
 # Evaluation: `make eval` generates the evaluation set once (100 episodes, 5 houses, 1-2 floors), starts
 # the system, runs it and prints the table; interrupted runs resume. EPISODES=<R2R-CE .json.gz> runs any file.
-# ROBOTS=N starts N systems (robot0..robotN-1) and runs their shards of scenes concurrently.
+# ROBOTS=N starts robot0..robotN-1 (shared planner/mapper/renderer/reconstructor) and runs their shards of
+# scenes concurrently.
 EVAL_SET := runs/eval/generated.json.gz
 EPISODES ?= $(EVAL_SET)
 POLICY ?= heuristic
 MAP_SOURCE ?= reconstructed
 EVAL_OUT ?= runs/eval
 EVAL_ARGS ?=
-ROBOTS ?= 1
 
 $(EVAL_SET):
 	$(PY) -m evaluation generate --out $@ --houses 5 --per-house 20 --floors 1,2 --seed 0

@@ -2,6 +2,8 @@
 
     python -m bench.reconstructor [--houses generated:3:area=50 ...] [--size 96] [--seeds 0 1 2]
                                   [--throughput-size 256] [--no-throughput] [--no-replica] [--json OUT]
+    python -m bench.reconstructor --building [generated:0:area=1000:floors=3] [--size 96]
+                                  [--save-cloud OUT.ply]
 
 * metric-scale error after grounding, |delta * s_true - 1|, median and max over regions, with the
   ``mono-sim`` emulation (unknown per-region scale, holes, noise) on generated houses (target <= 2 %);
@@ -12,6 +14,12 @@
   compiled kernels warmed up first; ``--throughput-kernels auto numpy`` adds the array code);
 * the same pipeline on the Replica office (frames ray-cast from its scanned mesh along ``traj.txt``),
   when ../shared/data is present.
+
+``--building`` (issue 21, item 6) runs only the pipeline at building scale: discovery and the
+recorded tours of one large house, then the rgbd reconstruction, and reports tour frames, wall
+seconds of each phase, the reconstruction's peak memory (numpy/Python allocations traced during
+the build, and the process's peak RSS), map points and the stored map's size on disk.
+``--save-cloud`` writes the map for ``python -m bench.renderer --clouds``.
 """
 
 from __future__ import annotations
@@ -177,6 +185,57 @@ def replica(size_px: int, frames: int, region_frames: int, seeds: list[int]) -> 
     return res
 
 
+def building(spec: str, size_px: int, save_cloud: str | None = None) -> dict:
+    """Item 6 of issue 21: the pipeline after discovery, on one large multi-floor house."""
+    import resource
+    import tempfile
+    import tracemalloc
+
+    from services.mapper.core import discover, execute_tours
+    from services.reconstructor.core.store import MapStore
+    from services.robot_io.core.robot import ROBOTS
+
+    cam = CameraIntrinsics(width_px=size_px, height_px=size_px, hfov_deg=90.0)
+    t0 = time.perf_counter()
+    robot = ROBOTS.create("sim", {"scene": spec, "camera": cam})
+    t1 = time.perf_counter()
+    d = discover(robot)
+    t2 = time.perf_counter()
+    recs = execute_tours(robot, d.tours, d.scene, rate_hz=2.0)
+    t3 = time.perf_counter()
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    tracemalloc.start()
+    with Reconstructor(ReconstructionConfig(backend="rgbd")) as r:
+        b = r.build_from_recordings(recs, robot.scene.label_names)
+    traced_peak = tracemalloc.get_traced_memory()[1] / 2**20
+    tracemalloc.stop()
+    t4 = time.perf_counter()
+    rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    with tempfile.TemporaryDirectory() as tmp:
+        store = MapStore(tmp, fsync=False)
+        t5 = time.perf_counter()
+        store.save("building", b.cloud, source=spec, regions=len(b.regions))
+        save_s = time.perf_counter() - t5
+        store_bytes = sum(f.stat().st_size for f in Path(tmp).rglob("*") if f.is_file())
+    if save_cloud:
+        b.cloud.save(save_cloud)
+    frames = [len(rec.frames) for rec in recs]
+    return {
+        "scene": spec, "size_px": size_px, "scene_floors": robot.scene.floors,
+        "reachable_area_m2": round(robot.nav.reachable_area_m2, 1),
+        "explore": d.result.summary(), "floors_mapped": len(d.scene.floors), "regions": len(d.tours),
+        "hubs": sum(len(pt.tour.hubs_m) for pt in d.tours), "tours_recorded": len(recs),
+        "tour_frames": sum(frames), "max_frames_per_region": max(frames, default=0),
+        "seconds": {"sim_load": round(t1 - t0, 1), **{k: round(v, 1) for k, v in d.timings_s.items()},
+                    "tours": round(t3 - t2, 1), "reconstruct": round(t4 - t3, 1), "store": round(save_s, 2)},
+        "reconstruct_timings_s": {k: round(v, 2) for k, v in b.timings_s.items()},
+        "reconstruct_traced_peak_mib": round(traced_peak, 1),
+        "process_peak_rss_mib": {"before_reconstruct": round(rss_before, 1), "after": round(rss_after, 1)},
+        "map_points": len(b.cloud), "map_store_bytes": store_bytes,
+        "map_store_mib": round(store_bytes / 2**20, 1),
+    }
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--houses", nargs="+", default=["generated:3:area=50", "generated:4:area=50", "generated:1:area=60"])
@@ -190,8 +249,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--replica-frames", type=int, default=1000)
     ap.add_argument("--no-replica", action="store_true")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--building", nargs="?", const="generated:0:area=1000:floors=3", default=None,
+                    help="only the building-scale run (issue 21, item 6) on this house")
+    ap.add_argument("--save-cloud", default=None, help="--building: write the map here (.ply)")
     args = ap.parse_args(argv if argv is not None else [])
     logging.basicConfig(level=logging.WARNING)
+    if args.building:
+        row = building(args.building, args.size, args.save_cloud)
+        print(json.dumps(row), flush=True)
+        if args.json:
+            Path(args.json).write_text(json.dumps(row, indent=2))
+        return
     report: dict = {"houses": []}
     all_errors = []
     for spec in args.houses:

@@ -30,6 +30,10 @@ ROWS = [
     ("kill_pairs", "kill pairs (gateway + planner, planner restart)"), ("stuck_missions", "stuck missions"),
     ("orphans_cancelled", "orphans cancelled"), ("budget_abuse_attempts", "budget abuse attempts"),
     ("budget_refused_typed", "  ... refused budget_exceeded"), ("http_bad_inputs_checked", "bad HTTP inputs (422)"),
+    # issue 15 item 12: memory (ANT_UPLOAD_MEMORY_MB sets the upload's size)
+    ("upload_memory_bytes", "upload streamed through (bytes)"),
+    ("upload_peak_growth_mb_gateway", "  ... gateway peak RSS growth (MB)"),
+    ("upload_peak_growth_mb_reconstructor", "  ... reconstructor peak RSS growth (MB)"),
 ]
 # Must be 0 for the verdict to be OK.
 MUST_BE_ZERO = ("missions_lost", "events_lost", "http_5xx", "poisoned_states", "forged_or_replayed_accepted",

@@ -2,11 +2,18 @@
 step, and fidelity against ray-cast ground truth.
 
     python -m bench.renderer [--quick] [--backend numpy|torch]
+    python -m bench.renderer --scale [generated:0:area=100 generated:0:area=1000:floors=3]
+                             [--points-per-m2 400] [--clouds SPEC=MAP.ply ...]
 
 Floor: one pass over the same cloud (the cloud multiplied by a 3x3 rotation), measured in the same
 run. Fidelity: SSIM / PSNR of anticipated views against the ray-cast view at the same pose, and the
 fraction of hole pixels, for a cloud sampled from the mesh and for an RGB-D "reconstructed" cloud,
 on the built flat and on the Replica office (when ../shared/data is present).
+
+``--scale`` (issue 21, item 6): time per view and global perception per step on a small house and
+a large multi-floor building, with clouds of the same density (sampled from each scene's mesh at
+``--points-per-m2`` of surface, or a reconstructed map given with ``--clouds``), at the centre of
+every room of every floor. Culling should keep both flat as the building grows.
 """
 
 from __future__ import annotations
@@ -145,11 +152,80 @@ def fidelity(backend: str, n_points: int, n_views: int) -> None:
     _fidelity_row("Replica office0, RGB-D reconstruction (80 fr)", renderer, IndexedCloud(recon), gt, poses)
 
 
+def _scale_row(name: str, cloud, rooms, renderer, reps: int) -> dict:
+    """Per-view time and spatial map + 6 views per step at room centres of every floor."""
+    t0 = time.perf_counter()
+    index = IndexedCloud(cloud)
+    index_s = time.perf_counter() - t0
+    mapper = SpatialMapper()
+    rooms = [r for r in rooms if r.room_type != "staircase"]
+    step = max(1, len(rooms) // 8)  # at most ~8 rooms, spread over the floors
+    view_ms, step_ms, visible = [], [], []
+    for room in rooms[::step]:
+        cx, cy = (room.min_xy_m[0] + room.max_xy_m[0]) / 2, (room.min_xy_m[1] + room.max_xy_m[1]) / 2
+        pose = Pose(position_m=(cx, cy, room.floor_z_m), heading_rad=0.0)
+        heads = np.arange(6) * (math.pi / 3)
+        cands = [Candidate(index=i, dx_m=float(np.cos(h)), dy_m=float(np.sin(h))) for i, h in enumerate(heads)]
+        views = [ViewPose(position_m=(cx + c.dx_m, cy + c.dy_m, room.floor_z_m), heading_rad=float(h))
+                 for c, h in zip(cands, heads, strict=True)]
+        traj = np.array([[cx - 1.0, cy, room.floor_z_m], [cx, cy, room.floor_z_m]])
+        mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)  # grid + base image: once per floor
+        renderer.render(index, views[:1], CAM)  # per-map arrays once per map
+        for _ in range(reps):
+            out = renderer.render(index, views, CAM)
+            view_ms.append(1e3 * out.batch_s / len(views))
+            visible.extend(out.visible_points)
+            t = time.perf_counter()
+            mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)
+            renderer.render(index, views, CAM)
+            step_ms.append(1e3 * (time.perf_counter() - t))
+    return {"cloud": name, "points": len(cloud), "rooms_timed": len(rooms[::step]), "index_s": round(index_s, 2),
+            "view_ms_median": round(float(np.median(view_ms)), 2),
+            "step_ms_median": round(float(np.median(step_ms)), 1),
+            "visible_points_median": int(np.median(visible))}
+
+
+def scale(backend: str, specs: list[str], points_per_m2: float, clouds: list[str], reps: int) -> list[dict]:
+    from services.robot_io.core.scene import load_scene
+    from shared.cloud import PointCloud
+
+    renderer = RENDERERS.create(backend)
+    renderer.warm_up()
+    print(f"\n== scale: per-view ms and global perception (spatial map + 6 views) per step, backend {backend} ==")
+    rows = []
+    for spec in specs:
+        sc = load_scene(spec)
+        tri = sc.vertices[sc.triangles]
+        area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+        mesh = scenes.LabelledMesh(sc.vertices, sc.triangles, sc.vertex_colors.astype(np.float64),
+                                   sc.triangle_labels, sc.label_names)
+        cloud = scenes.sample_mesh(mesh, int(points_per_m2 * area))
+        rows.append({"scene": spec, "floors": sc.floors, "surface_m2": round(area), **_scale_row(
+            f"mesh samples, {points_per_m2:g}/m2", cloud, sc.rooms, renderer, reps)})
+        print(rows[-1], flush=True)
+    for item in clouds:
+        spec, path = item.rsplit("=", 1)  # scene specs hold "=" themselves
+        sc = load_scene(spec)
+        rows.append({"scene": spec, "floors": sc.floors,
+                     **_scale_row(f"map {path}", PointCloud.load(path), sc.rooms, renderer, reps)})
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1e5 and 1e6 only, fewer repetitions")
     ap.add_argument("--backend", default="numpy", choices=RENDERERS.names())
+    ap.add_argument("--scale", nargs="*", default=None,
+                    help="only the building-scale timing (issue 21, item 6) on these scenes (none given: "
+                         "a 100 m2 house and a 1,000 m2 three-floor building, or only the --clouds)")
+    ap.add_argument("--points-per-m2", type=float, default=400.0, help="--scale: mesh sampling density")
+    ap.add_argument("--clouds", nargs="*", default=[], help="--scale: SPEC=MAP.ply reconstructed maps too")
     args = ap.parse_args()
+    if args.scale is not None:
+        default = [] if args.clouds else ["generated:0:area=100", "generated:0:area=1000:floors=3"]
+        scale(args.backend, args.scale or default, args.points_per_m2, args.clouds, reps=2)
+        return
     sizes = [100_000, 1_000_000] if args.quick else [100_000, 1_000_000, 10_000_000]
     speed(args.backend, sizes, reps=2 if args.quick else 3)
     fidelity(args.backend, 1_000_000, 6 if args.quick else 12)

@@ -7,13 +7,19 @@
 3. follow a generated instruction with the offline heuristic policy (``POST /missions``), printing
    every step from the live event stream, then the VLN-CE metrics;
 4. stop every process cleanly (also on Ctrl-C).
+
+``--robots N`` (``make demo ROBOTS=N``) runs robot0..robotN-1 at once, each in its own generated house
+(``generated:<seed+k>``) with its own robot-io and gateway, sharing one planner, mapper, renderer and
+reconstructor: every robot explores and then navigates concurrently, its lines tagged with its id.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -56,7 +62,7 @@ def wait_job(http: httpx.Client, url: str, deadline_s: float, show) -> dict:
     raise TimeoutError(f"{url} did not finish within {deadline_s:.0f} s")
 
 
-def follow_mission(http: httpx.Client, mission_id: str, deadline_s: float) -> dict:
+def follow_mission(http: httpx.Client, mission_id: str, deadline_s: float, tag: str = "") -> dict:
     """Print each step from the SSE stream (as the dashboard sees it) until the mission ends."""
     with http.stream("GET", f"/missions/{mission_id}/events", timeout=deadline_s) as stream:
         event, data = None, None
@@ -71,13 +77,61 @@ def follow_mission(http: httpx.Client, mission_id: str, deadline_s: float) -> di
                     dec = d.get("decision", {})
                     pos = d.get("pose", {}).get("position_m", [0, 0, 0])
                     t = d.get("timings_s", {})
-                    say(f"  step {data.get('step'):>2}: at ({pos[0]:5.2f}, {pos[1]:5.2f})  "
+                    say(f"{tag}  step {data.get('step'):>2}: at ({pos[0]:5.2f}, {pos[1]:5.2f})  "
                         f"{len(d.get('candidates', []))} candidates -> {dec.get('kind', '?')} #{dec.get('candidate_index')}"
                         f"  [{1000 * t.get('prompt_ready_s', 0):.0f} ms to prompt]  {str(dec.get('reasoning', ''))[:90]}")
                 if event == "end" or data.get("kind") in ("finished", "error"):
                     break
                 event, data = None, None
     return http.get(f"/missions/{mission_id}").json()
+
+
+def nth_scene(scene: str, k: int) -> str:
+    """Robot k's house: ``generated:<seed+k>[...]`` for a generated one, else the same scene file."""
+    m = re.fullmatch(r"generated:(\d+)(.*)", scene)
+    return f"generated:{int(m.group(1)) + k}{m.group(2)}" if m and k else scene
+
+
+def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argparse.Namespace) -> bool:
+    """Explore and reconstruct ``scene``, then follow one generated instruction in it, through one gateway."""
+    say(f"{tag}1/2 pre-exploring and reconstructing {scene} ...")
+    t0 = time.time()
+    job = http.post("/explorations", json={"map_id": map_id, "max_steps": args.max_steps}).json()
+    if "url" not in job:
+        raise RuntimeError(f"{tag}exploration refused: {job}")
+    rec = wait_job(http, job["url"], 900,
+                   lambda r: f"{tag}  exploration {r['state']:<9} {r.get('stage') or '':<15} {r.get('message') or ''}")
+    if rec["state"] != "succeeded":
+        raise RuntimeError(f"{tag}exploration {rec['state']}: {rec.get('error')}")
+    info = http.get(f"/maps/{map_id}").json()
+    say(f"{tag}  map {map_id} v{info['version']}: {info['point_count']:,} points, {info['regions']} regions, "
+        f"scale factors {[round(x, 3) for x in info['scale_factors']]} ({time.time() - t0:.0f} s)")
+
+    ep = make_episode(scene, args.seed)
+    say(f"{tag}2/2 navigating: \"{ep.instruction}\"")
+    options = {
+        "policy": args.policy, "max_steps": args.mission_steps, "start_pose": ep.start_pose.model_dump(),
+        "goal_m": list(map(float, ep.goal_m)),
+        "reference_path_m": [list(map(float, p)) for p in ep.reference_path_m],
+    }
+    mission = http.post("/missions", json={"instruction": ep.instruction, "map_id": map_id,
+                                           "options": options}).json()
+    rec = follow_mission(http, mission["id"], 900, tag)
+    m = rec.get("metrics") or {}
+    say(f"{tag}RESULT: mission {rec['state']} after {rec['step']} steps; "
+        + ", ".join(f"{k}={m[k]:.2f}" if isinstance(m.get(k), float) else f"{k}={m.get(k)}"
+                    for k in ("ne_m", "success", "oracle_success", "spl", "ndtw", "tl_m") if k in m))
+    return rec["state"] in ("succeeded", "failed")
+
+
+def _run_other(url: str, robot: str, scene: str, args: argparse.Namespace) -> bool:
+    """One robot of a fleet demo, on its own gateway; a failure is reported, not raised across threads."""
+    try:
+        with httpx.Client(base_url=url, timeout=30) as http:
+            return run_robot(http, f"[{robot}] ", scene, f"demo-house-{robot}", args)
+    except Exception as exc:  # noqa: BLE001 - one robot's failure is that robot's line
+        say(f"[{robot}] FAILED: {type(exc).__name__}: {exc}")
+        return False
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -94,7 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-steps", type=int, default=400, help="exploration budget (steps)")
     ap.add_argument("--standin-config", default="{}", help="JSON: the ROS 2 stand-in's config (camera, rates, faults)")
     ap.add_argument("--mission-steps", type=int, default=30, help="navigation budget (steps)")
+    ap.add_argument("--robots", type=int, default=1, help="robots at once (robot0..robotN-1), each in its own house")
     args = ap.parse_args(argv)
+    if args.robots < 1 or (args.robots > 1 and args.robot == "ros2"):
+        ap.error("--robots must be >= 1, and the ROS 2 stand-in drives one robot")
     configure_logging("demo", "local", "WARNING")
     run_dir = Path(args.run_dir).resolve()
     t_start = time.time()
@@ -111,8 +168,15 @@ def main(argv: list[str] | None = None) -> int:
                           standin_config=json.loads(args.standin_config))
         say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys) against the ROS 2 stand-in robot "
             f"(time scale {args.time_scale:g}); robot-io speaks only ROS 2 messages over zenoh")
-    say(f"starting a zenoh router + 6 services (logs: {run_dir / 'logs'})")
-    launcher = Launcher(run_dir, replicas={"renderer": args.renderers}, extra_env=env, standin=standin)
+    scenes = [nth_scene(args.scene, k) for k in range(args.robots)]
+    if args.robots > 1:
+        env.pop("ANT_ROBOT_CONFIG")  # each robot its own house (the launcher's scenes)
+    say("starting a zenoh router + 6 services" + (f" ({args.robots} robots: a robot-io and a gateway each, the "
+                                                    "other services shared)" if args.robots > 1 else "")
+        + f" (logs: {run_dir / 'logs'})")
+    launcher = Launcher(run_dir, replicas={"renderer": args.renderers}, extra_env=env, standin=standin,
+                        robots=args.robots, scenes=scenes if args.robots > 1 else None)
+    robots = [(r, url) for r, url in zip(launcher.robots, launcher.gateway_urls)]
     ok = False
     try:
         launcher.start(deadline_s=120)
@@ -120,35 +184,23 @@ def main(argv: list[str] | None = None) -> int:
         with httpx.Client(base_url=launcher.gateway_url, timeout=30) as http:
             for s in http.get("/status").json()["services"]:
                 say(f"  {s['service']:<14} instances={s['instances']} backends={s['details'][0]['backends']}")
-            say(f"dashboard: {launcher.gateway_url}/dashboard")
+            for robot, url in robots:
+                say(f"dashboard of {robot}: {url}/dashboard")
 
-            say(f"1/2 pre-exploring and reconstructing {args.scene} ...")
-            t0 = time.time()
-            job = http.post("/explorations", json={"map_id": "demo-house", "max_steps": args.max_steps}).json()
-            rec = wait_job(http, job["url"], 600,
-                           lambda r: f"  exploration {r['state']:<9} {r.get('stage') or '':<15} {r.get('message') or ''}")
-            if rec["state"] != "succeeded":
-                raise RuntimeError(f"exploration {rec['state']}: {rec.get('error')}")
-            info = http.get("/maps/demo-house").json()
-            say(f"  map demo-house v{info['version']}: {info['point_count']:,} points, {info['regions']} regions, "
-                f"scale factors {[round(x, 3) for x in info['scale_factors']]} ({time.time() - t0:.0f} s)")
-
-            ep = make_episode(args.scene, args.seed)
-            say(f"2/2 navigating: \"{ep.instruction}\"")
-            options = {
-                "policy": args.policy, "max_steps": args.mission_steps, "start_pose": ep.start_pose.model_dump(),
-                "goal_m": list(map(float, ep.goal_m)),
-                "reference_path_m": [list(map(float, p)) for p in ep.reference_path_m],
-            }
-            mission = http.post("/missions", json={"instruction": ep.instruction, "map_id": "demo-house",
-                                                   "options": options}).json()
-            rec = follow_mission(http, mission["id"], 600)
-            m = rec.get("metrics") or {}
-            say(f"RESULT: mission {rec['state']} after {rec['step']} steps; "
-                + ", ".join(f"{k}={m[k]:.2f}" if isinstance(m.get(k), float) else f"{k}={m.get(k)}"
-                            for k in ("ne_m", "success", "oracle_success", "spl", "ndtw", "tl_m") if k in m))
-            say(f"total {time.time() - t_start:.0f} s; the mission and its events stay in {env['ANT_DB_PATH']}")
-            ok = rec["state"] in ("succeeded", "failed")
+            results: dict[str, bool] = {}
+            if len(robots) == 1:
+                results[robots[0][0]] = run_robot(http, "", scenes[0], "demo-house", args)
+            else:
+                threads = [threading.Thread(target=lambda k=k, url=url: results.__setitem__(
+                    robots[k][0], _run_other(url, robots[k][0], scenes[k], args)), name=robots[k][0])
+                    for k, url in enumerate(launcher.gateway_urls)]
+                for t in threads:
+                    t.start()
+                for t in threads:
+                    t.join()
+            say(f"total {time.time() - t_start:.0f} s; the missions and their events stay in each robot's gateway "
+                f"database under {run_dir}")
+            ok = bool(results) and all(results.values())
     except KeyboardInterrupt:
         say("interrupted")
     except Exception as exc:

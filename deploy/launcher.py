@@ -32,6 +32,16 @@ from shared.bus.zenoh_bus import ZenohBus
 log = logging.getLogger("launcher")
 
 SERVICES = ["robot_io", "mapper", "reconstructor", "renderer", "planner", "gateway"]
+# A fleet (``robots=N``) runs these once per robot (robot0..robotN-1: one body, one scene, and the HTTP
+# API a runner drives it by); every other service is shared by all robots (planner and mapper serve any
+# robot's keys, renderer and reconstructor are not robot-scoped).
+PER_ROBOT = ("robot_io", "gateway")
+# Shared services that may split the robots between their replicas (``serve_robots``).
+SPLIT_ROBOTS = ("planner", "mapper")
+
+
+def robot_ids(n: int) -> list[str]:
+    return [f"robot{k}" for k in range(n)]
 
 # What the stand-in publishes beyond the generic profile, and the backend therefore reads: the
 # simulated clock (time scale), the teleport service (mission start poses), the map and labels.
@@ -111,10 +121,18 @@ class Launcher:
                  router_port: int | None = None, gateway_port: int | None = None,
                  extra_env: dict[str, str] | None = None, restart: bool = True,
                  services: list[str] | None = None, standin: StandIn | None = None,
-                 auth: bool | None = None):
+                 auth: bool | None = None, robots: int = 1, scenes: list[str] | None = None):
+        if robots < 1:
+            raise ValueError(f"robots must be >= 1, got {robots}")
+        if standin is not None and robots != 1:
+            raise ValueError("the ROS 2 stand-in drives one robot")
         self.run_dir = Path(run_dir)
         self.router_port = router_port or free_port()
-        self.gateway_port = gateway_port or free_port()
+        self.robots = robot_ids(robots)
+        # robotK's gateway: the given port for robot0, free ones for the others.
+        self.gateway_ports = [gateway_port or free_port()] + [free_port() for _ in range(robots - 1)]
+        self.gateway_port = self.gateway_ports[0]
+        self.scenes = list(scenes or [])  # robotK's first scene (default: the backend's)
         self.endpoint = f"tcp/127.0.0.1:{self.router_port}"
         self.replicas = replicas or {}
         self.extra_env = extra_env or {}
@@ -137,6 +155,40 @@ class Launcher:
     @property
     def gateway_url(self) -> str:
         return f"http://127.0.0.1:{self.gateway_port}"
+
+    @property
+    def gateway_urls(self) -> list[str]:
+        """robotK's gateway at index K."""
+        return [f"http://127.0.0.1:{p}" for p in self.gateway_ports]
+
+    def _service_procs(self, name: str) -> list[tuple[str, dict[str, str]]]:
+        """(process name, environment) of each process of one service."""
+        out = []
+        if name in PER_ROBOT:
+            for k, robot in enumerate(self.robots):
+                # One robot keeps the names it always had (robot_io-0, gateway.sqlite3).
+                env = self._env(f"{name.replace('_', '-')}-{k}", user=name)
+                env["ANT_ROBOT"] = robot
+                if name == "gateway":
+                    env["ANT_PORT"] = str(self.gateway_ports[k])
+                    if k:
+                        env["ANT_DB_PATH"] = str(self.run_dir / f"gateway-{robot}.sqlite3")
+                if name == "robot_io" and self.standin is not None:
+                    env.update(self.standin.robot_env(self.endpoint))
+                elif name == "robot_io" and k < len(self.scenes) and "ANT_ROBOT_CONFIG" not in self.extra_env:
+                    env["ANT_ROBOT_CONFIG"] = json.dumps({"scene": self.scenes[k]})
+                out.append((f"{name}-{k}", env))
+            return out
+        n = self.replicas.get(name, 1)
+        for i in range(n):
+            env = self._env(f"{name.replace('_', '-')}-{i}", user=name)
+            if name in SPLIT_ROBOTS and n > 1:
+                # Replicas of a robot-serving service split the robots (each robot served by one).
+                env["ANT_SERVE_ROBOTS"] = json.dumps(self.robots[i::n])
+            if name == "renderer" and "ANT_CACHE_MAPS" not in self.extra_env:
+                env["ANT_CACHE_MAPS"] = str(max(4, len(self.robots)))  # a scene per robot stays indexed
+            out.append((f"{name}-{i}", env))
+        return out
 
     def _env(self, instance: str, user: str | None = None) -> dict[str, str]:
         env = dict(os.environ)
@@ -196,14 +248,9 @@ class Launcher:
             robot.start()
             self.procs.append(robot)
         for name in self.services:
-            for i in range(self.replicas.get(name, 1)):
-                argv = [py, "-m", f"services.{name}"]
-                env = self._env(f"{name.replace('_', '-')}-{i}", user=name)
-                if name == "gateway":
-                    env["ANT_PORT"] = str(self.gateway_port)
-                if name == "robot_io" and self.standin is not None:
-                    env.update(self.standin.robot_env(self.endpoint))
-                proc = Proc(f"{name}-{i}", argv, env, self.run_dir / "logs" / f"{name}-{i}.log")
+            for proc_name, env in self._service_procs(name):
+                proc = Proc(proc_name, [py, "-m", f"services.{name}"], env,
+                            self.run_dir / "logs" / f"{proc_name}.log")
                 proc.start()
                 self.procs.append(proc)
         self.bus = ZenohBus(self.client_settings())
@@ -213,7 +260,8 @@ class Launcher:
             self._monitor.start()
 
     def expected_instances(self) -> dict[str, int]:
-        return {name: self.replicas.get(name, 1) for name in self.services}
+        return {name: len(self.robots) if name in PER_ROBOT else self.replicas.get(name, 1)
+                for name in self.services}
 
     def alive(self) -> dict[str, int]:
         assert self.bus is not None

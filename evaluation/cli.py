@@ -1,7 +1,8 @@
 """``python -m evaluation {run,preset,generate,subset,summarize}``: the experiment runner's command line.
 
 Without ``--gateway`` the runner starts the whole system itself (zenoh router and every service, via
-:class:`deploy.launcher.Launcher`, logs under ``<out>/system``) and stops it at the end; with
+:class:`deploy.launcher.Launcher`, logs under ``<out>/system``; with ``--robots N`` a robot-io and a
+gateway per robot and the other services shared) and stops it at the end; with
 ``--gateway URL`` it uses a running one (scenes are switched through the gateway's ``POST /robot/scene``).
 """
 
@@ -13,7 +14,6 @@ import logging
 import sys
 import time
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
@@ -29,9 +29,13 @@ def _system_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("system")
     g.add_argument("--gateway", action="append",
                    help="use a running gateway at this URL (default: start the system); repeat it for more "
-                        "robots (one system per robot, on any host): scenes are sharded over them")
+                        "robots (one gateway per robot, on any host): scenes are sharded over them")
     g.add_argument("--robots", type=int, default=1,
-                   help="without --gateway: start this many systems, robot0..robotN-1, and shard over them")
+                   help="without --gateway: start robot0..robotN-1 (a robot-io and a gateway each, the other "
+                        "services shared) and shard the scenes over them")
+    g.add_argument("--replica", action="append", metavar="SERVICE=N",
+                   help="without --gateway: run N replicas of a shared service (planner, mapper, renderer); "
+                        "planner and mapper replicas split the robots between them")
     g.add_argument("--token", help="the gateway's API token (ANT_API_TOKEN)")
     g.add_argument("--robot", default="robot0", help="robot id of the key expressions")
     g.add_argument("--start-timeout-s", type=float, default=120.0, help="deadline for the system to come up")
@@ -189,28 +193,35 @@ def system(a: argparse.Namespace, out: Path) -> Iterator[list[Lane]]:
 
         if a.robots < 1:
             raise ConfigError(f"--robots must be >= 1, got {a.robots}")
-        launchers = []
-        for k in range(a.robots):
-            run_dir = out / ("system" if a.robots == 1 else f"system-robot{k}")
-            log.info("starting the system of robot%d (logs in %s)", k, run_dir)
-            env = {"ANT_ROBOT": f"robot{k}"}
-            if a.scenes_dir:  # robot-io loads scene files only from its configured directories (issue 15)
-                env["ANT_SCENE_DIRS"] = json.dumps([str(a.scenes_dir.resolve())])
-            launcher = Launcher(run_dir, extra_env=env)
-            stack.callback(launcher.stop)
-            launchers.append(launcher)
+        replicas = _replicas(a.replica or [])
+        run_dir = out / "system"
+        log.info("starting the system: %d robot(s), shared services %s (logs in %s)", a.robots,
+                 replicas or "x1", run_dir)
+        env = {}
+        if a.scenes_dir:  # robot-io loads scene files only from its configured directories (issue 15)
+            env["ANT_SCENE_DIRS"] = json.dumps([str(a.scenes_dir.resolve())])
+        # One system: robot-io and a light gateway per robot (robot0..robotN-1), the planner, mapper,
+        # renderer and reconstructor shared by all robots (deploy.launcher.PER_ROBOT).
+        launcher = Launcher(run_dir, extra_env=env, robots=a.robots, replicas=replicas)
+        stack.callback(launcher.stop)
         t0 = time.monotonic()
-        # The systems come up side by side (each waits on its own services' liveliness).
-        with ThreadPoolExecutor(max_workers=len(launchers)) as pool:
-            for future in [pool.submit(lc.start, a.start_timeout_s) for lc in launchers]:
-                future.result()
-        log.info("%d system(s) up in %.1f s, gateways %s", len(launchers), time.monotonic() - t0,
-                 ", ".join(lc.gateway_url for lc in launchers))
+        launcher.start(a.start_timeout_s)
+        log.info("system up in %.1f s, gateways %s", time.monotonic() - t0, ", ".join(launcher.gateway_urls))
         lanes = []
-        for launcher in launchers:
-            gateway = stack.enter_context(GatewayClient.connect(launcher.gateway_url, token=a.token))
+        for url in launcher.gateway_urls:
+            gateway = stack.enter_context(GatewayClient.connect(url, token=a.token))
             lanes.append(Lane(gateway, gateway))
         yield lanes
+
+
+def _replicas(specs: list[str]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for spec in specs:
+        name, _, count = spec.partition("=")
+        if name not in ("planner", "mapper", "renderer") or not count.isdigit() or not 1 <= int(count) <= 16:
+            raise ConfigError(f"--replica {spec!r}: want planner|mapper|renderer=<1..16>")
+        out[name] = int(count)
+    return out
 
 
 def cmd_estimate(a: argparse.Namespace, episodes) -> int:

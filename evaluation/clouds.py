@@ -4,6 +4,12 @@ The paper compares its agent-reconstructed cloud with the dataset's curated one;
 curated cloud is an area-uniform sample of the scene's surfaces with their true colours and semantic
 labels, i.e. a reconstruction with no pose, scale or depth error (the renderer core's
 :func:`~shared.cloud.sample_mesh` does the sampling).
+
+Only surfaces that can be seen from walkable space are kept (a scanned dataset holds what its
+cameras saw): a sample stays when the straight line to it from one of its nearest viewpoints -
+walkable floor points, on a coarse grid, at a few eye heights - is free. Ceiling interiors, the
+tops of slabs, the inside of walls and the faces hidden under furniture go; they would otherwise
+be a third of the points, and a view rendered from the map would show them through every gap.
 """
 
 from __future__ import annotations
@@ -15,13 +21,75 @@ from shared.cloud import PointCloud, sample_mesh
 
 
 def sample_scene_cloud(scene, *, density_per_m2: float = 300.0, max_points: int = 1_000_000,
-                       seed: int = 0) -> PointCloud:
-    """A cloud of ``density_per_m2`` points per square metre of the scene's surfaces (at most
-    ``max_points``), labels and label names kept."""
+                       seed: int = 0, visible_only: bool = True, viewpoints_m: np.ndarray | None = None,
+                       eye_heights_m: tuple[float, ...] = (0.6, 1.25), viewpoint_grid_m: float = 0.5,
+                       nearest_viewpoints: int = 12) -> PointCloud:
+    """A cloud of ``density_per_m2`` points per square metre of the scene's visible surfaces (at
+    most ``max_points``), labels and label names kept.
+
+    With ``visible_only`` (default) a sample is kept only when one of its ``nearest_viewpoints``
+    nearest viewpoints sees it: ``viewpoints_m`` (M, 3), or walkable floor points of the scene's
+    navigation grid thinned to one per ``viewpoint_grid_m`` cell, raised by each of ``eye_heights_m``."""
     if density_per_m2 <= 0 or max_points < 1:
         raise ConfigError("density_per_m2 and max_points must be positive")
     corners = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles, np.int64)]
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
-    n = int(min(max_points, max(1, round(float(area) * density_per_m2))))
-    return sample_mesh(scene.vertices, scene.triangles, scene.vertex_colors, scene.triangle_labels, n_points=n,
-                       seed=seed, texture=scene.texture, label_names=scene.label_names)
+    n = max(1, round(float(area) * density_per_m2))
+    if not visible_only:
+        return sample_mesh(scene.vertices, scene.triangles, scene.vertex_colors, scene.triangle_labels,
+                           n_points=int(min(max_points, n)), seed=seed, texture=scene.texture,
+                           label_names=scene.label_names)
+    # Sample the whole surface at the density asked for, then keep the visible part: the visible
+    # surfaces get that density (up to max_points, as much again of candidates at most).
+    cloud = sample_mesh(scene.vertices, scene.triangles, scene.vertex_colors, scene.triangle_labels,
+                        n_points=int(min(2 * max_points, n)), seed=seed, texture=scene.texture,
+                        label_names=scene.label_names)
+    if viewpoints_m is None:
+        viewpoints_m = walkable_viewpoints(scene, eye_heights_m, viewpoint_grid_m)
+    keep = np.flatnonzero(visible_from(scene, cloud.xyz, viewpoints_m, nearest_viewpoints))
+    if len(keep) > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(keep, max_points, replace=False))
+    return cloud.subset(keep)
+
+
+def walkable_viewpoints(scene, eye_heights_m=(0.6, 1.25), grid_m: float = 0.5) -> np.ndarray:
+    """(M, 3) eye positions over the scene's walkable floor: one node per ``grid_m`` cell and floor
+    level (the navigation grid's nodes), raised by each eye height."""
+    from services.robot_io.core.navgrid import NavGrid
+
+    nodes = np.asarray(NavGrid(scene).nodes_m, np.float64)
+    if len(nodes) == 0:
+        raise ConfigError("the scene has no walkable floor to see its surfaces from")
+    cell = np.floor(nodes / np.array([grid_m, grid_m, 0.5])).astype(np.int64)
+    _, first = np.unique(cell, axis=0, return_index=True)
+    floor = nodes[np.sort(first)]
+    return np.concatenate([floor + np.array([0.0, 0.0, h]) for h in eye_heights_m])
+
+
+def visible_from(scene, xyz: np.ndarray, viewpoints_m: np.ndarray, nearest: int = 12,
+                 clearance_m: float = 0.02, chunk: int = 200_000) -> np.ndarray:
+    """Boolean mask of the points (on the scene's surfaces) that one of their ``nearest``
+    viewpoints sees: the segment from the viewpoint stops ``clearance_m`` short of the point
+    without hitting the mesh."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(np.asarray(scene.vertices, np.float32)),
+                     o3d.core.Tensor(np.asarray(scene.triangles, np.uint32)))
+    vp = np.asarray(viewpoints_m, np.float64)
+    k = min(nearest, len(vp))
+    tree = cKDTree(vp)
+    seen = np.zeros(len(xyz), bool)
+    for a in range(0, len(xyz), chunk):
+        pts = np.asarray(xyz[a : a + chunk], np.float64)
+        _, nn = tree.query(pts, k=k, workers=-1)
+        nn = nn.reshape(len(pts), k)
+        origin = vp[nn]  # (n, k, 3)
+        d = pts[:, None, :] - origin
+        dist = np.linalg.norm(d, axis=-1)
+        rays = np.concatenate([origin, d], axis=-1).reshape(-1, 6).astype(np.float32)
+        t = rc.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(len(pts), k)
+        # t is in units of the segment: the point itself is at t = 1.
+        seen[a : a + chunk] = (t * dist >= dist - clearance_m).any(axis=1)
+    return seen

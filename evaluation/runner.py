@@ -203,7 +203,8 @@ class EvalRunner:
         progress: show a tqdm progress bar (stderr).
         scene_builder: ``scene_builder(spec, scenes_dir) -> Scene`` for curated clouds (default: robot-io's
             :func:`load_scene`, the same scenes the simulator loads).
-        lanes: more robots (each a gateway and scene switcher, e.g. one system per robot, on any host);
+        lanes: more robots (each a gateway and scene switcher: a light gateway per robot, the planner and
+            other services shared by all robots or not, on any host);
             the scenes are sharded over ``gateway`` + these (:func:`shard_scenes`) and run concurrently.
             Every result is the same whatever the number of robots: each episode runs alone on its robot
             with its own seed.

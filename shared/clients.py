@@ -11,7 +11,9 @@ import contextlib
 import itertools
 import os
 import threading
+import uuid
 from collections.abc import Callable, Iterator
+from typing import BinaryIO
 
 import numpy as np
 
@@ -20,8 +22,9 @@ from shared.bus.typed import RemoteError, TypedBus
 from shared.jobs import JobFailedError, await_job
 from shared.schemas import (
     BuildMapRequest, CameraIntrinsics, CancelRequest, Candidate, CandidateSet, ExplorationRequest, Frame,
-    GeodesicReply, GeodesicRequest, JobAccepted, JobEvent, LoadSceneRequest, MapBuildFinished, MapImportRequest,
-    MissionRequest,
+    IMPORT_PART_BYTES, IMPORT_PART_MAX_BYTES,
+    GeodesicReply, GeodesicRequest, JobAccepted, JobEvent, LoadSceneRequest, MapBuildFinished, MapImportProgress,
+    MapImportRequest, MissionRequest,
     MapChunk, MapChunkRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
     Panorama, Ping, Pose, PoseReply, RecordReply, RecordRequest, RenderRequest, RenderResult, ResetRequest,
     SceneSummary, SceneViewsRequest, ServiceInfo, ServiceMetrics, SpatialMapRequest, SpatialMapResult, SplatMode,
@@ -162,6 +165,9 @@ class MapperClient:
         self.bus, self.robot, self.timeout_s = bus, robot, timeout_s
 
     def predict(self, pano: Panorama) -> list[Candidate]:
+        # The predictor reads depth only; the semantic array (int32, the largest of the panorama's arrays)
+        # would cross the bus at every step for nothing.
+        pano = pano.model_copy(update={"semantic": None})
         return self.bus.request(keys.MAPPER_PREDICT.format(robot=self.robot), pano, CandidateSet,
                                 timeout_s=self.timeout_s).candidates
 
@@ -201,10 +207,42 @@ class MapClient:
         return self.bus.request(keys.MAP_INFO.format(map=map_id), MapRequest(map_id=map_id, version=version),
                                 MapInfo, timeout_s=self.timeout_s)
 
-    def import_cloud(self, req: MapImportRequest, timeout_s: float | None = None) -> MapInfo:
-        """Store an uploaded PLY/PCD as a new map version (a large file takes a while: at least 60 s)."""
-        return self.bus.request(keys.MAP_IMPORT.format(map=req.map_id), req, MapInfo,
-                                timeout_s=timeout_s or max(self.timeout_s, 60.0))
+    def import_cloud(self, map_id: str, filename: str, body: bytes | BinaryIO, *,
+                     part_bytes: int = IMPORT_PART_BYTES, timeout_s: float | None = None) -> MapInfo:
+        """Store a PLY/PCD (bytes, or a binary file read from where it stands) as a new map version.
+
+        It travels in parts of ``part_bytes`` (``MapImportRequest.upload_id``), so neither side holds
+        more than a part or two of it; the reconstructor assembles the file on disk and parses it when
+        the last part arrives (that answer waits at least 60 s: a large file takes a while). When a
+        part fails, the upload is aborted on the reconstructor too, and the error raised."""
+        if not 0 < part_bytes <= IMPORT_PART_MAX_BYTES:
+            raise ValueError(f"part_bytes must be in (0, {IMPORT_PART_MAX_BYTES}], got {part_bytes}")
+        key = keys.MAP_IMPORT.format(map=map_id)
+        upload_id = f"up-{uuid.uuid4().hex}"
+        if isinstance(body, (bytes, bytearray, memoryview)):
+            view = memoryview(body)
+            parts = (bytes(view[i:i + part_bytes]) for i in range(0, len(view), part_bytes))
+        else:
+            parts = iter(lambda: body.read(part_bytes), b"")
+        offset, part = 0, next(parts, b"")
+        if not part:
+            raise ValueError(f"{filename}: nothing to import (no bytes)")
+        try:
+            while True:
+                following = next(parts, b"")  # one part ahead: is this the last one?
+                req = MapImportRequest(map_id=map_id, filename=filename, data=part, upload_id=upload_id,
+                                       offset=offset, last=not following)
+                if not following:
+                    return self.bus.request(key, req, MapInfo, timeout_s=timeout_s or max(self.timeout_s, 60.0))
+                self.bus.request(key, req, MapImportProgress, timeout_s=self.timeout_s)
+                offset, part = offset + len(part), following
+        except BaseException:
+            # Best effort: the reconstructor drops an upload on its own failure, or when idle, anyway.
+            with contextlib.suppress(Exception):
+                self.bus.request(key, MapImportRequest(map_id=map_id, filename=filename, upload_id=upload_id,
+                                                       offset=offset, abort=True, last=False),
+                                 MapImportProgress, timeout_s=min(self.timeout_s, 5.0))
+            raise
 
     def chunks(self, map_id: str, version: int | None = None, max_points: int = 1_000_000) -> Iterator[MapChunk]:
         """Every chunk of one version of a map, in order."""

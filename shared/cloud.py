@@ -128,7 +128,11 @@ class PointCloud:
         try:
             with open(path, "wb") as fh:
                 fh.write(header(len(self), self.labels is not None, self.label_names))
-                fh.write(records(self.xyz, self.rgb, self.labels))
+                # A slice at a time: storing a large cloud costs no second copy of it.
+                for lo in range(0, len(self), _SLICE_POINTS):
+                    hi = lo + _SLICE_POINTS
+                    fh.write(records(self.xyz[lo:hi], self.rgb[lo:hi],
+                                     None if self.labels is None else self.labels[lo:hi]))
         except OSError as exc:
             raise CloudFormatError(f"could not write {path}: {exc}") from exc
 
@@ -235,14 +239,26 @@ def encode(cloud: PointCloud, with_labels: bool = True, comment: str = "") -> by
     return header(len(cloud), labels is not None, names, comment) + records(cloud.xyz, cloud.rgb, labels)
 
 
-def decode(data: bytes) -> PointCloud | None:
-    """The cloud in a PLY of our layout; None for any other PLY (left to :func:`read_cloud`).
+@dataclass(frozen=True)
+class _Layout:
+    """What the header of a PLY in our layout says: records, labels, label names, where the body starts."""
 
-    Raises :class:`CloudFormatError` when the file is ours but its body is cut short."""
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply") or end < 0:
+    count: int
+    with_labels: bool
+    names: dict[int, str]
+    body_offset: int
+
+    @property
+    def dtype(self) -> np.dtype:
+        return vertex_dtype(self.with_labels)
+
+
+def _our_layout(head: bytes) -> _Layout | None:
+    """The layout of a PLY of ours from its first bytes (header included); None for any other file."""
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply") or end < 0:
         return None
-    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    lines = head[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in lines:
         return None
     props = [ln.split()[1:] for ln in lines if ln.startswith("property ")]
@@ -251,11 +267,6 @@ def decode(data: bytes) -> PointCloud | None:
     with_labels = props == _our_properties(True)
     if count is None or len(elements) != 1 or not (with_labels or props == _our_properties(False)):
         return None
-    dtype = vertex_dtype(with_labels)
-    body = memoryview(data)[end + len(b"end_header\n"):]
-    if len(body) < count * dtype.itemsize:
-        raise CloudFormatError(f"PLY body holds {len(body)} bytes, {count} vertices need {count * dtype.itemsize}")
-    rec = np.frombuffer(body, dtype, count)
     names: dict[int, str] = {}
     for ln in lines:
         if ln.startswith("comment " + _LABEL_COMMENT):
@@ -264,16 +275,79 @@ def decode(data: bytes) -> PointCloud | None:
                 names = {int(k): str(v) for k, v in raw.items()}
             except (ValueError, AttributeError) as exc:
                 raise CloudFormatError(f"unreadable label names in the PLY header: {exc}") from None
-    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
-    rgb = np.stack([rec["red"], rec["green"], rec["blue"]], axis=1)
-    labels = np.ascontiguousarray(rec["label"]) if with_labels else None
-    finite = np.isfinite(xyz).all(axis=1)
+    return _Layout(count, with_labels, names, end + len(b"end_header\n"))
+
+
+def _check_body(layout: _Layout, body_bytes: int) -> None:
+    need = layout.count * layout.dtype.itemsize
+    if body_bytes < need:
+        raise CloudFormatError(f"PLY body holds {body_bytes} bytes, {layout.count} vertices need {need}")
+
+
+def _unpack(rec: np.ndarray, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None) -> np.ndarray:
+    """Records into the columns ``xyz``/``rgb``/``labels`` (same length); returns which rows are finite."""
+    for i, axis in enumerate("xyz"):
+        xyz[:, i] = rec[axis]
+    for i, channel in enumerate(("red", "green", "blue")):
+        rgb[:, i] = rec[channel]
+    if labels is not None:
+        labels[:] = rec["label"]
+    return np.isfinite(xyz).all(axis=1)
+
+
+def _assemble(layout: _Layout, fill) -> PointCloud:
+    """A cloud of ``layout.count`` points; ``fill(xyz, rgb, labels)`` writes the columns and returns the
+    finite-row mask. The columns are allocated once: no second copy of the records."""
+    xyz = np.empty((layout.count, 3), np.float32)
+    rgb = np.empty((layout.count, 3), np.uint8)
+    labels = np.empty(layout.count, np.int32) if layout.with_labels else None
+    finite = fill(xyz, rgb, labels)
     if not finite.all():
         if not finite.any():
             raise CloudFormatError("every point is non-finite")
         log.warning("dropping %d non-finite points", int((~finite).sum()))
         xyz, rgb, labels = xyz[finite], rgb[finite], None if labels is None else labels[finite]
-    return PointCloud(xyz, rgb, labels, names)
+    return PointCloud(xyz, rgb, labels, layout.names)
+
+
+def decode(data: bytes) -> PointCloud | None:
+    """The cloud in a PLY of our layout; None for any other PLY (left to :func:`read_cloud`).
+
+    Raises :class:`CloudFormatError` when the file is ours but its body is cut short."""
+    layout = _our_layout(data)
+    if layout is None:
+        return None
+    body = memoryview(data)[layout.body_offset:]
+    _check_body(layout, len(body))
+    rec = np.frombuffer(body, layout.dtype, layout.count)
+    return _assemble(layout, lambda xyz, rgb, labels: _unpack(rec, xyz, rgb, labels))
+
+
+_HEAD_BYTES = 1 << 20  # a header longer than this (label names of a huge label set?) is read by open3d
+_SLICE_POINTS = 1 << 20  # records read or written at a time when a file is streamed
+
+
+def _read_ours(path: Path) -> PointCloud | None:
+    """:func:`decode` straight from a file, a slice of records at a time (the file is never in memory
+    whole: what is held is the cloud itself)."""
+    with open(path, "rb") as fh:
+        layout = _our_layout(fh.read(_HEAD_BYTES))
+        if layout is None:
+            return None
+        _check_body(layout, path.stat().st_size - layout.body_offset)
+
+        def fill(xyz, rgb, labels):
+            fh.seek(layout.body_offset)
+            finite = np.empty(layout.count, bool)
+            for lo in range(0, layout.count, _SLICE_POINTS):
+                hi = min(lo + _SLICE_POINTS, layout.count)
+                rec = np.fromfile(fh, layout.dtype, hi - lo)
+                if len(rec) != hi - lo:
+                    raise CloudFormatError(f"PLY body ends after {lo + len(rec)} of {layout.count} vertices")
+                finite[lo:hi] = _unpack(rec, xyz[lo:hi], rgb[lo:hi], None if labels is None else labels[lo:hi])
+            return finite
+
+        return _assemble(layout, fill)
 
 
 def read_cloud(path: str | Path) -> PointCloud:
@@ -286,11 +360,10 @@ def read_cloud(path: str | Path) -> PointCloud:
         raise CloudFormatError(f"no such cloud file: {path}")
     try:
         if path.suffix.lower() == ".ply":
-            data = path.read_bytes()
-            ours = decode(data)
+            ours = _read_ours(path)
             if ours is not None:
                 return ours
-            _check_ply_body(data)
+            _check_ply_file(path)
         return _read_foreign(path)
     except CloudFormatError as exc:
         raise CloudFormatError(f"{path.name}: {exc}") from None
@@ -340,16 +413,20 @@ _PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16":
               "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
 
 
-def _check_ply_body(data: bytes) -> None:
+def _check_ply_file(path: Path) -> None:
     """Raise :class:`CloudFormatError` when a PLY's header is unreadable or its vertices are cut short.
 
     Binary files: the bytes after the header must hold every element up to the vertices (fixed-size
-    records only; a list property before them stops the check). ASCII: one line per record."""
+    records only; a list property before them stops the check). ASCII: one line per record. The file
+    is read from disk as it is checked, never into memory whole."""
+    with open(path, "rb") as fh:
+        data = fh.read(_HEAD_BYTES)
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise CloudFormatError("not a PLY file (no 'ply' magic or no end_header)")
     nl = data.find(b"\n", end)
-    body = data[nl + 1:] if nl >= 0 else b""
+    body_offset = nl + 1 if nl >= 0 else path.stat().st_size
+    body_bytes = path.stat().st_size - body_offset
     lines = data[:end].decode("ascii", errors="replace").splitlines()
     fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ")), "")
     elements: list[list] = []  # [name, count, record size or None for lists]
@@ -371,7 +448,9 @@ def _check_ply_body(data: bytes) -> None:
             need += count
             if el == "vertex":
                 break
-        have = sum(1 for ln in body.splitlines() if ln.strip())
+        with open(path, "rb") as fh:
+            fh.seek(body_offset)
+            have = sum(1 for ln in fh if ln.strip())
         if have < need:
             raise CloudFormatError(f"truncated PLY ({have} records, the header announces {need})")
         return
@@ -382,5 +461,5 @@ def _check_ply_body(data: bytes) -> None:
         need += count * size
         if el == "vertex":
             break
-    if len(body) < need:
-        raise CloudFormatError(f"truncated PLY (body holds {len(body)} bytes, the vertices need {need})")
+    if body_bytes < need:
+        raise CloudFormatError(f"truncated PLY (body holds {body_bytes} bytes, the vertices need {need})")

@@ -44,6 +44,29 @@ def routed(key: str, instance: str) -> str:
     return f"{key}/@{validate_segment(instance, 'instance')}"
 
 
+def robot_routes(key: "Key", robots: "tuple[str, ...] | list[str]" = (), **parts: str) -> list[str]:
+    """What a service serving many robots declares for ``key``: the wildcard expression (every robot,
+    ``ant/*/...``) when ``robots`` is empty, else each given robot's concrete key - so that replicas can
+    split the robots between them instead of zenoh picking one replica for every robot."""
+    if not robots:
+        return [key.pattern(**parts)]
+    return [key.format(robot=r, **parts) for r in dict.fromkeys(robots)]
+
+
+def robot_of(key: "Key", asked: str) -> str:
+    """The robot id in the concrete key a request came on (an instance route's ``/@x`` ignored).
+
+    Identity comes from the key, never from a payload: a request on robotX's key can only act on robotX.
+    Raises :class:`KeyExprError` for a key that is not one of ``key``'s (e.g. a wildcard asked)."""
+    segs = asked.split("/")
+    if segs and segs[-1].startswith("@"):
+        segs = segs[:-1]
+    found = key.parse("/".join(segs))
+    if found is None or "robot" not in found:
+        raise KeyExprError(f"{asked!r} is not a concrete key of {key.template}")
+    return found["robot"]
+
+
 class Usage(StrEnum):
     QUERYABLE = "queryable"
     PUBLICATION = "publication"

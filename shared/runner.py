@@ -83,14 +83,16 @@ class Node:
         self._entities.append(entity)
         return entity
 
-    def serve(self, key: str, model: type[Req], handler: Callable[[Req], Message], *,
-              workers: int | None = None, name: str | None = None, replicated: bool = False) -> Closeable:
+    def serve(self, key: str, model: type[Req], handler: Callable[..., Message], *,
+              workers: int | None = None, name: str | None = None, replicated: bool = False,
+              keyed: bool = False) -> Closeable:
         """Serve a queryable; ``replicated`` also serves this instance's own route so that clients
-        can share load across replicas (``TypedBus.request(..., balance=service)``)."""
+        can share load across replicas (``TypedBus.request(..., balance=service)``); ``keyed`` calls
+        ``handler(key, request)`` with the concrete key asked."""
         return self.own(self.bus.serve(
             key, model, handler, workers=workers or self.settings.workers,
             max_queue=self.settings.max_queue, name=name or key.rsplit("/", 1)[-1],
-            instance=self.instance if replicated else None,
+            instance=self.instance if replicated else None, keyed=keyed,
         ))
 
     def close(self) -> None:

@@ -67,6 +67,8 @@ MAP_CHUNK_MAX_POINTS = 2_000_000  # points of one MapChunk (~30 MB)
 BUILD_MAX_RECORDINGS = 256
 BUILD_MAX_FRAMES = 500_000  # frames of every recording of one BuildMapRequest together
 IMPORT_MAX_BYTES = 256 << 20  # an imported cloud file
+IMPORT_PART_BYTES = 4 << 20  # what a sender puts in one part of an upload (MapImportRequest.upload_id)
+IMPORT_PART_MAX_BYTES = 32 << 20  # the most one part may carry
 PATH_MAX_POINTS = 10_000  # trajectories and reference paths
 FREE_FORM_MAX_ITEMS = 10_000  # values in a free-form dict (options, policy configs, event data)
 FREE_FORM_MAX_ABS = 1e15  # |number| in a free-form dict; the typed config that reads it narrows it
@@ -739,14 +741,34 @@ class MissionStep(EventPayload):
     usage: UsageData = Field(default_factory=UsageData)
 
 
+class MissionEnd(StrEnum):
+    """How a mission ended - apart from whether it reached its goal (``success``, known only when the
+    mission has a goal): ``policy_stopped`` says only that the policy stopped, never that it was right."""
+
+    POLICY_STOPPED = "policy_stopped"  # the policy chose stop
+    NO_WAY_TO_MOVE = "no_way_to_move"  # stop was the only action left (boxed in)
+    MAX_STEPS = "max_steps"  # the step budget ran out without a stop
+    CANCELLED = "cancelled"
+    FAILED = "failed"
+
+
+_FINISHED_ENDS = {MissionEnd.POLICY_STOPPED: True, MissionEnd.NO_WAY_TO_MOVE: True, MissionEnd.MAX_STEPS: False}
+
+
 class MissionFinished(EventPayload):
     """The mission's end: the path walked, its metrics when a goal was known, the policy's total cost.
-    ``reason`` qualifies a stop (e.g. boxed in); ``error`` is the cause of a failure."""
+    ``reason`` qualifies a stop (e.g. boxed in); ``error`` is the cause of a failure.
+
+    ``outcome`` is the planner's word on how the loop ended (only the planner knows that stop was the
+    only action left); a sender that does not say gets the one ``stop_called`` implies. ``success``
+    exists only with a goal, and is the metrics' success."""
 
     KINDS: ClassVar[tuple[str, ...]] = ("finished",)
     type: Literal["mission_finished"] = "mission_finished"
     stop_called: bool
     steps: Count
+    outcome: MissionEnd | None = None
+    success: bool | None = None
     trajectory_m: list[Xyz_m] = Field(default_factory=list, max_length=PATH_MAX_POINTS)
     metrics: EpisodeMetricsData | None = None
     usage: UsageData = Field(default_factory=UsageData)
@@ -758,6 +780,23 @@ class MissionFinished(EventPayload):
     @classmethod
     def _trajectory_finite(cls, v):
         return _finite_xyz(v, "trajectory_m")
+
+    @model_validator(mode="after")
+    def _outcome_and_success(self):
+        if self.outcome is None:
+            self.outcome = MissionEnd.POLICY_STOPPED if self.stop_called else MissionEnd.MAX_STEPS
+        if self.outcome not in _FINISHED_ENDS:
+            raise ValueError(f"outcome {self.outcome.value!r}: a cancelled or failed mission ends with its own event")
+        if _FINISHED_ENDS[self.outcome] != self.stop_called:
+            raise ValueError(f"outcome {self.outcome.value!r} disagrees with stop_called={self.stop_called}")
+        if self.metrics is None:
+            if self.success is not None:
+                raise ValueError("success exists only when a goal is known (no metrics)")
+        elif self.success is None:
+            self.success = self.metrics.success
+        elif self.success != self.metrics.success:
+            raise ValueError(f"success={self.success} disagrees with the metrics' success={self.metrics.success}")
+        return self
 
 
 class ExplorationStarted(EventPayload):
@@ -922,15 +961,44 @@ class BuildMapRequest(Message):
 
 
 class MapImportRequest(Message):
-    """Store a user's own cloud (PLY or PCD bytes) as a map."""
+    """Store a user's own cloud (PLY or PCD bytes) as a map: whole in one request, or in parts.
+
+    In parts (``upload_id`` set), so that no side ever holds the file whole: each part carries the
+    bytes at ``offset`` (the parts in order, no gaps); the receiver appends them to a file on disk and
+    answers :class:`MapImportProgress`, and the ``last`` part's answer is the stored map's
+    :class:`MapInfo`. An ``abort`` part (no data) drops what was received. Any failure drops the
+    whole upload: a failed upload leaves neither a map nor a partial file."""
 
     map_id: str
     filename: str = Field(pattern=r"^[^/\\\x00-\x1f]{1,200}\.(ply|pcd)$")
-    data: bytes = Field(min_length=1)
+    data: bytes = b""
+    upload_id: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    offset: int = Field(0, ge=0, le=IMPORT_MAX_BYTES, description="bytes of the upload before this part")
+    last: bool = True
+    abort: bool = False
+
+    @model_validator(mode="after")
+    def _parts_agree(self):
+        if self.upload_id is None and (self.offset or self.abort or not self.last):
+            raise ValueError("offset, abort and last=False belong to an upload in parts (set upload_id)")
+        if self.abort and self.data:
+            raise ValueError("an abort part carries no data")
+        if not self.abort and not self.data:
+            raise ValueError("data: an import needs at least one byte")
+        return self
 
     def check_budget(self) -> None:
-        if len(self.data) > IMPORT_MAX_BYTES:
-            raise BudgetExceeded("imported cloud bytes", len(self.data), IMPORT_MAX_BYTES, "bytes")
+        if self.offset + len(self.data) > IMPORT_MAX_BYTES:
+            raise BudgetExceeded("imported cloud bytes", self.offset + len(self.data), IMPORT_MAX_BYTES, "bytes")
+        if self.upload_id is not None and len(self.data) > IMPORT_PART_MAX_BYTES:
+            raise BudgetExceeded("bytes of one upload part", len(self.data), IMPORT_PART_MAX_BYTES, "bytes")
+
+
+class MapImportProgress(Message):
+    """The answer to a part of an upload that is not the last (or to an abort)."""
+
+    upload_id: str
+    received_bytes: int = Field(ge=0, le=IMPORT_MAX_BYTES)
 
 
 # --- service plumbing ------------------------------------------------------------------------------

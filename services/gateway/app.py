@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import threading
 from collections.abc import Callable
 from contextlib import asynccontextmanager
@@ -52,9 +53,31 @@ def _zenoh_bus(settings: GatewaySettings) -> Bus:
     return ZenohBus(settings.zenoh)
 
 
+_TOKEN_IN_URL = re.compile(r"(access_token=)[^&\s\"]*")
+
+
+class RedactTokens(logging.Filter):
+    """Keep ``?access_token=`` values (how an EventSource or <img> of the dashboard sends its read
+    token) out of the logs: uvicorn's access log writes every request's full path."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(_TOKEN_IN_URL.sub(r"\1***", a) if isinstance(a, str) else a for a in record.args)
+        if isinstance(record.msg, str):
+            record.msg = _TOKEN_IN_URL.sub(r"\1***", record.msg)
+        return True
+
+
+def _redact_access_log() -> None:
+    access = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, RedactTokens) for f in access.filters):
+        access.addFilter(RedactTokens())
+
+
 def create_app(settings: GatewaySettings | None = None,
                bus_factory: Callable[[GatewaySettings], Bus] = _zenoh_bus) -> FastAPI:
     settings = settings or GatewaySettings()
+    _redact_access_log()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):

@@ -34,9 +34,10 @@ class GatewayError(Exception):
 
     status_code = 400
 
-    def __init__(self, detail: str, status_code: int | None = None):
+    def __init__(self, detail: str, status_code: int | None = None, code: str | None = None):
         super().__init__(detail)
         self.detail = detail
+        self.code = code  # the bus error code it stands for (budget_exceeded, ...), when there is one
         if status_code is not None:
             self.status_code = status_code
 
@@ -58,7 +59,7 @@ def ask(what: str, fn):
     try:
         return fn()
     except RemoteError as exc:
-        raise GatewayError(remote_detail(exc, what), remote_status(exc)) from None
+        raise GatewayError(remote_detail(exc, what), remote_status(exc), code=exc.code.value) from None
 
 
 def install(app: FastAPI) -> None:
@@ -68,7 +69,8 @@ def install(app: FastAPI) -> None:
         return JSONResponse({"detail": remote_detail(exc), "code": exc.code.value}, status_code=code)
 
     async def on_gateway(_request: Request, exc: GatewayError) -> JSONResponse:
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+        body = {"detail": exc.detail} if exc.code is None else {"detail": exc.detail, "code": exc.code}
+        return JSONResponse(body, status_code=exc.status_code)
 
     async def on_key(_request: Request, exc: KeyExprError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=422)

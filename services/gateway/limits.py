@@ -11,7 +11,8 @@ class BodyLimit:
     """Refuse bodies over ``max_bytes`` (``upload_max_bytes`` for ``upload_paths``) with 413.
 
     A declared Content-Length is checked before reading; a chunked body is read up to the limit and
-    then replayed to the app, so a route never sees a half-read body.
+    then replayed to the app, so a route never sees a half-read body - except on ``upload_paths``,
+    whose routes stream the body and enforce ``upload_max_bytes`` themselves.
     """
 
     def __init__(self, app: ASGIApp, max_bytes: int, upload_max_bytes: int, upload_paths: tuple[str, ...] = ()):
@@ -21,7 +22,7 @@ class BodyLimit:
         self.upload_paths = upload_paths
 
     async def _refuse(self, send: Send, limit: int) -> None:
-        body = json.dumps({"detail": f"request body larger than {limit} bytes"}).encode()
+        body = json.dumps({"detail": f"request body larger than {limit} bytes", "code": "budget_exceeded"}).encode()
         await send({"type": "http.response.start", "status": 413,
                     "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
                                 (b"connection", b"close")]})
@@ -47,6 +48,11 @@ class BodyLimit:
             if declared > limit:
                 await self._refuse(send, limit)
                 return
+            await self.app(scope, receive, send)
+            return
+        if scope["path"] in self.upload_paths:
+            # Uploads stream: the route spools the body to disk and counts it against the same limit
+            # as it goes (buffering it here is what would hold a large upload in memory).
             await self.app(scope, receive, send)
             return
         chunks: list[bytes] = []

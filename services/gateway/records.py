@@ -15,7 +15,7 @@ from pydantic import BaseModel, Field
 
 from shared.schemas import (
     ExplorationFinished, ExplorationProgress, ExplorationStarted, JobCancelled, JobFailed, JobEvent, JobEventKind,
-    MissionFinished, MissionStarted, JobState, MissionStep, Pose,
+    MissionEnd, MissionFinished, MissionStarted, JobState, MissionStep, Pose,
 )
 
 TERMINAL = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED})
@@ -35,15 +35,9 @@ class JobKind(StrEnum):
     EXPLORATION = "exploration"
 
 
-class MissionOutcome(StrEnum):
-    """How a mission ended - apart from whether it reached its goal (``success``, known only when the
-    mission has a goal): ``succeeded`` says only that the policy stopped, never that it was right."""
-
-    POLICY_STOPPED = "policy_stopped"  # the policy chose stop
-    NO_WAY_TO_MOVE = "no_way_to_move"  # stop was the only action left (boxed in)
-    MAX_STEPS = "max_steps"  # the step budget ran out without a stop
-    CANCELLED = "cancelled"
-    FAILED = "failed"
+# How a mission ended: the planner says it on MissionFinished; cancelled and failed come from their own
+# events (or from the gateway, for a job it ended itself).
+MissionOutcome = MissionEnd
 
 
 def outcome_of(state: JobState, outcome: str | None) -> str | None:
@@ -99,12 +93,9 @@ def apply_event(summary: dict[str, Any], event: JobEvent, image_urls: dict[str, 
             summary["completion_tokens"] += dec.completion_tokens
             summary["cost_usd"] += dec.cost_usd
         case MissionFinished():
-            boxed_in = d.stop_called and bool(summary["candidates"]) and all(
-                c.get("kind") == "stop" for c in summary["candidates"])
-            summary["outcome"] = (MissionOutcome.NO_WAY_TO_MOVE if boxed_in else MissionOutcome.POLICY_STOPPED
-                                  if d.stop_called else MissionOutcome.MAX_STEPS).value
-            # Success exists only where a goal is known (the metrics come with one).
-            summary["success"] = d.metrics.success if d.metrics is not None else None
+            # The planner's word (the schema checked it against stop_called and the metrics).
+            summary["outcome"] = d.outcome.value
+            summary["success"] = d.success
             if d.metrics is not None:
                 summary["metrics"] = d.metrics.model_dump(mode="json")
             if d.error:

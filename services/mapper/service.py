@@ -4,6 +4,11 @@
 ``MAPPER_EXPLORE`` accepts an exploration job (:mod:`shared.jobs`); the job itself is the core's
 :func:`~services.mapper.core.exploration_job.explore`, wired here to robot-io and the reconstructor
 over the bus. Its progress is published as events of the exploration.
+
+One mapper serves any number of robots: both queryables are served on a wildcard in the robot segment
+(or on the concrete keys of ``serve_robots``, so that replicas split the robots), and the robot id is
+taken from the key each request came on, never from its payload. Prediction is stateless per request;
+explorations are one at a time per robot (one body), concurrent across robots.
 """
 
 from __future__ import annotations
@@ -12,7 +17,7 @@ import logging
 import threading
 from typing import Any
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from services.mapper.core import DEFAULT_PREDICTOR, PREDICTORS, WaypointPredictor
 from services.mapper.core.exploration_job import explore
@@ -34,6 +39,15 @@ class MapperSettings(ServiceSettings):
     tour_frame_px: int = Field(128, ge=32, le=1024)
     build_stall_s: float = Field(300.0, gt=0, le=3600,
                                  description="a map build that sends no event for this long has failed")
+    serve_robots: list[str] = Field(default_factory=list, description=(
+        "robot ids this instance serves; empty: every robot (a wildcard). Replicas given disjoint lists "
+        "split the robots between them"))
+    max_robots: int = Field(64, ge=1, le=1024, description="robots with an exploration queue at once")
+
+    @field_validator("serve_robots")
+    @classmethod
+    def _robot_ids(cls, v: list[str]) -> list[str]:
+        return [keys.validate_segment(r, "robot id") for r in v]
 
 
 class MapperService(Service[MapperSettings]):
@@ -44,7 +58,8 @@ class MapperService(Service[MapperSettings]):
         super().__init__(settings)
         self.predictor: WaypointPredictor = PREDICTORS.create(settings.predictor, settings.predictor_config or None)
         self._lock = threading.Lock()
-        self._jobs: JobRunner | None = None
+        self._jobs: dict[str, JobRunner] = {}  # robot id -> its exploration runner
+        self._closed = False
         self._node: Node | None = None
 
     def backends(self) -> dict[str, str]:
@@ -52,37 +67,49 @@ class MapperService(Service[MapperSettings]):
 
     def start(self, node: Node) -> None:
         self._node = node
-        self._jobs = JobRunner(node.bus, name="exploration", workers=1, max_queued=1)
-        node.serve(keys.MAPPER_PREDICT.format(robot=node.robot), Panorama, self.predict)
-        node.serve(keys.MAPPER_EXPLORE.format(robot=node.robot), ExplorationRequest, self.submit, workers=1)
+        routes = self.settings.serve_robots
+        for key in keys.robot_routes(keys.MAPPER_PREDICT, routes):
+            node.serve(key, Panorama, self.predict)
+        for key in keys.robot_routes(keys.MAPPER_EXPLORE, routes):
+            node.serve(key, ExplorationRequest, self.submit, workers=1, keyed=True)
 
     def stop(self) -> None:
-        if self._jobs is not None:
-            self._jobs.close()
+        with self._lock:
+            self._closed = True
+            runners = list(self._jobs.values())
+        for jobs in runners:
+            jobs.close()
 
     def predict(self, pano: Panorama) -> CandidateSet:
         return CandidateSet(pose=pano.pose, candidates=self.predictor.predict(pano))
 
-    def submit(self, req: ExplorationRequest) -> JobAccepted:
-        node, jobs = self._node, self._jobs
-        assert node is not None and jobs is not None
+    def submit(self, key: str, req: ExplorationRequest) -> JobAccepted:
+        node = self._node
+        assert node is not None
+        robot_id = keys.robot_of(keys.MAPPER_EXPLORE, key)
         keys.validate_segment(req.exploration_id, "exploration id")
         keys.validate_segment(req.map_id, "map id")
         s = self.settings
-        # A robot has one body: a second exploration is refused, not queued behind the first.
         with self._lock:
+            jobs = self._jobs.get(robot_id)
+            if jobs is None:
+                if self._closed or len(self._jobs) >= s.max_robots:
+                    return JobAccepted(job_id=req.exploration_id, accepted=False,
+                                       reason=f"this mapper already serves {s.max_robots} robots")
+                jobs = self._jobs[robot_id] = JobRunner(node.bus, name=f"exploration of {robot_id}", workers=1,
+                                                        max_queued=1)
+            # A robot has one body: a second exploration is refused, not queued behind the first.
             if jobs.busy():
                 return JobAccepted(job_id=req.exploration_id, accepted=False,
                                    reason="an exploration is already running on this robot")
-            robot = RobotClient(node.bus, node.robot, recording_px=s.tour_frame_px,
+            robot = RobotClient(node.bus, robot_id, recording_px=s.tour_frame_px,
                                 recording_prefix=req.exploration_id,
                                 observe_camera=CameraIntrinsics(width_px=s.explore_camera_px,
                                                                 height_px=s.explore_camera_px))
             maps = MapClient(node.bus, build_stall_s=s.build_stall_s)
             return jobs.submit(req.exploration_id, lambda ctx: explore(
                 ctx, req, robot=robot, maps=maps, tour_rate_hz=s.tour_rate_hz,
-                publish_graph=lambda g: node.bus.publish(keys.MAPPER_GRAPH.format(robot=node.robot), g),
+                publish_graph=lambda g: node.bus.publish(keys.MAPPER_GRAPH.format(robot=robot_id), g),
                 publish_tour=lambda t: node.bus.publish(
-                    keys.MAPPER_TOURS.format(robot=node.robot, region=str(t.region)), t)),
-                keys.EXPLORATION_EVENTS.format(robot=node.robot, exploration=req.exploration_id))
-
+                    keys.MAPPER_TOURS.format(robot=robot_id, region=str(t.region)), t)),
+                keys.EXPLORATION_EVENTS.format(robot=robot_id, exploration=req.exploration_id))

@@ -1,7 +1,11 @@
 """planner service: runs navigation missions (the loop of Section 4.3) over the bus.
 
-``MISSION_SUBMIT`` queues a mission job (:mod:`shared.jobs`; one runs at a time: a robot has one body);
-``MISSION_CANCEL`` cancels a queued or running one. The job is the core's
+One planner serves any number of robots: it serves ``MISSION_SUBMIT`` / ``MISSION_CANCEL`` on a wildcard
+in the robot segment (``ant/*/planner/missions/submit``), or on the concrete keys of ``serve_robots``
+only (replicas split the robots between them), and takes the robot id from the key each request came
+on - never from its payload - so a request on robotX's key can only start or cancel robotX's missions.
+Each robot has its own mission queue (:mod:`shared.jobs`; one mission runs at a time per robot: a robot
+has one body), so missions of different robots run concurrently. The job is the core's
 :func:`~services.planner.core.mission.run_mission`, wired here to bus clients. Each mission publishes its events on
 ``MISSION_EVENTS`` with a gap-free sequence: started, one per step (pose, candidates, decision,
 reasoning, timings, JPEG views), then finished (metrics when the mission has a goal) or error.
@@ -10,9 +14,10 @@ reasoning, timings, JPEG views), then finished (metrics when the mission has a g
 from __future__ import annotations
 
 import logging
+import threading
 from typing import Any
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from services.planner.core import POLICIES
 from services.planner.core.mission import run_mission
@@ -29,7 +34,16 @@ log = logging.getLogger(__name__)
 class PlannerSettings(ServiceSettings):
     default_policy_config: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="per policy backend, the config used when a mission gives none")
-    max_queued: int = Field(16, ge=1, le=1000)
+    max_queued: int = Field(16, ge=1, le=1000, description="missions queued per robot")
+    serve_robots: list[str] = Field(default_factory=list, description=(
+        "robot ids this instance serves; empty: every robot (a wildcard). Replicas given disjoint lists "
+        "split the robots between them"))
+    max_robots: int = Field(64, ge=1, le=1024, description="robots with a mission queue at once (each one a thread)")
+
+    @field_validator("serve_robots")
+    @classmethod
+    def _robot_ids(cls, v: list[str]) -> list[str]:
+        return [keys.validate_segment(r, "robot id") for r in v]
     call_timeout_s: float = Field(60.0, gt=0, description="timeout of one call to another service")
 
 
@@ -39,7 +53,9 @@ class PlannerService(Service[PlannerSettings]):
 
     def __init__(self, settings: PlannerSettings):
         super().__init__(settings)
-        self._jobs: JobRunner | None = None
+        self._jobs: dict[str, JobRunner] = {}  # robot id -> its mission queue
+        self._jobs_lock = threading.Lock()
+        self._closed = False
         self._node: Node | None = None
 
     def backends(self) -> dict[str, str]:
@@ -47,32 +63,61 @@ class PlannerService(Service[PlannerSettings]):
 
     def start(self, node: Node) -> None:
         self._node = node
-        # One worker: a robot has one body, so its missions queue behind each other.
-        self._jobs = JobRunner(node.bus, name="mission", workers=1, max_queued=self.settings.max_queued)
-        node.serve(keys.MISSION_SUBMIT.format(robot=node.robot), MissionRequest, self.submit, workers=1)
-        node.serve(keys.MISSION_CANCEL.format(robot=node.robot), CancelRequest, self.cancel, workers=1)
+        routes = self.settings.serve_robots
+        for key in keys.robot_routes(keys.MISSION_SUBMIT, routes):
+            node.serve(key, MissionRequest, self.submit, workers=1, keyed=True)
+        for key in keys.robot_routes(keys.MISSION_CANCEL, routes):
+            node.serve(key, CancelRequest, self.cancel, workers=1, keyed=True)
 
     def stop(self) -> None:
-        if self._jobs is not None:
-            self._jobs.close()
+        with self._jobs_lock:
+            self._closed = True
+            runners = list(self._jobs.values())
+        for jobs in runners:
+            jobs.close()
+
+    def _runner(self, robot: str) -> JobRunner | None:
+        """The robot's mission queue, made at its first mission (None: too many robots already)."""
+        node = self._node
+        assert node is not None
+        with self._jobs_lock:
+            jobs = self._jobs.get(robot)
+            if jobs is None and not self._closed and len(self._jobs) < self.settings.max_robots:
+                # One worker: a robot has one body, so its missions queue behind each other.
+                jobs = self._jobs[robot] = JobRunner(node.bus, name=f"mission of {robot}", workers=1,
+                                                     max_queued=self.settings.max_queued)
+            return jobs
 
     # --- queryables ------------------------------------------------------------------------------------
-    def submit(self, req: MissionRequest) -> JobAccepted:
-        node, jobs = self._node, self._jobs
-        assert node is not None and jobs is not None
+    def submit(self, key: str, req: MissionRequest) -> JobAccepted:
+        robot = keys.robot_of(keys.MISSION_SUBMIT, key)
         keys.validate_segment(req.mission_id, "mission id")
         keys.validate_segment(req.map_id, "map id")
         if req.options.policy not in POLICIES.names():
             raise ValueError(f"unknown policy {req.options.policy!r}; known: {', '.join(POLICIES.names())}")
-        return jobs.submit(req.mission_id, lambda ctx: self._mission(ctx, req),
-                           keys.MISSION_EVENTS.format(robot=node.robot, mission=req.mission_id))
+        jobs = self._runner(robot)
+        if jobs is None:
+            return JobAccepted(job_id=req.mission_id, accepted=False,
+                               reason=f"this planner already serves {self.settings.max_robots} robots")
+        return jobs.submit(req.mission_id, lambda ctx: self._mission(ctx, robot, req),
+                           keys.MISSION_EVENTS.format(robot=robot, mission=req.mission_id))
 
-    def cancel(self, req: CancelRequest) -> JobAccepted:
-        assert self._jobs is not None
-        return self._jobs.cancel(req.mission_id)
+    def cancel(self, key: str, req: CancelRequest) -> JobAccepted:
+        robot = keys.robot_of(keys.MISSION_CANCEL, key)
+        with self._jobs_lock:
+            jobs = self._jobs.get(robot)
+        if jobs is None:
+            return JobAccepted(job_id=req.mission_id, accepted=False, reason="no such mission here")
+        return jobs.cancel(req.mission_id)
+
+    def active(self) -> dict[str, list[str]]:
+        """Queued and running mission ids per robot."""
+        with self._jobs_lock:
+            runners = dict(self._jobs)
+        return {robot: jobs.active() for robot, jobs in runners.items()}
 
     # --- the job: bus clients wired into the core's mission ------------------------------------------------
-    def _mission(self, ctx: JobContext, req: MissionRequest) -> JobEnd:
+    def _mission(self, ctx: JobContext, robot: str, req: MissionRequest) -> JobEnd:
         node = self._node
         assert node is not None
         s = self.settings
@@ -80,8 +125,8 @@ class PlannerService(Service[PlannerSettings]):
         policy = POLICIES.create(opts.policy, opts.policy_config or s.default_policy_config.get(opts.policy) or None)
         try:
             return run_mission(
-                ctx, req, robot=RobotClient(node.bus, node.robot, timeout_s=s.call_timeout_s),
-                predictor=MapperClient(node.bus, node.robot, timeout_s=s.call_timeout_s),
+                ctx, req, robot=RobotClient(node.bus, robot, timeout_s=s.call_timeout_s),
+                predictor=MapperClient(node.bus, robot, timeout_s=s.call_timeout_s),
                 renderer=RendererClient(node.bus, timeout_s=s.call_timeout_s),
                 maps=MapClient(node.bus, timeout_s=s.call_timeout_s), policy=policy, jpeg=jpeg)
         finally:

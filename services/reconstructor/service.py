@@ -21,13 +21,14 @@ from services.reconstructor.core import (
     DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig,
 )
 from services.reconstructor.core.build_job import build_map
+from services.reconstructor.core.uploads import Uploads
 from shared import keys
 from shared.bus.typed import NotFound
 from shared.jobs import JobRunner
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportRequest, MapInfo, MapListReply,
-    MapRequest, Ping,
+    BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportProgress, MapImportRequest, MapInfo,
+    MapListReply, MapRequest, Ping,
 )
 
 log = logging.getLogger(__name__)
@@ -39,6 +40,8 @@ class ReconstructorSettings(ServiceSettings):
     frames_timeout_s: float = Field(30.0, gt=0, description="wait this long for a recording's last frames")
     merge_voxel_m: float = Field(0.03, gt=0, le=1.0)
     max_queued_builds: int = Field(4, ge=1, le=100, description="map builds waiting behind the running one")
+    max_open_uploads: int = Field(8, ge=1, le=1000, description="uploads in parts being received at once")
+    upload_idle_s: float = Field(300.0, gt=0, le=86400, description="an upload with no part for this long is dropped")
 
 
 class FrameBuffer:
@@ -93,6 +96,9 @@ class ReconstructorService(Service[ReconstructorSettings]):
         super().__init__(settings)
         self.store = MapStore(settings.store_dir)
         self.frames = FrameBuffer(settings.frame_buffer_mb * 1024 * 1024)
+        # Beside the maps (same disk, so the finished file is parsed where it lies); a dot name is no map.
+        self.uploads = Uploads(self.store.root / ".uploads", max_open=settings.max_open_uploads,
+                               idle_s=settings.upload_idle_s)
         self._node: Node | None = None
         self._builds: JobRunner | None = None
 
@@ -138,9 +144,24 @@ class ReconstructorService(Service[ReconstructorSettings]):
         except MapNotFoundError as exc:
             raise NotFound(str(exc)) from None
 
-    def import_map(self, req: MapImportRequest) -> MapInfo:
+    def import_map(self, req: MapImportRequest) -> MapInfo | MapImportProgress:
+        keys.validate_segment(req.map_id, "map id")
+        if req.upload_id is None:  # whole in one request
+            return self._import(req, req.data)
+        if req.abort:
+            self.uploads.drop(req.upload_id, req.filename)
+            return MapImportProgress(upload_id=req.upload_id, received_bytes=0)
+        received = self.uploads.append(req.upload_id, req.map_id, req.filename, req.offset, req.data)
+        if not req.last:
+            return MapImportProgress(upload_id=req.upload_id, received_bytes=received)
         try:
-            info = self.store.import_cloud(req.map_id, req.data, filename=req.filename)
+            return self._import(req, self.uploads.path(req.upload_id, req.filename))
+        finally:
+            self.uploads.drop(req.upload_id, req.filename)
+
+    def _import(self, req: MapImportRequest, data) -> MapInfo:
+        try:
+            info = self.store.import_cloud(req.map_id, data, filename=req.filename)
         except CloudFormatError as exc:
             # An unreadable upload is the sender's fault: bad_request (HTTP 422), not internal (502).
             raise ValueError(f"{req.filename}: {exc}") from exc

@@ -39,8 +39,11 @@ class RendererSettings(ServiceSettings):
 class MapCache:
     """(map_id, version) -> IndexedCloud, least recently used out; one fetch per key at a time."""
 
-    def __init__(self, maps: MapClient, capacity: int):
+    def __init__(self, maps: MapClient, capacity: int, prepare=None):
         self.maps, self.capacity = maps, capacity
+        # Called on each newly indexed map, once, before any request renders it (the renderer's
+        # per-map data: the per-point spacing of the visibility mode takes seconds at 1e6 points).
+        self.prepare = prepare
         self._lock = threading.Lock()
         self._items: OrderedDict[tuple[str, int], IndexedCloud] = OrderedDict()
         self._latest: dict[str, int] = {}
@@ -85,6 +88,8 @@ class MapCache:
                 t0 = time.perf_counter()
                 cloud = PointCloud.from_chunks(self.maps.chunks(map_id, version), info.label_names)
                 index = IndexedCloud(cloud)
+                if self.prepare is not None:
+                    self.prepare(index)
             except BaseException:
                 with self._lock:  # a version that does not exist leaves nothing behind
                     self._fetching.pop(key, None)
@@ -123,7 +128,7 @@ class RendererService(Service[RendererSettings]):
     def start(self, node: Node) -> None:
         # Compile the splatting kernels now, not on the first request of a mission.
         log.info("renderer kernels ready in %.2f s", self.renderer.warm_up())
-        self.cache = MapCache(MapClient(node.bus), self.settings.cache_maps)
+        self.cache = MapCache(MapClient(node.bus), self.settings.cache_maps, prepare=self.renderer.prepare)
         # Only the map id of the key is used: what the announcement claims is checked with the store.
         node.own(node.bus.subscribe(keys.MAP_UPDATED.pattern(), MapInfo,
                                     lambda k, _info: self.cache.forget_latest(k.split("/")[-2])))

@@ -150,11 +150,12 @@ class TypedBus:
         return self.raw.subscribe(key, on_sample, history=history)
 
     # --- queries ---------------------------------------------------------------------------------
-    def serve(self, key: str, model: type[Req], handler: Callable[[Req], Message], *,
+    def serve(self, key: str, model: type[Req], handler: Callable[..., Message], *,
               workers: int = 1, max_queue: int = 64, name: str | None = None,
-              instance: str | None = None) -> Closeable:
+              instance: str | None = None, keyed: bool = False) -> Closeable:
         """Serve ``key``; with ``instance``, also its instance route (for balancing clients),
-        both fed to the same worker pool."""
+        both fed to the same worker pool. ``keyed``: the handler is ``handler(key, request)`` with the
+        concrete key asked - what a queryable on a wildcard (``ant/*/planner/...``) learns the robot from."""
         endpoint = name or key
 
         def on_query(k: str, payload: bytes | None) -> bytes:
@@ -164,7 +165,7 @@ class TypedBus:
                     raise CodecError("empty", "the query carries no payload")
                 request = decode(payload, model, self.max_request_bytes)
                 request.check_budget()  # before any work: an over-budget request costs nothing
-                result = handler(request)
+                result = handler(k, request) if keyed else handler(request)
                 out = encode(result)
             except Exception as exc:
                 code, message = error_for(exc)

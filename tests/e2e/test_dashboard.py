@@ -7,8 +7,10 @@ package (no downloaded browser); skipped where either is missing.
 
 from __future__ import annotations
 
+import logging
 import shutil
 import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -19,22 +21,19 @@ from tests.waiting import wait_until
 from deploy.launcher import free_port
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
+from tests.e2e.browser import headless_chromium
 from tests.doubles.scripted_services import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
 
 pytestmark = pytest.mark.e2e
 
-CHROMIUM = "/usr/bin/chromium"
-LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-               "--disable-component-update", "--no-first-run"]
 REPO = Path(__file__).resolve().parents[2]
 
 
-
-
-@pytest.fixture
-def live_gateway(tmp_path):
+@contextmanager
+def serve_gateway(tmp_path, **overrides):
+    """The gateway under uvicorn over zenoh, scripted services behind it; yields its URL."""
     uvicorn = pytest.importorskip("uvicorn")
     from shared.bus.zenoh_bus import ZenohBus
 
@@ -46,17 +45,19 @@ def live_gateway(tmp_path):
     planner = ScriptedPlanner(typed, steps=6, step_interval_s=0.6, candidates=3, image_px=128)
     mapper = ScriptedMapper(typed, stages=3, stage_interval_s=0.5, reconstructor=recon)
     settings = GatewaySettings(instance="gw-e2e", host="127.0.0.1", port=hport, db_path=tmp_path / "gw.sqlite3",
-                               zenoh=ZenohSettings(connect=[f"tcp/127.0.0.1:{zport}"]), request_timeout_s=5.0)
+                               zenoh=ZenohSettings(connect=[f"tcp/127.0.0.1:{zport}"]), request_timeout_s=5.0,
+                               **overrides)
     server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=hport, log_config=None,
                                            timeout_graceful_shutdown=2))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     url = f"http://127.0.0.1:{hport}"
+    auth = {"Authorization": f"Bearer {settings.read_token}"} if settings.read_token else {}
 
     def ready():
         try:
             # Ready once the gateway answers and reaches the reconstructor over zenoh.
-            return httpx.get(f"{url}/maps", timeout=2).status_code == 200
+            return httpx.get(f"{url}/maps", timeout=2, headers=auth).status_code == 200
         except httpx.HTTPError:
             return False
 
@@ -72,35 +73,34 @@ def live_gateway(tmp_path):
         services_bus.close()
 
 
+@pytest.fixture
+def live_gateway(tmp_path):
+    with serve_gateway(tmp_path) as url:
+        yield url
+
+
 def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_path):
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1440, "height": 1250})
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(f"{live_gateway}/dashboard")
-            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
-            page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
-            page.click("#submit")
-            # Steps arrive live over SSE: the first while the mission still runs ...
-            page.wait_for_selector("#steps li[data-seq='1']", timeout=15_000)
-            assert page.text_content("#m-state") == "running"
-            # ... then the rest, with pictures, candidates and the decision's reasoning.
-            page.wait_for_selector("#m-state.succeeded", timeout=30_000)
-            page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
-            page.wait_for_function(
-                "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
-                timeout=10_000)
-            steps = page.locator("#steps li").count()
-            cards = page.locator(".cand").count()
-            reasoning = page.text_content("#decision .reason")
-            shot = page.screenshot(full_page=True)
-        finally:
-            browser.close()
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1440, "height": 1250})
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{live_gateway}/dashboard")
+        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
+        page.click("#submit")
+        # Steps arrive live over SSE: the first while the mission still runs ...
+        page.wait_for_selector("#steps li[data-seq='1']", timeout=15_000)
+        assert page.text_content("#m-state") == "running"
+        # ... then the rest, with pictures, candidates and the decision's reasoning.
+        page.wait_for_selector("#m-state.succeeded", timeout=30_000)
+        page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
+        page.wait_for_function(
+            "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
+            timeout=10_000)
+        steps = page.locator("#steps li").count()
+        cards = page.locator(".cand").count()
+        reasoning = page.text_content("#decision .reason")
+        shot = page.screenshot(full_page=True)
     assert steps == 8  # started, 6 steps, finished
     assert cards == 3
     assert "stop" in (reasoning or "").lower()
@@ -115,34 +115,27 @@ def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_
 
 
 def test_dashboard_explores_a_new_map_with_progress(live_gateway):
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1440, "height": 1250})
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(f"{live_gateway}/dashboard")
-            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
-            page.fill("#explore-map", "explored-house")
-            page.click("#explore")
-            # Progress arrives over SSE while the exploration runs (stages 0.5 s apart) ...
-            page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'running'"
-                                   " && document.querySelector('#explore-progress').value > 0", timeout=15_000)
-            assert page.is_disabled("#explore")
-            # ... and at the end the new map is offered to the mission form.
-            page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'succeeded'",
-                                   timeout=20_000)
-            page.wait_for_selector("#map-select option[value='explored-house']", state="attached", timeout=10_000)
-            progress = page.eval_on_selector("#explore-progress", "e => e.value")
-            status = page.text_content("#explore-status")
-            selected = page.eval_on_selector("#map-select", "e => e.value")
-            enabled = not page.is_disabled("#explore")
-            shot = page.screenshot(full_page=True)
-        finally:
-            browser.close()
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1440, "height": 1250})
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{live_gateway}/dashboard")
+        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page.fill("#explore-map", "explored-house")
+        page.click("#explore")
+        # Progress arrives over SSE while the exploration runs (stages 0.5 s apart) ...
+        page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'running'"
+                               " && document.querySelector('#explore-progress').value > 0", timeout=15_000)
+        assert page.is_disabled("#explore")
+        # ... and at the end the new map is offered to the mission form.
+        page.wait_for_function("document.querySelector('#explore-status').dataset.state === 'succeeded'",
+                               timeout=20_000)
+        page.wait_for_selector("#map-select option[value='explored-house']", state="attached", timeout=10_000)
+        progress = page.eval_on_selector("#explore-progress", "e => e.value")
+        status = page.text_content("#explore-status")
+        selected = page.eval_on_selector("#map-select", "e => e.value")
+        enabled = not page.is_disabled("#explore")
+        shot = page.screenshot(full_page=True)
     assert progress == 1 and status.startswith("succeeded 100%")
     assert selected == "explored-house" and enabled
     assert not errors, errors
@@ -151,3 +144,44 @@ def test_dashboard_explores_a_new_map_with_progress(live_gateway):
     (out / "dashboard-explore.png").write_bytes(shot)
     explorations = httpx.get(f"{live_gateway}/explorations", timeout=5).json()["items"]
     assert [(x["map_id"], x["state"]) for x in explorations] == [("explored-house", "succeeded")]
+
+
+def test_dashboard_with_a_read_token_sends_it_on_every_read_and_its_steps_agree(tmp_path, caplog):
+    """With ANT_READ_TOKEN set, the page takes the token from a #token= link, sends it on every fetch,
+    EventSource, image and download (none is refused), keeps it out of the address bar and the access
+    log; and the header, the decision and the step list count the same steps."""
+    caplog.set_level(logging.INFO, logger="uvicorn.access")
+    secret = "api-secret-4711"
+    with serve_gateway(tmp_path, read_token="read-secret-0815", api_token=secret) as url, \
+            headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1440, "height": 1250})
+        errors: list[str] = []
+        refused: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.on("response", lambda r: refused.append(r.url) if r.status == 401 else None)
+        page.goto(f"{url}/dashboard#token={secret}")
+        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        address = page.evaluate("location.href")
+        page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
+        page.click("#submit")
+        page.wait_for_selector("#m-state.succeeded", timeout=30_000)
+        page.wait_for_function("document.querySelector('#panorama').naturalWidth > 0", timeout=10_000)
+        page.wait_for_function(
+            "[...document.querySelectorAll('.cand img')].every(i => i.complete && i.naturalWidth > 0)",
+            timeout=10_000)
+        header = page.text_content("#m-step")
+        choice = page.text_content("#decision .choice")
+        last_step = page.locator("#steps li .k").filter(has_text="step").last.text_content()
+        download = page.get_attribute("#m-downloads a", "href") or ""
+        shot = page.screenshot(full_page=True)
+    out = REPO / "runs" / "screenshots"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "dashboard_read_token.png").write_bytes(shot)
+    assert not refused, refused
+    assert not errors, errors
+    assert secret not in address and "#token" not in address
+    # Six decisions: the header, the last decision and the list say the same.
+    assert header == "step 6" and choice.startswith("Step 6:") and last_step == "step 6", (header, choice, last_step)
+    assert "access_token=" in download
+    access = "\n".join(r.getMessage() for r in caplog.records if r.name == "uvicorn.access")
+    assert "access_token=***" in access and secret not in access

@@ -5,49 +5,42 @@ from __future__ import annotations
 
 import io
 import zipfile
-from pathlib import Path
 
 import pytest
 import rerun as rr
 
-from tests.e2e.test_dashboard import CHROMIUM, LAUNCH_ARGS, REPO, live_gateway  # noqa: F401 - the fixture
+from tests.e2e.browser import headless_chromium
+from tests.e2e.test_dashboard import REPO, live_gateway  # noqa: F401 - the fixture
 
 pytestmark = pytest.mark.e2e
 
 
 def test_dashboard_downloads_a_recorded_mission_and_a_map(live_gateway, tmp_path):  # noqa: F811
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1440, "height": 1250}, accept_downloads=True)
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(f"{live_gateway}/dashboard")
-            page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
-            page.fill("#instruction", "Walk into the kitchen and stop.")
-            page.check("#record")
-            page.click("#submit")
-            # While it runs the recording is announced as coming, then offered once it ends.
-            page.wait_for_selector("#m-downloads .dl.off", timeout=10_000)
-            page.wait_for_selector("#m-state.succeeded", timeout=30_000)
-            page.wait_for_selector("#m-downloads a.dl[href$='recording.rrd']", timeout=20_000)
-            with page.expect_download() as rrd:
-                page.click("#m-downloads a.dl[href$='recording.rrd']")
-            rrd.value.save_as(tmp_path / "m.rrd")
-            with page.expect_download() as traj:
-                page.click("#m-downloads a.dl[href$='trajectory.csv']")
-            traj.value.save_as(tmp_path / "t.csv")
-            nav2 = page.locator("#maps li", has_text="demo-house").locator("a.dl", has_text="Nav2")
-            with page.expect_download() as z:
-                nav2.click()
-            z.value.save_as(tmp_path / "nav2.zip")
-            pcd_href = page.locator("#maps li", has_text="demo-house").locator("a.dl", has_text="PCD").get_attribute("href")
-            shot = page.screenshot(full_page=True)
-        finally:
-            browser.close()
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 1440, "height": 1250}, accept_downloads=True)
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{live_gateway}/dashboard")
+        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page.fill("#instruction", "Walk into the kitchen and stop.")
+        page.check("#record")
+        page.click("#submit")
+        # While it runs the recording is announced as coming, then offered once it ends.
+        page.wait_for_selector("#m-downloads .dl.off", timeout=10_000)
+        page.wait_for_selector("#m-state.succeeded", timeout=30_000)
+        page.wait_for_selector("#m-downloads a.dl[href$='recording.rrd']", timeout=20_000)
+        with page.expect_download() as rrd:
+            page.click("#m-downloads a.dl[href$='recording.rrd']")
+        rrd.value.save_as(tmp_path / "m.rrd")
+        with page.expect_download() as traj:
+            page.click("#m-downloads a.dl[href$='trajectory.csv']")
+        traj.value.save_as(tmp_path / "t.csv")
+        nav2 = page.locator("#maps li", has_text="demo-house").locator("a.dl", has_text="Nav2")
+        with page.expect_download() as z:
+            nav2.click()
+        z.value.save_as(tmp_path / "nav2.zip")
+        pcd_href = page.locator("#maps li", has_text="demo-house").locator("a.dl", has_text="PCD").get_attribute("href")
+        shot = page.screenshot(full_page=True)
     assert not errors, errors
     entities = {c.entity_path.lstrip("/") for c in rr.chunk.RrdReader(str(tmp_path / "m.rrd")).stream()}
     assert {"world/map", "world/trajectory", "decisions", "views/panorama"} <= entities

@@ -150,6 +150,8 @@ def samples(map_id: str = "m", panorama: schemas.Panorama | None = None) -> dict
         S.RecordRequest(recording="fuzz-rec", start=False, rate_hz=5.0, max_width_px=64), panorama,
         S.ExplorationRequest(exploration_id="x-fuzz", map_id=map_id, max_steps=5, options={"k": 1.5}),
         S.MapRequest(map_id=map_id, version=1), S.MapChunkRequest(map_id=map_id, version=1, index=0, max_points=1000),
+        # An abort: valid, and sending it to the real store changes nothing.
+        S.MapImportRequest(map_id="fuzz-import", filename="f.ply", upload_id="up-fuzz", offset=5, abort=True, last=False),
         S.BuildMapRequest(build_id="b-fuzz", exploration_id="x-fuzz", map_id="fuzz-build", recordings=[tour], label_names={1: "wall"},
                           options={"k": 1.5}),
         S.RenderRequest(map_id=map_id, views=[S.ViewPose(position_m=(1.0, 2.0, 0.0), heading_rad=0.2, pitch_rad=0.1)],

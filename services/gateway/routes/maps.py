@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import tempfile
 from collections.abc import Iterator
 from typing import Annotated
 
@@ -15,7 +16,7 @@ from services.gateway.errors import GatewayError, ask
 from services.gateway.params import SEGMENT, MapId, Version
 from shared import cloud as ply
 from shared.clients import MapClient
-from shared.schemas import MapImportRequest, MapInfo
+from shared.schemas import ErrorCode, MapInfo
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/maps", tags=["maps"])
@@ -75,18 +76,31 @@ async def upload_cloud(request: Request, bus: BusDep, settings: SettingsDep, res
                        filename: Annotated[str, Query(pattern=r"^[^/\\\x00-\x1f]{1,200}\.(ply|pcd)$")] = "cloud.ply",
                        ) -> MapInfo:
     """Store a PLY or PCD cloud as a map: the file is the raw body
-    (``curl --data-binary @room.ply -H 'Content-Type: application/octet-stream' '/maps?map_id=room'``)."""
-    data = await request.body()
-    if not data:
-        raise GatewayError("empty body: send the PLY/PCD file as the request body", 422)
-    head = data[:256].lstrip()
-    is_ply = head.startswith(b"ply")
-    is_pcd = head.startswith(b"#") or head.startswith(b"VERSION")
-    if not (is_ply and filename.endswith(".ply")) and not (is_pcd and filename.endswith(".pcd")):
-        raise GatewayError(f"{filename!r}: the body is not a {filename.rsplit('.', 1)[-1].upper()} file", 415)
-    msg = MapImportRequest(map_id=map_id, filename=filename, data=data)
-    # Blocking bus request: off the event loop.
-    info = await run_in_threadpool(ask, f"cannot import {filename!r}", lambda: MapClient(
-        bus, timeout_s=settings.request_timeout_s).import_cloud(msg))
+    (``curl --data-binary @room.ply -H 'Content-Type: application/octet-stream' '/maps?map_id=room'``).
+
+    The body is spooled to an unlinked temporary file as it arrives (at most ``max_upload_bytes``),
+    then sent to the reconstructor in parts from there: the gateway never holds the file, and a body
+    that is cut short, too large or not a cloud costs the reconstructor nothing."""
+    with tempfile.TemporaryFile(prefix="ant-upload-", dir=settings.upload_spool_dir) as spool:
+        size, head = 0, b""
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > settings.max_upload_bytes:
+                raise GatewayError(f"request body larger than {settings.max_upload_bytes} bytes", 413,
+                                   code=ErrorCode.BUDGET_EXCEEDED.value)
+            if len(head) < 256:
+                head += chunk[:256 - len(head)]
+            spool.write(chunk)
+        if not size:
+            raise GatewayError("empty body: send the PLY/PCD file as the request body", 422)
+        head = head.lstrip()
+        is_ply = head.startswith(b"ply")
+        is_pcd = head.startswith(b"#") or head.startswith(b"VERSION")
+        if not (is_ply and filename.endswith(".ply")) and not (is_pcd and filename.endswith(".pcd")):
+            raise GatewayError(f"{filename!r}: the body is not a {filename.rsplit('.', 1)[-1].upper()} file", 415)
+        spool.seek(0)
+        # Blocking bus requests and file reads: off the event loop.
+        info = await run_in_threadpool(ask, f"cannot import {filename!r}", lambda: MapClient(
+            bus, timeout_s=settings.request_timeout_s).import_cloud(map_id, filename, spool))
     response.headers["Location"] = f"/maps/{map_id}"
     return info

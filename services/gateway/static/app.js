@@ -16,7 +16,28 @@ let current = null;      // id of the mission on screen
 let stream = null;       // its EventSource
 let record = null;       // its record, kept up to date from events
 
-function token() { return localStorage.getItem("ant-token") || ""; }
+// The token (read or API) lives in this tab's sessionStorage only. It comes from the Access token
+// field, or from a link like /dashboard#token=...: taken out of the address bar at once, so it is
+// neither bookmarked nor sent anywhere but in our own requests.
+const TOKEN_KEY = "ant-token";
+function token() { return sessionStorage.getItem(TOKEN_KEY) || ""; }
+function setToken(t) { if (t) sessionStorage.setItem(TOKEN_KEY, t); else sessionStorage.removeItem(TOKEN_KEY); }
+(function tokenFromFragment() {
+  const m = location.hash.match(/^#token=([^&]*)/);
+  if (!m) return;
+  setToken(decodeURIComponent(m[1]));
+  history.replaceState(null, "", location.pathname + location.search);
+})();
+// An EventSource, an <img> or a download link cannot send a header: the gateway takes the token as
+// ?access_token= there (and the gateway's access log leaves it out).
+function withToken(url) {
+  if (!url || !token() || url.startsWith("data:")) return url;
+  return url + (url.includes("?") ? "&" : "?") + "access_token=" + encodeURIComponent(token());
+}
+function authHeaders(headers = {}) {
+  if (token()) headers["Authorization"] = "Bearer " + token();
+  return headers;
+}
 
 // 3 -> "3 pts", 48210 -> "48.2k pts", 2.1e6 -> "2.1M pts" (a 3-point map is not "0.0k").
 function points(n) {
@@ -27,13 +48,14 @@ function points(n) {
 async function api(path, opts = {}) {
   const headers = Object.assign({ "Accept": "application/json" }, opts.headers || {});
   if (opts.body) headers["Content-Type"] = "application/json";
-  if (token() && opts.method && opts.method !== "GET") headers["Authorization"] = "Bearer " + token();
+  authHeaders(headers);  // reads too: with ANT_READ_TOKEN set, every GET needs it
   const r = await fetch(path, Object.assign({}, opts, { headers }));
   let body = null;
   try { body = await r.json(); } catch (_) { /* empty or not JSON */ }
   if (!r.ok) {
     let detail = body && body.detail;
     if (Array.isArray(detail)) detail = detail.map((d) => `${(d.loc || []).slice(1).join(".")}: ${d.msg}`).join("; ");
+    if (r.status === 401) $("#token-box").open = true;  // say where the token goes
     throw new Error(`${r.status}: ${detail || r.statusText}`);
   }
   return body;
@@ -68,7 +90,7 @@ async function refreshMaps() {
       li.append(el("span", "text", m.map_id),
         el("span", "meta", `${points(m.point_count)} · v${m.version}`));
       li.title = `source ${m.source || "?"}; click to download the cloud`;
-      li.onclick = () => { window.location.href = `/maps/${encodeURIComponent(m.map_id)}/cloud.ply`; };
+      li.onclick = () => { window.location.href = withToken(`/maps/${encodeURIComponent(m.map_id)}/cloud.ply`); };
       li.append(mapDownloads(m.map_id));
       return li;
     }) : [el("li", "muted", "no maps yet")]));
@@ -97,7 +119,7 @@ async function refreshMissions() {
 // --- downloads ------------------------------------------------------------------------------------
 function link(name, url, title) {
   const a = el("a", "dl", name);
-  a.href = url; a.setAttribute("download", ""); if (title) a.title = title;
+  a.href = withToken(url); a.setAttribute("download", ""); if (title) a.title = title;
   a.onclick = (e) => e.stopPropagation();  // inside a clickable list row
   return a;
 }
@@ -120,7 +142,7 @@ async function renderDownloads(kind, id) {
 }
 
 // --- one mission ------------------------------------------------------------------------------------
-function setImage(img, url) { if (url && img.getAttribute("src") !== url) img.src = url; }
+function setImage(img, url) { url = withToken(url); if (url && img.getAttribute("src") !== url) img.src = url; }
 
 function renderHead() {
   $("#mission").classList.remove("empty");
@@ -129,7 +151,8 @@ function renderHead() {
   const badge = $("#m-state");
   badge.textContent = record.state;
   badge.className = "badge " + record.state;
-  $("#m-step").textContent = `step ${record.step}`;
+  // Steps taken: the decisions seen so far (the decision box numbers the same decisions the same way).
+  $("#m-step").textContent = `step ${record.decisions_seen}`;
   $("#cancel").hidden = TERMINAL.has(record.state);
   // How it ended is not whether it was right: success exists only when the mission had a goal.
   const outcome = $("#m-outcome");
@@ -176,7 +199,7 @@ function renderDecision(decision, extra) {
   const tokens = el("div", "tokens",
     `${decision.backend || "policy"} · ${record.prompt_tokens} prompt + ${record.completion_tokens} completion tokens` +
     ` · $${(record.cost_usd || 0).toFixed(4)}` + (decision.fallback ? " · fallback" : ""));
-  box.replaceChildren(el("div", "choice", `Step ${decision.step ?? record.step}: ${choice}`), reason, tokens);
+  box.replaceChildren(el("div", "choice", `Step ${decision.step}: ${choice}`), reason, tokens);
   if (extra && extra.timings_s) {
     const t = Object.entries(extra.timings_s).map(([k, v]) => `${k} ${(+v).toFixed(2)} s`).join(" · ");
     box.append(el("div", "tokens", t));
@@ -211,7 +234,7 @@ function renderCandidates(candidates, images, chosen) {
       const f = el("figure"), img = el("img");
       img.alt = `candidate ${c.index} ${label}`;
       const url = images[`cand_${c.index}_${kind}`];
-      if (url) img.src = url;
+      if (url) img.src = withToken(url);
       f.append(img, el("figcaption", "", label));
       views.append(f);
     }
@@ -229,7 +252,7 @@ function addStep(ev) {
   if (ev.kind === "error") text = `error: ${d.error || d.message || ""}`;
   const li = el("li");
   li.dataset.seq = ev.seq;
-  li.append(el("span", "k", `${ev.kind} ${ev.step}`), el("span", "", text));
+  li.append(el("span", "k", ev.kind === "step" ? `step ${ev.ordinal}` : ev.kind), el("span", "", text));
   if (d.decision && d.decision.reasoning) li.title = d.decision.reasoning;
   $("#steps").append(li);
   li.scrollIntoView({ block: "nearest" });
@@ -240,6 +263,8 @@ function onEvent(ev) {
   if (ev.seq <= record._seen) return;
   record._seen = ev.seq;
   record.state = ev.state; record.step = ev.step;
+  // The n-th decision is step n everywhere on the page, however the planner numbers its events.
+  if (ev.kind === "step") ev.ordinal = ++record.decisions_seen;
   const d = ev.data || {};
   if (d.pose && d.pose.position_m) {
     const t = record.trajectory, p = d.pose.position_m;
@@ -263,7 +288,7 @@ function onEvent(ev) {
     record.candidates = d.candidates;
     renderCandidates(d.candidates, ev.images || {}, d.decision ? d.decision.candidate_index : null);
   }
-  if (d.decision) renderDecision(Object.assign({ step: ev.step }, d.decision), d);
+  if (d.decision) renderDecision(Object.assign({ step: ev.ordinal }, d.decision), d);
   renderMetrics(record.metrics);
   addStep(ev);
 }
@@ -280,11 +305,12 @@ async function select(id) {
     record = await api(`/missions/${encodeURIComponent(id)}`);
   } catch (e) { $("#form-error").textContent = e.message; return; }
   // The stream replays every event from the start, so the view is built from events alone.
-  Object.assign(record, { _seen: -1, trajectory: [], images: {}, prompt_tokens: 0, completion_tokens: 0, cost_usd: 0 });
+  Object.assign(record, { _seen: -1, decisions_seen: 0, trajectory: [], images: {}, prompt_tokens: 0,
+                          completion_tokens: 0, cost_usd: 0 });
   renderHead();
   renderMetrics(record.metrics);
   renderDownloads("mission", id);
-  stream = new EventSource(`/missions/${encodeURIComponent(id)}/events`);
+  stream = new EventSource(withToken(`/missions/${encodeURIComponent(id)}/events`));
   const handler = (msg) => onEvent(JSON.parse(msg.data));
   for (const k of ["started", "step", "progress", "finished", "error"]) stream.addEventListener(k, handler);
   stream.addEventListener("end", () => { stream.close(); stream = null; refreshMissions(); renderDownloads("mission", id); });
@@ -294,7 +320,7 @@ async function submit(e) {
   e.preventDefault();
   const err = $("#form-error"), btn = $("#submit");
   err.textContent = "";
-  localStorage.setItem("ant-token", $("#token").value.trim());
+  setToken($("#token").value.trim());
   const body = {
     instruction: $("#instruction").value.trim(), map_id: $("#map-select").value,
     options: { policy: $("#policy").value.trim() || "heuristic", max_steps: parseInt($("#max-steps").value, 10) || 40 },
@@ -335,7 +361,7 @@ function followExploration(created, mapId) {
   if (exploreStream) exploreStream.close();
   const rec = { state: "queued", progress: 0, stage: null, error: null };
   showExploration(rec);
-  exploreStream = new EventSource(created.events_url);
+  exploreStream = new EventSource(withToken(created.events_url));
   const handler = (msg) => {
     const ev = JSON.parse(msg.data), data = ev.data || {};
     rec.state = ev.state;
@@ -360,7 +386,7 @@ async function explore(e) {
   e.preventDefault();
   const err = $("#explore-error"), btn = $("#explore"), mapId = $("#explore-map").value.trim();
   err.textContent = "";
-  localStorage.setItem("ant-token", $("#token").value.trim());
+  setToken($("#token").value.trim());
   btn.disabled = true;
   try {
     const created = await api("/explorations", { method: "POST", body: JSON.stringify({ map_id: mapId }) });
@@ -374,9 +400,8 @@ async function upload(e) {
   const file = $("#upload-file").files[0], mapId = $("#upload-map").value.trim();
   err.textContent = ""; status.textContent = "";
   if (!file) { err.textContent = "choose a .ply or .pcd file"; return; }
-  localStorage.setItem("ant-token", $("#token").value.trim());
-  const headers = { "Content-Type": "application/octet-stream", "Accept": "application/json" };
-  if (token()) headers["Authorization"] = "Bearer " + token();
+  setToken($("#token").value.trim());
+  const headers = authHeaders({ "Content-Type": "application/octet-stream", "Accept": "application/json" });
   const url = `/maps?map_id=${encodeURIComponent(mapId)}&filename=${encodeURIComponent(file.name)}`;
   btn.disabled = true;
   status.textContent = `uploading ${(file.size / 1e6).toFixed(1)} MB ...`;
@@ -397,6 +422,8 @@ $("#mission-form").addEventListener("submit", submit);
 $("#cancel").addEventListener("click", cancel);
 $("#state-filter").addEventListener("change", refreshMissions);
 $("#token").value = token();
+$("#token").addEventListener("change", () => { setToken($("#token").value.trim()); refreshAll(); });
+function refreshAll() { refreshStatus(); refreshMaps(); refreshMissions(); }
 refreshStatus(); refreshMaps(); refreshMissions().then(() => {
   const id = location.hash.slice(1);
   if (id) select(id);

@@ -66,11 +66,13 @@ def build_occupancy(
     cell_m: float = 0.1,
     max_range_m: float = 5.0,
     pad_m: float = 0.5,
+    chunk_samples: int = 4_000_000,
 ) -> OccupancyGrid:
     """Ray-cast the scans of one floor into an occupancy grid.
 
     ``positions_m`` (S, 3), ``obstacle_m`` (S, A) ranges per relative angle ``angles_rad`` (A,),
-    ``headings_rad`` (S,) the agent headings the angles are relative to.
+    ``headings_rad`` (S,) the agent headings the angles are relative to. ``chunk_samples`` bounds
+    the ray samples held at once (memory only: the grid does not depend on it).
     """
     positions_m = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
     obstacle_m = np.asarray(obstacle_m, dtype=np.float64).reshape(len(positions_m), -1)
@@ -88,12 +90,30 @@ def build_occupancy(
     seen = ~np.isnan(obstacle_m)
     rng = np.where(np.isfinite(obstacle_m), obstacle_m, max_range_m)
     # Free: samples strictly before the obstacle (half a cell of margin keeps walls occupied).
-    free_mask = seen[..., None] & (samples[None, None, :] < (rng[..., None] - cell_m * 0.5))
-    pts = positions_m[:, None, None, :2] + dirs[:, :, None, :] * samples[None, None, :, None]
-    fidx = grid.to_index(pts[free_mask])
-    counts_free = np.zeros(shape, np.int32)
-    ok = grid.inside(fidx)
-    np.add.at(counts_free, (fidx[ok, 0], fidx[ok, 1]), 1)
+    # Only the free samples are ever computed, a few scans at a time (all samples of a large
+    # building's scans at once are hundreds of MB), each chunk as far out as its longest free ray
+    # needs (one sample more for rounding: the exact test below decides).
+    n_free = np.where(seen, np.clip(np.ceil((rng - cell_m * 0.5) / step), 0, len(samples)), 0).astype(np.int64)
+    free_any = np.zeros(shape, dtype=bool)
+    flat_free = free_any.ravel()
+    ny_ = shape[1]
+    n_ang = len(angles_rad)
+    cos_f, sin_f = dirs[..., 0].ravel(), dirs[..., 1].ravel()
+    chunk = max(1, chunk_samples // max(1, len(angles_rad) * len(samples)))
+    for s0 in range(0, len(positions_m), chunk):
+        sl = slice(s0, s0 + chunk)
+        k_max = min(int(n_free[sl].max(initial=0)) + 1, len(samples))
+        r = samples[:k_max]
+        mask = seen[sl, :, None] & (r[None, None, :] < (rng[sl, :, None] - cell_m * 0.5))
+        ray, ri = np.nonzero(mask.reshape(-1, k_max))
+        ray += s0 * n_ang
+        si, d = ray // n_ang, r[ri]
+        # Per axis on flat arrays: the same arithmetic as OccupancyGrid.to_index, without gathers
+        # of (N, 2) rows.
+        ix = np.floor((positions_m[si, 0] + cos_f[ray] * d - lo[0]) / cell_m).astype(np.int64)
+        iy = np.floor((positions_m[si, 1] + sin_f[ray] * d - lo[1]) / cell_m).astype(np.int64)
+        ok = (ix >= 0) & (ix < shape[0]) & (iy >= 0) & (iy < ny_)
+        flat_free[ix[ok] * ny_ + iy[ok]] = True
 
     hit = seen & np.isfinite(obstacle_m) & (obstacle_m < max_range_m)
     # The obstacle range is the near edge of its profile bin: the wall lies just beyond it.
@@ -101,12 +121,12 @@ def build_occupancy(
     hpts = positions_m[:, None, :2] + dirs * (hit_rng[..., None] + cell_m * 0.5)
     hidx = grid.to_index(hpts[hit])
     ok = grid.inside(hidx)
-    counts_occ = np.zeros(shape, np.int32)
-    np.add.at(counts_occ, (hidx[ok, 0], hidx[ok, 1]), 1)
+    occ_any = np.zeros(shape, dtype=bool)
+    occ_any[hidx[ok, 0], hidx[ok, 1]] = True
 
     cells = np.zeros(shape, np.uint8)
-    cells[counts_free > 0] = FREE
-    cells[counts_occ > 0] = OCCUPIED
+    cells[free_any] = FREE
+    cells[occ_any] = OCCUPIED
     # The cell under each scan position is free however the rays fell.
     own = grid.to_index(positions_m[:, :2])
     ok = grid.inside(own)

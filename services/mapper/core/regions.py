@@ -189,19 +189,27 @@ def analyse(result: ExplorationResult, config: RegionConfig | None = None) -> Sc
             regions[rid] = sorted(comm)
             region_floor[rid] = fl.index
     node_region = {n: r for r, ns in regions.items() for n in ns}
-    # Stair nodes and observed nodes take the region of their nearest regioned neighbour.
+    # Stair nodes and observed nodes take the region of their nearest partitioned neighbour (one
+    # search per such neighbour, shared by every node seen from it: a flight's candidates are many).
+    partitioned = dict(node_region)
+    traversed = None
+    nearest: dict[str, int | None] = {}
     for n in g.nodes:
         if n in node_region:
             continue
         ref = g.nodes[n].get("parent") or n
         r = node_region.get(ref)
         if r is None and ref in g:
-            try:
-                lengths = nx.single_source_dijkstra_path_length(gg.traversed(), ref, weight="length")
-                best = min((d, m) for m, d in lengths.items() if m in node_region)
-                r = node_region[best[1]]
-            except (ValueError, nx.NodeNotFound):
-                r = None
+            if ref not in nearest:
+                if traversed is None:
+                    traversed = nx.Graph(gg.traversed())  # a plain copy: searches on a view are slow
+                try:
+                    lengths = nx.single_source_dijkstra_path_length(traversed, ref, weight="length")
+                    best = min((d, m) for m, d in lengths.items() if m in partitioned)
+                    nearest[ref] = partitioned[best[1]]
+                except (ValueError, nx.NodeNotFound):
+                    nearest[ref] = None
+            r = nearest[ref]
         if r is not None:
             node_region[n] = r
     for n in g.nodes:

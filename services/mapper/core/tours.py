@@ -12,6 +12,7 @@ reachable cells allows (string pulling) and resampled.
 
 from __future__ import annotations
 
+import heapq
 import logging
 import math
 import time
@@ -21,11 +22,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage, sparse
 from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.spatial import cKDTree
 
 from shared.schemas import Pose, Tour
 
 from services.mapper.core.errors import PlanningError
-from services.mapper.core.occupancy import OccupancyGrid, line_of_sight
+from services.mapper.core.occupancy import OCCUPIED, OccupancyGrid, line_of_sight
 from services.mapper.core.regions import SceneMap
 
 log = logging.getLogger(__name__)
@@ -95,6 +97,90 @@ def grid_graph(mask: np.ndarray, cell_m: float) -> tuple[sparse.csr_matrix, np.n
     return m.tocsr(), flat
 
 
+def _ray_offsets(cell_m: float, radius_m: float, rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cell offsets (rays, S) of the ray-march samples from a cell centre, and the samples' ranges.
+
+    Every hub stands at a cell centre, so the cells a ray from it crosses are the same offsets for
+    every hub: computed once, then each hub's march is one gather.
+    """
+    step = cell_m * 0.5
+    samples = np.arange(step, radius_m + step, step)
+    ang = np.arange(rays) * (2.0 * math.pi / rays)
+    di = np.floor(0.5 + np.cos(ang)[:, None] * samples[None, :] / cell_m).astype(np.int64)
+    dj = np.floor(0.5 + np.sin(ang)[:, None] * samples[None, :] / cell_m).astype(np.int64)
+    return di, dj, samples
+
+
+def _disk_stencil(cell_m: float, radius_m: float, rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cell offsets within ``radius_m`` of a cell, with their range (m) and the ray they lie on."""
+    r_cells = int(math.ceil(radius_m / cell_m))
+    di, dj = np.mgrid[-r_cells : r_cells + 1, -r_cells : r_cells + 1]
+    di, dj = di.ravel(), dj.ravel()
+    r = cell_m * np.hypot(di, dj)
+    keep = r <= radius_m + 1e-9  # a cell exactly at the radius is in, whatever the rounding
+    di, dj, r = di[keep], dj[keep], r[keep]
+    a = np.floor((np.arctan2(dj, di) % (2 * math.pi)) / (2 * math.pi) * rays + 0.5).astype(np.int64) % rays
+    return di, dj, r, a
+
+
+def visibility_sparse(
+    occ: OccupancyGrid,
+    hubs_idx: np.ndarray,
+    targets_idx: np.ndarray,
+    radius_m: float,
+    rays: int = 360,
+    batch: int = 64,
+) -> sparse.csr_matrix:
+    """(H, T) sparse bool: target cell t visible from hub h (within radius, no occupied cell between).
+
+    ``rays`` rays are marched from each hub to the first occupied cell (or the grid's edge); a
+    target within the radius is seen when it lies no farther than that first hit on its own ray
+    (plus the half cell in which the ray stopped: a wall cell itself is seen). Only the cells of the
+    disk around each hub are looked at, so the cost is hubs x disk, not hubs x region.
+    """
+    hubs_idx = np.asarray(hubs_idx, dtype=np.int64).reshape(-1, 2)
+    targets_idx = np.asarray(targets_idx, dtype=np.int64).reshape(-1, 2)
+    n_h, n_t = len(hubs_idx), len(targets_idx)
+    if n_h == 0 or n_t == 0:
+        return sparse.csr_matrix((n_h, n_t), dtype=bool)
+    cell = occ.cell_m
+    di, dj, samples = _ray_offsets(cell, radius_m, rays)
+    sdi, sdj, sr, sa = _disk_stencil(cell, radius_m, rays)
+    pad = int(max(np.abs(di).max(), np.abs(dj).max(), np.abs(sdi).max())) + 1
+    # The window of the grid the hubs' rays and disks can touch (a region's, not the floor's);
+    # outside the grid counts as blocked, as in a march that stops at the edge.
+    w0 = hubs_idx.min(axis=0) - pad
+    w1 = hubs_idx.max(axis=0) + pad + 1
+    g0 = np.maximum(w0, 0)
+    g1 = np.minimum(w1, occ.cells.shape)
+    blocked = np.ones(w1 - w0, dtype=bool)
+    blocked[g0[0] - w0[0] : g1[0] - w0[0], g0[1] - w0[1] : g1[1] - w0[1]] = (
+        occ.cells[g0[0] : g1[0], g0[1] : g1[1]] == OCCUPIED)
+    ny_p = blocked.shape[1]
+    lookup = np.full(blocked.shape, -1, dtype=np.int64)
+    tin = np.nonzero(np.all((targets_idx >= w0) & (targets_idx < w1), axis=1))[0]
+    lookup[targets_idx[tin, 0] - w0[0], targets_idx[tin, 1] - w0[1]] = tin
+    hubs_idx = hubs_idx - w0
+    blocked, lookup = blocked.ravel(), lookup.ravel()
+    ray_off = di * ny_p + dj  # (rays, S) flat offsets
+    disk_off = sdi * ny_p + sdj  # (K,)
+    seen_within = sr[None, :] - cell * 0.75  # target range minus the allowance
+    rows, cols = [], []
+    for b0 in range(0, n_h, batch):
+        h = hubs_idx[b0 : b0 + batch]
+        hflat = h[:, 0] * ny_p + h[:, 1]
+        hit = blocked[hflat[:, None, None] + ray_off[None]]  # (B, rays, S)
+        first = np.where(hit.any(axis=2), samples[np.argmax(hit, axis=2)], np.inf)  # (B, rays)
+        tid = lookup[hflat[:, None] + disk_off[None, :]]  # (B, K)
+        ok = (tid >= 0) & (seen_within <= first[:, sa])
+        b, k = np.nonzero(ok)
+        rows.append(b + b0)
+        cols.append(tid[b, k])
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    return sparse.csr_matrix((np.ones(len(r), dtype=bool), (r, c)), shape=(n_h, n_t))
+
+
 def visibility(
     occ: OccupancyGrid,
     hubs_idx: np.ndarray,
@@ -102,51 +188,47 @@ def visibility(
     radius_m: float,
     rays: int = 360,
 ) -> np.ndarray:
-    """(H, T) bool: target cell t visible from hub h (within radius, no occupied cell between)."""
-    blocked = occ.occupied
-    step = occ.cell_m * 0.5
-    samples = np.arange(step, radius_m + step, step)
-    ang = np.arange(rays) * (2.0 * math.pi / rays)
-    dirs = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    hub_xy = (hubs_idx + 0.5) * occ.cell_m  # grid-local metres
-    tgt_xy = (targets_idx + 0.5) * occ.cell_m
-    nx_, ny_ = blocked.shape
-    vis = np.zeros((len(hubs_idx), len(targets_idx)), dtype=bool)
-    for k, h in enumerate(hub_xy):
-        pts = h[None, None, :] + dirs[:, None, :] * samples[None, :, None]
-        ij = np.floor(pts / occ.cell_m).astype(np.int64)
-        inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx_) & (ij[..., 1] >= 0) & (ij[..., 1] < ny_)
-        hit = np.zeros(ij.shape[:2], dtype=bool)
-        hit[inside] = blocked[ij[inside][:, 0], ij[inside][:, 1]]
-        hit |= ~inside
-        first = np.where(hit.any(axis=1), samples[np.argmax(hit, axis=1)], np.inf)
-        d = tgt_xy - h
-        r = np.hypot(d[:, 0], d[:, 1])
-        a = np.floor((np.arctan2(d[:, 1], d[:, 0]) % (2 * math.pi)) / (2 * math.pi) * rays + 0.5)
-        a = a.astype(np.int64) % rays
-        # A wall cell itself is seen: allow the half cell in which the ray stopped.
-        vis[k] = (r <= radius_m) & (r <= first[a] + occ.cell_m * 0.75)
-    return vis
+    """(H, T) bool: dense form of :func:`visibility_sparse`."""
+    return visibility_sparse(occ, hubs_idx, targets_idx, radius_m, rays).toarray()
 
 
-def greedy_set_cover(vis: np.ndarray, tau: float, tie_break: np.ndarray | None = None) -> tuple[list[int], float]:
-    """Pick sets (rows of ``vis``) until ``tau`` of the columns are covered or no set adds any."""
-    n_t = vis.shape[1]
-    if n_t == 0 or vis.shape[0] == 0:
+def greedy_set_cover(vis, tau: float, tie_break: np.ndarray | None = None) -> tuple[list[int], float]:
+    """Pick sets (rows of ``vis``, dense or sparse bool) until ``tau`` of the columns are covered or
+    no set adds any.
+
+    Each step takes the set that adds the most uncovered columns; equal gains go to the larger
+    ``tie_break`` (the hub's clearance), then to the lower index. A set's gain only shrinks as
+    others are picked, so the gains sit in a heap and only the top one is re-counted (lazy greedy):
+    the same picks as re-scoring every set at every step, at the cost of the rows actually touched.
+    """
+    m = sparse.csr_matrix(vis, dtype=bool)
+    m.sum_duplicates()
+    n_s, n_t = m.shape
+    if n_t == 0 or n_s == 0:
         return [], 0.0
-    m = vis.astype(np.float32)
-    uncovered = np.ones(n_t, dtype=np.float32)
+    tb = np.zeros(n_s) if tie_break is None else np.asarray(tie_break, dtype=np.float64) / (np.max(tie_break) + 1e-9)
+    indptr, indices = m.indptr, m.indices
+    size = np.diff(indptr)
+    heap = [(-(float(size[i]) + 0.5 * tb[i]), i) for i in range(n_s) if size[i] > 0]
+    heapq.heapify(heap)
+    uncovered = np.ones(n_t, dtype=bool)
+    left = n_t
     chosen: list[int] = []
-    tb = np.zeros(vis.shape[0]) if tie_break is None else tie_break / (np.max(tie_break) + 1e-9)
     covered = 0.0
-    while covered < tau:
-        gain = m @ uncovered
-        best = int(np.argmax(gain + 0.5 * tb * (gain > 0)))
-        if gain[best] <= 0:
-            break
-        chosen.append(best)
-        uncovered *= 1.0 - m[best]
-        covered = 1.0 - float(uncovered.sum()) / n_t
+    while covered < tau and heap:
+        _, i = heapq.heappop(heap)
+        cols = indices[indptr[i] : indptr[i + 1]]
+        gain = int(np.count_nonzero(uncovered[cols]))
+        if gain == 0:
+            continue
+        key = (-(float(gain) + 0.5 * tb[i]), i)
+        if heap and key > heap[0]:
+            heapq.heappush(heap, key)  # stale: another set may now add more
+            continue
+        chosen.append(i)
+        uncovered[cols] = False
+        left -= gain
+        covered = 1.0 - left / n_t
     return chosen, covered
 
 
@@ -191,6 +273,19 @@ def two_opt(order: list[int], cost: np.ndarray, max_rounds: int = 200) -> list[i
     return list(o)
 
 
+def plan_order(cost: np.ndarray, length: np.ndarray, start: int = 0, max_rounds: int = 200,
+               closed: bool = True) -> list[int]:
+    """The hub order: 2-opt under ``cost`` from the nearest-neighbour tour under ``cost`` and from
+    the one under ``length``; the cheaper by ``cost`` of those not longer (by ``length``) than the
+    nearest-neighbour tour under ``length``, which is the fallback. So the tour is never longer
+    than the plain nearest-neighbour tour over the same hubs."""
+    nn_len = nearest_neighbour_order(length, start)
+    bound = tour_cost(nn_len, length, closed) + 1e-9
+    options = [two_opt(nearest_neighbour_order(cost, start), cost, max_rounds), two_opt(nn_len, cost, max_rounds)]
+    ok = [o for o in options if tour_cost(o, length, closed) <= bound]
+    return min(ok, key=lambda o: tour_cost(o, cost, closed)) if ok else nn_len
+
+
 def string_pull(cells: np.ndarray, blocked: np.ndarray) -> np.ndarray:
     """Drop path cells that a straight, unblocked segment can skip (greedy farthest visible)."""
     if len(cells) <= 2:
@@ -229,7 +324,9 @@ class _FloorGrids:
     reach: np.ndarray  # free with the tour's clearance
     rg: object  # the reachable cells' grid graph (csr)
     rflat: np.ndarray
+    rcells: np.ndarray  # (N, 2) cell indices of the reachable cells (rflat unravelled)
     comp: np.ndarray  # connected component of each reachable cell
+    rtree: cKDTree  # over rcells: snapping positions to reachable cells
 
 
 class TourPlanner:
@@ -249,8 +346,8 @@ class TourPlanner:
 
     def _floor_grids(self, scene: SceneMap, index: int) -> _FloorGrids:
         """What every region of a floor plans on: the explored cells' owner regions, clearance, the
-        reachable-cell graph and its components. Built once per floor, not once per region, which
-        kept planning quadratic in the floor's area."""
+        reachable-cell graph, its components and a KD-tree over its cells. Built once per floor, not
+        once per region, which kept planning quadratic in the floor's area."""
         cfg = self.config
         floor = scene.floors[index]
         occ = floor.occupancy
@@ -260,21 +357,24 @@ class TourPlanner:
         # Every explored cell of the floor goes to the region of its nearest (geodesic) node.
         free = occ.free
         fg, fflat = grid_graph(free, occ.cell_m)
-        node_cells = _cells_of(occ, fpos, fflat, free)
+        fcells = np.column_stack(np.unravel_index(fflat, free.shape))
+        node_cells = _cells_of(occ, fpos, cKDTree(fcells) if len(fcells) else None)
         ok = node_cells >= 0
         if not ok.any():
             raise PlanningError("no node of the floor lies on explored free space")
         _, _, src = dijkstra(fg, indices=node_cells[ok], min_only=True, return_predecessors=True)
-        node_of_src = {int(c): floor_nodes[k] for k, c in zip(np.nonzero(ok)[0], node_cells[ok], strict=True)}
-        region_of = np.array(
-            [scene.node_region.get(node_of_src.get(int(s)), -1) if s >= 0 else -1 for s in src]
-        )
+        # Region of each source cell (of two nodes in one cell, the later one, as a dict would keep).
+        cell_region = np.full(len(fflat), -1, dtype=np.int64)
+        cell_region[node_cells[ok]] = [scene.node_region.get(floor_nodes[k], -1) for k in np.nonzero(ok)[0]]
+        region_of = np.where(src >= 0, cell_region[np.maximum(src, 0)], -1)
         # Reachable cells: free with clearance.
         clear = occ.clearance_m()
         reach = free & (clear >= cfg.clearance_m)
         rg, rflat = grid_graph(reach, occ.cell_m)
+        rcells = np.column_stack(np.unravel_index(rflat, reach.shape))
         _, comp = connected_components(rg, directed=False)
-        return _FloorGrids(fflat, region_of, clear, reach, rg, rflat, comp)
+        return _FloorGrids(fflat, region_of, clear, reach, rg, rflat, rcells, comp,
+                           cKDTree(rcells) if len(rcells) else None)
 
     def plan_region(self, scene: SceneMap, rid: int, grids: dict[int, _FloorGrids] | None = None) -> PlannedTour:
         cfg = self.config
@@ -294,52 +394,63 @@ class TourPlanner:
             raise PlanningError("region has no explored cell")
         targets = np.column_stack(np.unravel_index(target_flat, free.shape))
         clear, reach, rg, rflat, comp = fg_.clear, fg_.reach, fg_.rg, fg_.rflat, fg_.comp
-        rnode = _cells_of(occ, npos, rflat, reach, snap_m=cfg.clearance_m + 0.5)
+        snap_m = cfg.clearance_m + 0.5
+        rnode = _cells_of(occ, npos, fg_.rtree, snap_m=snap_m)
         if not (rnode >= 0).any():
             raise PlanningError("no region node has the required clearance")
         # One tour walks one connected piece of reachable space: the piece that holds most of the
         # region's nodes (a sliver cut off by furniture would need a hub the robot cannot reach).
         seeds = rnode[rnode >= 0]
         main = np.bincount(comp[seeds]).argmax()
-        connected = comp == main
-        region_mask = np.zeros(free.shape, dtype=bool)
-        region_mask.ravel()[target_flat] = True
-        # Hubs stand in the region's own cells (walking slightly into a doorway is fine).
-        in_region = ndimage.binary_dilation(region_mask, iterations=2).ravel()[rflat]
-        cand_nodes = np.nonzero(connected & in_region)[0]
+        # Hubs stand in the region's own cells (walking slightly into a doorway is fine): the
+        # region's cells dilated by two, in a window around the region rather than the whole floor.
+        grow = 2
+        lo = np.maximum(targets.min(axis=0) - grow, 0)
+        hi = np.minimum(targets.max(axis=0) + grow + 1, free.shape)
+        window = np.zeros(hi - lo, dtype=bool)
+        window[targets[:, 0] - lo[0], targets[:, 1] - lo[1]] = True
+        window = ndimage.binary_dilation(window, iterations=grow)
+        rc = fg_.rcells
+        inside = np.all((rc >= lo) & (rc < hi), axis=1)
+        in_region = np.zeros(len(rflat), dtype=bool)
+        in_region[inside] = window[rc[inside, 0] - lo[0], rc[inside, 1] - lo[1]]
+        cand_nodes = np.nonzero((comp == main) & in_region)[0]
         if len(cand_nodes) == 0:
             raise PlanningError("no reachable cell inside the region")
-        cand_idx = np.column_stack(np.unravel_index(rflat[cand_nodes], free.shape))
+        cand_idx = rc[cand_nodes]
         hubs_c, hub_nodes = _voxel_downsample(occ, cand_idx, cand_nodes, clear, cfg.hub_grid_m)
 
         t0 = time.perf_counter()
-        vis = visibility(occ, hubs_c, targets, cfg.vis_radius_m, cfg.vis_rays)
+        vis = visibility_sparse(occ, hubs_c, targets, cfg.vis_radius_m, cfg.vis_rays).tocsc()
         # Cells that no reachable standpoint sees (behind furniture, beyond a gap in a wall) cannot
         # be recorded by any tour: tau applies to the coverable cells, the coverage reported is of
         # all the region's cells.
-        coverable = vis.any(axis=0)
+        coverable = np.diff(vis.indptr) > 0
         achievable = float(coverable.mean())
-        chosen, rel = greedy_set_cover(vis[:, coverable], cfg.tau, clear[hubs_c[:, 0], hubs_c[:, 1]])
+        vis = vis[:, coverable].tocsr()
+        chosen, rel = greedy_set_cover(vis, cfg.tau, clear[hubs_c[:, 0], hubs_c[:, 1]])
         coverage = rel * achievable
         if not chosen:
             raise PlanningError("no hub sees any cell of the region")
         hv = vis[chosen].astype(np.float32)
         hub_graph_nodes = hub_nodes[chosen]
-        dist, pred = dijkstra(rg, indices=hub_graph_nodes, return_predecessors=True)
+        # Start at the hub nearest to where exploration first entered the region.
+        first = min(nodes, key=lambda n: g.g.nodes[n]["order"])
+        entry = int(_cells_of(occ, g.positions([first]), fg_.rtree, snap_m=snap_m)[0])
+        if entry >= 0 and comp[entry] != main:
+            entry = -1  # no hub is reachable from it: start at the first hub
+        dist, pred = _hub_paths(rg, hub_graph_nodes, hubs_c[chosen], occ.cell_m, entry)
         lmat = dist[:, hub_graph_nodes]
         lmat = np.where(np.isfinite(lmat), lmat, 1e6)
         lmat = np.minimum(lmat, lmat.T)
-        inter = hv @ hv.T
-        sizes = hv.sum(axis=1)
+        inter = (hv @ hv.T).toarray()
+        sizes = np.asarray(hv.sum(axis=1)).ravel()
         iou = inter / np.maximum(sizes[:, None] + sizes[None, :] - inter, 1.0)
         cost = lmat + cfg.lambda_overlap * (1.0 - iou)
         np.fill_diagonal(cost, 0.0)
-        # Start at the hub nearest to where exploration first entered the region.
-        first = min(nodes, key=lambda n: g.g.nodes[n]["order"])
-        entry = _cells_of(occ, g.positions([first]), rflat, reach, snap_m=cfg.clearance_m + 0.5)[0]
-        start = int(np.argmin(dijkstra(rg, indices=[entry])[0][hub_graph_nodes])) if entry >= 0 else 0
+        start = int(np.argmin(dist[:, entry])) if entry >= 0 else 0
         nn = nearest_neighbour_order(lmat, start)
-        order = two_opt(nearest_neighbour_order(cost, start), cost, cfg.max_2opt_rounds)
+        order = plan_order(cost, lmat, start, cfg.max_2opt_rounds, cfg.close_loop)
         plan_s = time.perf_counter() - t0
 
         path, hub_at = self._dense_path(order, hub_graph_nodes, pred, rflat, reach, occ)
@@ -394,21 +505,38 @@ class TourPlanner:
         return path, hub_at
 
 
-def _cells_of(occ: OccupancyGrid, pos: np.ndarray, flat_ids: np.ndarray, mask: np.ndarray, snap_m: float = 0.5) -> np.ndarray:
-    """Graph node of each position: its cell, or the nearest mask cell within ``snap_m``."""
+def _cells_of(occ: OccupancyGrid, pos: np.ndarray, tree: cKDTree | None, snap_m: float = 0.5) -> np.ndarray:
+    """Graph node of each position: the nearest cell of ``tree`` (cell indices, in node order)
+    within ``snap_m``, -1 where none is."""
     out = np.full(len(pos), -1, dtype=np.int64)
-    if len(flat_ids) == 0 or len(pos) == 0:
+    if tree is None or len(pos) == 0:
         return out
-    lookup = np.full(mask.size, -1, dtype=np.int64)
-    lookup[flat_ids] = np.arange(len(flat_ids))
-    cells = np.column_stack(np.unravel_index(flat_ids, mask.shape))
-    idx = occ.to_index(pos)
-    from scipy.spatial import cKDTree
-
-    d, k = cKDTree(cells).query(idx, distance_upper_bound=snap_m / occ.cell_m)
+    d, k = tree.query(occ.to_index(pos), distance_upper_bound=snap_m / occ.cell_m)
     ok = np.isfinite(d)
     out[ok] = k[ok]
     return out
+
+
+def _hub_paths(rg, hub_nodes: np.ndarray, hub_cells: np.ndarray, cell_m: float, entry: int = -1):
+    """Shortest paths from every hub over the reachable-cell graph: (dist, pred) rows per hub.
+
+    A region's hubs lie close together, so each search stops at a distance limit well beyond the
+    hubs' spread instead of sweeping the whole floor. Searches within a limit are exact for every
+    node they reach; the rows of a search that missed a hub (or the entry cell) are redone with
+    twice the limit, then without one, so the result is the unlimited one.
+    """
+    spread = float(np.ptp(hub_cells, axis=0).max()) * cell_m if len(hub_cells) > 1 else 0.0
+    limit = 1.5 * spread + 3.0
+    dist, pred = dijkstra(rg, indices=hub_nodes, return_predecessors=True, limit=limit)
+    need = list(hub_nodes) + ([entry] if entry >= 0 else [])
+    for attempt in range(3):
+        missing = ~np.isfinite(dist[:, need]).all(axis=1)
+        if not missing.any():
+            break
+        limit = limit * 2.0 if attempt < 2 else np.inf
+        d2, p2 = dijkstra(rg, indices=hub_nodes[missing], return_predecessors=True, limit=limit)
+        dist[missing], pred[missing] = d2, p2
+    return dist, pred
 
 
 def _voxel_downsample(occ, cand_idx, cand_nodes, clear, grid_m):

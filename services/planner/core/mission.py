@@ -23,7 +23,7 @@ import numpy as np
 from shared.jobs import Cancelled, JobContext, JobEnd
 from shared.vln_metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
-    CameraIntrinsics, Candidate, CandidateKind, Decision, JobEventKind, JobState, MapInfo, MissionFinished,
+    CameraIntrinsics, Candidate, CandidateKind, Decision, JobEventKind, JobState, MapInfo, MissionEnd, MissionFinished,
     MissionOptions, MissionRequest, MissionStarted, MissionStep, MoveResult, Panorama, Pose, RenderResult,
     SpatialMapResult, SplatMode, ViewPose,
 )
@@ -123,6 +123,7 @@ class MissionOutcome:
     reason: str = ""
     step_latency_s: list[float] = field(default_factory=list)
     episode_metrics: EpisodeMetrics | None = None
+    end: MissionEnd | None = None  # how the loop ended (policy stopped, boxed in, step budget)
 
 
 def _thumb(rgb: np.ndarray, size_px: int) -> np.ndarray:
@@ -262,7 +263,9 @@ class MissionLoop:
             observe_s = time.perf_counter() - t_obs
         state = JobState.SUCCEEDED if stop_called else JobState.FAILED
         reason = "" if stop_called else f"step budget of {opts.max_steps} exhausted without a stop"
+        end = MissionEnd.POLICY_STOPPED if stop_called else MissionEnd.MAX_STEPS
         if stop_called and boxed_in_at == len(decisions) - 1:
+            end = MissionEnd.NO_WAY_TO_MOVE
             # The policy had no other choice: say so, the stop is not a judgement that the goal is here.
             reason = (f"boxed in: no way forward or back at step {boxed_in_at} (the waypoint predictor found "
                       "no reachable candidate), so the mission stopped where it was")
@@ -273,7 +276,7 @@ class MissionLoop:
             m = episode_metrics(traj, goal, geodesic=self.robot.geodesic_distance, stop_called=stop_called,
                                 reference_path_m=reference)
         return MissionOutcome(state, stop_called, len(decisions), traj, decisions, m.to_dict() if m else None,
-                              reason, latencies, m)
+                              reason, latencies, m, end)
 
     def _emit_step(self, step: int, pano: Panorama, ctx: StepContext, decision: Decision,
                    timings: dict[str, float], smap: SpatialMapResult | None) -> None:
@@ -318,8 +321,9 @@ def run_mission(ctx: JobContext, req: MissionRequest, *, robot: RobotPort, predi
     out = loop.run(req.mission_id, req.instruction, req.map_id, req.options)
     failed = out.state == JobState.FAILED
     return JobEnd(out.state, MissionFinished(
-        stop_called=out.stop_called, steps=out.steps, trajectory_m=[tuple(p) for p in out.trajectory_m.tolist()],
-        metrics=out.metrics, usage=policy.usage.model_copy(),
+        stop_called=out.stop_called, steps=out.steps, outcome=out.end,
+        success=None if out.metrics is None else bool(out.metrics["success"]),
+        trajectory_m=[tuple(p) for p in out.trajectory_m.tolist()], metrics=out.metrics, usage=policy.usage.model_copy(),
         step_latency_s=[round(x, 4) for x in out.step_latency_s],
         reason="" if failed else out.reason, error=out.reason if failed else ""), step=out.steps)
 

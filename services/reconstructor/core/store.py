@@ -121,7 +121,8 @@ class MapStore:
         self, map_id: str, data: bytes | str | Path, filename: str | None = None, source: str | None = None,
         max_points: int = 50_000_000,
     ) -> MapInfo:
-        """Store a user's PLY/PCD cloud (bytes with a ``filename``, or a path) as a new map version."""
+        """Store a user's PLY/PCD cloud (bytes with a ``filename``, or a path: parsed from the file, never
+        read into memory whole) as a new map version."""
         try:
             if isinstance(data, (bytes, bytearray, memoryview)):
                 if not filename:
@@ -131,7 +132,11 @@ class MapStore:
                 p = Path(data)
                 if p.suffix.lower() not in (".ply", ".pcd"):
                     raise MapFormatError(f"{p.name!r}: only .ply and .pcd clouds can be imported")
-                cloud = read_cloud(p)
+                try:
+                    cloud = read_cloud(p)
+                except CloudFormatError as exc:
+                    # An upload's file on disk is named for the upload: report the sender's name.
+                    raise CloudFormatError(str(exc).replace(p.name, filename, 1) if filename else str(exc)) from None
                 filename = filename or p.name
         except CloudFormatError as exc:
             raise MapFormatError(str(exc)) from None

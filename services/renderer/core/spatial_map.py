@@ -21,7 +21,10 @@ import numpy as np
 from pydantic import Field
 
 from services.renderer.core.cloud import IndexedCloud
+from services.renderer.core.errors import RendererError
 from shared.cloud import EmptyCloudError
+from shared.export import nav2
+from shared.export.nav2 import OccupancyConfig, occupancy_from_cloud
 from shared.registry import BackendConfig
 from shared.schemas import Candidate, CandidateKind, Pose
 
@@ -43,13 +46,13 @@ _BACKTRACK = (160, 60, 200)
 class SpatialMapConfig(BackendConfig):
     """How the occupancy grid is built and drawn."""
 
-    cell_m: float = Field(0.05, gt=0.0, le=1.0)
+    cell_m: float = Field(0.05, ge=0.01, le=1.0)  # the bounds of shared.export.nav2.OccupancyConfig
     floor_band_m: tuple[float, float] = (-0.15, 0.15)  # relative to the agent's floor z
     obstacle_band_m: tuple[float, float] = (0.20, 1.60)
     min_obstacle_points: int = Field(3, ge=1)
     min_floor_points: int = Field(1, ge=1)
     floor_key_m: float = Field(0.25, gt=0.0)  # floors closer than this share one cached grid
-    margin_m: float = Field(0.5, ge=0.0)
+    margin_m: float = Field(0.5, ge=0.0, le=10.0)
     room_label_suffix: str = " floor"  # label names like "kitchen floor" name a room
 
 
@@ -103,39 +106,27 @@ class SpatialMapper:
         return index.cache[key]
 
     def _build_grid(self, index: IndexedCloud, floor_z: float) -> OccupancyGrid:
+        # The same cloud-to-grid rule as the Nav2 export (one mechanism: the grid the policy sees is the
+        # grid a user downloads); only the cell values and the corner the origin names differ.
         cfg = self.config
         cloud = index.cloud
         if len(cloud) == 0:
             raise EmptyCloudError("no points to map")
-        xyz = cloud.xyz
-        dz = xyz[:, 2] - np.float32(floor_z)
+        occupancy = OccupancyConfig(**cfg.model_dump(include=set(OccupancyConfig.model_fields)))
+        try:
+            nav = occupancy_from_cloud(cloud.xyz, floor_z, occupancy)
+        except ValueError as exc:  # a grid past max_cells: the cloud spans more than any building
+            raise RendererError(f"spatial map: {exc}") from exc
+        cells = np.full(nav.cells.shape, UNKNOWN, np.uint8)
+        cells[nav.cells == nav2.FREE] = FREE
+        cells[nav.cells == nav2.OCCUPIED] = OBSTACLE
+        rows = cells.shape[0]
+        top_left = (nav.origin_m[0], nav.origin_m[1] + rows * cfg.cell_m)
+        dz = cloud.xyz[:, 2] - np.float32(floor_z)
         on_floor = (dz >= cfg.floor_band_m[0]) & (dz <= cfg.floor_band_m[1])
-        obstacle = (dz >= cfg.obstacle_band_m[0]) & (dz <= cfg.obstacle_band_m[1])
-        relevant = on_floor | obstacle
-        xy = xyz[relevant, :2].astype(np.float64)
-        # Nothing at this floor's height (a tiny map, or an agent on a storey the map does not
-        # cover): the grid spans the map's footprint and every cell is unknown - all the agent knows.
-        extent = xy if len(xy) else xyz[:, :2].astype(np.float64)
-        if not len(xy):
-            log.debug("no points near the floor at z=%.2f m: the spatial map is all unknown", floor_z)
-        lo = extent.min(axis=0) - cfg.margin_m
-        hi = extent.max(axis=0) + cfg.margin_m
-        # At least one cell: a single point with margin_m = 0 spans no area.
-        cols = max(1, int(math.ceil((hi[0] - lo[0]) / cfg.cell_m)))
-        rows = max(1, int(math.ceil((hi[1] - lo[1]) / cfg.cell_m)))
-        col = np.clip(((xy[:, 0] - lo[0]) / cfg.cell_m).astype(np.int64), 0, cols - 1)
-        row = np.clip(((hi[1] - xy[:, 1]) / cfg.cell_m).astype(np.int64), 0, rows - 1)
-        flat = row * cols + col
-        kinds = obstacle[relevant]
-        n_obs = np.bincount(flat[kinds], minlength=rows * cols)
-        n_floor = np.bincount(flat[~kinds], minlength=rows * cols)
-        cells = np.full(rows * cols, UNKNOWN, np.uint8)
-        cells[n_floor >= cfg.min_floor_points] = FREE
-        cells[n_obs >= cfg.min_obstacle_points] = OBSTACLE
         rooms = self._rooms(index, on_floor)
-        log.debug("occupancy grid %dx%d at floor z=%.2f: %d rooms", rows, cols, floor_z, len(rooms))
-        return OccupancyGrid(cells.reshape(rows, cols), (float(lo[0]), float(hi[1])), cfg.cell_m,
-                             float(floor_z), rooms)
+        log.debug("occupancy grid %dx%d at floor z=%.2f: %d rooms", *cells.shape, floor_z, len(rooms))
+        return OccupancyGrid(cells, top_left, cfg.cell_m, float(floor_z), rooms)
 
     def _rooms(self, index: IndexedCloud, on_floor: np.ndarray) -> tuple[tuple[str, float, float], ...]:
         cloud, suffix = index.cloud, self.config.room_label_suffix
@@ -237,15 +228,9 @@ class SpatialMapper:
 
         self._scale_bar(img, mpp, scale)
         title = "top-down map, agent heading up" if agent_up else "top-down map, +y up, +x right"
-        _text(img, title, (int(6 * scale), int(16 * scale)), 0.45 * scale, (0, 0, 0))
         legend = [("free", _COLOURS[FREE]), ("obstacle", _COLOURS[OBSTACLE]), ("unknown", _COLOURS[UNKNOWN]),
                   ("agent", _AGENT), ("path", _TRAJ), ("candidate", _CAND)]
-        y = int(34 * scale)
-        for name, colour in legend:
-            cv2.rectangle(img, (int(6 * scale), y - int(9 * scale)), (int(16 * scale), y), colour, -1)
-            cv2.rectangle(img, (int(6 * scale), y - int(9 * scale)), (int(16 * scale), y), (0, 0, 0), 1)
-            _text(img, name, (int(20 * scale), y), 0.38 * scale, (0, 0, 0))
-            y += int(14 * scale)
+        self._legend(img, title, legend, scale)
         return SpatialMapImage(img, mpp, w2p, agent_up)
 
     def _base_image(self, index: IndexedCloud, grid: OccupancyGrid) -> np.ndarray:
@@ -257,6 +242,29 @@ class SpatialMapper:
             cells[cv2.dilate((grid.cells == OBSTACLE).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0] = OBSTACLE
             index.cache[key] = lut[cells]
         return index.cache[key]
+
+    @staticmethod
+    def _legend(img: np.ndarray, title: str, legend: list[tuple[str, tuple]], scale: float) -> None:
+        """Title and colour key on an opaque white panel in the top-left corner: dark text on white
+        reads on any map (text straight on the grey unknown cells did not), at a size that stays
+        legible on a small map."""
+        font, fs = cv2.FONT_HERSHEY_SIMPLEX, max(0.4, 0.45 * scale)
+        (tw, th), _ = cv2.getTextSize(title, font, fs, 1)
+        line = th + max(6, round(8 * scale))
+        sw = th + 2  # swatch side
+        pad = max(4, round(6 * scale))
+        width = max(tw, sw + pad + max(cv2.getTextSize(n, font, fs, 1)[0][0] for n, _ in legend))
+        x0, y0 = pad, pad
+        x1, y1 = x0 + width + 2 * pad, y0 + pad + line * (1 + len(legend))
+        cv2.rectangle(img, (x0, y0), (x1, y1), (255, 255, 255), -1)
+        cv2.rectangle(img, (x0, y0), (x1, y1), (60, 60, 60), 1)
+        y = y0 + pad + th
+        cv2.putText(img, title, (x0 + pad, y), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
+        for name, colour in legend:
+            y += line
+            cv2.rectangle(img, (x0 + pad, y - sw + 1), (x0 + pad + sw, y + 1), colour, -1)
+            cv2.rectangle(img, (x0 + pad, y - sw + 1), (x0 + pad + sw, y + 1), (0, 0, 0), 1)
+            cv2.putText(img, name, (x0 + 2 * pad + sw, y), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
 
     @staticmethod
     def _scale_bar(img: np.ndarray, mpp: float, scale: float) -> None:
@@ -281,5 +289,8 @@ def _text(img, text, org, font_scale, colour, centred=False, outline=True) -> No
     if centred:
         x, y = x - tw // 2, y + th // 2
     if outline:
-        cv2.putText(img, text, (x, y), font, font_scale, (255, 255, 255), thick + 3, cv2.LINE_AA)
+        # The halo is the same text at the same thickness, shifted around it: a thicker stroke
+        # advances each glyph further, so a thick white copy drifted right of the text ("agentt").
+        for dx, dy in ((-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)):
+            cv2.putText(img, text, (x + dx, y + dy), font, font_scale, (255, 255, 255), thick, cv2.LINE_AA)
     cv2.putText(img, text, (x, y), font, font_scale, colour, thick, cv2.LINE_AA)

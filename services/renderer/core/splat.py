@@ -76,7 +76,9 @@ class SplatConfig(BackendConfig):
     algorithm: Literal["layered", "exact"] = "layered"
     kernel_sigma_px: float = Field(0.8, gt=0.05, le=5.0)
     # visibility mode: footprint radius = footprint_scale * focal * spacing / depth pixels, capped.
-    footprint_scale: float = Field(1.0, gt=0.0, le=4.0)
+    # Two spacings: the visibility test needs a footprint in each quadrant of a gap pixel, and
+    # the nearest point within one quadrant is farther than the nearest point overall.
+    footprint_scale: float = Field(2.0, gt=0.0, le=4.0)
     max_radius_px: int = Field(24, ge=0, le=64)
     # At least the 3x3 of the paper: a randomly sampled surface leaves single empty pixels even
     # where it is dense, and the room behind must not show through them.
@@ -90,6 +92,10 @@ class SplatConfig(BackendConfig):
     gap_max_m: float = Field(0.08, gt=0.0, le=1.0)
     # Local spacing of a point: mean distance to this many nearest neighbours (once per map).
     spacing_neighbours: int = Field(4, ge=1, le=32)
+    # visibility mode: hole filling accepts a fill value this much farther or nearer than the
+    # enclosing surface per pixel of the cell it comes from, as a surface seen this obliquely
+    # (angle between the view ray and its normal) changes depth: tan(angle) / focal per pixel.
+    fill_slope_deg: float = Field(60.0, ge=0.0, le=85.0)
     # visibility mode: depth tolerance of the front layer and of the visibility test. Tighter than
     # the paper's 0.10 m: the two faces of a 0.1 m wall must not blend.
     visibility_tolerance_m: float = Field(0.04, ge=0.0)
@@ -160,6 +166,12 @@ def point_spacing_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
     if key not in index.cache:
         index.cache[key] = visibility.point_spacing(index.cloud.xyz, neighbours)
     return index.cache[key]
+
+
+def _index_grid(h: int, w: int, axis: int) -> np.ndarray:
+    """(h, w) int32 row (axis 0) or column (axis 1) index of every pixel."""
+    line = np.arange(h if axis == 0 else w, dtype=np.int32)
+    return np.broadcast_to(line[:, None] if axis == 0 else line[None, :], (h, w))
 
 
 _PACK = float(2**17)
@@ -281,6 +293,17 @@ class _NumpyOps:
         k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
         return cv2.erode(x, k, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
 
+    def erode_quadrant(self, x, m: int, sy: int, sx: int):
+        """Min over the (m + 1) x (m + 1) window on side (sy, sx) of each pixel (its own row and
+        column included); +inf outside the image."""
+        k = np.ones((m + 1, m + 1), np.uint8)
+        # cv2 reads src(x + i - anchor): anchor m takes the window above / left of the pixel.
+        anchor = (m if sx < 0 else 0, m if sy < 0 else 0)
+        return cv2.erode(x, k, anchor=anchor, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+
+    def index_grid(self, h: int, w: int, axis: int):
+        return _index_grid(h, w, axis)
+
     def nonzero2(self, mask):
         return np.nonzero(mask)
 
@@ -327,6 +350,7 @@ class _TorchOps:
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise BackendUnavailableError(f"torch device {device!r} requested but CUDA is unavailable")
         self.device = torch.device(device)
+        self._grids: dict = {}
 
     def asarray(self, a: np.ndarray):
         return self.torch.from_numpy(np.ascontiguousarray(a)).to(self.device)
@@ -433,6 +457,19 @@ class _TorchOps:
         f = self.torch.nn.functional
         return -f.max_pool2d(-x[None, None], 2 * r + 1, 1, r)[0, 0]
 
+    def erode_quadrant(self, x, m: int, sy: int, sx: int):
+        f = self.torch.nn.functional
+        # Pad by m on the window's side, then a min-pool of (m + 1) x (m + 1) with stride 1.
+        padding = (m if sx < 0 else 0, 0 if sx < 0 else m, m if sy < 0 else 0, 0 if sy < 0 else m)
+        xp = f.pad(-x[None, None], padding, value=-math.inf)
+        return -f.max_pool2d(xp, m + 1, 1)[0, 0]
+
+    def index_grid(self, h: int, w: int, axis: int):
+        key = (h, w, axis)
+        if key not in self._grids:
+            self._grids[key] = self.asarray(_index_grid(h, w, axis))
+        return self._grids[key]
+
     def nonzero2(self, mask):
         r, c = self.torch.nonzero(mask, as_tuple=True)
         return r, c
@@ -500,6 +537,16 @@ class SplatRenderer:
         """Compile the kernels now (a one-off per process, ~1-3 s, or well under a second from
         numba's disk cache) so that the first request does not pay for it; returns seconds spent."""
         return kernels.warm_up() if self._use_kernel else 0.0
+
+    def prepare(self, index: IndexedCloud) -> float:
+        """Build this renderer's per-map data now (the backend's arrays and, in the visibility
+        mode, the per-point spacing) so that no request pays for it; returns seconds spent. A
+        map loader calls it once per map version; rendering without it computes the same lazily."""
+        t0 = time.perf_counter()
+        self._ops.cloud_arrays(index)
+        if self.config.mode == "visibility":
+            point_spacing_of(index, self.config.spacing_neighbours)
+        return time.perf_counter() - t0
 
     def render(
         self,
@@ -771,6 +818,7 @@ class SplatRenderer:
             min_radius_px=min(cfg.min_radius_px, cfg.max_radius_px),
             gap_levels=cfg.gap_levels, fill_levels=cfg.fill_levels, gap_max_m=cfg.gap_max_m,
             tol_rel1=float(np.float32(1.0 + cfg.visibility_tolerance_rel)), tol_abs_m=cfg.visibility_tolerance_m,
+            slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
         )
         rgb, depth, hole, labels = visibility.compose(ops, layer, params, h, w)
         if labels is not None:

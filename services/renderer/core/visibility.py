@@ -7,23 +7,29 @@ leaves gaps between its surfels, and the fixed 3x3 splat of the paper lets the r
 show through them. This module follows the two screen-space passes of **visibility splatting**
 with **pull-push hole filling**:
 
-1. *Visibility* (Pfister et al. 2000, "Surfels", sec. 5.2; the hierarchical form of Rosenthal and
-   Linsen 2008, "Image-space point cloud rendering"): every surfel covers a disk whose radius in
-   pixels follows its points' local spacing and its depth, ``r = footprint_scale * f * spacing / z``
-   (so a wall 0.5 m away gets wide footprints, a far wall narrow ones). The nearest depth of the
-   footprints that cover each pixel (the coverage depth) is computed as a min-dilation with a
-   radius per source: radii are rounded up to a few classes, and the dilation runs from the
-   largest class down, the sources of each class joining when the dilation left to do equals
-   their radius (exact square min filters, so the footprint is a square of half-width r). A
-   surfel farther than the depth tolerance behind the coverage depth of its own pixel is
-   background seen through a gap and is removed.
+1. *Visibility* (visibility splatting, Pfister et al. 2000, "Surfels", sec. 5.2, in image space
+   as in Rosenthal and Linsen 2008, "Image-space point cloud rendering", with the sector test of
+   Pintus, Gobbetti and Agus 2011, "Real-time rendering of massive unstructured raw point clouds
+   using screen-space operators"): every surfel covers a square whose half-width in pixels
+   follows its points' local spacing and its depth, ``r = footprint_scale * f * spacing / z``
+   (a wall 0.5 m away gets wide footprints, a far wall narrow ones). Per pixel and per quadrant
+   of its neighbourhood the nearest depth of the footprints reaching it from that quadrant is a
+   min-dilation with a radius per source (radii rounded up to a few classes, exact min filters
+   with the window on the quadrant's side); the farthest of the four quadrant depths is the
+   surface that *encloses* the pixel. A surfel behind that surface (by more than the depth
+   tolerance) is background seen through a gap and is removed. Requiring all four quadrants
+   is what keeps two things right that a centred footprint gets wrong: a plane never encloses
+   its own farther pixels (the quadrant up its depth gradient holds no nearer point), so a wall
+   seen along a corridor is not its own occluder; and a background surfel just outside a
+   foreground silhouette keeps its place, so footprints do not grow objects (nor their labels).
 2. *Hole filling* (pull-push, Marroquim, Kraus and Cavalcanti 2007, "Efficient point-based
    rendering using image reconstruction"; Grossman and Dally 1998): the visible surfels are pulled
    into an image pyramid in which each coarse cell averages only the children in the front depth
    band of that cell, so a coarse cell never mixes a foreground with the background. A pixel
-   covered by a footprint but without a visible surfel of its own takes the value of the finest
-   ancestor cell whose depth agrees with the pixel's coverage depth; a pixel that no footprint
-   covers is filled only from an ancestor cell (at most ``gap_levels`` up) whose whole depth range
+   enclosed by footprints but without a visible surfel of its own takes the value of the finest
+   ancestor cell whose depth lies between the second-nearest and the farthest quadrant depth of
+   the pixel (with a slope allowance that grows with the cell); a pixel not enclosed on every
+   side is filled only from an ancestor cell (at most ``gap_levels`` up) whose whole depth range
    lies within the tolerance (one surface) and whose width on that surface is at most
    ``gap_max_m``, so no surface is invented across a depth edge or over an unmapped stretch. Depth
    and labels follow the same choice as colour: the label of a filled pixel is the label of the
@@ -64,6 +70,9 @@ class VisibilityParams:
     fill_levels: int
     tol_rel1: float  # 1 + relative depth tolerance
     tol_abs_m: float
+    # Relative depth change per pixel of a surface seen at the steepest slope the filling allows
+    # (tan(slope) / focal): a filled pixel's tolerance grows by this much per pixel of cell width.
+    slope_per_px: float = 0.0
 
 
 def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
@@ -85,26 +94,13 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     rgb = [pad(c, 0.0) / count for c in front.sum_rgb]
     label = None if front.label is None else pad(front.label, -1)
 
-    # 1. Visibility: the coverage depth from per-source footprints, then the test against it.
+    # 1. Visibility: the enclosing depth of each pixel from per-source footprints, then the
+    # test of each surfel against the enclosing depth of its own pixel.
     spacing = pad(front.sum_spacing, 0.0) / count
     radius = ops.ceil(spacing * (p.footprint_scale * p.focal_px) / ops.where(has, zmin, 1.0) - 0.5)
     radius = ops.where(has, ops.clamp(radius, float(p.min_radius_px), float(p.max_radius_px)), -1.0)
-    # Radii are rounded up to a few classes so that the dilation costs a handful of exact
-    # square min filters (van Herk / Gil-Werman: O(1) per pixel whatever the size): the sources
-    # of class k join at the step after which the remaining dilation is k pixels.
-    classes = [k for k in RADIUS_CLASSES if p.min_radius_px <= k < p.max_radius_px] + [p.max_radius_px]
-    lut = np.full(p.max_radius_px + 2, -1.0, np.float32)  # radius + 1 -> its class; -1 -> no source
-    for r in range(p.max_radius_px, -1, -1):
-        lut[r + 1] = min(k for k in classes if k >= r)
-    cls = ops.lookup(lut, radius + 1.0)
-    present = sorted(int(k) for k in ops.unique_values(cls) if k >= 0)
-    cover = ops.full2(hq, wq, inf)
-    for i, k in enumerate(reversed(present)):
-        cover = ops.minimum(cover, ops.where(cls == float(k), zmin, inf))
-        nxt = present[-2 - i] if i + 1 < len(present) else 0
-        if k > nxt:
-            cover = ops.erode(cover, k - nxt)
-    visible = has & (zmin <= cover * p.tol_rel1 + p.tol_abs_m)
+    far, near2 = enclosing_depth(ops, zmin, radius, p, h, w)
+    visible = has & (zmin <= far * p.tol_rel1 + p.tol_abs_m)
 
     # 2. Pull: the pyramid of visible surfels, each cell averaging its front-band children.
     weight = ops.as_f32(visible)
@@ -121,7 +117,7 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     done = visible
     rows, cols = ops.nonzero2(~visible[crop_of(h, w)])
     rows, cols = rows + 1, cols + 1  # padded coordinates
-    ref = cover[rows, cols]
+    ref, ref_lo = far[rows, cols], near2[rows, cols]
     covered = ref < inf
     tol_rel = p.tol_rel1 - 1.0
     for lev in range(1, levels + 1):
@@ -133,11 +129,17 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
         safe = ops.where(wgt > 0, wgt, 1.0)
         mz = q.sum_z[pr, pc] / safe
         take = None
-        if lev <= p.fill_levels:  # covered by a footprint: the ancestor must agree with the coverage depth
-            take = covered & (wgt > 0) & (ops.abs(mz - ref) <= ref * tol_rel + p.tol_abs_m)
-        if lev <= p.gap_levels:  # a gap no footprint covers: only inside one surface, and a narrow one
+        # A sloped surface changes depth across a cell: the tolerance grows with the cell's width
+        # (half of it from the pixel to the cell's mean, all of it across the cell).
+        half_slope = p.slope_per_px * min(1 << (lev - 1), SLOPE_CELL_PX)
+        full_slope = p.slope_per_px * min(1 << lev, SLOPE_CELL_PX)
+        if lev <= p.fill_levels:  # enclosed: the ancestor lies between the enclosing depths
+            rel = tol_rel + half_slope
+            take = covered & (wgt > 0) & (mz <= ref * (1.0 + rel) + p.tol_abs_m)
+            take = take & (mz >= ref_lo * (1.0 - rel) - p.tol_abs_m)
+        if lev <= p.gap_levels:  # a gap footprints do not enclose: only inside one surface, and a narrow one
             lo, hi = q.zlo[pr, pc], q.zhi[pr, pc]
-            gap = ~covered & (wgt > 0) & (hi - lo <= lo * tol_rel + p.tol_abs_m)
+            gap = ~covered & (wgt > 0) & (hi - lo <= lo * (tol_rel + full_slope) + p.tol_abs_m)
             gap = gap & (lo * ((1 << lev) / p.focal_px) <= p.gap_max_m)
             take = gap if take is None else take | gap
         if take is None:
@@ -150,7 +152,7 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
             out_lab[r, c] = q.label[pr[take], pc[take]]
         done[r, c] = True
         keep = ~take
-        rows, cols, ref, covered = rows[keep], cols[keep], ref[keep], covered[keep]
+        rows, cols, ref, ref_lo, covered = rows[keep], cols[keep], ref[keep], ref_lo[keep], covered[keep]
 
     crop = crop_of(h, w)
     hole = ~done[crop]
@@ -160,6 +162,66 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
 
 # Footprint radii (px) are rounded up to these classes (plus the configured maximum).
 RADIUS_CLASSES = (0, 1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48)
+# The slope allowance of the hole filling stops growing past cells this wide (px): a coarse cell's
+# mean is a fill value only where the surface is nearly flat across it anyway.
+SLOPE_CELL_PX = 4
+
+# The four quadrants of a pixel's neighbourhood, as the side (rows, columns) on which their
+# sources lie: -1 above / left, +1 below / right (the pixel's own row and column in both).
+QUADRANTS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
+
+
+def enclosing_depth(ops, zmin, radius, p: VisibilityParams, h: int, w: int):
+    """Per pixel, from the footprints that reach it: ``(far, near2)``, the farthest and the
+    second-nearest of its four quadrant depths (each the nearest depth of a footprint reaching the
+    pixel from that quadrant); ``far`` is inf where some quadrant holds no footprint.
+
+    ``far`` is the depth of the nearest surface that encloses the pixel on every side: a surfel
+    behind it is seen through a gap of that surface. A plane never encloses its own farther
+    pixels (the quadrant up its depth gradient holds no nearer point), so an oblique wall is not
+    its own occluder, and a background pixel just outside a foreground silhouette keeps its own
+    surfel (the quadrants away from the silhouette see the background): footprints do not grow
+    objects. The depth of a filled pixel must lie between ``near2`` and ``far``.
+
+    A quadrant whose window leaves the image and holds no footprint is not counted: the surface
+    may continue beyond the border. Radii are rounded up to a few classes so that the dilation
+    costs a handful of exact min filters (O(1) per pixel whatever the size); the sources of class
+    k join at the step after which k pixels of dilation remain."""
+    inf = float("inf")
+    hq, wq = zmin.shape
+    classes = [k for k in RADIUS_CLASSES if p.min_radius_px <= k < p.max_radius_px] + [p.max_radius_px]
+    lut = np.full(p.max_radius_px + 2, -1.0, np.float32)  # radius + 1 -> its class; -1 -> no source
+    for r in range(p.max_radius_px, -1, -1):
+        lut[r + 1] = min(k for k in classes if k >= r)
+    cls = ops.lookup(lut, radius + 1.0)
+    present = sorted(int(k) for k in ops.unique_values(cls) if k >= 0)
+    if not present:
+        return ops.full2(hq, wq, inf), ops.full2(hq, wq, inf)
+    covers = [ops.full2(hq, wq, inf) for _ in QUADRANTS]
+    for i, k in enumerate(reversed(present)):
+        src = ops.where(cls == float(k), zmin, inf)
+        covers = [ops.minimum(c, src) for c in covers]
+        nxt = present[-2 - i] if i + 1 < len(present) else 0
+        if k > nxt:
+            covers = [ops.erode_quadrant(c, k - nxt, sy, sx) for c, (sy, sx) in zip(covers, QUADRANTS)]
+    # Quadrants that reach past the image (within the largest radius of its border) and found
+    # nothing do not count; the pixel's other quadrants decide.
+    reach = present[-1]
+    rows = ops.index_grid(hq, wq, 0)
+    cols = ops.index_grid(hq, wq, 1)
+    hi, lo = [], []
+    for c, (sy, sx) in zip(covers, QUADRANTS):
+        out_r = rows <= reach if sy < 0 else rows >= h + 1 - reach
+        out_c = cols <= reach if sx < 0 else cols >= w + 1 - reach
+        ignored = (c == inf) & (out_r | out_c)
+        hi.append(ops.where(ignored, -inf, c))
+        lo.append(c)  # an ignored quadrant is inf already: it never is the nearest
+    far = ops.maximum(ops.maximum(hi[0], hi[1]), ops.maximum(hi[2], hi[3]))
+    far = ops.where(far == -inf, inf, far)
+    # The second smallest of four: the smaller of (larger of the pair minima, smaller of the pair maxima).
+    near2 = ops.minimum(ops.maximum(ops.minimum(lo[0], lo[1]), ops.minimum(lo[2], lo[3])),
+                        ops.minimum(ops.maximum(lo[0], lo[1]), ops.maximum(lo[2], lo[3])))
+    return far, ops.minimum(near2, far)
 
 
 def crop_of(h: int, w: int):

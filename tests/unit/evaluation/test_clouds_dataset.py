@@ -92,3 +92,34 @@ def test_generated_set_is_deterministic_and_in_r2r_ce_format(small_set, tmp_path
     ds2, _ = generate_set(SetSpec(houses=2, per_house=2, floors=(1, 2), seed=0), with_gt=False)
     paths2 = write_set(ds2, {}, tmp_path / "again.json.gz")
     assert paths2[0].read_bytes() == paths[0].read_bytes() and len(paths2) == 1
+
+
+def test_curated_cloud_keeps_only_surfaces_seen_from_walkable_space():
+    # The box room plus a closed 1 m crate on its floor and a ceiling slab 0.2 m thick above it:
+    # the crate's underside, the floor under it and the slab's top and edges are hidden from any
+    # eye position in the room; the crate's top and sides, the walls and the ceiling are seen.
+    room = box_scene()
+    parts = [(room.vertices, room.triangles, room.triangle_labels)]
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    cube_tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], np.int32)
+    for lo, hi, label in (((1.5, 1.0, 0.0), (2.5, 2.0, 1.0), 2), ((0.0, 0.0, 2.5), (4.0, 3.0, 2.7), 3)):
+        v = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])], float)
+        parts.append((v, cube_tris, np.full(12, label, np.int32)))
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+    scene = type(room)(
+        name="crate", vertices=np.concatenate([p[0] for p in parts]),
+        triangles=np.concatenate([p[1] + o for p, o in zip(parts, offsets)]).astype(np.int32),
+        vertex_colors=np.full((sum(len(p[0]) for p in parts), 3), 0.5, np.float32),
+        triangle_labels=np.concatenate([p[2] for p in parts]), label_names={0: "wall", 1: "floor", 2: "crate", 3: "slab"})
+    eyes = np.array([[x, y, h] for x in (0.5, 3.5) for y in (0.5, 2.5) for h in (0.6, 1.25)])
+    cloud = sample_scene_cloud(scene, density_per_m2=400.0, seed=2, viewpoints_m=eyes, nearest_viewpoints=8)
+    xyz, lab = cloud.xyz.astype(np.float64), cloud.labels
+    under_crate = (xyz[:, 2] < 0.01) & (np.abs(xyz[:, 0] - 2.0) < 0.45) & (np.abs(xyz[:, 1] - 1.5) < 0.45)
+    assert not under_crate.any()  # floor under the crate and the crate's underside
+    assert not (xyz[:, 2] > 2.55).any()  # the slab's top and the slab's edges above the ceiling
+    crate_top = (lab == 2) & (xyz[:, 2] > 0.99)
+    assert crate_top.sum() == pytest.approx(400.0, rel=0.15)  # seen from 1.25 m: kept at the density
+    walls = (lab == 0)  # the room's four walls and its ceiling face all face the inside
+    assert walls.sum() == pytest.approx(400.0 * (2 * (4 + 3) * 2.5 + 12), rel=0.05)
+    everything = sample_scene_cloud(scene, density_per_m2=400.0, seed=2, visible_only=False)
+    assert len(cloud) < 0.85 * len(everything)  # 16.8 of 91.8 m2 are hidden

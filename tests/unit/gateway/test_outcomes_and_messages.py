@@ -40,7 +40,14 @@ CASES = [
     ([step(1, [CandidateKind.WAYPOINT, CandidateKind.STOP]),
       (K.FINISHED, S.SUCCEEDED, MissionFinished(stop_called=True, steps=1))], "succeeded", "policy_stopped", None),
     ([step(1, [CandidateKind.STOP]),
-      (K.FINISHED, S.SUCCEEDED, MissionFinished(stop_called=True, steps=1, reason="boxed in"))],
+      (K.FINISHED, S.SUCCEEDED, MissionFinished(stop_called=True, steps=1, outcome="no_way_to_move", reason="boxed in"))],
+     "succeeded", "no_way_to_move", None),
+    # The planner's word, not a guess from the last step's candidates: it knows when it was boxed in.
+    ([step(1, [CandidateKind.STOP]),
+      (K.FINISHED, S.SUCCEEDED, MissionFinished(stop_called=True, steps=1, outcome="policy_stopped"))],
+     "succeeded", "policy_stopped", None),
+    ([step(1, [CandidateKind.WAYPOINT, CandidateKind.STOP]),
+      (K.FINISHED, S.SUCCEEDED, MissionFinished(stop_called=True, steps=1, outcome="no_way_to_move"))],
      "succeeded", "no_way_to_move", None),
     ([step(1, [CandidateKind.WAYPOINT, CandidateKind.STOP]),
       (K.FINISHED, S.SUCCEEDED, MissionFinished(stop_called=True, steps=1, metrics=metrics(True)))],
@@ -101,3 +108,26 @@ def test_a_query_nobody_answers_does_not_claim_it_waited_its_timeout(peers):
         assert "within 30.0 s" not in err.value.message and "nobody serves it" in err.value.message
     else:
         assert "within 30.0 s" in err.value.message
+
+
+@pytest.mark.parametrize("fields,why", [
+    ({"stop_called": False, "outcome": "policy_stopped"}, "disagrees with stop_called"),
+    ({"stop_called": True, "outcome": "max_steps"}, "disagrees with stop_called"),
+    ({"stop_called": True, "outcome": "cancelled"}, "its own event"),
+    ({"stop_called": True, "success": True}, "only when a goal is known"),
+    ({"stop_called": True, "success": True, "metrics": metrics(False)}, "disagrees with the metrics"),
+])
+def test_a_finished_event_that_contradicts_itself_is_refused(fields, why):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=why):
+        MissionFinished(steps=1, **fields)
+
+
+def test_a_finished_event_carries_outcome_and_success_on_the_wire():
+    from shared.codec import decode, encode
+
+    ev = JobEvent(job_id="m1", seq=1, kind=K.FINISHED, state=S.SUCCEEDED, step=3,
+                  data=MissionFinished(stop_called=True, steps=3, metrics=metrics(True)))
+    got = decode(encode(ev), JobEvent).data
+    assert (got.outcome, got.success) == (MissionOutcome.POLICY_STOPPED, True)

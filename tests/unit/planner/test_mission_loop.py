@@ -15,7 +15,7 @@ from services.planner.core.mission import MissionLoop, MissionOutcome
 from services.planner.core.policy import Policy
 from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
-from shared.schemas import CandidateKind, JobEventKind, MissionOptions, JobState, MoveResult, MoveStatus
+from shared.schemas import CandidateKind, JobEventKind, MissionEnd, MissionOptions, JobState, MoveResult, MoveStatus
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -86,6 +86,7 @@ def test_zero_candidates_from_the_start_offers_only_stop_and_ends_with_a_reason(
     assert policy.offered == [[CandidateKind.STOP]]  # no previous node: no backtrack either
     assert out.state == JobState.SUCCEEDED and out.stop_called and out.steps == 1
     assert "boxed in" in out.reason and "step 0" in out.reason
+    assert out.end == MissionEnd.NO_WAY_TO_MOVE  # what MissionFinished.outcome carries
     assert out.trajectory_m.shape == (1, 3)
     assert [e[0] for e in events.items] == [JobEventKind.STARTED, JobEventKind.STEP]
 
@@ -134,6 +135,7 @@ def test_a_free_stop_has_no_reason(world):
 
     out, _ = _run(world, PREDICTORS.create("geometric"), StopNow())
     assert out.stop_called and out.reason == "" and out.state == JobState.SUCCEEDED
+    assert out.end == MissionEnd.POLICY_STOPPED
 
 
 def test_step_budget_without_stop_fails_with_a_reason(world):
@@ -144,6 +146,7 @@ def test_step_budget_without_stop_fails_with_a_reason(world):
 
     out, _ = _run(world, PREDICTORS.create("geometric"), NeverStop(), max_steps=2)
     assert out.state == JobState.FAILED and not out.stop_called and "budget of 2" in out.reason
+    assert out.end == MissionEnd.MAX_STEPS
 
 
 # --- an LLM that times out or answers garbage ---------------------------------------------------------------

@@ -120,3 +120,31 @@ def test_picture_candidates_stand_in_free_space_and_do_not_face_walls(room_index
             _, depth, _ = room_gt.render(
                 camera_pose((xy[0], xy[1], 0.0), math.atan2(c.dy_m, c.dx_m)), PinholeCamera(64, 64, 90.0))
             assert depth[32, 32] > 1.0
+
+
+def test_outlined_text_is_drawn_once_with_its_halo_around_it():
+    """The halo was a thicker white copy of the text, whose glyphs advance further: it drifted right
+    and read as the text twice ("agentt"). Now the halo hugs the text: it ends within 2 px of it."""
+    import numpy as np
+
+    from services.renderer.core.spatial_map import _text
+
+    img = np.full((40, 300, 3), 128, np.uint8)
+    _text(img, "top-down map, agent heading up", (6, 20), 0.45, (0, 0, 0))
+    dark = np.argwhere((img < 60).all(axis=2))
+    light = np.argwhere((img > 200).all(axis=2))
+    assert len(dark) and len(light)
+    assert light[:, 1].max() <= dark[:, 1].max() + 2 and light[:, 1].min() >= dark[:, 1].min() - 2
+
+
+def test_the_legend_sits_on_an_opaque_panel_at_a_legible_size():
+    import numpy as np
+
+    from services.renderer.core.spatial_map import SpatialMapper
+
+    img = np.full((256, 256, 3), 128, np.uint8)
+    SpatialMapper._legend(img, "top-down map", [("free", (230, 230, 230)), ("agent", (220, 30, 30))], 0.5)
+    panel = img[8:30, 8:60]
+    # White behind the text (not the grey map), and dark glyphs on it.
+    assert (panel == 255).all(axis=2).mean() > 0.5 and (panel < 80).all(axis=2).any()
+    assert (img[4:70, 4:100] == (220, 30, 30)).all(axis=2).any()  # the swatch

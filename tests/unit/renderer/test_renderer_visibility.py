@@ -130,3 +130,25 @@ def test_point_spacing_follows_the_sampling():
     sp = visibility.point_spacing(np.concatenate([coarse.xyz, fine.xyz]))
     assert np.median(sp[: len(coarse)]) == pytest.approx(0.04, rel=0.1)
     assert np.median(sp[len(coarse) :]) == pytest.approx(0.01, rel=0.1)
+
+
+def test_a_wall_seen_along_a_corridor_is_not_its_own_occluder():
+    # A wall 0.6 m to the left running from 0.3 m to 6 m ahead, and an end wall at 6.5 m: seen at
+    # grazing angles, the wall's nearer footprints must not remove (or leave holes in) its farther
+    # pixels, and the end wall must not show through it.
+    side = _lattice(0.6, (0.3, 6.0), (0.0, 2.6), 0.025, (200, 30, 30), 0)
+    side = PointCloud(side.xyz[:, [1, 0, 2]].copy(), side.rgb, side.labels, side.label_names)
+    end = _lattice(6.5, (-3.0, 3.0), (0.0, 2.6), 0.025, (30, 30, 200), 1, seed=4)
+    out = _render("visibility", IndexedCloud(PointCloud.concatenate([side, end])))
+    # Where the wall is in the image (camera axes: x right = world -y, y down, z ahead).
+    vv, uu = np.mgrid[0 : CAM.height_px, 0 : CAM.width_px].astype(float)
+    x, y = (uu - CAM.cx) / CAM.fx, (vv - CAM.cy) / CAM.fy
+    with np.errstate(divide="ignore"):
+        z = np.where(x < 0, -0.6 / x, np.inf)
+    height = 1.25 - y * z
+    wall = (z > 0.35) & (z < 5.5) & (height > 0.05) & (height < 2.55)
+    wall[:, int(CAM.cx) - 3 :] = False  # the far end, a few pixels wide, where the wall meets the end wall
+    assert (out.hole_mask[0][wall]).mean() <= 0.02
+    assert (out.labels[0][wall & ~out.hole_mask[0]] == 0).mean() >= 0.99
+    seen = wall & ~out.hole_mask[0]
+    assert np.quantile(np.abs(out.depth_m[0][seen] - z[seen]) / z[seen], 0.99) < 0.1
