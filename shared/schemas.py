@@ -817,6 +817,8 @@ class ExplorationOutcome(BaseModel):
     discovered_m2: float = Field(ge=0.0, le=WORLD_LIMIT_M**2)
     coverage_estimate: float = Field(ge=0.0, le=1.0)
     open_stairs: Count = 0  # stair nodes past the last explored floor: a flight leads on
+    mapped_free_m2: float = Field(0.0, ge=0.0, le=WORLD_LIMIT_M**2)  # free floor in the explorer's own map
+    map_frontiers: Count = 0  # targets the map's frontiers added where the predictor proposed none
 
 
 class StageProgress(EventPayload):

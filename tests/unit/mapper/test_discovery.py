@@ -3,7 +3,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from shared.geometry import PinholeCamera
-from shared.schemas import NavGraph, Tour
+from shared.schemas import ExplorationOutcome, NavGraph, Tour
 
 from services.mapper.core import (
     DiscoveryConfig,
@@ -30,6 +30,13 @@ def test_exploration_covers_the_house(run):
     cells = world.reachable_cells(0.2, 0.25)
     dist, _ = cKDTree(nodes).query(cells)
     assert (dist < 2.0).mean() >= 0.6
+
+
+def test_the_summary_is_what_the_exploration_event_carries(run):
+    # The job turns the summary into the wire ExplorationOutcome (extra fields forbidden): a field added
+    # on one side only failed every real exploration while the core's tests passed.
+    outcome = ExplorationOutcome(**run[2].result.summary())
+    assert outcome.finished and outcome.mapped_free_m2 > 0 and outcome.coverage_estimate > 0
 
 
 def test_graph_edges_only_between_visited_nodes(run):
