@@ -133,3 +133,25 @@ def test_a_ros_name_under_the_services_root_is_refused():
         acl.ros2_key_exprs(acl.Ros2Side(names=("/ant/robot0/io/pose",)))
     with pytest.raises(acl.AclError, match="key style"):
         acl.ros2_key_exprs(acl.Ros2Side(styles=("dds",)))
+
+
+def test_the_launcher_keeps_auth_on_with_the_stand_in_and_gives_both_sides_their_users(tmp_path, monkeypatch):
+    import json
+
+    from deploy.launcher import Launcher, StandIn
+
+    monkeypatch.delenv("ANT_BUS_AUTH", raising=False)
+    launcher = Launcher(tmp_path, standin=StandIn(keys="rmw_zenoh"))
+    assert launcher.auth
+    argv = launcher._router_argv("python")
+    router = (tmp_path / "zenoh" / "router.json5").read_text()
+    assert '"ros2_robot"' in router and "@ros2_lv/0/**" in router
+    assert '"cmd_vel"' not in router, "only the stand-in's key style is granted"
+    assert argv[-1].endswith("router.json5")
+    standin_env = launcher._env("ros2-robot", user=acl.Ros2Side.user)
+    assert standin_env["ANT_ZENOH__USERNAME"] == "ros2_robot" and standin_env["ANT_ZENOH__MODE"] == "client"
+    assert (tmp_path / "zenoh" / "ros2_robot.password").read_text().strip() == launcher.users["ros2_robot"]
+    ((_, robot_io_env),) = launcher._service_procs("robot_io")
+    transport = json.loads(robot_io_env["ANT_ROBOT_CONFIG"])["transport_config"]["zenoh"]
+    assert transport["username"] == "robot_io" and transport["mode"] == "client"
+    assert transport["password_file"] == str(tmp_path / "zenoh" / "robot_io.password")

@@ -21,31 +21,21 @@ import signal
 import sys
 import threading
 
-from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
-
 from services.robot_io.core.ros2.keys import key_style
 from services.robot_io.core.ros2.profiles import PROFILES, profile
 from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot
-from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig
+from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig, env_zenoh_settings
 from shared.bus.config import ZenohSettings
 from shared.logs import configure_logging
 
 log = logging.getLogger("ros2_robot")
 
 
-class BusEnv(BaseSettings):
-    """The ``ANT_ZENOH__*`` environment, read as the services read it (shared/runner.py)."""
-
-    model_config = SettingsConfigDict(env_prefix="ANT_", env_nested_delimiter="__", extra="ignore")
-    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
-
-
 def bus_settings(args: argparse.Namespace) -> ZenohSettings:
     """The environment's zenoh settings with the command line's on top."""
     flags = {"connect": args.connect, "listen": args.listen, "username": args.username,
              "password_file": args.password_file, "mode": args.mode or ("client" if args.username else None)}
-    return BusEnv().zenoh.model_copy(update={k: v for k, v in flags.items() if v})
+    return env_zenoh_settings().model_copy(update={k: v for k, v in flags.items() if v})
 
 
 def main(argv: list[str] | None = None) -> int:
