@@ -82,6 +82,17 @@ def floors_reached(scene, visited_m: np.ndarray) -> int:
     return sum(int(np.sum(np.abs(visited_m[:, 2] - z) < 0.1) >= 3) for z in levels) if len(visited_m) else 0
 
 
+def coverage_per_floor(scene, reachable_m: np.ndarray, nodes_m: np.ndarray, radius_m: float) -> list[float]:
+    """``coverage_of`` on each storey of a generated house (its stairwells with the storey below)."""
+    levels = sorted({r.floor_z_m for r in scene.rooms if r.room_type != "staircase"})
+    out = []
+    for k, z in enumerate(levels):
+        top = levels[k + 1] - 0.1 if k + 1 < len(levels) else np.inf
+        on = (reachable_m[:, 2] > z - 0.1) & (reachable_m[:, 2] < top)
+        out.append(round(coverage_of(reachable_m[on], nodes_m, radius_m), 3))
+    return out
+
+
 def replan(path: str, repeat: int) -> dict:
     """Analyse + plan on a saved exploration; the best of ``repeat`` runs (the machine may be busy)."""
     import pickle
@@ -155,6 +166,7 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
         "floors": len(d.scene.floors),
         "scene_floors": robot.scene.floors,
         "floors_reached": floors_reached(robot.scene, visited),
+        "coverage_per_floor": coverage_per_floor(robot.scene, reach, visited, radius_m),
         "stair_nodes": len(d.scene.stairs),
         "steps": d.result.steps,
         "moves": d.result.moves,
@@ -223,7 +235,7 @@ def _flat(row: dict, radius_m: float) -> dict:
 
 def print_ladder(rows: list[dict], radius_m: float) -> dict:
     rows = [_flat(r, radius_m) for r in rows]
-    head = ("rung", "n", "reach m2", "coverage min/mean", "floors", "steps", "moves", "m/m2",
+    head = ("rung", "n", "reach m2", "coverage min/mean", "estimate min", "floors", "steps", "moves", "m/m2",
             "explore s (robot+mapper)", "analyse s", "plan s", "cover+2opt s", "tour/NN max")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
@@ -233,8 +245,9 @@ def print_ladder(rows: list[dict], radius_m: float) -> dict:
         m = lambda k: float(np.mean([r[k] for r in rr]))  # noqa: E731
         cov = [r["coverage"] for r in rr]
         reached = f"{min(r['floors_reached'] for r in rr)}-{max(r['floors_reached'] for r in rr)}/{fl}"
+        est = min(r["outcome"]["coverage_estimate"] for r in rr)
         print(f"| {area} m2 x {fl} | {len(rr)} | {m('reachable_area_m2'):.0f} | {min(cov):.1%} / {np.mean(cov):.1%} "
-              f"| {reached} | {m('steps'):.0f} | {m('moves'):.0f} | {m('walked_m_per_m2'):.2f} "
+              f"| {est:.1%} | {reached} | {m('steps'):.0f} | {m('moves'):.0f} | {m('walked_m_per_m2'):.2f} "
               f"| {m('explore_s'):.1f} ({m('robot_s'):.1f}+{m('mapper_explore_s'):.1f}) | {m('analyse_s'):.2f} "
               f"| {m('plan_s'):.2f} | {m('set_cover_2opt_s'):.2f} | {max(r['tour_vs_nn_ratio'] for r in rr):.3f} |")
     area = np.array([r["reachable_area_m2"] for r in rows])

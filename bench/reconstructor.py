@@ -1,7 +1,7 @@
 """Reconstructor benchmark (issue 5): grounding error, map accuracy, RGB-D throughput, Replica.
 
     python -m bench.reconstructor [--houses generated:3:area=50 ...] [--size 96] [--seeds 0 1 2]
-                                  [--throughput-size 256] [--no-replica] [--json OUT]
+                                  [--throughput-size 256] [--no-throughput] [--no-replica] [--json OUT]
     python -m bench.reconstructor --building [generated:0:area=1000:floors=3] [--size 96]
                                   [--save-cloud OUT.ply]
 
@@ -97,17 +97,19 @@ def run_house(spec: str, size_px: int, seeds: list[int]) -> dict:
         b = r.build_from_recordings(recs, robot.scene.label_names)
     out["rgbd"] = {"points": len(b.cloud), **ref.score(b.cloud.xyz), "build_s": round(b.timings_s["total"], 2),
                    "delta_mean_rgbd": [round(x.alignment.delta_mean, 4) for x in b.regions]}
-    errors, mono_scores = [], []
+    errors, mono_scores, by_region = [], [], {}
     for seed in seeds:
         cfg = ReconstructionConfig(backend="mono-sim", backend_config={"seed": seed})
         with Reconstructor(cfg) as r:
             b = r.build_from_recordings(recs, robot.scene.label_names)
         errors += [x.scale_error for x in b.regions]
+        by_region[f"seed{seed}"] = [round(100 * x.scale_error, 2) for x in b.regions]
         mono_scores.append(ref.score(b.cloud.xyz))
     out["mono_sim"] = {
         "regions_x_seeds": len(errors),
         "scale_error_median_pct": round(100 * float(np.median(errors)), 2),
         "scale_error_max_pct": round(100 * float(np.max(errors)), 2),
+        "scale_error_pct_by_region": by_region,  # per seed, regions in order
         **{k: round(float(np.mean([s[k] for s in mono_scores])), 4) for k in mono_scores[0]},
     }
     out["_errors"] = errors
@@ -243,6 +245,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--throughput-size", type=int, default=256)
     ap.add_argument("--throughput-kernels", nargs="+", default=["auto"], choices=["auto", "numba", "numpy"],
                     help="fusion kernels to time (numpy: the array code, for a before/after)")
+    ap.add_argument("--no-throughput", action="store_true", help="grounding and accuracy only")
     ap.add_argument("--replica-frames", type=int, default=1000)
     ap.add_argument("--no-replica", action="store_true")
     ap.add_argument("--json", default=None)
@@ -276,8 +279,9 @@ def main(argv: list[str] | None = None) -> None:
             "target_median_pct": 2.0,
         }
         print(json.dumps({"grounding_all_houses": report["grounding"]}), flush=True)
-    report["throughput"] = throughput(args.throughput_scene, args.throughput_size, tuple(args.throughput_kernels))
-    print(json.dumps({"rgbd_throughput": report["throughput"], "target_frames_per_s": 200}), flush=True)
+    if not args.no_throughput:
+        report["throughput"] = throughput(args.throughput_scene, args.throughput_size, tuple(args.throughput_kernels))
+        print(json.dumps({"rgbd_throughput": report["throughput"], "target_frames_per_s": 200}), flush=True)
     if not args.no_replica:
         rep = replica(args.throughput_size, args.replica_frames, 250, args.seeds)
         report["replica"] = rep

@@ -54,6 +54,9 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, default=40)
     p.add_argument("--no-anticipation", action="store_true")
     p.add_argument("--hfov-deg", type=float, default=90.0, help="anticipated-view HFOV")
+    p.add_argument("--splat-mode", choices=["paper", "visibility"], help="renderer splat mode of anticipated views")
+    p.add_argument("--anticipation-views", choices=["map", "true-scene"], default="map",
+                   help="true-scene: ray-cast from the simulator's scene (a control)")
     p.add_argument("--no-spatial-map", action="store_true")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reference", choices=["auto", "gt", "episode"], default="auto", help="nDTW reference path")
@@ -88,6 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("name")
     _run_args(pre)
     pre.add_argument("--out", type=Path, default=Path("runs/eval/presets"))
+    pre.add_argument("--chunk", type=int, help="variants take turns, this many more episodes each per round")
     gen = sub.add_parser("generate", help="write the generated evaluation set (R2R-CE format)")
     gen.add_argument("--out", type=Path, required=True)
     gen.add_argument("--houses", type=int, default=5)
@@ -149,7 +153,8 @@ def run_config(a: argparse.Namespace) -> RunConfig:
         anticipation_hfov_deg=a.hfov_deg, spatial_map=not a.no_spatial_map, map_source=MapSource(a.map_source),
         seed=a.seed, reference=a.reference, limit=a.limit, scenes_dir=a.scenes_dir,
         mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
-        exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors, record=a.record)
+        exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors, record=a.record,
+        anticipation_splat_mode=a.splat_mode, anticipation_views=a.anticipation_views)
 
 
 def load_episodes(a: argparse.Namespace):
@@ -270,7 +275,7 @@ def cmd_preset(a: argparse.Namespace) -> int:
         cache = SceneMapIndex(a.maps or a.out / "maps.json")
         for name in names:
             rep = run_preset(name, episodes, gt, base, a.out, gateway, scenes, map_cache=cache,
-                             progress=not a.no_progress, lanes=lanes[1:])
+                             progress=not a.no_progress, lanes=lanes[1:], chunk=a.chunk)
             print(f"\n## {rep.preset.title}\n")
             print(markdown_table(rep.rows))
             print(f"{rep.preset.paper}\ntable {rep.table_md}, plot {rep.plot_png}")

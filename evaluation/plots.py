@@ -129,8 +129,13 @@ def write_episode_plots(results: Iterable[EpisodeResult], geometry: Mapping[str,
         if r.status != "done" or geo is None or not r.trajectory_m:
             continue
         rel = f"{PLOTS_DIR}/{plot_name(r.episode_id)}"
+        path = out_dir / rel
+        if path.is_file() and path.stat().st_mtime >= r.finished_at_s:
+            # Drawn after this result ended: a resumed run (or a preset's next round) redraws only new results.
+            rows.append((r, rel))
+            continue
         try:
-            plot_episode(r, geo, out_dir / rel)
+            plot_episode(r, geo, path)
         except Exception:  # noqa: BLE001 - a bad picture must not lose the run's tables
             log.exception("could not plot episode %s", r.episode_id)
             continue

@@ -2,7 +2,11 @@
 
 Every preset runs the runner over the same episodes with different options (one output folder per
 variant, so each variant is resumable on its own), reuses maps across variants and presets (one map
-cache), and writes a comparison table (``table.md`` / ``table.csv``) and a plot (``plot.png``).
+cache), and writes a comparison table (``table.md`` / ``table.csv``, with every variant's paired
+bootstrap differences against the first: :mod:`evaluation.compare`) and a plot (``plot.png``).
+
+``chunk``: the variants take turns, ``chunk`` more episodes each per round, so that a long preset
+stopped at any time leaves every variant with (nearly) the same episodes done - pairs to compare.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from evaluation.compare import comparison_markdown
 from evaluation.errors import ConfigError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, write_tables
@@ -64,6 +69,15 @@ def presets() -> dict[str, Preset]:
                "Paper (R2R-CE): without anticipated views SR drops from 66 to 55.",
                (Variant("with anticipation", {"anticipation": True}),
                 Variant("without anticipation", {"anticipation": False}))),
+        Preset("splat", "Anticipated views: the paper's 3x3 splat vs the occlusion-correct visibility splat",
+               "Paper: a fixed 3x3 Gaussian splat (mode paper); issue 20 made mode visibility the default.",
+               (Variant("visibility splat", {"anticipation": True, "anticipation_splat_mode": "visibility"}),
+                Variant("paper splat", {"anticipation": True, "anticipation_splat_mode": "paper"}))),
+        Preset("true-views", "Anticipated views from the map vs ray-cast from the true scene (simulator only)",
+               "A control, not in the paper: true-scene views bound what anticipation can give the policy.",
+               (Variant("map views", {"anticipation": True, "anticipation_views": "map"}),
+                Variant("true-scene views", {"anticipation": True, "anticipation_views": "true-scene"}),
+                Variant("without anticipation", {"anticipation": False}))),
         Preset("hfov", "Anticipation HFOV",
                "Paper (R2R-CE): HFOV 90 deg beats 60 and 120 deg.",
                tuple(Variant(f"hfov {h}", {"anticipation": True, "anticipation_hfov_deg": float(h)})
@@ -87,27 +101,36 @@ class PresetReport:
 def run_preset(name: str, episodes: Sequence[Episode], gt: dict[str, GroundTruth] | None, base: RunConfig,
                out_dir: Path | str, gateway: GatewayClient, scenes: SceneLoader | None, *,
                map_cache: SceneMapIndex | None = None, progress: bool = True,
-               lanes: Sequence[Lane] = ()) -> PresetReport:
+               lanes: Sequence[Lane] = (), chunk: int | None = None) -> PresetReport:
     """Run every variant of preset ``name`` into ``out_dir/<name>/<variant>`` and write its table and plot
-    (``lanes``: more robots, see :class:`EvalRunner`)."""
+    (``lanes``: more robots, see :class:`EvalRunner`; ``chunk``: variants take turns, see the module)."""
+    if chunk is not None and chunk < 1:
+        raise ConfigError(f"chunk must be >= 1, got {chunk}")
     table = presets()
     if name not in table:
         raise ConfigError(f"unknown preset {name!r}; known: {', '.join(table)}")
     preset = table[name]
     root = Path(out_dir) / name
     cache = map_cache or SceneMapIndex(Path(out_dir) / "maps.json")
-    reports = []
-    for v in preset.variants:
-        cfg = RunConfig.model_validate({**base.model_dump(), **v.overrides})  # overrides validated too
-        log.info("preset %s: variant %s", name, v.label)
-        runner = EvalRunner(gateway, scenes, cfg, root / v.slug, map_cache=cache, label=v.label, progress=progress,
-                            lanes=lanes)
-        reports.append(runner.run(episodes, gt))
-    rows = [r.row for r in reports]
-    md, csv = write_tables(rows, root / "table", COLUMNS, title=preset.title)
-    with open(md, "a", encoding="utf-8") as f:
-        f.write(f"\n{preset.paper}\n")
-    png = plot_rows(rows, root / "plot.png", preset.title)
+    configs = [RunConfig.model_validate({**base.model_dump(), **v.overrides}) for v in preset.variants]  # validated
+    total = min(len(episodes), base.limit or len(episodes))
+    limits = list(range(chunk, total, chunk)) + [total] if chunk else [total]
+    reports: list[RunReport] = []
+    for limit in limits:
+        reports = []
+        for v, cfg in zip(preset.variants, configs):
+            log.info("preset %s: variant %s (%d episodes)", name, v.label, limit)
+            runner = EvalRunner(gateway, scenes, cfg.model_copy(update={"limit": limit}), root / v.slug,
+                                map_cache=cache, label=v.label, progress=progress, lanes=lanes)
+            reports.append(runner.run(episodes, gt))
+        # Tables after every round: a preset stopped midway still has its paired comparison so far.
+        rows = [r.row for r in reports]
+        md, csv = write_tables(rows, root / "table", COLUMNS, title=preset.title)
+        with open(md, "a", encoding="utf-8") as f:
+            f.write(f"\n{preset.paper}\n")
+            f.write(comparison_markdown([(v.label, {r.episode_id: r for r in rep.results})
+                                         for v, rep in zip(preset.variants, reports)]))
+        png = plot_rows(rows, root / "plot.png", preset.title)
     return PresetReport(preset, rows, reports, md, csv, png)
 
 

@@ -63,6 +63,10 @@ class RunConfig(BaseModel):
     max_steps: int = Field(40, ge=1, le=500, description="decisions per episode before it counts as not stopped")
     anticipation: bool = True
     anticipation_hfov_deg: float = Field(90.0, ge=30.0, le=150.0)
+    anticipation_splat_mode: Literal["paper", "visibility"] | None = Field(
+        None, description="the renderer's splat mode for anticipated views (None: the renderer's default)")
+    anticipation_views: Literal["map", "true-scene"] = Field(
+        "map", description="anticipated views rendered from the map, or ray-cast from the true scene (simulator)")
     spatial_map: bool = True
     map_source: MapSource = MapSource.RECONSTRUCTED
     seed: int = Field(0, description="run seed; each episode's mission seed derives from it and the episode id")
@@ -87,7 +91,7 @@ class RunConfig(BaseModel):
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
         return self.model_dump(mode="json", include={
             "policy", "policy_config", "max_steps", "anticipation", "anticipation_hfov_deg", "spatial_map",
-            "map_source", "seed", "reference"})
+            "map_source", "seed", "reference", "anticipation_splat_mode", "anticipation_views"})
 
 
 def episode_seed(run_seed: int, episode_id: Any) -> int:
@@ -223,7 +227,8 @@ class EvalRunner:
         path = self.out_dir / RUN_FILE
         key = self.config.experiment_key()
         if path.is_file():
-            old = json.loads(path.read_text(encoding="utf-8")).get("experiment", {})
+            # A setting added after the run was made reads as its default (what that run did).
+            old = {**RunConfig().experiment_key(), **json.loads(path.read_text(encoding="utf-8")).get("experiment", {})}
             if old != key:
                 diff = {k: (old.get(k), v) for k, v in key.items() if old.get(k) != v}
                 raise ConfigError(f"{self.out_dir} holds results of another experiment ({diff} as (old, new)); "
@@ -496,6 +501,7 @@ class EvalRunner:
         return MissionOptions(
             policy=cfg.policy, policy_config=cfg.policy_config, max_steps=cfg.max_steps,
             anticipation=cfg.anticipation, anticipation_hfov_deg=cfg.anticipation_hfov_deg,
+            anticipation_splat_mode=cfg.anticipation_splat_mode, anticipation_views=cfg.anticipation_views,
             spatial_map=cfg.spatial_map, goal_m=tuple(float(v) for v in e.goal_m),
             reference_path_m=self.reference_for(e, gt), start_pose=e.start_pose,
             seed=episode_seed(cfg.seed, e.episode_id), record=True if cfg.record else None)
@@ -505,7 +511,8 @@ class EvalRunner:
         cfg = self.config
         opts = self.mission_options(e, gt)
         brief = {"policy": cfg.policy, "max_steps": cfg.max_steps, "anticipation": cfg.anticipation,
-                 "anticipation_hfov_deg": cfg.anticipation_hfov_deg, "spatial_map": cfg.spatial_map}
+                 "anticipation_hfov_deg": cfg.anticipation_hfov_deg, "spatial_map": cfg.spatial_map,
+                 "anticipation_splat_mode": cfg.anticipation_splat_mode, "anticipation_views": cfg.anticipation_views}
         base = {"map_id": map_id, "seed": opts.seed, "options": brief}
         t0 = time.monotonic()
         try:

@@ -27,7 +27,8 @@ from shared.schemas import (
     MapImportRequest, MissionRequest,
     MapChunk, MapChunkRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
     Panorama, Ping, Pose, PoseReply, RecordReply, RecordRequest, RenderRequest, RenderResult, ResetRequest,
-    SceneSummary, ServiceInfo, ServiceMetrics, SpatialMapRequest, SpatialMapResult, TurnRequest, ViewPose,
+    SceneSummary, SceneViewsRequest, ServiceInfo, ServiceMetrics, SpatialMapRequest, SpatialMapResult, SplatMode,
+    TurnRequest, ViewPose,
 )
 
 _recording_ids = itertools.count()
@@ -99,6 +100,12 @@ class RobotClient:
         return self.bus.request(self._k(keys.IO_GEODESIC),
                                 GeodesicRequest(start_m=tuple(map(float, start_m)), goal_m=tuple(map(float, goal_m))),
                                 GeodesicReply, timeout_s=self.timeout_s)
+
+    def scene_views(self, views: list[ViewPose], camera: CameraIntrinsics | None = None,
+                    with_semantic: bool = True) -> RenderResult:
+        """Views ray-cast from the simulator's true scene at ``views`` (simulator only)."""
+        req = SceneViewsRequest(views=views, camera=camera or CameraIntrinsics(), with_semantic=with_semantic)
+        return self.bus.request(self._k(keys.IO_VIEWS), req, RenderResult, timeout_s=self.timeout_s)
 
     def geodesic_distance(self, start_m, goal_m) -> float:
         d = self.geodesic(start_m, goal_m).distance_m
@@ -268,8 +275,9 @@ class RendererClient:
         self.bus, self.timeout_s = bus, timeout_s
 
     def views(self, map_id: str, views: list[ViewPose], camera: CameraIntrinsics | None = None,
-              with_labels: bool = True) -> RenderResult:
-        req = RenderRequest(map_id=map_id, views=views, camera=camera or CameraIntrinsics(), with_labels=with_labels)
+              with_labels: bool = True, splat_mode: SplatMode | None = None) -> RenderResult:
+        req = RenderRequest(map_id=map_id, views=views, camera=camera or CameraIntrinsics(), with_labels=with_labels,
+                            splat_mode=splat_mode)
         return self.bus.request(keys.RENDER_VIEWS.format(), req, RenderResult, timeout_s=self.timeout_s,
                                 balance="renderer")
 

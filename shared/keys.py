@@ -147,6 +147,10 @@ IO_RESET = Key(f"{_R}/io/reset", "robot_io", Usage.QUERYABLE, "ResetRequest", "P
 IO_GEODESIC = Key(f"{_R}/io/geodesic", "robot_io", Usage.QUERYABLE, "GeodesicRequest", "GeodesicReply",
                   "geodesic distance and shortest path (simulator oracle for metrics)",
             consumers=("planner", "mapper"))
+IO_VIEWS = Key(f"{_R}/io/views", "robot_io", Usage.QUERYABLE, "SceneViewsRequest", "RenderResult",
+               "views ray-cast from the true scene at given poses (simulator only: the evaluation's true-scene "
+               "anticipation control)",
+            consumers=("planner",))
 IO_RECORD = Key(f"{_R}/io/record", "robot_io", Usage.QUERYABLE, "RecordRequest", "RecordReply",
                 "start/stop recording a tour (frames published on IO_FRAMES)",
             consumers=("mapper",))

@@ -235,6 +235,20 @@ class MoveStatus(StrEnum):
     BLOCKED = "blocked"
 
 
+class SceneViewsRequest(Message):
+    """Views at given poses ray-cast from the simulator's true scene (RGB, depth, semantic), in the
+    robot's reported frame like a render request: what a perfect map would show there."""
+
+    views: list[ViewPose] = Field(min_length=1, max_length=64)
+    camera: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
+    with_semantic: bool = True
+
+    def check_budget(self) -> None:
+        px = len(self.views) * self.camera.width_px * self.camera.height_px
+        if px > RENDER_MAX_PIXELS:
+            raise BudgetExceeded("rendered pixels (views x width x height)", px, RENDER_MAX_PIXELS, "px")
+
+
 class ObserveRequest(Message):
     camera: CameraIntrinsics | None = None  # None: the robot's configured camera
     with_semantic: bool = True
@@ -486,6 +500,11 @@ class MapChunk(Message):
 # --- renderer --------------------------------------------------------------------------------------
 
 
+# The renderer's splat modes (services.renderer.core.splat.SplatConfig.mode): the paper's fixed 3x3
+# Gaussian, or the occlusion-correct visibility splatting with hole filling (issue 20).
+SplatMode = Literal["paper", "visibility"]
+
+
 class RenderRequest(Message):
     """Anticipated views of one step: every candidate's view in one request."""
 
@@ -498,6 +517,7 @@ class RenderRequest(Message):
     # Each view stands on the map's floor under it nearest to its given z, within this range (a
     # candidate on the stairs or another storey is seen from its own height); 0 keeps z as given.
     floor_search_m: float = Field(1.5, ge=0.0, le=5.0)
+    splat_mode: SplatMode | None = None  # None: the renderer's configured mode
 
     def check_budget(self) -> None:
         px = len(self.views) * self.camera.width_px * self.camera.height_px
@@ -513,6 +533,7 @@ class RenderResult(Message):
     hole_mask: Array("bool", 3)
     labels: Array("int32", 3) | None = None
     render_s: float = 0.0
+    splat_mode: SplatMode | None = None  # the mode that rendered these views (None: not said)
 
 
 class SpatialMapRequest(Message):
@@ -597,6 +618,11 @@ class MissionOptions(BaseModel):
     max_steps: int = Field(40, ge=1, le=500)
     anticipation: bool = True
     anticipation_hfov_deg: float = Field(90.0, ge=30.0, le=150.0)
+    # The renderer's splat mode for this mission's anticipated views (None: the renderer's configured one).
+    anticipation_splat_mode: SplatMode | None = None
+    # "map": rendered from the map (the method); "true-scene": ray-cast from the simulator's scene at the
+    # same poses, an evaluation control bounding what anticipation can give (refused on a real robot).
+    anticipation_views: Literal["map", "true-scene"] = "map"
     spatial_map: bool = True
     goal_m: Xyz_m | None = None
     reference_path_m: list[Xyz_m] | None = Field(None, max_length=PATH_MAX_POINTS)

@@ -119,6 +119,10 @@ class RendererService(Service[RendererSettings]):
     def __init__(self, settings: RendererSettings):
         super().__init__(settings)
         self.renderer = RENDERERS.create(settings.splat_backend, settings.splat_config or None)
+        # A request may ask for another splat mode (the ablation of paper vs visibility views runs on one
+        # system): one renderer per mode, the other made on first use, same backend and parameters.
+        self._by_mode = {self.renderer.config.mode: self.renderer}
+        self._by_mode_lock = threading.Lock()
         self.mapper = SpatialMapper()
         self.cache: MapCache | None = None
 
@@ -135,12 +139,23 @@ class RendererService(Service[RendererSettings]):
         node.serve(keys.RENDER_VIEWS.format(), RenderRequest, self.views, replicated=True)
         node.serve(keys.RENDER_MAP.format(), SpatialMapRequest, self.spatial_map, replicated=True)
 
-    def _map(self, map_id: str, version: int | None) -> MapRenderer:
+    def _renderer(self, mode: str | None):
+        if mode is None:
+            return self.renderer
+        with self._by_mode_lock:
+            if mode not in self._by_mode:
+                config = {**(self.settings.splat_config or {}), "mode": mode}
+                renderer = RENDERERS.create(self.settings.splat_backend, config)
+                log.info("renderer for splat mode %r ready in %.2f s", mode, renderer.warm_up())
+                self._by_mode[mode] = renderer
+            return self._by_mode[mode]
+
+    def _map(self, map_id: str, version: int | None, mode: str | None = None) -> MapRenderer:
         index, version = self.cache.get(map_id, version)
-        return MapRenderer(index, self.renderer, self.mapper, map_id, version)
+        return MapRenderer(index, self._renderer(mode), self.mapper, map_id, version)
 
     def views(self, req: RenderRequest) -> RenderResult:
-        return self._map(req.map_id, req.version).views(req.map_id, req.views, req.camera, req.with_labels,
+        return self._map(req.map_id, req.version, req.splat_mode).views(req.map_id, req.views, req.camera, req.with_labels,
                                                          req.camera_height_m, req.floor_search_m)
 
     def spatial_map(self, req: SpatialMapRequest) -> SpatialMapResult:

@@ -19,14 +19,14 @@ import numpy as np
 from pydantic import Field
 
 from services.robot_io import ros2_zenoh  # noqa: F401  (registers the zenoh transport of the ros2 backend)
-from services.robot_io.core import ROBOTS, Robot, SceneError, SceneNotFoundError
+from services.robot_io.core import ROBOTS, Robot, RobotIOError, SceneError, SceneNotFoundError
 from services.robot_io.core.scene import is_generated_spec
 from shared.bus.typed import NotFound
 from shared import keys
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
     Frame, GeodesicReply, GeodesicRequest, LoadSceneRequest, MoveRequest, MoveResult, ObserveRequest, Panorama, Ping,
-    PoseReply, RecordReply, RecordRequest, ResetRequest, SceneSummary, TurnRequest,
+    PoseReply, RecordReply, RecordRequest, RenderResult, ResetRequest, SceneSummary, SceneViewsRequest, TurnRequest,
 )
 
 log = logging.getLogger(__name__)
@@ -91,6 +91,7 @@ class RobotIoService(Service[RobotIoSettings]):
         node.serve(keys.IO_RESET.format(robot=r), ResetRequest, self.reset, workers=1)
         node.serve(keys.IO_RECORD.format(robot=r), RecordRequest, self.record, workers=1)
         node.serve(keys.IO_GEODESIC.format(robot=r), GeodesicRequest, self.geodesic, workers=2)
+        node.serve(keys.IO_VIEWS.format(robot=r), SceneViewsRequest, self.scene_views, workers=1)
         node.serve(keys.IO_SCENE.format(robot=r), Ping, self.scene, workers=1)
         node.serve(keys.IO_LOAD_SCENE.format(robot=r), LoadSceneRequest, self.load_scene, workers=1)
 
@@ -123,6 +124,14 @@ class RobotIoService(Service[RobotIoSettings]):
     def observe(self, req: ObserveRequest) -> Panorama:
         with self._body():
             return self.robot.observe(req.camera, with_semantic=req.with_semantic)
+
+    def scene_views(self, req: SceneViewsRequest) -> RenderResult:
+        # The body's lock: the views follow the robot's pose, which must not move meanwhile.
+        with self._lock:
+            try:
+                return self.robot.scene_views(req.views, req.camera, with_semantic=req.with_semantic)
+            except RobotIOError as exc:  # a real robot: a refused request, the service keeps serving
+                raise ValueError(str(exc)) from None
 
     def move_to(self, req: MoveRequest) -> MoveResult:
         with self._body():

@@ -35,6 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.schemas import Candidate, MoveResult, MoveStatus, Panorama, Pose
 
 from services.mapper.core.errors import ExplorationError
+from services.mapper.core.frontier import FreeSpaceMap, FrontierConfig
 from services.mapper.core.navgraph import GridGraph, NodeStatus
 from services.mapper.core.predictor import (
     GeometricPredictor,
@@ -74,11 +75,17 @@ class ExplorationConfig(BaseModel):
     replan_attempts: int = Field(3, ge=1, le=20)  # walks re-planned around blocked traversed edges
     reconnect_radius_m: float = Field(3.0, gt=0.0)  # direct moves that may rejoin a stranded node
     visit_radius_m: float = Field(0.8, gt=0.0)  # a frontier this close to a visited node is covered
+    # ... if that node's scan saw it: the ray towards it reached at least this close to it. A node
+    # behind a wall (the next room, a stairwell's shaft) covers nothing on the other side.
+    sight_margin_m: float = Field(0.15, ge=0.0)
     frontier_merge_m: float = Field(0.5, ge=0.0)  # candidates closer than this to a frontier merge
     same_floor_dz_m: float = Field(0.4, gt=0.0)
     min_progress_m: float = Field(0.3, ge=0.0)  # a blocked move shorter than this adds no node
     scan_angle_bins: int = Field(360, ge=36, le=1440)
     time_budget_s: float | None = Field(None, gt=0.0)
+    # The scans' own free-space map: when the predictor's candidates run out, reachable frontiers
+    # of the map (free space beside unseen space) become candidates too (see frontier.py).
+    frontier: FrontierConfig = Field(default_factory=FrontierConfig)
 
 
 @dataclass(frozen=True)
@@ -114,7 +121,9 @@ class ExplorationResult:
     scan_angles_rad: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stop_reason: StopReason = StopReason.EXHAUSTED
     discovered_m2: float = 0.0  # 1 m cells holding a graph node (what the budget scaled with)
-    coverage_estimate: float = 1.0  # explored share of the discovered cells that can be reached
+    coverage_estimate: float = 1.0  # share of the mapped reachable free area within reach of a visited node
+    mapped_free_m2: float = 0.0  # that free area (the explorer's own map)
+    map_frontiers: int = 0  # candidates the map's frontiers added (the predictor did not propose them)
     open_stairs: int = 0  # flights seen climbing or descending whose continuation failed
     step_budget: int = 0
 
@@ -123,7 +132,8 @@ class ExplorationResult:
         return {"finished": self.finished, "stop_reason": str(self.stop_reason), "steps": self.steps,
                 "step_budget": self.step_budget, "moves": self.moves,
                 "discovered_m2": round(self.discovered_m2, 1),
-                "coverage_estimate": round(self.coverage_estimate, 3), "open_stairs": self.open_stairs}
+                "coverage_estimate": round(self.coverage_estimate, 3), "mapped_free_m2": round(self.mapped_free_m2, 1),
+                "map_frontiers": self.map_frontiers, "open_stairs": self.open_stairs}
 
 
 class Explorer:
@@ -173,6 +183,7 @@ class Explorer:
             break
         g = run.graph
         open_stairs = run.open_stairs()
+        coverage, free_m2 = run.coverage_estimate()
         return ExplorationResult(
             graph=g,
             scans=run.scans,
@@ -188,7 +199,9 @@ class Explorer:
             scan_angles_rad=self.scanner.angles_rad.copy(),
             stop_reason=reason,
             discovered_m2=run.discovered_m2(),
-            coverage_estimate=run.coverage_estimate(),
+            coverage_estimate=coverage,
+            mapped_free_m2=free_m2,
+            map_frontiers=run.map_frontiers,
             open_stairs=open_stairs,
             step_budget=run.step_budget(),
         )
@@ -213,6 +226,9 @@ class _Run:
         self.blocked = 0
         self.cells: set[tuple[int, int, int]] = set()  # 1 m cells holding a node: the discovered area
         self.stair_nodes: set[str] = set()  # visited nodes reached by a move that climbed or fell
+        self.node_scan: dict[str, Scan] = {}  # the latest panorama's scan taken at each visited node
+        self.space = FreeSpaceMap(explorer.scanner.angles_rad, self.cfg.frontier, self.cfg.same_floor_dz_m)
+        self.map_frontiers = 0
 
     # --- budget and bookkeeping -------------------------------------------------------------------
 
@@ -226,19 +242,26 @@ class _Run:
         budget = int(self.cfg.min_steps + self.cfg.steps_per_m2 * len(self.cells))
         return min(budget, self.cfg.max_steps) if self.cfg.max_steps is not None else budget
 
-    def coverage_estimate(self) -> float:
-        """Share of the discovered cells that hold an explored node, among those not known unreachable.
+    def _floor_nodes(self) -> dict[float, list[tuple[str, np.ndarray]]]:
+        """Visited nodes off the stairs, by floor level of the free-space map."""
+        out: dict[float, list[tuple[str, np.ndarray]]] = {}
+        for n in self.graph.nodes_with(NodeStatus.VISITED):
+            if n in self.stair_nodes:
+                continue
+            p = self.graph.pos(n)
+            lv = self.space.level_of(float(p[2]))
+            if lv is not None:
+                out.setdefault(lv.z_m, []).append((n, p))
+        return out
 
-        An open frontier marks a cell nobody has looked at from close by; a cell holding only
-        unreachable candidates is not part of the area there is to explore.
-        """
-        status: dict[tuple, set] = {}
-        for _, a in self.graph.g.nodes(data=True):
-            status.setdefault(self._cell(a["pos"]), set()).add(a["status"])
-        done = sum(1 for st in status.values() if st & {NodeStatus.VISITED, NodeStatus.COVERED})
-        todo = sum(1 for st in status.values()
-                   if NodeStatus.FRONTIER in st and not st & {NodeStatus.VISITED, NodeStatus.COVERED})
-        return done / max(done + todo, 1)
+    def coverage_estimate(self) -> tuple[float, float]:
+        """(Share of the mapped free area reachable from the visited nodes that lies within the
+        coverage radius of one, that area m2). Free space seen through a door but never walked
+        to lowers it; a graph of nodes alone cannot see that space."""
+        by_level = {z: np.stack([p[:2] for _, p in nodes]) for z, nodes in self._floor_nodes().items()}
+        # Stair nodes stand over the flights, which each floor's map holds as free ground.
+        stairs = [n for n in self.stair_nodes if n in self.graph.g]
+        return self.space.coverage(by_level, self.graph.positions(stairs)[:, :2])
 
     def open_stairs(self) -> int:
         """Stair nodes above the highest explored floor or below the lowest: a flight that leads on.
@@ -275,8 +298,13 @@ class _Run:
             self.graph.connect(previous, nid, max(travelled_m, 1e-3))
         self.here = nid
         obstacle = self.ex.scanner.obstacle_distance(pano)
-        self.scans.append(Scan(pos.copy(), pano.pose.heading_rad, obstacle, nid))
-        self._cover_near(pos)
+        scan = Scan(pos.copy(), pano.pose.heading_rad, obstacle, nid)
+        self.scans.append(scan)
+        self.node_scan[nid] = scan
+        if previous is None or abs(pos[2] - self.graph.pos(previous)[2]) < self.cfg.stair_rise_m:
+            # On a flight the 2-D map of no floor holds what the panorama sees (regions.py too).
+            self.space.add_scan(pos, pano.pose.heading_rad, obstacle)
+        self._cover_near(nid, pos)
         cands = self.ex.predictor.predict(pano)
         # Push the best candidate last so that the DFS takes it first.
         for cand in sorted(cands, key=lambda c: c.score):
@@ -293,7 +321,7 @@ class _Run:
             return
         self.stair_nodes.add(nid)
         target = pos + np.array([d[0], d[1], 0.0]) / run * self.cfg.stair_follow_m
-        if self._near(target, (NodeStatus.VISITED,), self.cfg.visit_radius_m):
+        if self._seen_near(target):
             return  # that part of the flight was walked already
         f = self.graph.add_observed(target, nid, 1.0)
         if f is not None:
@@ -302,7 +330,7 @@ class _Run:
 
     def _add_candidate(self, parent: str, pos: np.ndarray, cand: Candidate) -> None:
         target = pos + np.array([cand.dx_m, cand.dy_m, 0.0])
-        if self._near(target, (NodeStatus.VISITED,), self.cfg.visit_radius_m):
+        if self._seen_near(target):
             return
         if self._near(target, (NodeStatus.FRONTIER,), self.cfg.frontier_merge_m):
             return
@@ -316,19 +344,72 @@ class _Run:
     def _near(self, target: np.ndarray, status: tuple[NodeStatus, ...], radius: float) -> bool:
         return bool(self.graph.near(target, radius, self.cfg.same_floor_dz_m, *status))
 
-    def _cover_near(self, pos: np.ndarray) -> None:
-        """Frontiers that a new visited node makes redundant are covered, not visited."""
+    def _sees(self, nid: str, target: np.ndarray) -> bool:
+        """Did the scan taken at visited node ``nid`` see ``target`` (no obstacle on the way)?
+
+        A node without a scan (none in this run) is trusted as before: nearness alone.
+        """
+        scan = self.node_scan.get(nid)
+        if scan is None:
+            return True
+        d = target[:2] - scan.position_m[:2]
+        dist = math.hypot(d[0], d[1])
+        if dist <= self.cfg.sight_margin_m:
+            return True
+        n = len(scan.obstacle_m)
+        k = int(round((math.atan2(d[1], d[0]) - scan.heading_rad) / (2.0 * math.pi / n))) % n
+        reach = scan.obstacle_m[k]
+        return bool(not np.isnan(reach) and reach >= dist - self.cfg.sight_margin_m)
+
+    def _seen_near(self, target: np.ndarray) -> bool:
+        """Is ``target`` close to a visited node that saw it? Then going there adds nothing."""
+        return any(self._sees(v, target) for v in self.graph.near(
+            target, self.cfg.visit_radius_m, self.cfg.same_floor_dz_m, NodeStatus.VISITED))
+
+    def _cover_near(self, nid: str, pos: np.ndarray) -> None:
+        """Frontiers that a new visited node sees from close by are covered, not visited."""
         for f in self.graph.near(pos, self.cfg.visit_radius_m, self.cfg.same_floor_dz_m, NodeStatus.FRONTIER):
-            self.graph.g.nodes[f]["status"] = NodeStatus.COVERED
+            if self._sees(nid, self.graph.pos(f)):
+                self.graph.g.nodes[f]["status"] = NodeStatus.COVERED
 
     # --- DFS --------------------------------------------------------------------------------------
 
     def next_frontier(self) -> str | None:
-        while self.frontiers:
-            f = self.frontiers.pop()
-            if f in self.graph.g and self.graph.status(f) == NodeStatus.FRONTIER:
-                return f
+        for _ in range(2):
+            while self.frontiers:
+                f = self.frontiers.pop()
+                if f in self.graph.g and self.graph.status(f) == NodeStatus.FRONTIER:
+                    return f
+            if not self.cfg.frontier.enabled or not self._add_map_frontiers():
+                return None
         return None
+
+    def _add_map_frontiers(self) -> int:
+        """The predictor has nothing left: push the free-space map's reachable frontiers, nearest
+        last (taken first). Those already seen from close by, or near a place that failed, are not
+        new; none left means the exploration is over."""
+        fl_min = self.cfg.floor_min_nodes
+        here = self.pose.xyz
+        found: list[tuple[float, str]] = []
+        stairs = self.graph.positions([n for n in self.stair_nodes if n in self.graph.g])[:, :2]
+        for z, nodes in self._floor_nodes().items():
+            if len(nodes) < fl_min:
+                continue
+            for t in self.space.frontier_targets(z, nodes, self.cfg.visit_radius_m, stairs):
+                p = t.position_m
+                if (self._seen_near(p) or self._near(p, (NodeStatus.FRONTIER,), self.cfg.frontier_merge_m)
+                        or self._near(p, (NodeStatus.UNREACHABLE,), self.cfg.visit_radius_m)):
+                    continue
+                nid = self.graph.add_observed(p, t.parent, 0.5)
+                if nid is not None:
+                    found.append((float(np.linalg.norm(p - here)), nid))
+        for _, nid in sorted(found, reverse=True):
+            self.cells.add(self._cell(self.graph.pos(nid)))
+            self.frontiers.append(nid)
+        self.map_frontiers += len(found)
+        if found:
+            log.debug("%d frontiers of the free-space map added", len(found))
+        return len(found)
 
     def visit(self, target: str) -> None:
         g = self.graph

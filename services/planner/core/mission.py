@@ -25,10 +25,11 @@ from shared.vln_metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
     CameraIntrinsics, Candidate, CandidateKind, Decision, JobEventKind, JobState, MapInfo, MissionEnd, MissionFinished,
     MissionOptions, MissionRequest, MissionStarted, MissionStep, MoveResult, Panorama, Pose, RenderResult,
-    SpatialMapResult, ViewPose,
+    SpatialMapResult, SplatMode, ViewPose,
 )
 
 from .context import Ablation, OracleInfo, StepContext, build_candidate_views, with_stop_and_backtrack
+from .errors import PlannerError
 from .history import HistoryRecorder, action_for
 from .policy import Policy
 
@@ -48,10 +49,59 @@ class PredictorPort(Protocol):
 
 class RendererPort(Protocol):
     def views(self, map_id: str, views: list[ViewPose], camera: CameraIntrinsics | None = None,
-              with_labels: bool = True) -> RenderResult: ...
+              with_labels: bool = True, **kw) -> RenderResult: ...
 
     def spatial_map(self, map_id: str, pose: Pose, trajectory_m: np.ndarray | None = None,
                     candidates: list[Candidate] | None = None, **kw) -> SpatialMapResult: ...
+
+
+class SceneViewsPort(Protocol):
+    """A simulator's true-scene views at given poses (``RobotClient.scene_views``, ``SimRobot.scene_views``)."""
+
+    def scene_views(self, views: list[ViewPose], camera: CameraIntrinsics | None = None,
+                    with_semantic: bool = True) -> RenderResult: ...
+
+
+class AnticipationError(PlannerError):
+    """Anticipated views could not be had as the mission asked (no such source, a mode not honoured)."""
+
+
+@dataclass
+class MapViews:
+    """The method's anticipated views: the map rendered by the renderer (paper 4.3), in the mission's splat
+    mode when it names one."""
+
+    renderer: RendererPort
+
+    def views(self, map_id: str, views: list[ViewPose], camera: CameraIntrinsics,
+              splat_mode: SplatMode | None) -> RenderResult:
+        if splat_mode is None:
+            return self.renderer.views(map_id, views, camera)
+        out = self.renderer.views(map_id, views, camera, splat_mode=splat_mode)
+        if out.splat_mode != splat_mode:
+            # An ablation must never run on views it did not ask for (a renderer older than the field).
+            raise AnticipationError(f"asked the renderer for splat mode {splat_mode!r}, it rendered "
+                                    f"{out.splat_mode or 'an unnamed mode'}")
+        return out
+
+
+@dataclass
+class TrueSceneViews:
+    """The control: the same poses ray-cast from the simulator's true scene (perfect geometry, colours and
+    labels), so an ablation can tell wrong views from a policy that uses views wrongly. Simulator only."""
+
+    robot: SceneViewsPort
+
+    def views(self, map_id: str, views: list[ViewPose], camera: CameraIntrinsics,
+              splat_mode: SplatMode | None) -> RenderResult:
+        return self.robot.scene_views(views, camera)
+
+
+# Where a mission's anticipated views come from (MissionOptions.anticipation_views), by name.
+ANTICIPATION_SOURCES: dict[str, Callable[[Any, Any], Any]] = {
+    "map": lambda robot, renderer: None if renderer is None else MapViews(renderer),
+    "true-scene": lambda robot, renderer: TrueSceneViews(robot) if hasattr(robot, "scene_views") else None,
+}
 
 
 # emit(kind, state, step, data, images)
@@ -108,9 +158,19 @@ class MissionLoop:
         r = self.blocked_radius_m
         return any(np.linalg.norm((here - a)[:2]) < r and np.linalg.norm((target - b)[:2]) < r for a, b in blocked)
 
+    def anticipation_source(self, name: str):
+        """The named source of anticipated views for this loop's robot and renderer."""
+        make = ANTICIPATION_SOURCES.get(name)
+        source = None if make is None else make(self.robot, self.renderer)
+        if source is None:
+            raise AnticipationError(f"no anticipated views from {name!r} here (known: {', '.join(ANTICIPATION_SOURCES)}; "
+                                    "map needs a renderer, true-scene a simulator)")
+        return source
+
     def run(self, mission_id: str, instruction: str, map_id: str, opts: MissionOptions) -> MissionOutcome:
         ablation = Ablation(anticipation=opts.anticipation, anticipation_hfov_deg=opts.anticipation_hfov_deg,
                             spatial_map=opts.spatial_map)
+        anticipator = self.anticipation_source(opts.anticipation_views) if opts.anticipation else None
         if opts.start_pose is not None:
             self.robot.reset(opts.start_pose)
         self.policy.reset(mission_id)
@@ -151,12 +211,12 @@ class MissionLoop:
                 boxed_in_at = step
             movable = [c for c in cands if c.kind != CandidateKind.STOP]
             render = None
-            if ablation.anticipation and self.renderer is not None and movable:
+            if anticipator is not None and movable:
                 views = [ViewPose(position_m=(pose.position_m[0] + c.dx_m, pose.position_m[1] + c.dy_m,
                                               pose.position_m[2]),
                                   heading_rad=math.atan2(c.dy_m, c.dx_m)) for c in movable]
                 cam = CameraIntrinsics(hfov_deg=ablation.anticipation_hfov_deg)
-                render = self.renderer.views(map_id, views, cam)
+                render = anticipator.views(map_id, views, cam, opts.anticipation_splat_mode)
             t2 = time.perf_counter()
             timings["anticipation_s"] = t2 - t1
             smap = None

@@ -53,7 +53,7 @@ class MapRenderer:
         out = self.renderer.render(self.index, views, camera or CameraIntrinsics(), camera_height_m, with_labels)
         return RenderResult(map_id=map_id, version=self.version, rgb=out.rgb, depth_m=out.depth_m,
                             hole_mask=out.hole_mask, labels=out.labels if with_labels else None,
-                            render_s=time.perf_counter() - t0)
+                            splat_mode=self.renderer.config.mode, render_s=time.perf_counter() - t0)
 
     def spatial_map(self, map_id: str, pose: Pose, trajectory_m: np.ndarray | None = None,
                     candidates: list[Candidate] | None = None, agent_up: bool = False, size_px: int = 512,

@@ -36,9 +36,11 @@ from collections.abc import Callable, Iterator
 import numpy as np
 from pydantic import Field, field_validator
 
-from shared.geometry import panorama_headings, wrap_angle
+from shared.geometry import camera_pose, panorama_headings, wrap_angle
 from shared.registry import BackendConfig, Registry
-from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
+from shared.schemas import (
+    CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, RenderResult, SceneSummary, ViewPose,
+)
 
 from .errors import NoWalkableAreaError, PoseOffGroundError, RobotIOError
 from .info import describe_scene
@@ -106,6 +108,12 @@ class Robot(ABC):
     def off_ground_m(self, p) -> float | None:
         """How far ``p`` is from walkable ground (None: this backend cannot tell)."""
         return None
+
+    def scene_views(self, views: list[ViewPose], camera: CameraIntrinsics | None = None,
+                    with_semantic: bool = True) -> RenderResult:
+        """Views at floor poses given in the reported frame, ray-cast from the true scene: what a perfect
+        map would render there. Only a simulator has the scene (an evaluation control, issue 20)."""
+        raise RobotIOError(f"{type(self).__name__} has no scene to ray-cast: true-scene views exist in simulation only")
 
     def transaction(self) -> contextlib.AbstractContextManager[None]:
         """Around one request: when it fails, the robot's state is left exactly as it was. A
@@ -287,6 +295,24 @@ class SimRobot(Robot):
             semantic=out.semantic if with_semantic else None,
             timestamp_s=self._clock_s,
         )
+
+    def scene_views(self, views: list[ViewPose], camera: CameraIntrinsics | None = None,
+                    with_semantic: bool = True) -> RenderResult:
+        cam = camera or self.config.camera
+        # A view is given in the reported (odometry) frame, like a candidate: keep its offset from the
+        # reported pose and apply it to the true one, so drift moves the view with the robot.
+        rep, true = self.pose, self.true_pose
+        turn = true.heading_rad - rep.heading_rad
+        c, s = math.cos(turn), math.sin(turn)
+        poses = []
+        for v in views:
+            d = np.subtract(v.position_m, rep.position_m)
+            xyz = np.add(true.position_m, [c * d[0] - s * d[1], s * d[0] + c * d[1], d[2]])
+            poses.append(camera_pose(xyz, v.heading_rad + turn, v.pitch_rad, self.config.camera_height_m))
+        out = self.renderer.render(np.stack(poses), cam.pinhole(), with_semantic=with_semantic)
+        depth = np.asarray(out.depth_m, np.float32)
+        return RenderResult(map_id="true-scene", version=1, rgb=out.rgb, depth_m=depth, hole_mask=~(depth > 0),
+                            labels=out.semantic if with_semantic else None)
 
     def render_frame(self, pitch_rad: float = 0.0) -> Frame:
         """One forward view at the current pose (what a recording emits)."""

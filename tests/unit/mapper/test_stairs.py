@@ -3,6 +3,11 @@
 The 500 m2 two-floor house (seed 21) is the regression of issue 21: the flight was climbed to its
 last treads, where too few steps remain in view to tell a staircase from furniture, and the robot
 turned back, reporting a "finished" exploration of one floor out of two.
+
+The 100 m2 three-floor house (seed 1) is the next one: the second flight's foot was visited, but the
+way up was dropped as "already seen" because a bedroom node on the other side of the shaft's wall
+stood within the visit radius; the third floor was never reached (64.6 % coverage, "finished").
+A visited node now covers only what its own scan saw.
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ def _floor_coverage(robot, result, radius_m: float = 1.5) -> list[float]:
     "generated:21:area=500:floors=2",  # the regression
     "generated:7:area=150:floors=2",
     "generated:0:area=100:floors=2",
-    "generated:0:floors=3",
+    "generated:1:area=100:floors=3",  # the second flight's foot behind a wall (see above)
 ])
 def test_every_floor_is_reached_and_explored(scene):
     robot, r = _explore(scene)
@@ -64,7 +69,7 @@ def test_every_floor_is_reached_and_explored(scene):
 
 def test_an_unfinished_flight_keeps_the_exploration_unfinished():
     """Cut the climb short: the budget stops the robot on the stairs, and the result says so."""
-    robot, full = _explore("generated:0:floors=3")
+    robot, full = _explore("generated:1:area=100:floors=3")
     cfg = DiscoveryConfig()
     # The step at which the robot first stood on the stairs, half way up the first flight.
     z = np.array([full.graph.pos(n)[2] for n in full.visit_order])

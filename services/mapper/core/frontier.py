@@ -1,0 +1,260 @@
+"""The exploration's own free-space map: frontier targets and a coverage estimate from what was seen.
+
+The waypoint predictor judges one panorama at a time and proposes at most a handful of openings;
+in a cramped room (a bed, a wardrobe, a desk) the way on past the furniture may be none of them.
+The scans tell more: every panorama's 360 obstacle ranges are ray-cast into a 2-D grid per floor
+level, kept up to date scan by scan (a few ms each, in 6.4 m chunks, so the cost never grows with
+the building). Where free space borders space nobody has seen, there is a *frontier* (Yamauchi
+1997); a frontier that the robot's body can reach through known free space, and that no visited
+node has already looked at from close by, is a place left to explore. The explorer asks for those
+when its DFS stack runs dry, and ends only when none is left.
+
+The same map gives the coverage estimate: the share of the free space reachable from the visited
+nodes that lies within ``coverage_radius_m`` of one (the benchmark's measure, on the robot's own
+map instead of the simulator's ground truth), so unexplored free space seen through a door lowers
+it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import ndimage
+
+from services.mapper.core.occupancy import FREE, OCCUPIED, UNKNOWN, line_of_sight
+
+CHUNK = 64  # cells per chunk side
+
+
+class FrontierConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = True
+    cell_m: float = Field(0.1, gt=0.0, le=1.0)
+    max_range_m: float = Field(5.0, gt=0.0)  # the scans' range: beyond it nothing is known
+    body_radius_m: float = Field(0.2, ge=0.0, le=1.0)  # clearance a reachable cell needs
+    min_frontier_cells: int = Field(6, ge=1)  # a border shorter than this is noise (a gap between rays)
+    wall_shadow_cells: int = Field(3, ge=0, le=10)  # unknown this close to a wall cell is behind it
+    frontier_join_cells: int = Field(2, ge=0, le=10)  # border pieces this close are one frontier
+    max_backoff_m: float = Field(1.0, gt=0.0)  # a target stands this close to its frontier at most
+    max_parent_m: float = Field(6.0, gt=0.0)  # straight move from a visited node to the target
+    tries_per_frontier: int = Field(12, ge=1)  # its cells tried for a straight line from a visited node
+    coverage_radius_m: float = Field(1.5, gt=0.0)
+
+
+@dataclass(frozen=True)
+class FrontierTarget:
+    position_m: np.ndarray  # (3,) on the level's floor
+    parent: str  # the visited node from which the target lies in a straight, clear line
+    frontier_cells: int  # size of the border it leads to
+
+
+class _Level:
+    """One floor level's grid, as chunks of flags: crossed by a free ray, holding an obstacle end."""
+
+    def __init__(self, z_m: float):
+        self.z_m = z_m
+        self.free: dict[tuple[int, int], np.ndarray] = {}
+        self.occ: dict[tuple[int, int], np.ndarray] = {}
+
+    def add(self, idx: np.ndarray, store: dict) -> None:
+        """Mark cells (N, 2) in ``store``: on a local box first, then OR-ed into the chunks it spans
+        (a scan's cells lie within its range, so that is a handful of chunks and no sorting)."""
+        if len(idx) == 0:
+            return
+        lo = idx.min(axis=0)
+        box = np.zeros(tuple((idx.max(axis=0) - lo + 1).tolist()), bool)
+        box[idx[:, 0] - lo[0], idx[:, 1] - lo[1]] = True
+        c0 = np.floor_divide(lo, CHUNK)
+        c1 = np.floor_divide(lo + box.shape - 1, CHUNK)
+        for cx in range(int(c0[0]), int(c1[0]) + 1):
+            for cy in range(int(c0[1]), int(c1[1]) + 1):
+                # The chunk's cells [cx*CHUNK, ...) against the box's [lo, lo + shape).
+                x0, y0 = max(cx * CHUNK, lo[0]), max(cy * CHUNK, lo[1])
+                x1, y1 = min((cx + 1) * CHUNK, lo[0] + box.shape[0]), min((cy + 1) * CHUNK, lo[1] + box.shape[1])
+                part = box[x0 - lo[0]:x1 - lo[0], y0 - lo[1]:y1 - lo[1]]
+                if not part.any():
+                    continue
+                arr = store.get((cx, cy))
+                if arr is None:
+                    arr = store[(cx, cy)] = np.zeros((CHUNK, CHUNK), bool)
+                arr[x0 - cx * CHUNK:x1 - cx * CHUNK, y0 - cy * CHUNK:y1 - cy * CHUNK] |= part
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cells, origin cell index): UNKNOWN / FREE / OCCUPIED over the chunks' bounding box."""
+        keys = np.array(list(self.free) + list(self.occ))
+        lo, hi = keys.min(axis=0), keys.max(axis=0)
+        shape = tuple(((hi - lo + 1) * CHUNK).tolist())
+        free = np.zeros(shape, bool)
+        occ = np.zeros(shape, bool)
+        for store, out in ((self.free, free), (self.occ, occ)):
+            for (cx, cy), arr in store.items():
+                x0, y0 = (cx - lo[0]) * CHUNK, (cy - lo[1]) * CHUNK
+                out[x0:x0 + CHUNK, y0:y0 + CHUNK] |= arr
+        cells = np.full(shape, UNKNOWN, np.uint8)
+        cells[free] = FREE
+        cells[occ] = OCCUPIED  # a wall seen once stays a wall
+        return cells, lo * CHUNK
+
+
+class FreeSpaceMap:
+    """Per-level occupancy grown scan by scan; frontier targets and coverage from it."""
+
+    def __init__(self, angles_rad: np.ndarray, config: FrontierConfig | None = None, same_floor_dz_m: float = 0.4):
+        self.cfg = config or FrontierConfig()
+        self.angles_rad = np.asarray(angles_rad, dtype=np.float64)
+        self.dz = same_floor_dz_m
+        self.levels: list[_Level] = []
+        c = self.cfg
+        self._samples = np.arange(0.0, c.max_range_m, c.cell_m * 0.5)
+
+    def level_of(self, z_m: float, create: bool = False) -> _Level | None:
+        for lv in self.levels:
+            if abs(lv.z_m - z_m) < self.dz:
+                return lv
+        if not create:
+            return None
+        lv = _Level(float(z_m))
+        self.levels.append(lv)
+        return lv
+
+    def add_scan(self, position_m: np.ndarray, heading_rad: float, obstacle_m: np.ndarray) -> None:
+        """Ray-cast one scan (ranges per relative angle; inf none, nan unseen) into its level."""
+        c = self.cfg
+        lv = self.level_of(float(position_m[2]), create=True)
+        ang = heading_rad + self.angles_rad
+        dirs = np.stack([np.cos(ang), np.sin(ang)], axis=-1)  # (A, 2)
+        seen = ~np.isnan(obstacle_m)
+        rng = np.where(np.isfinite(obstacle_m), obstacle_m, c.max_range_m)
+        # Free strictly before the obstacle (half a cell of margin keeps walls occupied), as in
+        # occupancy.build_occupancy, so the tours' map and this one agree.
+        mask = seen[:, None] & (self._samples[None, :] < (rng[:, None] - c.cell_m * 0.5))
+        pts = position_m[None, None, :2] + dirs[:, None, :] * self._samples[None, :, None]
+        lv.add(np.floor(pts[mask] / c.cell_m).astype(np.int64), lv.free)
+        own = np.floor(position_m[None, :2] / c.cell_m).astype(np.int64)
+        lv.add(own, lv.free)
+        hit = seen & np.isfinite(obstacle_m) & (obstacle_m < c.max_range_m)
+        hr = np.where(hit, obstacle_m, 0.0)
+        hpts = position_m[None, :2] + dirs * (hr[:, None] + c.cell_m * 0.5)
+        lv.add(np.floor(hpts[hit] / c.cell_m).astype(np.int64), lv.occ)
+
+    # --- queries --------------------------------------------------------------------------------
+
+    def _analyse(self, lv: _Level, visited_xy: np.ndarray):
+        """The level's grid, its reachable passable cells and the visited nodes' cells in it."""
+        c = self.cfg
+        cells, origin = lv.dense()
+        free = cells == FREE
+        # The robot's own cells are free whatever the rays said (a node beside a jamb).
+        vidx = np.floor(visited_xy / c.cell_m).astype(np.int64) - origin
+        ok = (vidx >= 0).all(axis=1) & (vidx < cells.shape).all(axis=1)
+        vidx = vidx[ok]
+        free[vidx[:, 0], vidx[:, 1]] = True
+        clear = ndimage.distance_transform_edt(free) * c.cell_m
+        passable = free & (clear >= c.body_radius_m)
+        passable[vidx[:, 0], vidx[:, 1]] = True
+        lab, _ = ndimage.label(passable, structure=np.ones((3, 3)))
+        ids = np.unique(lab[vidx[:, 0], vidx[:, 1]])
+        reach = np.isin(lab, ids[ids > 0])
+        return cells, origin, free, passable, reach, vidx
+
+    def _near_mask(self, shape, origin: np.ndarray, xy: np.ndarray, extra_xy: np.ndarray | None,
+                   radius_m: float) -> np.ndarray:
+        """Cells within ``radius_m`` of any of the points (walls ignored)."""
+        pts = xy if extra_xy is None or len(extra_xy) == 0 else np.concatenate([xy, extra_xy[:, :2]])
+        idx = np.floor(pts / self.cfg.cell_m).astype(np.int64) - origin
+        idx = idx[(idx >= 0).all(axis=1) & (idx < shape).all(axis=1)]
+        seed = np.zeros(shape, bool)
+        seed[idx[:, 0], idx[:, 1]] = True
+        return ndimage.distance_transform_edt(~seed) * self.cfg.cell_m <= radius_m
+
+    def frontier_targets(self, level_z_m: float, visited: list[tuple[str, np.ndarray]],
+                         exclude_radius_m: float = 0.0, extra_xy: np.ndarray | None = None) -> list[FrontierTarget]:
+        """Reachable places next to unseen space on one level, one per frontier, each with a parent.
+
+        Cells within ``exclude_radius_m`` of a visited node (or of ``extra_xy``: the stair nodes,
+        which stand over the flights this map holds as free ground) were looked at from close by
+        already; a frontier is reached through its other cells, if any.
+        """
+        c = self.cfg
+        lv = self.level_of(level_z_m)
+        if lv is None or not visited:
+            return []
+        vxy = np.stack([p[:2] for _, p in visited])
+        cells, origin, free, passable, reach, vidx = self._analyse(lv, vxy)
+        if exclude_radius_m > 0.0:
+            reach = reach & ~self._near_mask(cells.shape, origin, vxy, extra_xy, exclude_radius_m)
+        # Unknown right beside a wall is the wall's far side seen through the gaps between rays
+        # (far away, neighbouring rays hit a wall tens of cm apart), not space left to explore.
+        behind_wall = ndimage.binary_dilation(cells == OCCUPIED, iterations=c.wall_shadow_cells)
+        unknown = (cells == UNKNOWN) & ~behind_wall
+        border = free & ndimage.binary_dilation(unknown, structure=ndimage.generate_binary_structure(2, 1))
+        # Border cells a few cells apart are one frontier (rays grazing a wall near the range's
+        # end break a border into pieces).
+        grown, n = ndimage.label(ndimage.binary_dilation(border, iterations=c.frontier_join_cells),
+                                 structure=np.ones((3, 3)))
+        if n == 0:
+            return []
+        lab = np.where(border, grown, 0)
+        sizes = np.bincount(lab.ravel(), minlength=n + 1)
+        # For every cell: the nearest border cell (and so its frontier) and how far it is.
+        dist, (ix, iy) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+        dist = dist * c.cell_m
+        near_lab = lab[ix, iy]
+        ok = reach & (dist <= c.max_backoff_m) & (sizes[near_lab] >= c.min_frontier_cells)
+        cand = np.argwhere(ok)
+        if len(cand) == 0:
+            return []
+        cl = near_lab[cand[:, 0], cand[:, 1]]
+        # Per frontier, its reachable cells nearest to a visited node first (just past the ring
+        # already looked at): the robot creeps along the frontier in short straight moves, each
+        # from a visited node that sees the target through passable cells.
+        vdist = ndimage.distance_transform_edt(~self._near_mask(cells.shape, origin, vxy, None, 0.0))
+        dv_cells = vdist[cand[:, 0], cand[:, 1]]
+        out: list[FrontierTarget] = []
+        blocked = ~passable
+        for lab_k in np.unique(cl):
+            mine = np.flatnonzero(cl == lab_k)
+            mine = mine[np.argsort(dv_cells[mine], kind="stable")]
+            # The nearest few first, then a spread over the rest (a long frontier may be in
+            # straight sight of a visited node only far along it).
+            spread = np.linspace(0, len(mine) - 1, min(len(mine), c.tries_per_frontier)).astype(int)
+            mine = mine[np.unique(np.r_[np.arange(min(len(mine), c.tries_per_frontier)), spread])]
+            mine = mine[np.argsort(dv_cells[mine], kind="stable")]
+            for k in mine:
+                cell = cand[k]
+                xy = (origin + cell + 0.5) * c.cell_m
+                dv = np.hypot(*(vxy - xy).T)
+                near = np.flatnonzero(dv <= c.max_parent_m)
+                if len(near) == 0:
+                    continue
+                near = near[np.argsort(dv[near])][:8]
+                pidx = np.floor(vxy[near] / c.cell_m).astype(np.int64) - origin
+                vis = line_of_sight(blocked, pidx, np.repeat(cell[None, :], len(near), axis=0))
+                if vis.any():
+                    parent = visited[int(near[np.argmax(vis)])][0]
+                    out.append(FrontierTarget(np.array([xy[0], xy[1], lv.z_m]), parent, int(sizes[lab_k])))
+                    break
+        return out
+
+    def coverage(self, visited_by_level: dict[float, np.ndarray],
+                 extra_xy: np.ndarray | None = None) -> tuple[float, float]:
+        """(share of the reachable free area within ``coverage_radius_m`` of a visited node, that area m2)."""
+        c = self.cfg
+        near_total = 0
+        total = 0
+        for lv in self.levels:
+            vxy = next((v for z, v in visited_by_level.items() if abs(z - lv.z_m) < self.dz), None)
+            if vxy is None or len(vxy) == 0:
+                continue
+            cells, origin, free, passable, reach, vidx = self._analyse(lv, vxy)
+            # Free space reachable: the passable component plus the free cells beside it (within
+            # the body radius of a passable cell), which the robot's sensors reach from there.
+            grown = free & ndimage.binary_dilation(reach, iterations=max(1, int(math.ceil(c.body_radius_m / c.cell_m))))
+            near = self._near_mask(cells.shape, origin, vxy, extra_xy, c.coverage_radius_m)
+            total += int(grown.sum())
+            near_total += int((grown & near).sum())
+        return (near_total / total if total else 1.0), total * c.cell_m**2

@@ -1,0 +1,95 @@
+"""The exploration's free-space map (frontier targets, coverage estimate) and the "seen from close by"
+rule (issue 21: three-floor houses whose upper flights were never climbed)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from shared.schemas import CameraIntrinsics, Pose
+
+from services.mapper.core import DiscoveryConfig, Explorer, PREDICTORS
+from services.mapper.core.explorer import Scan, _Run
+from services.mapper.core.frontier import FreeSpaceMap
+
+ANGLES = np.arange(360) * (2.0 * math.pi / 360)
+
+
+def corridor_scan(x_m: float, end_m: float, half_w: float = 0.6) -> np.ndarray:
+    """Obstacle ranges from (x_m, 0) in a corridor |y| < half_w, closed at x = -1 and x = end_m."""
+    c, s = np.cos(ANGLES), np.sin(ANGLES)
+    with np.errstate(divide="ignore"):
+        side = np.where(np.abs(s) > 1e-9, half_w / np.abs(s), np.inf)
+        ends = np.where(c > 1e-9, (end_m - x_m) / c, np.where(c < -1e-9, (-1.0 - x_m) / c, np.inf))
+    r = np.minimum(side, ends)
+    return np.where(r < 5.0, r, np.inf)  # beyond the sensor's range nothing is seen
+
+
+def test_a_corridor_beyond_the_sensor_range_is_a_frontier_until_walked():
+    m = FreeSpaceMap(ANGLES)
+    start = np.array([0.0, 0.0, 0.0])
+    m.add_scan(start, 0.0, corridor_scan(0.0, 12.0))
+    targets = m.frontier_targets(0.0, [("a", start)], exclude_radius_m=0.8)
+    assert len(targets) == 1
+    t = targets[0]
+    assert t.parent == "a" and 3.5 < t.position_m[0] < 5.0 and abs(t.position_m[1]) < 0.4
+    share, area = m.coverage({0.0: start[None, :2]})
+    assert share < 0.5 and area > 4.0  # 6 m of corridor seen, 1.5 m of it near the robot
+
+    # Walk it: nodes every metre; the far wall ends the corridor and no frontier is left.
+    nodes = [(f"n{k}", np.array([float(k), 0.0, 0.0])) for k in range(12)]
+    for _, p in nodes:
+        m.add_scan(p, 0.0, corridor_scan(p[0], 12.0))
+    assert m.frontier_targets(0.0, nodes, exclude_radius_m=0.8) == []
+    share, _ = m.coverage({0.0: np.stack([p[:2] for _, p in nodes])})
+    assert share > 0.99
+
+
+def test_levels_keep_floors_apart():
+    m = FreeSpaceMap(ANGLES)
+    m.add_scan(np.array([0.0, 0.0, 0.0]), 0.0, corridor_scan(0.0, 3.0))
+    m.add_scan(np.array([0.0, 0.0, 2.8]), 0.0, corridor_scan(0.0, 12.0))
+    assert len(m.levels) == 2
+    # The closed corridor downstairs has no frontier; the open one upstairs has.
+    assert m.frontier_targets(0.0, [("a", np.zeros(3))], exclude_radius_m=0.8) == []
+    assert len(m.frontier_targets(2.8, [("b", np.array([0.0, 0.0, 2.8]))], exclude_radius_m=0.8)) == 1
+
+
+def test_a_visited_node_behind_a_wall_does_not_cover_a_candidate():
+    """A candidate 0.6 m from a visited node is redundant only if that node's scan saw the spot."""
+    ex = Explorer(PREDICTORS.create("geometric", None))
+    run = _Run(ex, robot=None)
+    node = run.graph.add_visited(np.zeros(3), order=1)
+    obstacle = np.full(360, np.inf)
+    obstacle[350:] = obstacle[:10] = 0.3  # a wall 0.3 m ahead (+x), open elsewhere
+    run.node_scan[node] = Scan(np.zeros(3), 0.0, obstacle, node)
+    assert not run._seen_near(np.array([0.6, 0.0, 0.0]))  # the other side of the wall
+    assert run._seen_near(np.array([-0.6, 0.0, 0.0]))  # in plain view
+    assert not run._seen_near(np.array([-0.6, 0.0, 2.8]))  # another floor
+
+
+@pytest.fixture(scope="module")
+def stair_foot():
+    """The foot of generated:3:area=200:floors=3's first flight, standing as the exploration did
+    (beside the shaft's wall, facing 16 deg): the predictor proposed nothing up the flight there."""
+    from services.robot_io.core.robot import ROBOTS
+
+    robot = ROBOTS.create("sim", {"scene": "generated:3:area=200:floors=3",
+                                  "camera": CameraIntrinsics(width_px=64, height_px=64, hfov_deg=90.0)})
+    robot.reset(Pose(position_m=(9.71, 1.15, 0.0), heading_rad=math.radians(16.0)))
+    return robot
+
+
+def test_the_map_leads_up_a_flight_the_predictor_missed(stair_foot):
+    cfg = DiscoveryConfig()
+    ex = Explorer(PREDICTORS.create(cfg.predictor, cfg.predictor_config), cfg.exploration)
+    pano = stair_foot.observe()
+    m = FreeSpaceMap(ex.scanner.angles_rad)
+    m.add_scan(pano.pose.xyz, pano.pose.heading_rad, ex.scanner.obstacle_distance(pano))
+    targets = m.frontier_targets(0.0, [("foot", pano.pose.xyz)], exclude_radius_m=0.8)
+    # The shaft spans x 8.75-10.05; its treads start at y 1.3 and rise towards +y.
+    up = [t for t in targets if 8.75 < t.position_m[0] < 10.05 and t.position_m[1] > 1.9]
+    assert up, [np.round(t.position_m, 2) for t in targets]
+    assert all(t.parent == "foot" for t in up)
