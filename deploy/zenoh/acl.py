@@ -130,6 +130,8 @@ def routed_key_exprs(instances: Mapping[str, Sequence[str]]) -> list[str]:
 def ros2_key_exprs(side: Ros2Side) -> list[str]:
     """The ROS 2 key space of ``side``: every name in every key style, and the styles' graph tokens.
     Refuses a name whose key would fall under ``ant/**`` (the ROS side must never forge a service)."""
+    if not 0 <= side.domain_id <= 232:  # ROS_DOMAIN_ID's range
+        raise AclError(f"ROS domain id out of range 0..232: {side.domain_id}")
     out: list[str] = []
     for style in side.styles:
         try:

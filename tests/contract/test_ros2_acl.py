@@ -6,6 +6,7 @@ reach the ROS 2 keys."""
 
 from __future__ import annotations
 
+import json
 import threading
 
 import pytest
@@ -42,7 +43,7 @@ def net(tmp_path_factory):
         path = tmp / f"{u}.json5"
         path.write_text(acl.render(acl.client_config(u, PASSWORDS[u], [endpoint])))
         clients[u] = ZenohBus(ZenohSettings(mode="client", connect=[endpoint], config_file=str(path)))
-    yield clients
+    yield {**clients, "endpoint": endpoint}
     for c in clients.values():
         c.close()
     router.close()
@@ -133,11 +134,35 @@ def test_a_ros_name_under_the_services_root_is_refused():
         acl.ros2_key_exprs(acl.Ros2Side(names=("/ant/robot0/io/pose",)))
     with pytest.raises(acl.AclError, match="key style"):
         acl.ros2_key_exprs(acl.Ros2Side(styles=("dds",)))
+    with pytest.raises(acl.AclError, match="domain"):
+        acl.ros2_key_exprs(acl.Ros2Side(domain_id=233))
+
+
+def test_the_stand_in_tool_joins_with_its_flags_or_the_environment(net, tmp_path, monkeypatch):
+    import argparse
+
+    from services.robot_io.tools.ros2_robot import bus_settings
+
+    endpoint = net["endpoint"]
+    pw = tmp_path / "ros2_robot.password"
+    pw.write_text(PASSWORDS[ROS2.user] + "\n")
+    flags = argparse.Namespace(connect=[endpoint], listen=[], mode=None, username=ROS2.user, password_file=str(pw))
+    settings = bus_settings(flags)
+    assert settings.mode == "client"
+    ZenohBus(settings).close()  # admitted by the authenticated router
+    monkeypatch.setenv("ANT_ZENOH__MODE", "client")
+    monkeypatch.setenv("ANT_ZENOH__USERNAME", ROS2.user)
+    monkeypatch.setenv("ANT_ZENOH__PASSWORD_FILE", str(pw))
+    from_env = bus_settings(argparse.Namespace(connect=[endpoint], listen=[], mode=None, username=None,
+                                               password_file=None))
+    assert (from_env.mode, from_env.username, from_env.password_file) == ("client", ROS2.user, str(pw))
+    ZenohBus(from_env).close()
+    pw.write_text("wrong\n")
+    with pytest.raises(Exception, match="(?i)unable to connect"):
+        ZenohBus(from_env)
 
 
 def test_the_launcher_keeps_auth_on_with_the_stand_in_and_gives_both_sides_their_users(tmp_path, monkeypatch):
-    import json
-
     from deploy.launcher import Launcher, StandIn
 
     monkeypatch.delenv("ANT_BUS_AUTH", raising=False)
