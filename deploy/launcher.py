@@ -6,8 +6,8 @@ SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C
 
 The bus is authenticated by default, as in production (it costs nothing on loopback): credentials
 are generated in ``<run_dir>/zenoh`` at first start (:mod:`deploy.credentials`), the router applies
-the generated ACL, and every service connects in client mode as its own user, so a stranger on the
-port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``.
+the generated ACL, and every service connects in client mode as its own user (the ROS 2 stand-in as
+``ros2_robot``, allowed its ROS 2 keys only), so a stranger on the port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``.
 """
 
 from __future__ import annotations
