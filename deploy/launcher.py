@@ -6,8 +6,8 @@ SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C
 
 The bus is authenticated by default, as in production (it costs nothing on loopback): credentials
 are generated in ``<run_dir>/zenoh`` at first start (:mod:`deploy.credentials`), the router applies
-the generated ACL, and every service connects in client mode as its own user, so a stranger on the
-port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``.
+the generated ACL, and every service connects in client mode as its own user (the ROS 2 stand-in as
+``ros2_robot``, allowed its ROS 2 keys only), so a stranger on the port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``.
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from deploy.credentials import ensure_credentials
+from deploy.zenoh.acl import Ros2Side
+from services.robot_io.core.ros2.profiles import STANDIN_OVERRIDES
 from shared import keys
 from shared.bus.config import ZenohSettings
 from shared.bus.zenoh_bus import ZenohBus
@@ -43,13 +45,8 @@ SPLIT_ROBOTS = ("planner", "mapper")
 def robot_ids(n: int) -> list[str]:
     return [f"robot{k}" for k in range(n)]
 
-# What the stand-in publishes beyond the generic profile, and the backend therefore reads: the
-# simulated clock (time scale), the teleport service (mission start poses), the map and labels.
-# The base is the embedded simulator's agent (radius 0.1 m, which VLN-CE's graphs and tours assume)
-# with a small safety margin, and it may turn faster than a Stretch: panoramas take less (simulated) time.
-STANDIN_PROFILE_OVERRIDES = {"clock": "/clock", "teleport_service": "/teleport", "map": "/map",
-                             "semantic": "/camera/semantic/image_raw", "max_angular_dps": 90.0,
-                             "angular_accel_dps2": 360.0, "base_radius_m": 0.1, "safety_distance_m": 0.05}
+# The stand-in's topics and kinematics beyond the generic profile (see the profiles module).
+STANDIN_PROFILE_OVERRIDES = STANDIN_OVERRIDES
 
 
 @dataclass
@@ -68,9 +65,12 @@ class StandIn:
                 "--connect", endpoint, "--profile-overrides", json.dumps(STANDIN_PROFILE_OVERRIDES),
                 "--config", json.dumps(cfg)]
 
-    def robot_env(self, endpoint: str) -> dict[str, str]:
+    def robot_env(self, endpoint: str, zenoh: ZenohSettings | None = None) -> dict[str, str]:
+        """robot-io's backend config; ``zenoh``: how its ROS 2 session joins (robot-io's credentials)."""
+        transport = (zenoh or ZenohSettings(connect=[endpoint])).model_dump(mode="json", exclude_none=True,
+                                                                            exclude={"config_file"})
         config = {"profile": "generic", "profile_overrides": STANDIN_PROFILE_OVERRIDES, "keys": self.keys,
-                  "transport_config": {"zenoh": {"connect": [endpoint]}}, "connect_timeout_s": 120,
+                  "transport_config": {"zenoh": transport}, "connect_timeout_s": 120,
                   # 0.5 s of wall time, in robot time (the stand-in runs time_scale times faster).
                   "max_data_age_s": 0.5 * self.time_scale, "clock_timeout_s": 5.0,
                   "label_names": self.label_names}
@@ -144,12 +144,6 @@ class Launcher:
         self._monitor: threading.Thread | None = None
         self.bus: ZenohBus | None = None
         self.auth = os.environ.get("ANT_BUS_AUTH", "1").lower() not in ("0", "false", "no") if auth is None else auth
-        if self.auth and standin is not None:
-            # The ROS 2 topics come from the robot's profile, not from shared/keys.py, so the generated
-            # ACL cannot grant them yet (and the ROS side joins without our credentials): a system with
-            # the ROS 2 stand-in runs its loopback bus open. deploy/README "On a real robot" says so.
-            log.warning("bus authentication is off for the ROS 2 stand-in: its topics are outside the ACL")
-            self.auth = False
         self.users: dict[str, str] = {}
 
     @property
@@ -174,7 +168,7 @@ class Launcher:
                     if k:
                         env["ANT_DB_PATH"] = str(self.run_dir / f"gateway-{robot}.sqlite3")
                 if name == "robot_io" and self.standin is not None:
-                    env.update(self.standin.robot_env(self.endpoint))
+                    env.update(self.standin.robot_env(self.endpoint, self.client_settings(name)))
                 elif name == "robot_io" and k < len(self.scenes) and "ANT_ROBOT_CONFIG" not in self.extra_env:
                     env["ANT_ROBOT_CONFIG"] = json.dumps({"scene": self.scenes[k]})
                 out.append((f"{name}-{k}", env))
@@ -232,7 +226,10 @@ class Launcher:
         if self.auth:
             instances = {n: [f"{n.replace('_', '-')}-{i}" for i in range(self.replicas.get(n, 1))]
                          for n in ("renderer",) if n in self.services}
-            self.users = ensure_credentials(self.credentials_dir, listen=[self.endpoint], instances=instances)
+            # The stand-in's ROS 2 side joins as its own user, allowed its key style's ROS 2 keys only.
+            ros2 = Ros2Side(styles=(self.standin.keys,)) if self.standin is not None else None
+            self.users = ensure_credentials(self.credentials_dir, listen=[self.endpoint], instances=instances,
+                                            ros2=ros2)
             argv += ["--config", str(self.credentials_dir / "router.json5")]
         return argv
 
@@ -243,7 +240,7 @@ class Launcher:
         self.procs.append(router)
         wait_tcp(self.router_port, 20.0)
         if self.standin is not None:
-            robot = Proc("ros2-robot", self.standin.argv(self.endpoint), self._env("ros2-robot"),
+            robot = Proc("ros2-robot", self.standin.argv(self.endpoint), self._env("ros2-robot", user=Ros2Side.user),
                          self.run_dir / "logs" / "ros2-robot.log")
             robot.start()
             self.procs.append(robot)

@@ -10,6 +10,13 @@ Each service authenticates to the router with its own user name (zenoh ``usrpwd`
 
 and the router delivers every sample, reply and declaration under ``ant/**`` to everyone.
 
+The robot's ROS 2 side (the stand-in, or a real robot's zenoh-bridge-ros2dds / rmw_zenoh router) joins
+as its own user (:class:`Ros2Side`, ``ros2_robot``): it and the services that talk ROS 2 (robot-io) may
+do everything on the ROS 2 key space of the configured key styles - the keys of the ROS names the robot
+profiles use (``bridge``: the name itself, under the bridge's prefix or namespace; ``rmw_zenoh``:
+``<domain>/<name>/<type>/<hash>`` and the domain's ``@ros2_lv`` graph tokens) - and nothing under
+``ant/**``.
+
 Replicated services (the renderer) also serve instance routes ``<key>/@<instance>``. A verbatim
 ``@`` chunk is matched by no wildcard, so those routes must be listed one by one: pass the instance
 names the deployment gives its replicas (``ANT_INSTANCE``).
@@ -22,9 +29,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
+from services.robot_io.core.ros2.keys import LIVELINESS_PREFIX, BridgeKeys, KeyStyleName, fully_qualified
+from services.robot_io.core.ros2.profiles import PROFILES, STANDIN_OVERRIDES, Ros2Profile, profile
 from shared import keys
 
 SERVICES = ("robot_io", "mapper", "reconstructor", "renderer", "planner", "gateway")
@@ -37,6 +47,53 @@ OWN_MESSAGES = ["put", "delete", "declare_queryable", "reply", "liveliness_token
 READ_MESSAGES = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
 # What the router may hand to any client: samples, replies and declarations (already checked on ingress).
 DELIVER_MESSAGES = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
+# On the ROS 2 key space its parties do everything: publish, subscribe, serve, call, hold graph tokens.
+ROS2_MESSAGES = list(dict.fromkeys([*OWN_MESSAGES, *READ_MESSAGES, *DELIVER_MESSAGES]))
+
+# The Ros2Profile fields that name a ROS topic or service (the rest are frames, encodings, limits).
+ROS_NAME_FIELDS = ("cmd_vel", "odom", "color", "camera_info", "depth", "semantic", "scan", "imu", "map", "tf",
+                   "clock", "run_stop", "nav_mode_service", "teleport_service")
+
+
+def ros_names(prof: Ros2Profile) -> list[str]:
+    """Every ROS topic and service name a profile uses."""
+    return [v for f in ROS_NAME_FIELDS if (v := getattr(prof, f))]
+
+
+def default_ros_names() -> tuple[str, ...]:
+    """The names of every built-in profile and of the stand-in (its simulated clock, teleport, map)."""
+    profs = [*PROFILES.values(), profile("generic", STANDIN_OVERRIDES)]
+    return tuple(dict.fromkeys(n for p in profs for n in ros_names(p)))
+
+
+@dataclass(frozen=True)
+class Ros2Side:
+    """The robot's ROS 2 zenoh network as the ACL sees it: its user, the key styles it may speak, the
+    ROS names (``names``) and how they become keys (domain, namespace, the bridge's prefix)."""
+
+    user: str = "ros2_robot"
+    styles: tuple[str, ...] = (KeyStyleName.BRIDGE, KeyStyleName.RMW_ZENOH)
+    names: tuple[str, ...] = field(default_factory=default_ros_names)
+    domain_id: int = 0
+    namespace: str = ""
+    prefix: str = ""
+    peers: tuple[str, ...] = ("robot_io",)  # the services that speak ROS 2
+
+
+def _bridge_exprs(side: Ros2Side, name: str) -> list[str]:
+    return [BridgeKeys(prefix=side.prefix, namespace=side.namespace).topic_key(name, None)]  # type: ignore[arg-type]
+
+
+def _rmw_zenoh_exprs(side: Ros2Side, name: str) -> list[str]:
+    # <domain>/<fq name>/<DDS type>/<RIHS01 hash>: the type and hash are one chunk each.
+    return [f"{side.domain_id}/{fully_qualified(name, side.namespace).lstrip('/')}/*/*"]
+
+
+# Key style -> (the key expressions of one ROS name, the style's graph key expressions).
+ROS2_KEY_STYLES: dict[str, tuple[Callable[[Ros2Side, str], list[str]], Callable[[Ros2Side], list[str]]]] = {
+    KeyStyleName.BRIDGE: (_bridge_exprs, lambda side: []),  # the bridge discovers DDS itself: no tokens
+    KeyStyleName.RMW_ZENOH: (_rmw_zenoh_exprs, lambda side: [f"{LIVELINESS_PREFIX}/{side.domain_id}/**"]),
+}
 
 
 class AclError(ValueError):
@@ -70,13 +127,33 @@ def routed_key_exprs(instances: Mapping[str, Sequence[str]]) -> list[str]:
             if "/@" in e]
 
 
+def ros2_key_exprs(side: Ros2Side) -> list[str]:
+    """The ROS 2 key space of ``side``: every name in every key style, and the styles' graph tokens.
+    Refuses a name whose key would fall under ``ant/**`` (the ROS side must never forge a service)."""
+    if not 0 <= side.domain_id <= 232:  # ROS_DOMAIN_ID's range
+        raise AclError(f"ROS domain id out of range 0..232: {side.domain_id}")
+    out: list[str] = []
+    for style in side.styles:
+        try:
+            per_name, graph = ROS2_KEY_STYLES[style]
+        except KeyError:
+            raise AclError(f"unknown ROS 2 key style {style!r}; known: {', '.join(ROS2_KEY_STYLES)}") from None
+        out += [e for n in side.names for e in per_name(side, n)] + graph(side)
+    for e in out:
+        if e == keys.ROOT or e.startswith(f"{keys.ROOT}/") or e.split("/", 1)[0] in ("*", "**"):
+            raise AclError(f"the ROS 2 key {e!r} would overlap the services' {keys.ROOT}/**")
+    return list(dict.fromkeys(out))
+
+
 def acl_config(services: Iterable[str] = SERVICES,
                instances: Mapping[str, Sequence[str]] | None = None,
-               default_permission: str = "deny", readers: Sequence[str] = ()) -> dict[str, Any]:
+               default_permission: str = "deny", readers: Sequence[str] = (),
+               ros2: Ros2Side | None = None) -> dict[str, Any]:
     """The router's ``access_control`` section (zenoh 1.x: rules, subjects, policies).
 
     Subjects match the ``usrpwd`` user name, which must equal the service name. ``readers`` are extra
     users (tools, tests) that may read and query everything but publish, serve or declare nothing.
+    ``ros2``: the robot's ROS 2 side, its own subject, sharing its key space with ``ros2.peers`` only.
     """
     services = list(services)
     instances = dict(REPLICATED if instances is None else instances)
@@ -102,26 +179,33 @@ def acl_config(services: Iterable[str] = SERVICES,
                       "key_exprs": owned_key_exprs(svc, instances.get(svc, ()))})
         subjects.append({"id": svc, "usernames": [svc]})
         policies.append({"id": f"{svc}-owns", "rules": [f"own-{svc}"], "subjects": [svc]})
+    if ros2 is not None:
+        peers = [p for p in ros2.peers if p in services]
+        rules.append({"id": "ros2", "permission": "allow", "flows": ["ingress", "egress"], "messages": ROS2_MESSAGES,
+                      "key_exprs": ros2_key_exprs(ros2)})
+        subjects.append({"id": ros2.user, "usernames": [ros2.user]})
+        policies.append({"id": "ros2-side", "rules": ["ros2"], "subjects": [ros2.user, *peers]})
     return {"enabled": True, "default_permission": default_permission, "rules": rules, "subjects": subjects,
             "policies": policies}
 
 
 def router_config(listen: Sequence[str] = ("tcp/[::]:7447",), *, users_file: str = "/etc/zenoh/users.txt",
                   services: Iterable[str] = SERVICES, instances: Mapping[str, Sequence[str]] | None = None,
-                  readers: Sequence[str] = ()) -> dict[str, Any]:
+                  readers: Sequence[str] = (), ros2: Ros2Side | None = None) -> dict[str, Any]:
     """A complete router configuration with user/password authentication and the ACL."""
     return {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"auth": {"usrpwd": {"dictionary_file": users_file}}},
-        "access_control": acl_config(services, instances, readers=readers),
+        "access_control": acl_config(services, instances, readers=readers, ros2=ros2),
     }
 
 
 def client_config(service: str, password: str, connect: Sequence[str] = ("tcp/router:7447",)) -> dict[str, Any]:
-    """A service's side: client mode (all traffic through the ACL router) with its credentials."""
-    if service not in SERVICES:
+    """A service's (or the ROS 2 side's) client config: client mode (all traffic through the ACL router)
+    with its credentials."""
+    if service not in (*SERVICES, Ros2Side.user):
         raise AclError(f"unknown service {service!r}")
     return {
         "mode": "client",

@@ -12,6 +12,7 @@ import threading
 
 import zenoh
 from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.robot_io.core.ros2.transport import (
     TRANSPORTS, QueryHandler, Ros2Transport, SampleHandler, TransportConfig, TransportError,
@@ -22,8 +23,22 @@ from shared.bus.config import ZenohSettings, zenoh_config
 log = logging.getLogger(__name__)
 
 
+class BusEnv(BaseSettings):
+    """The process's ``ANT_ZENOH__*`` environment, read as the services read it (shared/runner.py)."""
+
+    model_config = SettingsConfigDict(env_prefix="ANT_", env_nested_delimiter="__", extra="ignore")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+
+
+def env_zenoh_settings() -> ZenohSettings:
+    """How this process joins its bus: robot-io's ROS 2 session, unless configured otherwise, goes
+    where robot-io itself goes, as robot-io (on an authenticated bus its ACL grants the ROS 2 keys)."""
+    return BusEnv().zenoh
+
+
 class ZenohTransportConfig(TransportConfig):
-    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to reach the robot's zenoh network")
+    zenoh: ZenohSettings = Field(default_factory=env_zenoh_settings,
+                                 description="how to reach the robot's zenoh network (default: the service's bus)")
 
 
 class _Closer:

@@ -29,27 +29,25 @@ REPO = Path(__file__).resolve().parents[2]
 COMPOSE = yaml.safe_load((REPO / "docker-compose.yml").read_text())
 SERVICES = COMPOSE["services"]
 CREDS_MOUNT = "/creds"
-# The ROS 2 stand-in speaks only ROS 2 topics, which the generated ACL cannot grant (deploy/README.md,
-# "On a real robot"; the launcher turns auth off for it): it is the one zenoh client without a user.
-WITHOUT_USER = {"ros2-robot"}
+# The module each generated user runs: a service as itself, the ROS 2 side as the stand-in robot.
+MODULE_OF_USER = {**{svc: f"services.{svc}" for svc in acl.SERVICES},
+                  acl.Ros2Side.user: "services.robot_io.tools.ros2_robot"}
 
 
 def zenoh_services() -> dict[str, dict]:
-    """Every compose service that joins the bus (it connects to the router), the stand-in aside."""
-    return {name: s for name, s in SERVICES.items()
-            if "ANT_ZENOH__CONNECT" in (s.get("environment") or {}) and name not in WITHOUT_USER}
+    """Every compose service that joins the bus (it connects to the router)."""
+    return {name: s for name, s in SERVICES.items() if "ANT_ZENOH__CONNECT" in (s.get("environment") or {})}
 
 
 def test_every_zenoh_service_joins_as_its_own_user_with_the_generated_password():
     services = zenoh_services()
     assert {"robot_io", "mapper", "reconstructor", "renderer", "planner", "gateway", "reconstructor-gpu",
-            "renderer-gpu", "planner-gpu"} <= services.keys()
-    generated = set(acl.SERVICES)
+            "renderer-gpu", "planner-gpu", "ros2-robot"} <= services.keys()
     for name, s in services.items():
         env = s["environment"]
         user = env.get("ANT_ZENOH__USERNAME")
-        module = s["command"][-1]  # python -m services.<user>
-        assert user in generated and module == f"services.{user}", (name, user, module)
+        module = s["command"][s["command"].index("-m") + 1]  # python -m <module> ...
+        assert user in MODULE_OF_USER and module == MODULE_OF_USER[user], (name, user, module)
         assert env["ANT_ZENOH__PASSWORD_FILE"] == f"{CREDS_MOUNT}/{user}.password", name
         assert env["ANT_ZENOH__MODE"].endswith(":-client}"), (name, "client mode: the router's ACL applies")
         mounts = [v for v in s.get("volumes", [])]

@@ -5,6 +5,11 @@
 
 It speaks only ROS 2 (CDR over zenoh, in the zenoh-bridge-ros2dds or rmw_zenoh key style), so the
 ``ros2`` robot backend runs against it exactly as against a robot. Stops cleanly on SIGTERM/Ctrl-C.
+
+On an authenticated bus it joins as the ROS 2 side's user (``ros2_robot``, see deploy/zenoh/acl.py), as a
+real robot's bridge would: ``--username ros2_robot --password-file creds/ros2_robot.password``, or the
+``ANT_ZENOH__*`` environment the services read (``ANT_ZENOH__MODE=client``, ``ANT_ZENOH__USERNAME``,
+``ANT_ZENOH__PASSWORD_FILE``); the flags override the environment.
 """
 
 from __future__ import annotations
@@ -19,11 +24,18 @@ import threading
 from services.robot_io.core.ros2.keys import key_style
 from services.robot_io.core.ros2.profiles import PROFILES, profile
 from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot
-from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig
+from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig, env_zenoh_settings
 from shared.bus.config import ZenohSettings
 from shared.logs import configure_logging
 
 log = logging.getLogger("ros2_robot")
+
+
+def bus_settings(args: argparse.Namespace) -> ZenohSettings:
+    """The environment's zenoh settings with the command line's on top."""
+    flags = {"connect": args.connect, "listen": args.listen, "username": args.username,
+             "password_file": args.password_file, "mode": args.mode or ("client" if args.username else None)}
+    return env_zenoh_settings().model_copy(update={k: v for k, v in flags.items() if v})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,6 +49,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile-overrides", default="{}", help="JSON object of profile fields")
     ap.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to")
     ap.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
+    ap.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode (default: the environment's)")
+    ap.add_argument("--username", default=None, help="usrpwd user at an authenticated router (ros2_robot)")
+    ap.add_argument("--password-file", default=None, help="a file holding that user's password")
     ap.add_argument("--config", default="{}", help="JSON object of StandInConfig fields (time_scale, latency_s, ...)")
     ap.add_argument("--time-scale", type=float, default=None)
     args = ap.parse_args(argv)
@@ -49,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg["time_scale"] = args.time_scale
     config = StandInConfig.model_validate(cfg)
     prof = profile(args.profile, json.loads(args.profile_overrides))
-    transport = ZenohRos2Transport(ZenohTransportConfig(zenoh=ZenohSettings(connect=args.connect, listen=args.listen)))
+    transport = ZenohRos2Transport(ZenohTransportConfig(zenoh=bus_settings(args)))
     keys = key_style(args.keys, domain_id=args.domain_id, namespace=args.namespace)
     robot = StandInRobot(config, prof, transport, keys)
     stop = threading.Event()

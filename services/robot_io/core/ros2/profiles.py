@@ -97,6 +97,15 @@ PROFILES: dict[str, Ros2Profile] = {
     "generic": Ros2Profile(description="any ROS 2 base: every topic, encoding and frame configurable"),
 }
 
+# What the stand-in robot (services/robot_io/tools/ros2_robot.py) publishes beyond the generic profile,
+# and a backend driving it therefore reads: the simulated clock (time scale), the teleport service
+# (mission start poses), the map and labels. The base is the embedded simulator's agent (radius 0.1 m,
+# which VLN-CE's graphs and tours assume) with a small safety margin, and it may turn faster than a
+# Stretch: panoramas take less (simulated) time. The launcher runs it so; the bus ACL grants its names.
+STANDIN_OVERRIDES: dict[str, Any] = {"clock": "/clock", "teleport_service": "/teleport", "map": "/map",
+                                     "semantic": "/camera/semantic/image_raw", "max_angular_dps": 90.0,
+                                     "angular_accel_dps2": 360.0, "base_radius_m": 0.1, "safety_distance_m": 0.05}
+
 
 class UnknownProfileError(RobotIOError, ValueError):
     pass
