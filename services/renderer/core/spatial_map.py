@@ -31,6 +31,8 @@ from shared.schemas import Candidate, CandidateKind, Pose
 log = logging.getLogger(__name__)
 
 UNKNOWN, FREE, OBSTACLE = 0, 1, 2
+# The most of a spatial map's area its legend may cover; a smaller map is drawn without one.
+_LEGEND_MAX_AREA = 0.25
 
 _COLOURS = {  # RGB
     UNKNOWN: (120, 120, 120),
@@ -256,6 +258,8 @@ class SpatialMapper:
         width = max(tw, sw + pad + max(cv2.getTextSize(n, font, fs, 1)[0][0] for n, _ in legend))
         x0, y0 = pad, pad
         x1, y1 = x0 + width + 2 * pad, y0 + pad + line * (1 + len(legend))
+        if (x1 - x0) * (y1 - y0) > _LEGEND_MAX_AREA * img.shape[0] * img.shape[1]:
+            return  # a thumbnail: a legible key would hide the map it explains
         cv2.rectangle(img, (x0, y0), (x1, y1), (255, 255, 255), -1)
         cv2.rectangle(img, (x0, y0), (x1, y1), (60, 60, 60), 1)
         y = y0 + pad + th

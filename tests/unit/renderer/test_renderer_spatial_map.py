@@ -148,3 +148,18 @@ def test_the_legend_sits_on_an_opaque_panel_at_a_legible_size():
     # White behind the text (not the grey map), and dark glyphs on it.
     assert (panel == 255).all(axis=2).mean() > 0.5 and (panel < 80).all(axis=2).any()
     assert (img[4:70, 4:100] == (220, 30, 30)).all(axis=2).any()  # the swatch
+
+
+def test_a_thumbnail_map_is_drawn_without_a_legend_that_would_hide_it():
+    from services.renderer.core import IndexedCloud, SpatialMapper
+    from services.renderer.core.spatial_map import _LEGEND_MAX_AREA
+    from shared.cloud import PointCloud
+    from shared.schemas import Pose
+
+    xyz = np.stack(np.meshgrid(np.arange(-2, 2, 0.05), np.arange(-2, 2, 0.05), [0.0]), -1).reshape(-1, 3)
+    index = IndexedCloud(PointCloud(xyz.astype(np.float32), np.full((len(xyz), 3), 128, np.uint8)))
+    pose = Pose(position_m=(0.0, 0.0, 0.0))
+    small = SpatialMapper().draw(index, pose, None, [], size_px=96).image
+    large = SpatialMapper().draw(index, pose, None, [], size_px=512).image
+    white = lambda img: (img == 255).all(axis=2).mean()  # noqa: E731 - the legend's panel
+    assert white(small) < 0.05 < white(large) < _LEGEND_MAX_AREA
