@@ -147,6 +147,7 @@ def samples(map_id: str = "m", panorama: schemas.Panorama | None = None) -> dict
     out: list[S.Message] = [
         S.ObserveRequest(camera=cam), S.MoveRequest(dx_m=0.5, dy_m=-0.25), S.TurnRequest(angle_rad=0.3),
         S.ResetRequest(pose=pose), S.GeodesicRequest(start_m=(1.0, 2.0, 0.0), goal_m=(2.0, 1.0, 0.0)),
+        S.SceneViewsRequest(views=[S.ViewPose(position_m=(1.0, 2.0, 0.0), heading_rad=0.2, pitch_rad=0.1)], camera=cam),
         S.RecordRequest(recording="fuzz-rec", start=False, rate_hz=5.0, max_width_px=64), panorama,
         S.ExplorationRequest(exploration_id="x-fuzz", map_id=map_id, max_steps=5, options={"k": 1.5}),
         S.MapRequest(map_id=map_id, version=1), S.MapChunkRequest(map_id=map_id, version=1, index=0, max_points=1000),
