@@ -64,6 +64,21 @@ class ServiceSettings(BaseSettings):
         return keys.validate_segment(v)
 
 
+class FleetServiceSettings(ServiceSettings):
+    """Settings of a service that serves many robots at once (the planner, the mapper): it answers on a
+    wildcard in the robot segment and keeps one job queue per robot."""
+
+    serve_robots: list[str] = Field(default_factory=list, description=(
+        "robot ids this instance serves; empty: every robot (a wildcard). Replicas given disjoint lists "
+        "split the robots between them"))
+    max_robots: int = Field(64, ge=1, le=1024, description="robots with a job queue at once (each one a thread)")
+
+    @field_validator("serve_robots")
+    @classmethod
+    def _robot_ids(cls, v: list[str]) -> list[str]:
+        return [keys.validate_segment(r, "robot id") for r in v]
+
+
 S = TypeVar("S", bound=ServiceSettings)
 
 

@@ -17,20 +17,20 @@ import logging
 import threading
 from typing import Any
 
-from pydantic import Field, field_validator
+from pydantic import Field
 
 from services.mapper.core import DEFAULT_PREDICTOR, PREDICTORS, WaypointPredictor
 from services.mapper.core.exploration_job import explore
 from shared import keys
 from shared.clients import MapClient, RobotClient
 from shared.jobs import JobRunner
-from shared.runner import Node, Service, ServiceSettings
+from shared.runner import FleetServiceSettings, Node, Service
 from shared.schemas import CameraIntrinsics, CandidateSet, ExplorationRequest, JobAccepted, Panorama
 
 log = logging.getLogger(__name__)
 
 
-class MapperSettings(ServiceSettings):
+class MapperSettings(FleetServiceSettings):
     predictor: str = Field(DEFAULT_PREDICTOR, description="waypoint predictor backend")
     predictor_config: dict[str, Any] = Field(default_factory=dict)
     explore_camera_px: int = Field(96, ge=32, le=1024,
@@ -39,15 +39,6 @@ class MapperSettings(ServiceSettings):
     tour_frame_px: int = Field(128, ge=32, le=1024)
     build_stall_s: float = Field(300.0, gt=0, le=3600,
                                  description="a map build that sends no event for this long has failed")
-    serve_robots: list[str] = Field(default_factory=list, description=(
-        "robot ids this instance serves; empty: every robot (a wildcard). Replicas given disjoint lists "
-        "split the robots between them"))
-    max_robots: int = Field(64, ge=1, le=1024, description="robots with an exploration queue at once")
-
-    @field_validator("serve_robots")
-    @classmethod
-    def _robot_ids(cls, v: list[str]) -> list[str]:
-        return [keys.validate_segment(r, "robot id") for r in v]
 
 
 class MapperService(Service[MapperSettings]):

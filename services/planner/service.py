@@ -17,7 +17,7 @@ import logging
 import threading
 from typing import Any
 
-from pydantic import Field, field_validator
+from pydantic import Field
 
 from services.planner.core import POLICIES
 from services.planner.core.mission import run_mission
@@ -25,25 +25,16 @@ from shared import keys
 from shared.clients import MapClient, MapperClient, RendererClient, RobotClient
 from shared.events import jpeg
 from shared.jobs import JobContext, JobEnd, JobRunner
-from shared.runner import Node, Service, ServiceSettings
+from shared.runner import FleetServiceSettings, Node, Service
 from shared.schemas import CancelRequest, JobAccepted, MissionRequest
 
 log = logging.getLogger(__name__)
 
 
-class PlannerSettings(ServiceSettings):
+class PlannerSettings(FleetServiceSettings):
     default_policy_config: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="per policy backend, the config used when a mission gives none")
     max_queued: int = Field(16, ge=1, le=1000, description="missions queued per robot")
-    serve_robots: list[str] = Field(default_factory=list, description=(
-        "robot ids this instance serves; empty: every robot (a wildcard). Replicas given disjoint lists "
-        "split the robots between them"))
-    max_robots: int = Field(64, ge=1, le=1024, description="robots with a mission queue at once (each one a thread)")
-
-    @field_validator("serve_robots")
-    @classmethod
-    def _robot_ids(cls, v: list[str]) -> list[str]:
-        return [keys.validate_segment(r, "robot id") for r in v]
     call_timeout_s: float = Field(60.0, gt=0, description="timeout of one call to another service")
 
 
