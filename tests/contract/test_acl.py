@@ -7,13 +7,10 @@ import threading
 
 import pytest
 
-from deploy.launcher import free_port
 from deploy.zenoh import acl
 from shared import keys
 from shared.bus.base import QueryTarget
-from shared.bus.config import ZenohSettings
-from shared.bus.zenoh_bus import ZenohBus
-from tests.contract.conftest import wait_until
+from tests.contract.conftest import authenticated_router, wait_until
 
 pytestmark = pytest.mark.contract
 
@@ -22,24 +19,11 @@ PASSWORDS = {svc: f"pw-{svc}-{i}" for i, svc in enumerate(acl.SERVICES)}
 
 @pytest.fixture(scope="module")
 def acl_net(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("acl")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    users = tmp / "users.txt"
-    users.write_text("".join(f"{u}:{p}\n" for u, p in PASSWORDS.items()))
-    router_file = tmp / "router.json5"
-    router_file.write_text(acl.render(acl.router_config([endpoint], users_file=str(users))))
-    router = ZenohBus(ZenohSettings(mode="router", listen=[endpoint], config_file=str(router_file)))
-
-    def connect(service: str, password: str | None = None) -> ZenohBus:
-        path = tmp / f"{service}-{password or 'ok'}.json5"
-        path.write_text(acl.render(acl.client_config(service, password or PASSWORDS[service], [endpoint])))
-        return ZenohBus(ZenohSettings(mode="client", connect=[endpoint], config_file=str(path)))
-
-    clients = {svc: connect(svc) for svc in ("robot_io", "mapper", "renderer", "gateway")}
-    yield clients, connect
-    for c in clients.values():
-        c.close()
-    router.close()
+    with authenticated_router(tmp_path_factory.mktemp("acl"), PASSWORDS) as router:
+        clients = {svc: router.connect(svc) for svc in ("robot_io", "mapper", "renderer", "gateway")}
+        yield clients, router.connect
+        for c in clients.values():
+            c.close()
 
 
 def test_a_service_publishes_on_its_own_keys_only(acl_net):

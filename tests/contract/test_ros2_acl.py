@@ -11,14 +11,12 @@ import threading
 
 import pytest
 
-from deploy.launcher import free_port
 from deploy.zenoh import acl
 from services.robot_io.core.ros2 import messages as m
 from services.robot_io.core.ros2.keys import EntityKind, Qos, RmwZenohKeys
 from shared import keys
-from shared.bus.config import ZenohSettings
 from shared.bus.zenoh_bus import ZenohBus
-from tests.contract.conftest import wait_until
+from tests.contract.conftest import authenticated_router, wait_until
 
 pytestmark = pytest.mark.contract
 
@@ -31,22 +29,11 @@ ODOM_TYPE = m.RosType(m.MESSAGES["odometry"])
 
 @pytest.fixture(scope="module")
 def net(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("ros2-acl")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    users = tmp / "users.txt"
-    users.write_text("".join(f"{u}:{p}\n" for u, p in PASSWORDS.items()))
-    router_file = tmp / "router.json5"
-    router_file.write_text(acl.render(acl.router_config([endpoint], users_file=str(users), ros2=ROS2)))
-    router = ZenohBus(ZenohSettings(mode="router", listen=[endpoint], config_file=str(router_file)))
-    clients = {}
-    for u in USERS:
-        path = tmp / f"{u}.json5"
-        path.write_text(acl.render(acl.client_config(u, PASSWORDS[u], [endpoint])))
-        clients[u] = ZenohBus(ZenohSettings(mode="client", connect=[endpoint], config_file=str(path)))
-    yield {**clients, "endpoint": endpoint}
-    for c in clients.values():
-        c.close()
-    router.close()
+    with authenticated_router(tmp_path_factory.mktemp("ros2-acl"), PASSWORDS, ros2=ROS2) as router:
+        clients = {u: router.connect(u) for u in USERS}
+        yield {**clients, "endpoint": router.endpoint}
+        for c in clients.values():
+            c.close()
 
 
 class Inbox:
