@@ -3,7 +3,7 @@ playwright). The tests skip, with the reason, where either is missing."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,3 +27,18 @@ def headless_chromium() -> Iterator:
             yield browser
         finally:
             browser.close()
+
+
+def open_dashboard(browser, url: str, *, fragment: str = "", on_response: Callable | None = None,
+                   **page_options) -> tuple:
+    """A page on ``url``/dashboard (``fragment`` after ``#``), once its map list has loaded; returns the page
+    and the list the page's JavaScript errors are collected in. Handlers are in place before the first
+    request, so ``on_response`` sees every response of the page."""
+    page = browser.new_page(viewport={"width": 1440, "height": 1250}, **page_options)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    if on_response is not None:
+        page.on("response", on_response)
+    page.goto(f"{url}/dashboard" + (f"#{fragment}" if fragment else ""))
+    page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+    return page, errors

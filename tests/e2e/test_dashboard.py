@@ -21,7 +21,7 @@ from tests.waiting import wait_until
 from deploy.launcher import free_port
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
-from tests.e2e.browser import headless_chromium
+from tests.e2e.browser import headless_chromium, open_dashboard
 from tests.doubles.scripted_services import ScriptedMapper, ScriptedPlanner, ScriptedReconstructor
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
@@ -81,11 +81,7 @@ def live_gateway(tmp_path):
 
 def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_path):
     with headless_chromium() as browser:
-        page = browser.new_page(viewport={"width": 1440, "height": 1250})
-        errors: list[str] = []
-        page.on("pageerror", lambda exc: errors.append(str(exc)))
-        page.goto(f"{live_gateway}/dashboard")
-        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page, errors = open_dashboard(browser, live_gateway)
         page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
         page.click("#submit")
         # Steps arrive live over SSE: the first while the mission still runs ...
@@ -116,11 +112,7 @@ def test_dashboard_submits_a_mission_and_shows_its_steps_live(live_gateway, tmp_
 
 def test_dashboard_explores_a_new_map_with_progress(live_gateway):
     with headless_chromium() as browser:
-        page = browser.new_page(viewport={"width": 1440, "height": 1250})
-        errors: list[str] = []
-        page.on("pageerror", lambda exc: errors.append(str(exc)))
-        page.goto(f"{live_gateway}/dashboard")
-        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page, errors = open_dashboard(browser, live_gateway)
         page.fill("#explore-map", "explored-house")
         page.click("#explore")
         # Progress arrives over SSE while the exploration runs (stages 0.5 s apart) ...
@@ -154,13 +146,9 @@ def test_dashboard_with_a_read_token_sends_it_on_every_read_and_its_steps_agree(
     secret = "api-secret-4711"
     with serve_gateway(tmp_path, read_token="read-secret-0815", api_token=secret) as url, \
             headless_chromium() as browser:
-        page = browser.new_page(viewport={"width": 1440, "height": 1250})
-        errors: list[str] = []
         refused: list[str] = []
-        page.on("pageerror", lambda exc: errors.append(str(exc)))
-        page.on("response", lambda r: refused.append(r.url) if r.status == 401 else None)
-        page.goto(f"{url}/dashboard#token={secret}")
-        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page, errors = open_dashboard(browser, url, fragment=f"token={secret}",
+                                      on_response=lambda r: refused.append(r.url) if r.status == 401 else None)
         address = page.evaluate("location.href")
         page.fill("#instruction", "Walk through the hallway into the kitchen and stop next to the fridge.")
         page.click("#submit")

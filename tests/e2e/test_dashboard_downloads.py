@@ -9,7 +9,7 @@ import zipfile
 import pytest
 import rerun as rr
 
-from tests.e2e.browser import headless_chromium
+from tests.e2e.browser import headless_chromium, open_dashboard
 from tests.e2e.test_dashboard import REPO, live_gateway  # noqa: F401 - the fixture
 
 pytestmark = pytest.mark.e2e
@@ -17,11 +17,7 @@ pytestmark = pytest.mark.e2e
 
 def test_dashboard_downloads_a_recorded_mission_and_a_map(live_gateway, tmp_path):  # noqa: F811
     with headless_chromium() as browser:
-        page = browser.new_page(viewport={"width": 1440, "height": 1250}, accept_downloads=True)
-        errors: list[str] = []
-        page.on("pageerror", lambda exc: errors.append(str(exc)))
-        page.goto(f"{live_gateway}/dashboard")
-        page.wait_for_selector("#map-select option[value='demo-house']", state="attached", timeout=10_000)
+        page, errors = open_dashboard(browser, live_gateway, accept_downloads=True)
         page.fill("#instruction", "Walk into the kitchen and stop.")
         page.check("#record")
         page.click("#submit")
