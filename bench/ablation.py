@@ -103,7 +103,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                      spatial_map=False)  # the heuristic never reads the spatial map (results unchanged)
     configs = [RunConfig.model_validate({**base.model_dump(), **v.overrides}) for v in preset.variants]
     modes = {c.anticipation_splat_mode or "visibility" for c in configs}
-    root = args.out / preset.name / args.map
+    # A policy config is part of the experiment (RunConfig.experiment_key): its own folder, never mixed.
+    tag = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in json.dumps(base.policy_config,
+                                                                                  sort_keys=True))
+    root = args.out / preset.name / (args.map if not base.policy_config else f"{args.map}__{tag}")
     logs = [ResultsLog(root / v.slug / "results.jsonl") for v in preset.variants]
     done = [lg.load() for lg in logs]
 
