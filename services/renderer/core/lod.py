@@ -61,12 +61,22 @@ class VoxelLod:
 
 
 def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int) -> VoxelLod:
-    """The voxel levels of ``index`` (``spacing``: per point of ``index.cloud``)."""
+    """The voxel levels of ``index`` (``spacing``: per point of ``index.cloud``).
+
+    Each level is built from the one below (a cell of level L is exactly the union of 2x2x2 cells
+    of level L - 1 on the same grid), carrying sums and counts, so its means are exact and the
+    build costs about one pass over the cloud plus one over each smaller level."""
     cloud = index.cloud
-    xyz = cloud.xyz.astype(np.float64)
-    lo = xyz.min(axis=0)
+    lo = cloud.xyz.astype(np.float64).min(axis=0)
     n_blocks = index.block_count
-    block_of = np.repeat(np.arange(n_blocks, dtype=np.int64), index.counts)
+    # The current level as voxels: block, integer cell, point count, sums of xyz / rgb / spacing,
+    # and a representative (position, label) for the label of the next level.
+    blk = np.repeat(np.arange(n_blocks, dtype=np.int64), index.counts)
+    xyz = cloud.xyz.astype(np.float64)
+    cnt = np.ones(len(cloud), np.float64)
+    s_xyz, s_rgb, s_sp = xyz, cloud.rgb.astype(np.float64), spacing.astype(np.float64)
+    rep_xyz, rep_lab = xyz, cloud.labels
+    cell_xyz = np.floor((xyz - lo) / cell_m).astype(np.int64)  # level-1 cells of the points
     parts_xyz, parts_rgb, parts_lab, parts_sp = [], [], [], []
     starts = [index.starts.astype(np.int64)]
     counts = [index.counts.astype(np.int64)]
@@ -74,33 +84,42 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
     offset = len(cloud)
     for lev in range(1, levels + 1):
         cell = cell_m * 2 ** (lev - 1)
-        c = np.floor((xyz - lo) / cell).astype(np.int64)
-        dims = c.max(axis=0) + 1
-        key = ((block_of * dims[0] + c[:, 0]) * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+        if lev > 1:
+            cell_xyz = cell_xyz // 2  # floor(floor(x / c) / 2) == floor(x / 2c)
+        dims = cell_xyz.max(axis=0) + 1
+        key = ((blk * dims[0] + cell_xyz[:, 0]) * dims[1] + cell_xyz[:, 1]) * dims[2] + cell_xyz[:, 2]
         uniq, inv = np.unique(key, return_inverse=True)
         m = len(uniq)
-        n_of = np.bincount(inv, minlength=m).astype(np.float64)
-        mean = np.stack([np.bincount(inv, weights=xyz[:, k], minlength=m) for k in range(3)], 1) / n_of[:, None]
-        rgb = np.stack([np.bincount(inv, weights=cloud.rgb[:, k].astype(np.float64), minlength=m) for k in range(3)], 1)
-        rgb = np.clip(np.rint(rgb / n_of[:, None]), 0, 255).astype(np.uint8)
-        sp = np.bincount(inv, weights=spacing.astype(np.float64), minlength=m) / n_of
-        parts_sp.append(np.maximum(sp, cell).astype(np.float32))
-        if cloud.labels is not None:
+
+        def total(a):
+            return np.bincount(inv, weights=a, minlength=m)
+
+        n = total(cnt)
+        t_xyz = np.stack([total(s_xyz[:, k]) for k in range(3)], 1)
+        t_rgb = np.stack([total(s_rgb[:, k]) for k in range(3)], 1)
+        t_sp = total(s_sp)
+        mean = t_xyz / n[:, None]
+        if rep_lab is not None:
             # The label of the member nearest the voxel's mean: a voxel on the edge between two
             # objects takes the one its point stands on.
-            d2 = ((xyz - mean[inv]) ** 2).sum(axis=1)
+            d2 = ((rep_xyz - mean[inv]) ** 2).sum(axis=1)
             order = np.lexsort((d2, inv))
             first = order[np.concatenate([[0], np.flatnonzero(np.diff(inv[order])) + 1])]
-            parts_lab.append(cloud.labels[first].astype(np.int32))
+            rep_xyz, rep_lab = rep_xyz[first], rep_lab[first]
+            parts_lab.append(rep_lab.astype(np.int32))
         parts_xyz.append(mean.astype(np.float32))
-        parts_rgb.append(rgb)
+        parts_rgb.append(np.clip(np.rint(t_rgb / n[:, None]), 0, 255).astype(np.uint8))
+        parts_sp.append(np.maximum(t_sp / n, cell).astype(np.float32))
         # Voxel keys sort by block first: each block's voxels are one run.
-        vox_block = uniq // (dims[0] * dims[1] * dims[2])
-        cnt = np.bincount(vox_block, minlength=n_blocks).astype(np.int64)
-        starts.append(offset + np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(np.int64))
-        counts.append(cnt)
+        blk = uniq // (dims[0] * dims[1] * dims[2])
+        per_block = np.bincount(blk, minlength=n_blocks).astype(np.int64)
+        starts.append(offset + np.concatenate([[0], np.cumsum(per_block)[:-1]]).astype(np.int64))
+        counts.append(per_block)
         cells.append(cell)
         offset += m
+        # The next level groups these voxels: their cells, decoded from their keys.
+        cell_xyz = np.stack([(uniq // (dims[1] * dims[2])) % dims[0], (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
+        cnt, s_xyz, s_rgb, s_sp = n, t_xyz, t_rgb, t_sp
     labels = None if cloud.labels is None else np.concatenate([cloud.labels.astype(np.int32), *parts_lab])
     full = PointCloud(np.concatenate([cloud.xyz.astype(np.float32), *parts_xyz]),
                       np.concatenate([cloud.rgb, *parts_rgb]), labels, cloud.label_names)

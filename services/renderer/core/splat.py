@@ -6,7 +6,14 @@ splatting) and fills what is left by a depth-aware pull-push (:mod:`visibility` 
 published techniques). Its front pass is the one described below (a pixel's front layer reduced
 to one surfel, plus the sum of its points' spacing); the image-space passes follow it. It agrees
 with the torch backend within the tolerance stated in tests/unit/renderer/test_renderer_visibility.py
-(<= 0.2 % of the pixels differ; the compiled and array numpy paths are bit-identical).
+(<= 0.2 % of the pixels differ; the compiled and array numpy paths are bit-identical). Its
+image-space passes run compiled too (:mod:`visibility_kernels`), bit-identical to the array code.
+
+What a view draws is bounded by its pixels, not by the map: blocks outside the frustum are
+culled, and each remaining block is drawn from precomputed voxel-averaged levels of detail
+(:mod:`lod`: Potree-style layered LOD, per-block selection as in sequential point trees) at the
+coarsest level whose cell projects to at most ``lod_cell_px`` pixels. A far room thus costs about
+its pixels, whatever its density, and per-view cost stays flat as a building grows.
 
 ``paper`` is the paper's fixed 3x3 Gaussian splat, kept for the ablation:
 
