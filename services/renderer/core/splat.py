@@ -107,6 +107,9 @@ class SplatConfig(BackendConfig):
     fill_slope_deg: float = Field(60.0, ge=0.0, le=85.0)
     # visibility mode: depth tolerance of the front layer and of the visibility test. Tighter than
     # the paper's 0.10 m: the two faces of a 0.1 m wall must not blend.
+    # visibility mode: the colour reconstruction filter (:func:`visibility.colour_filter`) blends
+    # a pixel with its 3x3 neighbours whose depth is within this fraction of its own (0: off).
+    colour_filter_rel: float = Field(0.05, ge=0.0, le=0.5)
     visibility_tolerance_m: float = Field(0.04, ge=0.0)
     visibility_tolerance_rel: float = Field(0.03, ge=0.0)
     # visibility mode: the points a pixel's surfel averages lie this close behind its nearest one
@@ -300,6 +303,9 @@ class _NumpyOps:
     def pad2(self, a, dh: int, dw: int, value):
         return np.pad(a, ((0, dh), (0, dw)), constant_values=value) if dh or dw else a
 
+    def pad_ring(self, a, value):
+        return np.pad(a, 1, constant_values=value)
+
     def ceil(self, x):
         return np.ceil(x)
 
@@ -458,6 +464,9 @@ class _TorchOps:
 
     def full2(self, h: int, w: int, value: float):
         return self.torch.full((h, w), value, dtype=self.torch.float32, device=self.device)
+
+    def pad_ring(self, a, value):
+        return self.torch.nn.functional.pad(a[None, None], (1, 1, 1, 1), value=value)[0, 0]
 
     def pad2(self, a, dh: int, dw: int, value):
         if not (dh or dw):
@@ -859,6 +868,7 @@ class SplatRenderer:
             gap_levels=cfg.gap_levels, fill_levels=cfg.fill_levels, gap_max_m=cfg.gap_max_m,
             tol_rel1=float(np.float32(1.0 + cfg.visibility_tolerance_rel)), tol_abs_m=cfg.visibility_tolerance_m,
             slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
+            filter_rel=cfg.colour_filter_rel,
         )
         compose = visibility.compose_compiled if self._use_kernel else partial(visibility.compose, ops)
         rgb, depth, hole, labels = compose(layer, params, h, w)

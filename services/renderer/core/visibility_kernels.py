@@ -216,8 +216,43 @@ def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_re
                     break
 
 
+def _colour_filter(rgb, depth, hole, rel, taps):
+    """:func:`visibility.colour_filter`, same taps, order and float32 rounding."""
+    h, w = depth.shape
+    out = np.empty_like(rgb)
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            if hole[i, j]:
+                out[0, i, j] = out[1, i, j] = out[2, i, j] = zero
+                continue
+            d = depth[i, j]
+            tol = d * rel
+            a0 = a1 = a2 = ws = zero
+            t = 0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    k = taps[t]
+                    t += 1
+                    r, c = i + dy, j + dx
+                    inside = 0 <= r < h and 0 <= c < w
+                    ok = inside and (not hole[r, c]) and abs(depth[r, c] - d) <= tol
+                    wt = k if ok else zero
+                    ws = ws + wt
+                    if inside:
+                        a0 = a0 + rgb[0, r, c] * wt
+                        a1 = a1 + rgb[1, r, c] * wt
+                        a2 = a2 + rgb[2, r, c] * wt
+            s = ws if ws > 0 else np.float32(1.0)
+            out[0, i, j] = a0 / s
+            out[1, i, j] = a1 / s
+            out[2, i, j] = a2 / s
+    return out
+
+
 if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
     surfels, bucket, add_sources, finish = _jit(_surfels), _jit(_bucket), _jit(_add_sources), _jit(_finish)
+    colour_filter = _jit(_colour_filter)
 else:  # pragma: no cover
-    surfels = bucket = add_sources = finish = None
+    surfels = bucket = add_sources = finish = colour_filter = None
