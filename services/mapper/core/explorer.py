@@ -395,14 +395,10 @@ class _Run:
         for z, nodes in self._floor_nodes().items():
             if len(nodes) < fl_min:
                 continue
-            for t in self.space.frontier_targets(z, nodes, self.cfg.visit_radius_m, stairs):
-                p = t.position_m
-                if (self._seen_near(p) or self._near(p, (NodeStatus.FRONTIER,), self.cfg.frontier_merge_m)
-                        or self._near(p, (NodeStatus.UNREACHABLE,), self.cfg.visit_radius_m)):
-                    continue
-                nid = self.graph.add_observed(p, t.parent, 0.5)
+            for t in self.space.frontier_targets(z, nodes, self.cfg.visit_radius_m, stairs, accept=self._new_target):
+                nid = self.graph.add_observed(t.position_m, t.parent, 0.5)
                 if nid is not None:
-                    found.append((float(np.linalg.norm(p - here)), nid))
+                    found.append((float(np.linalg.norm(t.position_m - here)), nid))
         for _, nid in sorted(found, reverse=True):
             self.cells.add(self._cell(self.graph.pos(nid)))
             self.frontiers.append(nid)
@@ -410,6 +406,12 @@ class _Run:
         if found:
             log.debug("%d frontiers of the free-space map added", len(found))
         return len(found)
+
+    def _new_target(self, p: np.ndarray) -> bool:
+        """A map frontier's target is new unless seen from close by, already a frontier, or near a
+        place that failed."""
+        return not (self._seen_near(p) or self._near(p, (NodeStatus.FRONTIER,), self.cfg.frontier_merge_m)
+                    or self._near(p, (NodeStatus.UNREACHABLE,), self.cfg.visit_radius_m))
 
     def visit(self, target: str) -> None:
         g = self.graph
