@@ -261,7 +261,9 @@ class FreeSpaceMap:
                 near = np.flatnonzero(dv <= c.max_parent_m)
                 if len(near) == 0:
                     continue
-                near = near[np.argsort(dv[near])][:8]
+                # Every visited node in range, nearest first: the nearest few may all stand behind a
+                # wall (a bathroom beside the hallway that leads to the flight).
+                near = near[np.argsort(dv[near])]
                 pidx = np.floor(vxy[near] / c.cell_m).astype(np.int64) - origin
                 vis = line_of_sight(blocked, pidx, np.repeat(cell[None, :], len(near), axis=0))
                 if not vis.any():
