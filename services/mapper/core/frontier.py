@@ -19,6 +19,7 @@ to lowers it.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -275,6 +276,69 @@ class FreeSpaceMap:
                 out.append(FrontierTarget(pos, parent, int(sizes[lab_k])))
                 break
         return out
+
+    def path(self, level_z_m: float, start_xy: np.ndarray, goals_xy: np.ndarray,
+             max_waypoints: int = 64) -> tuple[int, list[np.ndarray]] | None:
+        """The shortest way for the robot's body through the map's passable cells from ``start_xy``
+        to the nearest of ``goals_xy`` (K, 2): (that goal's index, straight-line waypoints after
+        the start, the goal's own position last), or None when no goal is reachable on the map.
+
+        For a robot stranded by a traversed edge that cannot be walked back (the simulator slides
+        along a door jamb one way and not the other): the map knows the doorway, the graph no
+        longer does.
+        """
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        c = self.cfg
+        lv = self.level_of(level_z_m)
+        if lv is None or len(goals_xy) == 0:
+            return None
+        pts = np.vstack([np.asarray(start_xy, float)[None, :2], np.asarray(goals_xy, float)[:, :2]])
+        cells, origin, _, passable, _, _ = self._analyse(lv, pts)
+        idx = np.floor(pts / c.cell_m).astype(np.int64) - origin
+        inside = (idx >= 0).all(axis=1) & (idx < cells.shape).all(axis=1)
+        if not inside[0]:
+            return None
+        number = np.full(cells.shape, -1, np.int64)
+        number[passable] = np.arange(int(passable.sum()))
+        pad = np.pad(number, 1, constant_values=-1)
+        a = pad[1:-1, 1:-1]
+        rows, cols, w = [], [], []
+        for di, dj in ((1, 0), (0, 1), (1, 1), (1, -1)):  # each 8-neighbour pair once
+            b = pad[1 + di:pad.shape[0] - 1 + di, 1 + dj:pad.shape[1] - 1 + dj]
+            ok = (a >= 0) & (b >= 0)
+            rows.append(a[ok])
+            cols.append(b[ok])
+            w.append(np.full(int(ok.sum()), math.hypot(di, dj)))
+        n = int(passable.sum())
+        graph = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+        src = int(number[idx[0, 0], idx[0, 1]])
+        dist, pred = dijkstra(graph, directed=False, indices=src, return_predecessors=True)
+        gi = np.flatnonzero(inside[1:])
+        gnum = number[idx[1:][gi, 0], idx[1:][gi, 1]]
+        gd = np.where(gnum >= 0, dist[np.maximum(gnum, 0)], np.inf)
+        if len(gi) == 0 or not np.isfinite(gd).any():
+            return None
+        best = int(np.argmin(gd))
+        chain = [int(gnum[best])]
+        while chain[-1] != src:
+            chain.append(int(pred[chain[-1]]))
+        flat = np.flatnonzero(passable.ravel())  # cell number -> flat index
+        route = np.stack(np.unravel_index(flat[np.array(chain[::-1])], cells.shape), axis=1)
+        # String pulling: from each waypoint, the farthest cell of the route in straight sight.
+        blocked = ~passable
+        out: list[np.ndarray] = []
+        k = 0
+        while k < len(route) - 1 and len(out) < max_waypoints:
+            later = np.arange(k + 1, len(route))
+            vis = line_of_sight(blocked, np.repeat(route[k][None, :], len(later), axis=0), route[later])
+            k = int(later[np.flatnonzero(vis)[-1]]) if vis.any() else k + 1
+            out.append((origin + route[k] + 0.5) * c.cell_m)
+        if not out:
+            return None
+        out[-1] = pts[1 + gi[best]].copy()
+        return int(gi[best]), out
 
     def coverage(self, visited_by_level: dict[float, np.ndarray],
                  extra_xy: np.ndarray | None = None) -> tuple[float, float]:

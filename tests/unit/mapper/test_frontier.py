@@ -163,3 +163,21 @@ def test_space_seen_but_out_of_reach_lowers_the_coverage_estimate():
     part, area_ab = slits.coverage({0.0: nodes_xy})
     assert full > 0.97
     assert area_ab > area_a + 3.0 and part < full - 0.1, (full, area_a, part, area_ab)
+
+
+def test_the_maps_way_goes_through_the_door():
+    """A robot stranded in room A (its edge back cannot be walked) is led to room B's nodes the
+    long way, through the door, in straight legs that all keep clear of the wall."""
+    w = two_rooms()
+    m = FreeSpaceMap(ANGLES)
+    for x, y in [(1, 1), (3, 1), (1, 4), (3, 4), (3.5, 5.5), (4.6, 5.5), (6, 5), (6, 2), (7, 1)]:
+        p = np.array([x, y, 0.0])
+        m.add_scan(p, 0.0, grid_scan(w, 0.05, p))
+    goal, legs = m.path(0.0, np.array([3.0, 1.0]), np.array([[7.0, 1.0], [6.0, 2.0]]))
+    assert goal == 1 and np.allclose(legs[-1], [6.0, 2.0])  # the nearer one by the way, its own position last
+    pts = np.vstack([[3.0, 1.0], legs])
+    for a, b in zip(pts[:-1], pts[1:]):  # no leg crosses the wall (x 4-4.1 m) below the door
+        t = np.linspace(0.0, 1.0, 200)[:, None]
+        seg = a + (b - a) * t
+        assert not ((seg[:, 0] > 3.95) & (seg[:, 0] < 4.15) & (seg[:, 1] < 5.0)).any(), (a, b)
+    assert m.path(0.0, np.array([3.0, 1.0]), np.array([[30.0, 30.0]])) is None  # off the map
