@@ -4,6 +4,7 @@
                            [--predictor wide|cwp]
     python -m bench.mapper --scenes ../shared/data/replica_office0/office0_mesh.ply
     python -m bench.mapper --ladder [--full] [--jobs 2] [--size 64] [--json OUT]
+    python -m bench.mapper --ladder --rungs 200x3 1000x1 --seeds 2 --rows ROWS.jsonl
     python -m bench.mapper --scenes generated:0:area=1000 --save-exploration DIR
     python -m bench.mapper --replan DIR/*.pkl [--repeat 3]
 
@@ -199,9 +200,13 @@ LADDER_SEEDS = 5
 QUICK = [(100, 1), (100, 3), (500, 1), (500, 3), (1000, 1), (1000, 3)]
 
 
-def ladder_specs(full: bool) -> list[tuple[int, int, int, str]]:
-    rungs = [(a, f) for a in LADDER_AREAS for f in LADDER_FLOORS] if full else QUICK
-    seeds = range(LADDER_SEEDS) if full else range(1)
+def ladder_specs(full: bool, rungs: list[tuple[int, int]] | None = None,
+                 seeds: int | None = None) -> list[tuple[int, int, int, str]]:
+    """(area, floors, seed, scene) to explore: the whole ladder, the quick subset, or ``rungs``
+    (area, floors) given by hand, with ``seeds`` seeds each (5 full, 1 quick by default)."""
+    if rungs is None:
+        rungs = [(a, f) for a in LADDER_AREAS for f in LADDER_FLOORS] if full else QUICK
+    seeds = range(seeds if seeds is not None else (LADDER_SEEDS if full else 1))
     # Seed by seed, so that a ladder cut short still has every rung measured.
     return [(a, f, s, f"generated:{s}:area={a}:floors={f}") for s in seeds for a, f in rungs]
 
@@ -273,8 +278,9 @@ def print_ladder(rows: list[dict], radius_m: float) -> dict:
 
 
 def run_ladder(full: bool, jobs: int, size_px: int, radius_m: float, out_json: str | None,
-               rows_path: str | None = None) -> None:
-    specs = ladder_specs(full)
+               rows_path: str | None = None, rungs: list[tuple[int, int]] | None = None,
+               seeds: int | None = None) -> None:
+    specs = ladder_specs(full, rungs, seeds)
     args = [(a, f, s, spec, size_px, radius_m) for a, f, s, spec in specs]
     rows: list[dict] = []
     t0 = time.perf_counter()
@@ -319,6 +325,9 @@ def main() -> None:
     ap.add_argument("--ladder", action="store_true", help="the scale ladder instead of --scenes")
     ap.add_argument("--full", action="store_true", help="the whole ladder: 12 rungs x 5 seeds")
     ap.add_argument("--jobs", type=int, default=1, help="explorations run in parallel processes")
+    ap.add_argument("--rungs", nargs="+", default=None, metavar="AREAxFLOORS",
+                    help="ladder: only these rungs, e.g. 200x3 1000x1")
+    ap.add_argument("--seeds", type=int, default=None, help="ladder: seeds per rung (5 with --full, else 1)")
     ap.add_argument("--rows", default=None, help="ladder: append one JSON line per exploration here")
     ap.add_argument("--table", default=None, help="ladder: print the table of a --rows file and exit")
     ap.add_argument("--json", default=None)
@@ -336,7 +345,15 @@ def main() -> None:
             print_ladder([json.loads(line) for line in f if line.strip()], args.radius)
         return
     if args.ladder:
-        run_ladder(args.full, args.jobs, args.size or 64, args.radius, args.json, args.rows)
+        rungs = None
+        if args.rungs:
+            try:
+                rungs = [tuple(int(v) for v in r.lower().split("x")) for r in args.rungs]
+            except ValueError:
+                ap.error("--rungs takes AREAxFLOORS, e.g. 200x3")
+            if any(len(r) != 2 or r[0] <= 0 or not 1 <= r[1] <= 3 for r in rungs):
+                ap.error("--rungs takes AREAxFLOORS with 1 to 3 floors, e.g. 200x3")
+        run_ladder(args.full, args.jobs, args.size or 64, args.radius, args.json, args.rows, rungs, args.seeds)
         return
     rows = [run_scene(s, args.size or 96, args.radius, args.predictor, args.save_exploration)
             for s in args.scenes]

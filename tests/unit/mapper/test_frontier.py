@@ -93,3 +93,91 @@ def test_the_map_leads_up_a_flight_the_predictor_missed(stair_foot):
     up = [t for t in targets if 8.75 < t.position_m[0] < 10.05 and t.position_m[1] > 1.9]
     assert up, [np.round(t.position_m, 2) for t in targets]
     assert all(t.parent == "foot" for t in up)
+
+
+def grid_scan(walls: np.ndarray, cell_m: float, pos: np.ndarray, max_m: float = 5.0) -> np.ndarray:
+    """Obstacle ranges from ``pos`` over a wall grid (True = wall; cell (i, j) spans [i, i+1) *
+    cell_m in x and [j, j+1) * cell_m in y): rays marched 1 cm at a time, inf beyond ``max_m``."""
+    r = np.arange(0.0, max_m, 0.01)
+    pts = pos[None, None, :2] + np.stack([np.cos(ANGLES), np.sin(ANGLES)], -1)[:, None, :] * r[None, :, None]
+    idx = np.floor(pts / cell_m).astype(int)
+    inside = (idx >= 0).all(-1) & (idx[..., 0] < walls.shape[0]) & (idx[..., 1] < walls.shape[1])
+    hit = np.zeros(idx.shape[:2], bool)
+    hit[inside] = walls[idx[inside][:, 0], idx[inside][:, 1]]
+    first = np.where(hit.any(1), hit.argmax(1), -1)
+    return np.where(first >= 0, r[np.maximum(first, 0)], np.inf)
+
+
+def two_rooms(slits: bool = False) -> np.ndarray:
+    """Rooms A (x 0-4 m) and B (x 4.1-8 m), y 0-6 m, 5 cm cells, a wall at x 4-4.1 m. B is reached
+    by a door in the wall at y 5-6 m; with ``slits``, the wall has 15 cm gaps every 40 cm below
+    y 4 m too, which a robot body cannot pass but the rays can (a row of chairs)."""
+    w = np.zeros((162, 122), bool)
+    w[0, :] = w[-1, :] = w[:, 0] = w[:, -1] = True
+    w[80:82, :] = True
+    w[80:82, 100:120] = False
+    if slits:
+        for j in range(6, 80, 8):
+            w[80:82, j:j + 3] = False
+    return w
+
+
+def test_a_frontier_target_is_never_through_a_wall():
+    """Room B's far half is out of the doorway scans' sight: a frontier. Its target must stand in
+    room B (through the door), not in room A beside the wall (the nearest free cell in a straight
+    line, which the explorer drops as seen, and the frontier's way was lost)."""
+    w = two_rooms()
+    nodes = [(f"a{k}", np.array([x, y, 0.0])) for k, (x, y) in enumerate([(1, 1), (3, 1), (1, 4), (3, 4), (3.5, 5.5)])]
+    nodes.append(("door", np.array([4.6, 5.5, 0.0])))
+    m = FreeSpaceMap(ANGLES)
+    for _, p in nodes:
+        m.add_scan(p, 0.0, grid_scan(w, 0.05, p, max_m=3.0))
+    targets = m.frontier_targets(0.0, nodes, exclude_radius_m=0.8)
+    assert targets, "room B's unseen half has no frontier target"
+    assert all(t.position_m[0] > 4.1 for t in targets), [np.round(t.position_m, 2) for t in targets]
+
+
+def test_a_refused_cell_passes_to_the_frontiers_next():
+    """The caller's own test refuses the first cell; the frontier is still proposed, farther on."""
+    m = FreeSpaceMap(ANGLES)
+    start = np.array([0.0, 0.0, 0.0])
+    m.add_scan(start, 0.0, corridor_scan(0.0, 12.0))
+    first = m.frontier_targets(0.0, [("a", start)], exclude_radius_m=0.8)[0].position_m
+    later = m.frontier_targets(0.0, [("a", start)], exclude_radius_m=0.8,
+                               accept=lambda p: np.hypot(*(p - first)[:2]) > 0.3)
+    assert len(later) == 1 and np.hypot(*(later[0].position_m - first)[:2]) > 0.3
+
+
+def test_space_seen_but_out_of_reach_lowers_the_coverage_estimate():
+    """Room B seen only through gaps a body cannot pass: the map has no way there, but the
+    estimate counts it as missed (before, it counted only what the map could reach: 100 %)."""
+    nodes_xy = np.array([[x, y] for x in (0.7, 2.0, 3.3) for y in (0.7, 2.0, 3.3, 4.6)])
+    closed, slits = FreeSpaceMap(ANGLES), FreeSpaceMap(ANGLES)
+    for m, w in ((closed, two_rooms(slits=False)), (slits, two_rooms(slits=True))):
+        w = w.copy()
+        w[80:82, 100:120] = True  # no door: only the slits (if any) see room B
+        for x, y in nodes_xy:
+            p = np.array([x, y, 0.0])
+            m.add_scan(p, 0.0, grid_scan(w, 0.05, p))
+    full, area_a = closed.coverage({0.0: nodes_xy})
+    part, area_ab = slits.coverage({0.0: nodes_xy})
+    assert full > 0.97
+    assert area_ab > area_a + 3.0 and part < full - 0.1, (full, area_a, part, area_ab)
+
+
+def test_the_maps_way_goes_through_the_door():
+    """A robot stranded in room A (its edge back cannot be walked) is led to room B's nodes the
+    long way, through the door, in straight legs that all keep clear of the wall."""
+    w = two_rooms()
+    m = FreeSpaceMap(ANGLES)
+    for x, y in [(1, 1), (3, 1), (1, 4), (3, 4), (3.5, 5.5), (4.6, 5.5), (6, 5), (6, 2), (7, 1)]:
+        p = np.array([x, y, 0.0])
+        m.add_scan(p, 0.0, grid_scan(w, 0.05, p))
+    goal, legs = m.path(0.0, np.array([3.0, 1.0]), np.array([[7.0, 1.0], [6.0, 2.0]]))
+    assert goal == 1 and np.allclose(legs[-1], [6.0, 2.0])  # the nearer one by the way, its own position last
+    pts = np.vstack([[3.0, 1.0], legs])
+    for a, b in zip(pts[:-1], pts[1:]):  # no leg crosses the wall (x 4-4.1 m) below the door
+        t = np.linspace(0.0, 1.0, 200)[:, None]
+        seg = a + (b - a) * t
+        assert not ((seg[:, 0] > 3.95) & (seg[:, 0] < 4.15) & (seg[:, 1] < 5.0)).any(), (a, b)
+    assert m.path(0.0, np.array([3.0, 1.0]), np.array([[30.0, 30.0]])) is None  # off the map
