@@ -494,22 +494,25 @@ class GeometricPredictor:
         rising = np.flatnonzero(known & (nxt > far + c.door_depth_m))
         max_span = n // 2
         out: list[Doorway] = []
-        for i in rising:
-            ri = far[i]
+        # The scan below reads single elements: Python lists hold the same float64 values and read
+        # ten times faster than numpy scalars (a few hundred reads per panorama).
+        far_l, known_l, open_l = far.tolist(), known.tolist(), np.isinf(r).tolist()
+        for i in rising.tolist():
+            ri = far_l[i]
             j = -1
-            run_min = far[(i + 1) % n]
+            run_min = far_l[(i + 1) % n]
             for step in range(2, max_span):
                 k = (i + step) % n
-                if not known[k] and not np.isinf(r[k]):
+                if not known_l[k] and not open_l[k]:
                     break  # an unseen direction: the run's far side is unknown
-                if known[k] and far[k] + c.door_depth_m <= run_min:
+                if known_l[k] and far_l[k] + c.door_depth_m <= run_min:
                     j = k  # falling edge: the other jamb
                     break
-                run_min = min(run_min, far[k])
+                run_min = min(run_min, far_l[k])
             if j < 0:
                 continue
             inner = (i + 1 + np.arange(step - 1)) % n
-            if np.any(far[inner] < max(ri, far[j]) + c.door_depth_m):
+            if np.any(far[inner] < max(ri, far_l[j]) + c.door_depth_m):
                 continue
             p_right, p_left = pts[i], pts[j]  # angles grow to the left
             width = float(np.linalg.norm(p_left - p_right))
