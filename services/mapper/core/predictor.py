@@ -320,6 +320,21 @@ if AVAILABLE:
     _column_walk_kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_column_walk_kernel)
     _profiles_kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_profiles_kernel)
 
+_warm_strides: set[int] = set()
+
+
+def _warm_up(stride: int) -> None:
+    """Compile (or load from the disk cache) the kernels for a stride's depth layout now, when a
+    predictor is built, so that the first panorama does not pay for it."""
+    if not AVAILABLE or stride in _warm_strides:
+        return
+    depth = np.ones((1, 2 * stride, 2 * stride), np.float32)[:, ::stride, ::stride]
+    top, vertical = np.full((2, 1), -np.inf), np.zeros((2, 1), dtype=bool)
+    _profiles_kernel(depth, np.ones(2), np.ones(2), 1.0, 0.1, 1, 1.0, 0.3, top, vertical)
+    _column_walk_kernel(top, vertical, 0.2, 0.5, 0.1, 0.25, 1.0, 1.0, 0.3, np.empty(2), np.empty(2),
+                        np.empty(2, dtype=bool))
+    _warm_strides.add(stride)
+
 
 @PREDICTORS.register("geometric", GeometricPredictorConfig)
 class GeometricPredictor:
@@ -342,6 +357,8 @@ class GeometricPredictor:
         self._sin = np.abs(np.sin(d))
         self._column_cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._memo = _Memo()
+        if self.use_kernel:
+            _warm_up(c.pixel_stride)
 
     # --- public ---------------------------------------------------------------------------------
 

@@ -99,6 +99,8 @@ class NavGrid:
         if self._drop_stray_regions():
             self._build_graph()
         self._fields: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        if len(self.nodes_m):
+            self.walk(self.nodes_m[0], self.nodes_m[0])  # compiles (or loads) the kernel now, not on a request
         log.info(
             "nav grid %dx%d @ %.2f m: %d nodes, %d components, main %.1f m2",
             *self.shape, self.cell_m, len(self.nodes_m), self.n_components, self.reachable_area_m2,
