@@ -4,8 +4,10 @@
 
 Figures per scene: wall-clock median and best (the best is what an otherwise idle machine gives;
 the median shows contention), and process CPU time per call (all threads). The panorama is 12
-views of 256 x 256 RGB + depth + semantic labels at HFOV 90 deg; the agent turns 7 deg between
-calls so nothing could be served from a cache.
+views of 256 x 256 (and of 64 x 64, the mapper's exploration size) RGB + depth + semantic labels at
+HFOV 90 deg; the agent turns 7 deg between calls so nothing could be served from a cache. The nav
+grid's straight-line walk (the collision check of every move_to sub-step) is timed compiled and as
+the array version it must equal.
 """
 
 from __future__ import annotations
@@ -59,6 +61,13 @@ def main(argv: list[str] | None = None) -> int:
             robot.observe()
 
         rows.append((f"{name}: observe 12x256x256 RGB-D-sem", *_timed(observe, args.repeats)))
+        small = robot.camera.model_copy(update={"width_px": 64, "height_px": 64})
+
+        def observe_small():  # the size the mapper explores with (bench.mapper --size 64)
+            robot.turn(math.radians(7.0))
+            robot.observe(small)
+
+        rows.append((f"{name}: observe 12x64x64 RGB-D-sem", *_timed(observe_small, args.repeats)))
         rng = np.random.default_rng(0)
         robot.reset()
 
@@ -68,6 +77,21 @@ def main(argv: list[str] | None = None) -> int:
             robot.move_to(0.25 * math.cos(a), 0.25 * math.sin(a))
 
         rows.append((f"{name}: move_to one 0.25 m step", *_timed(one_step, args.repeats * 5)))
+        # NavGrid.walk, move_to's collision check (up to three per sub-step): compiled and array versions.
+        starts = robot.nav.nodes_m[rng.integers(0, len(robot.nav.nodes_m), 64)]
+        ends = starts + np.column_stack([0.25 * np.cos(a := rng.uniform(-math.pi, math.pi, 64)), 0.25 * np.sin(a), np.zeros(64)])
+        for kernel in (True, False):
+            robot.nav.use_kernel = kernel
+
+            def walks():
+                for p, q in zip(starts, ends):
+                    robot.nav.walk(p, q)
+
+            med, best, cpu = _timed(walks, args.repeats)
+            label = "compiled" if kernel else "array version"
+            # In microseconds (the columns' ms would round the compiled walk to 0.00).
+            rows.append((f"{name}: nav walk 0.25 m, {label} (us per walk, not ms)", *(1e3 * v / 64 for v in (med, best, cpu))))
+        robot.nav.use_kernel = True
     print(f"robot-io simulator, {cores} cores available")
     print(f"{'benchmark':78s} {'median ms':>10s} {'best ms':>8s} {'cpu ms':>8s}")
     for n, m, b, c in rows:

@@ -114,6 +114,31 @@ def camera_pose(
     return t
 
 
+def camera_poses(position_m, headings_rad, pitches_rad, camera_height_m: float = DEFAULT_CAMERA_HEIGHT_M) -> np.ndarray:
+    """(B, 4, 4) world_from_camera of one floor position at B headings and pitches: exactly the stacked
+    :func:`camera_pose` results, in one array pass (a simulator's 12-view panorama calls this per step).
+
+    The sines and cosines come from ``math`` as in :func:`camera_rotation` (numpy's vectorised ones
+    may differ in the last bit); the cross product is written out in ``np.cross``'s order.
+    """
+    heads = np.atleast_1d(np.asarray(headings_rad, dtype=np.float64))
+    pitches = np.broadcast_to(np.asarray(pitches_rad, dtype=np.float64), heads.shape)
+    ch, sh = (np.array([f(float(h)) for h in heads]) for f in (math.cos, math.sin))
+    cp, sp = (np.array([f(float(p)) for p in pitches]) for f in (math.cos, math.sin))
+    forward = np.stack([cp * ch, cp * sh, sp], axis=1)
+    right = np.stack([sh, -ch, np.zeros_like(sh)], axis=1)
+    down = np.stack([
+        forward[:, 1] * right[:, 2] - forward[:, 2] * right[:, 1],
+        forward[:, 2] * right[:, 0] - forward[:, 0] * right[:, 2],
+        forward[:, 0] * right[:, 1] - forward[:, 1] * right[:, 0],
+    ], axis=1)
+    t = np.zeros((len(heads), 4, 4))
+    t[:, :3, 0], t[:, :3, 1], t[:, :3, 2] = right, down, forward
+    t[:, 3, 3] = 1.0
+    t[:, :3, 3] = np.asarray(position_m, dtype=np.float64) + np.array([0.0, 0.0, camera_height_m])
+    return t
+
+
 def world_to_camera(points_world: np.ndarray, world_from_camera: np.ndarray) -> np.ndarray:
     """Transform (N, 3) world points into the camera frame of ``world_from_camera``."""
     r = world_from_camera[:3, :3]

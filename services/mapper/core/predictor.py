@@ -20,6 +20,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, wrap_angle
+from shared.jit import AVAILABLE, numba
 from shared.registry import BackendConfig, Registry
 from shared.schemas import Candidate, CandidateKind, Panorama
 
@@ -225,9 +226,123 @@ class _ColumnWalk:
         self.last_r[seen] = r_b
 
 
+def _column_walk_kernel(top, vertical, max_step, tan_slope, bin_m, confirm_rise, cam_h, low_tan, near_edge_m,
+                        hit, doubt, climbed):  # pragma: no cover - compiled
+    """:class:`_ColumnWalk` one column at a time, each column's state in scalars: the same comparisons
+    and the same floating-point operations in the same order, so the same hits to the bit. The array
+    version runs every bin for all columns at once; a column's state depends only on its own bins."""
+    two_bins = 2.0 * bin_m
+    low_ground = -4.0 * max_step
+    for i in range(top.shape[0]):
+        ground = 0.0
+        col_hit = np.inf
+        col_doubt = np.inf
+        last_r = 0.0
+        tentative = np.inf
+        tent_z = 0.0
+        tent_first = np.inf
+        strict = False
+        col_climbed = False
+        for b in range(top.shape[1]):
+            t = top[i, b]
+            if not np.isfinite(t):
+                continue
+            r_b = b * bin_m
+            rise = t - ground
+            slope_ok = rise <= max_step + tan_slope * max(r_b - last_r - bin_m, 0.0)
+            pending = np.isfinite(tentative)
+            if pending and t >= tent_z + confirm_rise and rise <= max_step:  # a blind-zone climb confirmed
+                tentative = np.inf
+                col_climbed |= strict
+                strict = False
+                pending = False
+            if rise > max_step and (not slope_ok or vertical[i, b]):
+                if pending and strict:
+                    col_hit = tentative
+                    col_doubt = tent_first
+                else:
+                    col_hit = r_b
+                break
+            if rise < -max_step and pending:
+                col_hit = tent_first
+                break
+            if slope_ok and rise > max_step and not pending:
+                visible_from = (cam_h - t) / low_tan
+                if r_b <= visible_from + two_bins:
+                    tentative = max(last_r, min(r_b, near_edge_m))
+                    strict = True
+                else:
+                    tentative = r_b
+                    strict = False
+                tent_z = t
+                tent_first = r_b
+            if rise > low_ground:
+                ground = t
+            last_r = r_b
+        else:
+            if np.isfinite(tentative) and strict:
+                col_hit = tentative
+                col_doubt = tent_first
+        hit[i] = col_hit
+        doubt[i] = col_doubt
+        climbed[i] = col_climbed
+
+
+def _profiles_kernel(depth, range_scale, yn, cam_h, bin_m, nb, band_top_m, max_vertical_m, top, vertical):  # pragma: no cover - compiled
+    """:meth:`GeometricPredictor._profiles` in one pass over the pixels (no index arrays, no
+    ``ufunc.at``), with the same per-pixel arithmetic."""
+    views, rows, cols = depth.shape
+    bottom = np.full(top.shape, np.inf)
+    for v in range(views):
+        for r in range(rows):
+            for c in range(cols):
+                d = depth[v, r, c]
+                if not (np.isfinite(d) and d > 0.0):
+                    continue
+                rng = d * range_scale[c]
+                k = np.floor(rng / bin_m)
+                height = cam_h - yn[r] * d
+                if not (k < nb and height < band_top_m):
+                    continue
+                col = v * cols + c
+                kb = np.int64(k)
+                if height > top[col, kb]:
+                    top[col, kb] = height
+                if height < bottom[col, kb]:
+                    bottom[col, kb] = height
+    for col in range(top.shape[0]):
+        for kb in range(top.shape[1]):
+            vertical[col, kb] = (top[col, kb] - bottom[col, kb]) > max_vertical_m
+
+
+if AVAILABLE:
+    # Compiled on first use (and kept in numba's disk cache): importing the module stays cheap.
+    _column_walk_kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_column_walk_kernel)
+    _profiles_kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_profiles_kernel)
+
+_warm_strides: set[int] = set()
+
+
+def _warm_up(stride: int) -> None:
+    """Compile (or load from the disk cache) the kernels for a stride's depth layout now, when a
+    predictor is built, so that the first panorama does not pay for it."""
+    if not AVAILABLE or stride in _warm_strides:
+        return
+    depth = np.ones((1, 2 * stride, 2 * stride), np.float32)[:, ::stride, ::stride]
+    top, vertical = np.full((2, 1), -np.inf), np.zeros((2, 1), dtype=bool)
+    _profiles_kernel(depth, np.ones(2), np.ones(2), 1.0, 0.1, 1, 1.0, 0.3, top, vertical)
+    _column_walk_kernel(top, vertical, 0.2, 0.5, 0.1, 0.25, 1.0, 1.0, 0.3, np.empty(2), np.empty(2),
+                        np.empty(2, dtype=bool))
+    _warm_strides.add(stride)
+
+
 @PREDICTORS.register("geometric", GeometricPredictorConfig)
 class GeometricPredictor:
     """CWP-contract predictor computed from depth geometry alone (no learning, a few ms)."""
+
+    #: The per-panorama column walk as compiled loops when numba is installed; False runs the array
+    #: version (:class:`_ColumnWalk`), which gives the same hits and is what the tests compare against.
+    use_kernel: bool = True
 
     def __init__(self, config: GeometricPredictorConfig | None = None):
         self.config = config or GeometricPredictorConfig()
@@ -242,6 +357,8 @@ class GeometricPredictor:
         self._sin = np.abs(np.sin(d))
         self._column_cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._memo = _Memo()
+        if self.use_kernel:
+            _warm_up(c.pixel_stride)
 
     # --- public ---------------------------------------------------------------------------------
 
@@ -291,22 +408,38 @@ class GeometricPredictor:
         views, rows, cols = depth.shape
         top, vertical = self._profiles(depth, xn, yn)
         # Lowest sampled ray: a surface of height t is visible from range (cam_h - t) / low_tan on.
-        walk = _ColumnWalk.start(views * cols)
-        walk.run(top, vertical, c, low_tan=max(float(yn.max()), 1e-3))
+        low_tan = max(float(yn.max()), 1e-3)
+        if self.use_kernel and AVAILABLE:
+            n = views * cols
+            hit, doubt, climbed = np.empty(n), np.empty(n), np.empty(n, dtype=bool)
+            _column_walk_kernel(top, vertical, c.max_step_m, math.tan(math.radians(c.max_slope_deg)), c.profile_bin_m,
+                                c.confirm_rise_m, c.camera_height_m, low_tan, c.clearance_m + c.profile_bin_m,
+                                hit, doubt, climbed)
+        else:
+            walk = _ColumnWalk.start(views * cols)
+            walk.run(top, vertical, c, low_tan=low_tan)
+            hit, doubt, climbed = walk.hit, walk.doubt, walk.climbed
         # Column azimuth relative to the agent heading; views look at headings_rad[i].
         heads = np.asarray(panorama.headings_rad, dtype=np.float64) - panorama.pose.heading_rad
         az = wrap_angle(heads[:, None] - col_angle[None, :]).ravel()
-        return _ColumnHits(walk.hit, walk.doubt, walk.climbed, az)
+        return _ColumnHits(hit, doubt, climbed, az)
 
     def _profiles(self, depth: np.ndarray, xn: np.ndarray, yn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per image column and range bin: the highest surface point, and whether the bin is a
         vertical face (its points span more height than a step plus the steepest slope)."""
         c = self.config
         views, rows, cols = depth.shape
+        nb = len(self._profile_edges) - 1
+        max_vertical_m = c.max_step_m + math.tan(math.radians(c.max_slope_deg)) * c.profile_bin_m
+        if self.use_kernel and AVAILABLE:
+            top = np.full((views * cols, nb), -np.inf)
+            vertical = np.empty((views * cols, nb), dtype=bool)
+            _profiles_kernel(depth, np.sqrt(1.0 + xn * xn), yn, c.camera_height_m, c.profile_bin_m, nb,
+                             c.body_height_m + c.max_step_m, max_vertical_m, top, vertical)
+            return top, vertical
         valid = np.isfinite(depth) & (depth > 0.0)
         rng = np.where(valid, depth * np.sqrt(1.0 + xn * xn)[None, None, :], np.inf)
         height = c.camera_height_m - yn[None, :, None] * depth  # above the agent's floor
-        nb = len(self._profile_edges) - 1
         rbin = np.floor(rng / c.profile_bin_m)
         inband = valid & (rbin < nb) & (height < c.body_height_m + c.max_step_m)
         col_id = (np.arange(views)[:, None, None] * cols + np.arange(cols)[None, None, :])
@@ -318,9 +451,7 @@ class GeometricPredictor:
         bottom = np.full(views * cols * nb, np.inf)
         np.minimum.at(bottom, flat, height[inband])
         # A wall or a sofa front is never walkable, whatever blind stretch came before it.
-        vertical = (top - bottom.reshape(views * cols, nb)) > (
-            c.max_step_m + math.tan(math.radians(c.max_slope_deg)) * c.profile_bin_m
-        )
+        vertical = (top - bottom.reshape(views * cols, nb)) > max_vertical_m
         return top, vertical
 
     def _bin_columns(self, cols: _ColumnHits) -> np.ndarray:
@@ -380,22 +511,25 @@ class GeometricPredictor:
         rising = np.flatnonzero(known & (nxt > far + c.door_depth_m))
         max_span = n // 2
         out: list[Doorway] = []
-        for i in rising:
-            ri = far[i]
+        # The scan below reads single elements: Python lists hold the same float64 values and read
+        # ten times faster than numpy scalars (a few hundred reads per panorama).
+        far_l, known_l, open_l = far.tolist(), known.tolist(), np.isinf(r).tolist()
+        for i in rising.tolist():
+            ri = far_l[i]
             j = -1
-            run_min = far[(i + 1) % n]
+            run_min = far_l[(i + 1) % n]
             for step in range(2, max_span):
                 k = (i + step) % n
-                if not known[k] and not np.isinf(r[k]):
+                if not known_l[k] and not open_l[k]:
                     break  # an unseen direction: the run's far side is unknown
-                if known[k] and far[k] + c.door_depth_m <= run_min:
+                if known_l[k] and far_l[k] + c.door_depth_m <= run_min:
                     j = k  # falling edge: the other jamb
                     break
-                run_min = min(run_min, far[k])
+                run_min = min(run_min, far_l[k])
             if j < 0:
                 continue
             inner = (i + 1 + np.arange(step - 1)) % n
-            if np.any(far[inner] < max(ri, far[j]) + c.door_depth_m):
+            if np.any(far[inner] < max(ri, far_l[j]) + c.door_depth_m):
                 continue
             p_right, p_left = pts[i], pts[j]  # angles grow to the left
             width = float(np.linalg.norm(p_left - p_right))

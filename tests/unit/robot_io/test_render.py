@@ -90,3 +90,22 @@ def test_kernel_equals_numpy_on_a_generated_panorama(house_robot):
     rays = cam.pixel_rays() @ pose[:3, :3].T
     t = fast.first_hit_distance(np.broadcast_to(pose[:3, 3], rays.shape), rays)
     assert np.allclose(a.depth_m[0], np.where(np.isfinite(t), t, 0.0), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.skipif(not shading.AVAILABLE, reason="numba not installed")
+def test_compiled_rays_equal_the_numpy_sums():
+    from services.robot_io.core.render import _homogeneous_rays, ray_matrices, write_rays
+
+    rng = np.random.default_rng(5)
+    k = Intrinsics(37.0, 41.5, 20.3, 15.9, 44, 30)  # non-square pixels, off-centre principal point
+    poses = np.stack([camera_pose(rng.uniform(-50, 50, 3), h, p, 1.25)
+                      for h, p in zip(rng.uniform(-np.pi, np.pi, 7), rng.uniform(-0.8, 0.8, 7))])
+    mats = ray_matrices(poses)
+    fast, slow = (np.empty((7, 44 * 30, 6), np.float32) for _ in range(2))
+    write_rays(_homogeneous_rays(k), mats, fast, use_kernel=True)
+    write_rays(_homogeneous_rays(k), mats, slow, use_kernel=False)
+    assert fast.tobytes() == slow.tobytes()
+    # Origins are the camera centres exactly; directions the rotated unit-z pixel rays.
+    assert np.array_equal(fast[:, :, :3], np.broadcast_to(poses[:, None, :3, 3].astype(np.float32), fast[:, :, :3].shape))
+    ref = np.einsum("nk,bjk->bnj", _homogeneous_rays(k)[:, :3].astype(np.float64), poses[:, :3, :3])
+    assert np.allclose(fast[:, :, 3:], ref, atol=1e-5)

@@ -62,3 +62,18 @@ def test_habitat_conversion_round_trip(heading):
     assert np.allclose(g.world_to_habitat(g.habitat_to_world(p)), p)
     # Habitat's up (+y) is our +z.
     assert np.allclose(g.habitat_to_world([0, 1, 0]), [0, 0, 1])
+
+
+def test_camera_poses_are_the_stacked_camera_pose_bit_for_bit():
+    from shared.geometry import camera_pose, camera_poses
+
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        pos = rng.uniform(-30, 30, 3)
+        heads = rng.uniform(-4, 4, 12)
+        pitch = rng.choice([0.0, float(rng.uniform(-1, 1))])
+        ref = np.stack([camera_pose(pos, h, pitch, 1.25) for h in heads])
+        assert camera_poses(pos, heads, pitch, 1.25).tobytes() == ref.tobytes()
+    pitches = rng.uniform(-1, 1, 5)
+    ref = np.stack([camera_pose(pos, 0.3, p, 0.9) for p in pitches])
+    assert camera_poses(pos, np.full(5, 0.3), pitches, 0.9).tobytes() == ref.tobytes()
