@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -52,6 +53,14 @@ class HeuristicConfig(BackendConfig):
     floor_share: float = 0.5  # of the near floor pixels, for the agent to be in a room
     room_weight: float = 2.0  # a candidate whose anticipated floor is the sought room
     explore_weight: float = 0.6  # per metre (capped at 2 m) away from every earlier position
+    # How the anticipated view enters the score. "combine": the evidence for a target is the larger of
+    # the observed and the anticipated fraction, plus a bonus when the target is close in the
+    # anticipated view (reached by taking the candidate); the anticipated floor tells the candidate's
+    # room. "replace" (the earlier rule): the anticipated view replaces the observed one. The anticipated
+    # view from 1-3 m further along the same heading mostly shows a subset of the observed scene, so
+    # replacing threw away what the agent sees and gained little.
+    anticipation_use: Literal["combine", "replace"] = "combine"
+    reach_weight: float = 1.5  # target within reached_distance_m in the candidate's anticipated view
 
 
 @dataclass
@@ -251,24 +260,42 @@ class HeuristicPolicy(Policy):
         turn_s = weight * math.exp(-0.5 * (delta / cfg.turn_sigma_deg) ** 2)
         score += turn_s
 
-        # Semantics: the anticipated view (or the observed one when anticipation is off or unlabelled).
-        use_anticipated = ctx.ablation.anticipation and view.anticipated_labels is not None
-        labels = view.anticipated_labels if use_anticipated else view.observed_labels
-        depth = view.anticipated_depth_m if use_anticipated else view.observed_depth_m
-        if labels is not None and ctx.label_names:
+        # Semantics: the observed view towards the candidate and, with anticipation, what the candidate
+        # itself would see (see HeuristicConfig.anticipation_use).
+        anticipated = ctx.ablation.anticipation and view.anticipated_labels is not None
+        combine = anticipated and cfg.anticipation_use == "combine"
+        if anticipated and not combine:
+            sources = [(view.anticipated_labels, view.anticipated_depth_m)]
+        else:
+            sources = [(view.observed_labels, view.observed_depth_m)]
+            if combine:
+                sources.append((view.anticipated_labels, view.anticipated_depth_m))
+        sources = [(lab, dep) for lab, dep in sources if lab is not None]
+        if sources and ctx.label_names:
             for targets, w in ((cur.targets if cur else []), cfg.semantic_weight), (
                 (nxt.targets if nxt else []), cfg.lookahead_weight
             ):
                 for t in targets:
-                    f = self._fraction(labels, depth, self._ids(ctx.label_names, t))
+                    ids = self._ids(ctx.label_names, t)
+                    f = max(self._fraction(lab, dep, ids) for lab, dep in sources)
                     if f > 0:
                         score += w * math.sqrt(f)
                         notes.append(f"{t} {100 * f:.0f}%")
+            if combine and cur is not None:
+                # Reached by taking this candidate: the current target is close in its anticipated view.
+                close = max((self._fraction(view.anticipated_labels, view.anticipated_depth_m,
+                                            self._ids(ctx.label_names, t), cfg.reached_distance_m)
+                             for t in cur.targets), default=0.0)
+                if close >= cfg.min_view_fraction:
+                    score += cfg.reach_weight * math.sqrt(close)
+                    notes.append(f"reaches {cur.targets[0]}")
 
-        # Room entry: the floor under the anticipated view's near rows is the room being sought.
+        # Room entry: the floor under the view's near rows is the room being sought; the candidate's own
+        # floor when it is anticipated.
         rooms = [r for sg in (cur, nxt) if sg is not None and not sg.leave for r in sg.rooms][:1]
-        if labels is not None and depth is not None and ctx.label_names and rooms:
-            share = max(self._floor_share(ctx, [(labels, depth)], r, 2.5)[0] for r in rooms)
+        floor_view = sources[-1] if sources else (None, None)
+        if floor_view[0] is not None and floor_view[1] is not None and ctx.label_names and rooms:
+            share = max(self._floor_share(ctx, [floor_view], r, 2.5)[0] for r in rooms)
             if share > 0:
                 score += cfg.room_weight * share
                 notes.append(f"{rooms[0]} floor {100 * share:.0f}%")
@@ -284,7 +311,7 @@ class HeuristicPolicy(Policy):
                 score -= cfg.revisit_penalty * visits
                 notes.append("revisit" if visits == 1 else f"revisit x{visits}")
             score += cfg.explore_weight * min(float(gaps.min()), 2.0) / 2.0
-        if use_anticipated and view.anticipated_hole_fraction is not None:
+        if anticipated and view.anticipated_hole_fraction is not None:
             score -= cfg.hole_penalty * view.anticipated_hole_fraction
         why = f"{turn_phrase(c.angle_rad)} {c.distance_m:.1f} m" + (f" ({', '.join(notes)})" if notes else "")
         return score, why

@@ -138,3 +138,59 @@ def test_replay_tolerates_a_torn_last_line(tmp_path):
         f.write('{"key": "abc", "decis')  # interrupted write
     with POLICIES.create("replay", {"path": str(path)}) as policy:
         assert len(policy) == len(dec)
+
+
+# --- how the heuristic reads the anticipated view (HeuristicConfig.anticipation_use) ---------------------
+
+SOFA_WORLD = {0: "wall", 1: "sofa"}
+
+
+def _view(index: int, angle_rad: float, observed: tuple[float, float], anticipated: tuple[float, float]):
+    """A candidate whose observed / anticipated view show the sofa over (fraction, depth_m) of the image."""
+    from services.planner.core.context import CandidateView
+    from shared.schemas import Candidate
+
+    def image(fraction: float, depth_m: float):
+        labels = np.zeros((20, 20), np.int32)
+        depth = np.full((20, 20), 4.0, np.float32)
+        n = int(round(fraction * labels.size))
+        labels.reshape(-1)[:n] = 1
+        depth.reshape(-1)[:n] = depth_m
+        return labels, depth
+
+    c = Candidate(index=index, dx_m=1.5 * math.cos(angle_rad), dy_m=1.5 * math.sin(angle_rad),
+                  angle_rad=angle_rad, distance_m=1.5)
+    ol, od = image(*observed)
+    al, ad = image(*anticipated)
+    return CandidateView(candidate=c, observed_labels=ol, observed_depth_m=od, anticipated_labels=al,
+                         anticipated_depth_m=ad, anticipated_hole_fraction=0.0)
+
+
+def _choose(use: str, views) -> int:
+    from services.planner.core import StepContext
+    from shared.schemas import Pose
+
+    ctx = StepContext(instruction="Walk to the sofa and stop there.", step=1,
+                      pose=Pose(position_m=(0.0, 0.0, 0.0), heading_rad=0.0), candidates=views,
+                      label_names=SOFA_WORLD)
+    with POLICIES.create("heuristic", {"anticipation_use": use}) as policy:
+        policy.reset("m")
+        return policy.decide(ctx).candidate_index
+
+
+def test_heuristic_combine_keeps_what_the_agent_sees():
+    """The sofa fills 30 % of the view towards candidate 0, whose anticipated view (past it) does not show
+    it; candidate 1's anticipated view shows a sliver far away. Replacing the observed view by the
+    anticipated one walks away from the sofa; combining them does not."""
+    views = [_view(0, 0.4, observed=(0.30, 3.0), anticipated=(0.0, 4.0)),
+             _view(1, -0.4, observed=(0.0, 4.0), anticipated=(0.05, 5.0))]
+    assert _choose("replace", views) == 1
+    assert _choose("combine", views) == 0
+
+
+def test_heuristic_combine_prefers_the_candidate_that_reaches_the_target():
+    """Both candidates see the sofa alike from here; from candidate 1 it is within reach (1 m), from
+    candidate 0 still 5 m away: anticipation tells them apart."""
+    views = [_view(0, 0.4, observed=(0.10, 4.0), anticipated=(0.10, 5.0)),
+             _view(1, -0.4, observed=(0.10, 4.0), anticipated=(0.10, 1.0))]
+    assert _choose("combine", views) == 1
