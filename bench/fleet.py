@@ -16,6 +16,10 @@ results.jsonl), the median seconds per step of each ledger stage, the planner-si
 ``observe`` handler, from its telemetry) is read right after the largest N, whose run is the only one
 those robot-ios have served so far. The last line is ``fleet speedup N=<max>: <x>x`` (episodes per
 minute at the largest N over the smallest).
+
+``--replica renderer=2`` runs two renderers (the planner's render requests go round-robin over the live
+instances, each answered by one): the column "renders per replica" is each instance's share of that N's
+render requests. Give each variant its own ``--out`` to keep both results.
 """
 
 from __future__ import annotations
@@ -55,12 +59,26 @@ def _stage_medians(rows: list[dict]) -> dict[str, float]:
     return {s: statistics.median(v) if v else float("nan") for s, v in per.items()}
 
 
-def _panorama_ms(launcher, robots: int) -> tuple[float, int]:
-    """Median of robot-io's ``observe`` handler over robot0..robot<robots-1> (request-weighted medians)."""
+RENDER_ENDPOINTS = ("views", "spatial_map")  # the renderer's request endpoints (shared.keys.RENDER_*)
+
+
+def _metrics(launcher) -> list:
     from shared.bus.typed import TypedBus
     from shared.clients import ServicesClient
 
     good, _ = ServicesClient(TypedBus(launcher.bus), timeout_s=3.0).metrics()
+    return good
+
+
+def _renders(launcher) -> dict[str, int]:
+    """Render requests (views and spatial maps) each renderer instance has answered so far."""
+    return {m.instance: sum(m.endpoints[e].requests for e in RENDER_ENDPOINTS if e in m.endpoints)
+            for m in _metrics(launcher) if m.service == "renderer"}
+
+
+def _panorama_ms(launcher, robots: int) -> tuple[float, int]:
+    """Median of robot-io's ``observe`` handler over robot0..robot<robots-1> (request-weighted medians)."""
+    good = _metrics(launcher)
     meds, count = [], 0
     for m in good:
         ep = m.endpoints.get("observe")
@@ -120,7 +138,10 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"the warm-up exited {rc}; see {a.out / 'warm-up'}")
         for n in ns:
             out = a.out / f"robots{n}"
+            before = _renders(launcher)
             rc, wall, calls = run(launcher, n, out, a.stop_after + 2)
+            # Each replica's share of this N's render requests: a request is answered by one instance.
+            split = "/".join(str(v - before.get(k, 0)) for k, v in sorted(_renders(launcher).items()))
             load = os.getloadavg()[0]
             if rc != 0:
                 raise SystemExit(f"evaluation with {n} robots exited {rc}; see {out}")
@@ -133,16 +154,19 @@ def main(argv: list[str] | None = None) -> None:
             cpu_step = st["observe"] + st["candidates"] + st["anticipation"] + st["map"]
             rows.append((n, count, calls, round(phase, 1), round(rate[n], 2), round(wall, 1),
                          round(1000 * st["observe"]), round(1000 * st["candidates"]), round(1000 * st["anticipation"]),
-                         round(1000 * st["map"]), round(1000 * st["move"]), round(cpu_step, 3), f"{load:.1f}"))
+                         round(1000 * st["map"]), round(1000 * st["move"]), round(cpu_step, 3), split, f"{load:.1f}"))
     finally:
         launcher.stop()
     rows.sort()
     low = min(ns)
     rows = [(*r[:5], round(rate[r[0]] / rate[low], 2), *r[5:]) for r in rows]
-    table(f"Fleet: stand-in at {a.latency_s:g} s per call, {a.stop_after} calls per episode, system up in "
+    renderers = _replicas(a.replica).get("renderer", 1)
+    table(f"Fleet: stand-in at {a.latency_s:g} s per call, {a.stop_after} calls per episode, {renderers} renderer(s), "
+          f"system up in "
           f"{up_s:.0f} s, warm-up {warm_s:.0f} s (median ms per step per stage, from the ledger)", rows,
           ("robots", "episodes", "LLM calls", "episode phase s", "episodes/min", "speedup", "wall s",
-           "observe ms", "candidates ms", "anticipation ms", "map ms", "move ms", "pre-LLM s/step", "load avg 1m"))
+           "observe ms", "candidates ms", "anticipation ms", "map ms", "move ms", "pre-LLM s/step",
+           "renders per replica", "load avg 1m"))
     top = max(ns)
     med, count = pano[top]
     print(f"\nsimulator panorama (robot-io observe handler, warm-up and N={top} runs) while {top} robots ran: "

@@ -70,7 +70,11 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("cost")
     g.add_argument("--prices", type=Path, help="price table (JSON or TOML: model -> input_per_1m_usd, "
                                                "output_per_1m_usd) over the defaults of shared/pricing.py")
-    g.add_argument("--budget-usd", type=float, help="stop starting episodes once the run has spent this")
+    g.add_argument("--budget-usd", type=float,
+                   help="stop the run once it has spent this many dollars: every attempt logged in <out>, the "
+                        "missions in flight included; those are cancelled and run again on resume")
+    g.add_argument("--budget-tokens", type=int, help="the same for LLM tokens (prompt + completion)")
+    g.add_argument("--budget-wall-s", type=float, help="stop the run after this many seconds (of this call)")
     g.add_argument("--estimate", action="store_true",
                    help="print the run's expected tokens and dollars from the prompt sizes, call nothing, exit")
     g.add_argument("--estimate-waypoints", type=int, default=4, help="waypoints per step the estimate assumes")
@@ -148,8 +152,18 @@ def _policy_config(a: argparse.Namespace) -> dict:
 
 
 def run_config(a: argparse.Namespace) -> RunConfig:
+    from pydantic import ValidationError
+
+    try:
+        return _run_config(a)
+    except ValidationError as exc:  # a bad option value (a budget <= 0, say) is the user's error, in words
+        raise ConfigError("; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())) from None
+
+
+def _run_config(a: argparse.Namespace) -> RunConfig:
     return RunConfig(
-        policy=a.policy, policy_config=_policy_config(a), budget_usd=getattr(a, "budget_usd", None), max_steps=a.max_steps, anticipation=not a.no_anticipation,
+        policy=a.policy, policy_config=_policy_config(a), budget_usd=a.budget_usd, budget_tokens=a.budget_tokens,
+        budget_wall_s=a.budget_wall_s, max_steps=a.max_steps, anticipation=not a.no_anticipation,
         anticipation_hfov_deg=a.hfov_deg, spatial_map=not a.no_spatial_map, map_source=MapSource(a.map_source),
         seed=a.seed, reference=a.reference, limit=a.limit, scenes_dir=a.scenes_dir,
         mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
@@ -238,6 +252,9 @@ def cmd_estimate(a: argparse.Namespace, episodes) -> int:
     print("\n".join(est.lines()))
     if a.budget_usd is not None:
         print(f"  budget            {a.budget_usd:>12.2f}  ({'enough' if est.cost_usd <= a.budget_usd else 'short'})")
+    if a.budget_tokens is not None:
+        tokens = est.prompt_tokens + est.completion_tokens
+        print(f"  token budget      {a.budget_tokens:>12,d}  ({'enough' if tokens <= a.budget_tokens else 'short'})")
     return 0
 
 
@@ -255,6 +272,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     print(markdown_table([report.row]))
     print(f"{report.ran} episodes run, {report.resumed} resumed; results in {a.out / RESULTS_FILE}; "
           f"wall time {time.monotonic() - t0:.0f} s")
+    print(f"spent by the run (every attempt): ${report.spent.usd:.4f}, {report.spent.tokens:,d} tokens")
     if report.stopped:
         print(f"stopped early: {report.stopped}")
     return 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 import httpx
@@ -124,13 +125,16 @@ class GatewayClient:
         return self._call("POST", "/maps", params={"map_id": map_id, "filename": filename}, content=data,
                           headers={"Content-Type": "application/octet-stream"})
 
-    def wait(self, getter, job_id: str, timeout_s: float, poll_s: float = 0.2) -> dict[str, Any]:
-        """Poll ``getter(job_id)`` until its state is terminal; :class:`MissionTimeout` past the deadline."""
+    def wait(self, getter, job_id: str, timeout_s: float, poll_s: float = 0.2,
+             until: Callable[[dict[str, Any]], bool] | None = None) -> dict[str, Any]:
+        """Poll ``getter(job_id)`` until its state is terminal, or until ``until(record)`` is true of a
+        running one (the caller then holds a record that is not terminal); :class:`MissionTimeout` past
+        the deadline."""
         end = time.monotonic() + timeout_s
         delay = min(poll_s, 0.05)
         while True:
             rec = getter(job_id)
-            if rec["state"] in TERMINAL_STATES:
+            if rec["state"] in TERMINAL_STATES or (until is not None and until(rec)):
                 return rec
             if time.monotonic() > end:
                 raise MissionTimeout(f"{job_id} still {rec['state']} after {timeout_s:.0f} s (step {rec.get('step')})")

@@ -14,6 +14,8 @@ counter; see :func:`estimate_run` for the assumptions.
 from __future__ import annotations
 
 import math
+import threading
+import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -77,11 +79,17 @@ def ledger_row(done: Sequence[Any]) -> dict[str, Any]:
     return row
 
 
-def ledger_markdown(done: Sequence[Any], stopped: str = "") -> str:
-    """The ledger section of summary.md: totals and means per episode and per step."""
+def ledger_markdown(done: Sequence[Any], stopped: str = "", spent: Spent | None = None) -> str:
+    """The ledger section of summary.md: totals and means per episode and per step; ``stopped``: why the
+    run ended early; ``spent``: what every attempt of the run spent (finished or not)."""
     lines = ["", "## Cost ledger", ""]
     if stopped:
         lines += [f"**Run stopped early:** {stopped}", ""]
+    if spent is not None:
+        kept = sum((Spent.of(r) for r in done), Spent())
+        lines += [f"Spent by the run, every attempt counted: ${spent.usd:.4f}, {spent.tokens:,d} tokens "
+                  f"(of which ${max(0.0, spent.usd - kept.usd):.4f}, {max(0, spent.tokens - kept.tokens):,d} "
+                  "tokens on attempts that did not finish: stopped by the budget, errors, retries).", ""]
     if not done:
         return "\n".join(lines + ["No finished episodes.", ""])
     n_ep = len(done)
@@ -103,23 +111,81 @@ def ledger_markdown(done: Sequence[Any], stopped: str = "") -> str:
 # --- budget ---------------------------------------------------------------------------------------
 
 @dataclass
+class Spent:
+    """Dollars and LLM tokens (prompt + completion) spent."""
+
+    usd: float = 0.0
+    tokens: int = 0
+
+    def __add__(self, other: Spent) -> Spent:
+        return Spent(self.usd + other.usd, self.tokens + other.tokens)
+
+    @classmethod
+    def of(cls, r: Any) -> Spent:
+        """What one episode attempt (an EpisodeResult, or a gateway mission record) spent."""
+        get = r.get if isinstance(r, dict) else lambda k, d=0: getattr(r, k, d)
+        return cls(max(0.0, float(get("cost_usd", 0.0) or 0.0)),
+                   max(0, int(get("prompt_tokens", 0) or 0)) + max(0, int(get("completion_tokens", 0) or 0)))
+
+
 class Budget:
-    """Stops a run once the dollars spent by its episodes (resumed ones included) reach ``limit_usd``.
-    Checked between episodes: the episode running when the limit is crossed finishes and is kept."""
+    """The limits of a run, checked while episodes run, not only between them.
 
-    limit_usd: float | None
-    spent_usd: float = 0.0
+    - ``limit_usd`` / ``limit_tokens`` cap what the run folder has spent: every attempt logged in its
+      ``results.jsonl`` (an episode stopped by the budget, or retried after an error, keeps what its
+      earlier attempt spent) plus the running totals of the missions in flight, as the gateway reports
+      them step by step (:meth:`track`). A mission is cancelled at the first poll that sees the limit
+      reached, so a run overshoots by at most the LLM calls already in flight (one per robot).
+    - ``limit_wall_s`` caps the wall seconds of this call (a resumed run gets its own).
 
-    def add(self, cost_usd: float) -> None:
-        self.spent_usd += max(0.0, float(cost_usd))
+    Thread-safe: the robots' workers track their missions, the runner's thread settles results."""
+
+    def __init__(self, limit_usd: float | None = None, limit_tokens: int | None = None,
+                 limit_wall_s: float | None = None, spent: Spent | None = None):
+        self.limit_usd, self.limit_tokens, self.limit_wall_s = limit_usd, limit_tokens, limit_wall_s
+        self._settled = spent or Spent()
+        self._live: dict[str, Spent] = {}
+        self._lock = threading.Lock()
+        self._t0 = time.monotonic()
 
     @property
-    def reached(self) -> bool:
-        return self.limit_usd is not None and self.spent_usd >= self.limit_usd
+    def limited(self) -> bool:
+        return any(x is not None for x in (self.limit_usd, self.limit_tokens, self.limit_wall_s))
 
-    def reason(self, not_run: int) -> str:
-        return (f"the budget of ${self.limit_usd:.4f} was reached (${self.spent_usd:.4f} spent); {not_run} "
-                "episodes were not run (raise --budget-usd and run the same command to resume)")
+    def track(self, mission_id: str, spent: Spent) -> str:
+        """A mission's running totals; returns :meth:`exceeded` with them counted."""
+        with self._lock:
+            self._live[mission_id] = spent
+        return self.exceeded()
+
+    def settle(self, mission_id: str | None, spent: Spent) -> None:
+        """An attempt is logged: its final totals replace its running ones."""
+        with self._lock:
+            if mission_id is not None:
+                self._live.pop(mission_id, None)
+            self._settled = self._settled + spent
+
+    @property
+    def spent(self) -> Spent:
+        with self._lock:
+            return sum(self._live.values(), self._settled)
+
+    def exceeded(self) -> str:
+        """Which limit is reached, in words ("" while none is)."""
+        s = self.spent
+        if self.limit_usd is not None and s.usd >= self.limit_usd:
+            return f"the budget of ${self.limit_usd:.4f} was reached (${s.usd:.4f} spent)"
+        if self.limit_tokens is not None and s.tokens >= self.limit_tokens:
+            return f"the budget of {self.limit_tokens:,d} tokens was reached ({s.tokens:,d} spent)"
+        if self.limit_wall_s is not None and time.monotonic() - self._t0 >= self.limit_wall_s:
+            return f"the wall-time budget of {self.limit_wall_s:g} s was reached"
+        return ""
+
+    @staticmethod
+    def reason(why: str, stopped: int, not_run: int) -> str:
+        """The run's stop, for the summary and the console."""
+        return (f"{why}; {stopped} episodes were stopped mid-way and {not_run} were not started (raise the "
+                "budget and run the same command to resume: those episodes run again)")
 
 
 # --- estimate -------------------------------------------------------------------------------------

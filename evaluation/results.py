@@ -26,7 +26,7 @@ from shared.vln_metrics import EpisodeMetrics, MetricsError, summarize
 
 log = logging.getLogger(__name__)
 
-Status = Literal["done", "skipped", "error"]
+Status = Literal["done", "skipped", "error", "stopped"]
 
 
 class EpisodeResult(BaseModel):
@@ -34,7 +34,8 @@ class EpisodeResult(BaseModel):
 
     ``status``: ``done`` (the mission ended and has metrics, success or not), ``skipped`` (never run:
     its scene is missing, ``reason`` says why) or ``error`` (the system failed: timeout, a service
-    error; retried when the run is resumed).
+    error; retried when the run is resumed) or ``stopped`` (cancelled mid-way because the run's budget was
+    reached: neither a failure of the policy nor of the system; always run again when the run is resumed).
     """
 
     model_config = ConfigDict(extra="allow")
@@ -98,6 +99,13 @@ class ResultsLog:
     def load(self) -> dict[str, EpisodeResult]:
         """Latest result per episode id, in first-seen order."""
         out: dict[str, EpisodeResult] = {}
+        for r in self.attempts():
+            out[r.episode_id] = r
+        return out
+
+    def attempts(self) -> list[EpisodeResult]:
+        """Every line, in order: each attempt of each episode (what a run spent, retries included)."""
+        out: list[EpisodeResult] = []
         if not self.path.is_file():
             return out
         with open(self.path, "rb") as f:
@@ -114,7 +122,7 @@ class ResultsLog:
                     log.warning("%s: dropping an unreadable last line (%s)", self.path, exc)
                     continue
                 raise ResultsFormatError(f"{self.path}:{i}: not an episode result ({exc})") from None
-            out[r.episode_id] = r
+            out.append(r)
         if tail.strip():
             log.warning("%s: dropping a partial last line (%d bytes; the run was interrupted)", self.path, len(tail))
         return out
@@ -147,20 +155,21 @@ class ResultsLog:
 
 # --- summary tables ----------------------------------------------------------------------------------
 
-COLUMNS = ["label", "count", "skipped", "errors", "NE", "OSR", "SR", "SPL", "nDTW", "SDTW", "TL", "steps",
+COLUMNS = ["label", "count", "skipped", "errors", "stopped", "NE", "OSR", "SR", "SPL", "nDTW", "SDTW", "TL", "steps",
            "unreachable", "step_s", "tokens", "cost_usd", *LEDGER_COLUMNS]
-"""Summary columns: NE/TL in metres, rates in percent, ``step_s`` the mean step latency, ``tokens`` the
-mean LLM tokens per episode, ``cost_usd`` the total; then the cost ledger's (:data:`LEDGER_COLUMNS`)."""
+"""Summary columns: ``stopped`` counts the episodes the budget cancelled mid-way; NE/TL in metres, rates in
+percent, ``step_s`` the mean step latency, ``tokens`` the mean LLM tokens per episode, ``cost_usd`` the
+total; then the cost ledger's (:data:`LEDGER_COLUMNS`)."""
 
 
 def summary_row(results: Iterable[EpisodeResult], label: str = "all") -> dict[str, Any]:
     """One table row: VLN-CE means over the ``done`` episodes (via :func:`shared.vln_metrics.summarize`),
-    with counts of skipped and errored episodes, latency and LLM usage."""
+    with counts of skipped, errored and budget-stopped episodes, latency and LLM usage."""
     res = list(results)
     done = [r for r in res if r.status == "done" and r.metrics is not None]
     row: dict[str, Any] = {c: None for c in COLUMNS}
     row.update(label=label, count=len(done), skipped=sum(r.status == "skipped" for r in res),
-               errors=sum(r.status == "error" for r in res))
+               errors=sum(r.status == "error" for r in res), stopped=sum(r.status == "stopped" for r in res))
     if done:
         try:
             s = summarize(r.episode_metrics() for r in done)

@@ -7,6 +7,12 @@ mission (start pose, goal and reference path in the options, a deterministic see
 for its end and appends one JSON line to ``results.jsonl``. Episodes already ``done`` in that file are
 not run again, so an interrupted run resumes where it stopped. Episodes whose scene file is missing are
 recorded as ``skipped`` with the reason. The summary (Markdown + CSV) is recomputed from the log.
+
+A budget (dollars, tokens, wall seconds: :class:`evaluation.ledger.Budget`) is watched while missions
+run: when it is reached, every mission in flight is cancelled through its gateway and recorded as
+``stopped`` (neither a policy failure nor a system error), no robot starts another episode, and the
+summary says what ended the run and what it spent. A resumed run (with a larger budget) runs the stopped
+episodes again.
 """
 
 from __future__ import annotations
@@ -31,8 +37,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from evaluation.errors import (
     ConfigError, EvaluationError, GatewayError, MapUnavailable, MissionTimeout, SceneSwitchError,
 )
-from evaluation.gateway_client import GatewayClient
-from evaluation.ledger import Budget, ledger_markdown, stage_totals, step_ledger
+from evaluation.gateway_client import TERMINAL_STATES, GatewayClient
+from evaluation.ledger import Budget, Spent, ledger_markdown, stage_totals, step_ledger
 from shared.vln_metrics import MetricsError
 from evaluation.results import EpisodeResult, ResultsLog, metrics_from_dict, skipped_report, summary_row, write_tables
 from services.robot_io.core import Episode, GroundTruth, SceneNotFoundError
@@ -85,7 +91,14 @@ class RunConfig(BaseModel):
     retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")
     record: bool = Field(False, description="record every mission (.rrd) and keep a copy in <run>/recordings/")
     budget_usd: float | None = Field(None, gt=0, allow_inf_nan=False,
-                                     description="stop starting episodes once the run's dollars reach this")
+                                     description="stop the run once its dollars (every attempt, the missions in "
+                                                 "flight included) reach this; see evaluation.ledger.Budget")
+    budget_tokens: int | None = Field(None, gt=0, description="the same for LLM tokens (prompt + completion)")
+    budget_wall_s: float | None = Field(None, gt=0, allow_inf_nan=False,
+                                        description="stop the run once this call has run this many seconds")
+    stop_wait_s: float = Field(120.0, gt=0, le=3600, allow_inf_nan=False,
+                               description="how long a mission cancelled by the budget may take to end (the "
+                                           "planner ends it between steps)")
 
     def experiment_key(self) -> dict[str, Any]:
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
@@ -167,6 +180,7 @@ class RunReport:
     tables: tuple[Path, Path] | None = None
     maps: dict[str, str] = field(default_factory=dict)  # scene -> map id used
     stopped: str = ""  # why the run stopped before its last episode (the budget), "" when it did not
+    spent: Spent = field(default_factory=Spent)  # every attempt of the selected episodes, this call's included
 
 
 def shard_scenes(groups: dict[str, list[Episode]], lanes: int) -> list[list[str]]:
@@ -216,6 +230,7 @@ class EvalRunner:
         self.gateway, self.scenes, self.config = gateway, scenes, config
         self.lanes = [Lane(gateway, scenes), *lanes]
         self._stop = threading.Event()  # set: no robot starts another episode
+        self._budget = Budget()  # the run's (see run()); unlimited for a lone run_episode()
         self.out_dir = Path(out_dir)
         self.log = ResultsLog(self.out_dir / RESULTS_FILE)
         self.maps = map_cache or SceneMapIndex(self.out_dir / "maps.json")
@@ -249,7 +264,7 @@ class EvalRunner:
         out = []
         for e in episodes:
             r = prior.get(str(e.episode_id))
-            if r is None or r.status == "skipped" or (r.status == "error" and self.config.retry_errors):
+            if r is None or r.status in ("skipped", "stopped") or (r.status == "error" and self.config.retry_errors):
                 out.append(e)
         return out
 
@@ -275,30 +290,37 @@ class EvalRunner:
         ran = 0
         maps: dict[str, str] = {}
         stats = {"done": 0, "success": 0}
-        pending_ids = {str(e.episode_id) for e in todo}
-        budget = Budget(cfg.budget_usd, sum(r.cost_usd for k, r in prior.items() if k not in pending_ids
-                                            and k in {str(e.episode_id) for e in selected}))
-        stopped = budget.reason(len(todo)) if budget.reached and todo else ""
+        selected_ids = {str(e.episode_id) for e in selected}
+        # Every attempt counts: an episode stopped by the budget or retried after an error was paid for.
+        budget = Budget(cfg.budget_usd, cfg.budget_tokens, cfg.budget_wall_s,
+                        spent=sum((Spent.of(r) for r in self.log.attempts() if r.episode_id in selected_ids),
+                                  Spent()))
+        self._budget = budget
+        why = budget.exceeded() if todo else ""
+        n_stopped = 0
         try:
-            for scene_id, result in ([] if stopped else self._concurrent(groups, gt or {}, maps)):
+            for scene_id, result in ([] if why else self._concurrent(groups, gt or {}, maps)):
                 self.log.append(result)
                 ran += 1
-                budget.add(result.cost_usd)
+                budget.settle(result.mission_id, Spent.of(result))
+                n_stopped += result.status == "stopped"
                 if result.status == "done":
                     stats["done"] += 1
                     stats["success"] += bool(result.metrics and result.metrics.get("success"))
                 bar.update(1)
                 bar.set_postfix(SR=f"{100 * stats['success'] / max(1, stats['done']):.0f}%",
                                 scene=scene_id[-24:], refresh=False)
-                if budget.reached and ran < len(todo):
-                    # No robot starts another episode; those running finish and are kept.
-                    stopped = budget.reason(len(todo) - ran)
+                if not why and (why := budget.exceeded()):
+                    # No robot starts another episode; the missions in flight see the budget at their
+                    # next poll and are cancelled (run_episode).
                     self._stop.set()
         finally:
             self._stop.set()
             bar.close()
-        if stopped:
-            stopped = budget.reason(len(todo) - ran)  # the count once every robot has finished
+        not_run = len(todo) - ran
+        why = budget.exceeded() or why  # what was spent once every robot has stopped
+        stopped = Budget.reason(why, n_stopped, not_run) if why and (n_stopped or not_run) else ""
+        spent = budget.spent
         latest = self.log.load()
         results = [latest[str(e.episode_id)] for e in selected if str(e.episode_id) in latest]
         row = summary_row(results, self.label)
@@ -307,9 +329,15 @@ class EvalRunner:
         if stopped:
             log.warning("run stopped: %s", stopped)
         with open(tables[0], "a", encoding="utf-8") as f:
-            f.write(ledger_markdown([r for r in results if r.status == "done" and r.metrics is not None], stopped))
+            f.write(ledger_markdown([r for r in results if r.status == "done" and r.metrics is not None], stopped,
+                                    spent))
         self._write_pictures_and_predictions(selected, results, gt or {}, tables[0])
-        return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps, stopped)
+        return RunReport(self.out_dir, results, row, ran, resumed, time.monotonic() - t0, tables, maps, stopped,
+                         spent)
+
+    def _halted(self) -> bool:
+        """No episode may start: the run is stopping, or its budget is reached."""
+        return self._stop.is_set() or bool(self._budget.exceeded())
 
     def _concurrent(self, groups: dict[str, list[Episode]], gt: dict[str, GroundTruth], maps: dict[str, str]):
         """(scene, result) of every pending episode, one worker thread per robot over its shard of scenes.
@@ -326,14 +354,14 @@ class EvalRunner:
             runner.gateway, runner.scenes = lane.gateway, lane.scenes
             try:
                 for scene_id in scenes:
-                    if self._stop.is_set():
+                    if self._halted():
                         break
                     scene_run = runner._run_scene(scene_id, groups[scene_id], gt, maps)
                     for result in scene_run:
                         logged = threading.Event()
                         handoff.put((scene_id, result, logged))
                         logged.wait()
-                        if self._stop.is_set():
+                        if self._halted():
                             scene_run.close()  # the next episode is never started
                             break
             except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
@@ -433,6 +461,8 @@ class EvalRunner:
             return
         maps[scene_id] = map_id
         for e in group:
+            if self._halted():  # e.g. the wall-time budget ran out while the map was built
+                return
             yield self.run_episode(e, map_id, gt.get(str(e.episode_id)))
 
     # --- maps ----------------------------------------------------------------------------------------
@@ -519,8 +549,18 @@ class EvalRunner:
             mid = self.gateway.submit_mission(e.instruction, map_id, opts.model_dump(mode="json"))
         except GatewayError as exc:
             return self._base(e, status="error", reason=f"mission refused: {exc}", **base)
+        why = ""
+
+        def stop_now(rec: dict[str, Any]) -> bool:
+            # Each poll tells the budget what this mission has spent so far (other robots' missions count too).
+            nonlocal why
+            why = self._budget.track(mid, Spent.of(rec)) or ("the run was interrupted" if self._stop.is_set() else "")
+            return bool(why)
+
         try:
-            rec = self.gateway.wait(self.gateway.mission, mid, cfg.mission_timeout_s, cfg.poll_s)
+            rec = self.gateway.wait(self.gateway.mission, mid, cfg.mission_timeout_s, cfg.poll_s, until=stop_now)
+            if rec["state"] not in TERMINAL_STATES:
+                rec = self._cancel_and_wait(mid)
         except MissionTimeout as exc:
             try:
                 self.gateway.cancel_mission(mid)
@@ -532,9 +572,27 @@ class EvalRunner:
             return self._base(e, status="error", reason=f"lost the mission: {exc}", mission_id=mid,
                               wall_s=time.monotonic() - t0, **base)
         result = self._result(e, mid, rec, time.monotonic() - t0, base)
+        if why and result.status != "done":
+            # Cancelled (or still ending) because of the budget: not the policy's failure, and run again on
+            # resume. A mission that finished before the cancel reached it keeps its result.
+            result = result.model_copy(update={"status": "stopped", "metrics": None,
+                                               "reason": f"stopped mid-way: {why}"})
         if cfg.record:
             result.recording = self._keep_recording(e, mid)
         return result
+
+    def _cancel_and_wait(self, mid: str) -> dict[str, Any]:
+        """Cancel a running mission and wait (``stop_wait_s``) for its end: the planner ends it between
+        steps, and the step in flight is paid and recorded. Its record as it stands when it does not end."""
+        try:
+            self.gateway.cancel_mission(mid)
+        except GatewayError as exc:
+            log.warning("could not cancel %s: %s", mid, exc)
+        try:
+            return self.gateway.wait(self.gateway.mission, mid, self.config.stop_wait_s, self.config.poll_s)
+        except MissionTimeout as exc:
+            log.warning("mission %s did not end after its cancel: %s", mid, exc)
+            return self.gateway.mission(mid)
 
     def _keep_recording(self, e: Episode, mid: str) -> str | None:
         """Copy the mission's .rrd into ``<run>/recordings/`` (a missing one is logged, not an error)."""

@@ -194,11 +194,22 @@ def _compose(chans, gx, gy, zpad, lab_pad, tol_rel1, tol_abs, rgb_out, depth_out
                     labels_out[i, j] = -1
 
 
+def _labels_of(best, labels):
+    """int64 image: ``labels[best]`` where ``best >= 0``, else -1 (``SplatRenderer._labels_pad``)."""
+    out = np.empty(best.shape, np.int64)
+    for i in range(best.shape[0]):
+        for j in range(best.shape[1]):
+            b = best[i, j]
+            out[i, j] = labels[b] if b >= 0 else -1
+    return out
+
+
 if AVAILABLE:
+    labels_of = numba.njit(nogil=True, cache=True)(_labels_of)
     front_pass = numba.njit(nogil=True, cache=True, error_model="numpy")(_front_pass)
     compose = numba.njit(nogil=True, cache=True, error_model="numpy")(_compose)
 else:  # pragma: no cover
-    front_pass = compose = None
+    front_pass = compose = labels_of = None
 
 
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:

@@ -6,7 +6,14 @@ splatting) and fills what is left by a depth-aware pull-push (:mod:`visibility` 
 published techniques). Its front pass is the one described below (a pixel's front layer reduced
 to one surfel, plus the sum of its points' spacing); the image-space passes follow it. It agrees
 with the torch backend within the tolerance stated in tests/unit/renderer/test_renderer_visibility.py
-(<= 0.2 % of the pixels differ; the compiled and array numpy paths are bit-identical).
+(<= 0.2 % of the pixels differ; the compiled and array numpy paths are bit-identical). Its
+image-space passes run compiled too (:mod:`visibility_kernels`), bit-identical to the array code.
+
+What a view draws is bounded by its pixels, not by the map: blocks outside the frustum are
+culled, and each remaining block is drawn from precomputed voxel-averaged levels of detail
+(:mod:`lod`: Potree-style layered LOD, per-block selection as in sequential point trees) at the
+coarsest level whose cell projects to at most ``lod_cell_px`` pixels. A far room thus costs about
+its pixels, whatever its density, and per-view cost stays flat as a building grows.
 
 ``paper`` is the paper's fixed 3x3 Gaussian splat, kept for the ablation:
 
@@ -47,6 +54,7 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Literal
 
 import cv2
@@ -56,6 +64,7 @@ from pydantic import Field
 from services.renderer.core import kernels, visibility
 from services.renderer.core.cloud import Frustum, IndexedCloud
 from services.renderer.core.errors import BackendUnavailableError
+from services.renderer.core.lod import VoxelLod, build_voxel_lod
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
 from shared.registry import BackendConfig, Registry
 from shared.schemas import CameraIntrinsics, ViewPose
@@ -98,6 +107,9 @@ class SplatConfig(BackendConfig):
     fill_slope_deg: float = Field(60.0, ge=0.0, le=85.0)
     # visibility mode: depth tolerance of the front layer and of the visibility test. Tighter than
     # the paper's 0.10 m: the two faces of a 0.1 m wall must not blend.
+    # visibility mode: the colour reconstruction filter (:func:`visibility.colour_filter`) blends
+    # a pixel with its 3x3 neighbours whose depth is within this fraction of its own (0: off).
+    colour_filter_rel: float = Field(0.05, ge=0.0, le=0.5)
     visibility_tolerance_m: float = Field(0.04, ge=0.0)
     visibility_tolerance_rel: float = Field(0.03, ge=0.0)
     # visibility mode: the points a pixel's surfel averages lie this close behind its nearest one
@@ -111,9 +123,16 @@ class SplatConfig(BackendConfig):
     near_m: float = Field(0.05, gt=0.0)
     far_m: float = Field(20.0, gt=0.0)
     cull: bool = True
-    # Level of detail: keep about this many points per pixel a block can cover (None: every point).
-    # The cost of a view then follows the pixels it fills, not the density of the cloud.
-    lod_points_per_px: float | None = Field(6.0, gt=0.0)
+    # Level of detail (None: every point in the frustum). The cost of a view then follows the
+    # pixels it fills, not the density of the cloud or how far the map reaches.
+    # "voxel" (:mod:`lod`): precomputed voxel-averaged levels per block; each block is drawn at the
+    # coarsest level whose cell projects to at most lod_cell_px pixels at its nearest point.
+    # "subsample": the first points of each (shuffled) block, lod_points_per_px per pixel it can cover.
+    lod: Literal["voxel", "subsample"] | None = "voxel"
+    lod_cell_px: float = Field(1.0, gt=0.0, le=8.0)
+    lod_cell_m: float = Field(0.04, ge=0.005, le=1.0)  # level 1; each further level doubles it
+    lod_levels: int = Field(5, ge=1, le=8)
+    lod_points_per_px: float | None = Field(6.0, gt=0.0)  # "subsample"; None: no LOD (either kind)
     # numpy backend: the per-point passes of ``layered`` run as compiled loops (numba) when it is
     # installed ("auto"), always ("numba": an error without it) or never ("numpy": array code).
     # Both give identical images; the compiled loops are ~5x faster.
@@ -284,6 +303,9 @@ class _NumpyOps:
     def pad2(self, a, dh: int, dw: int, value):
         return np.pad(a, ((0, dh), (0, dw)), constant_values=value) if dh or dw else a
 
+    def pad_ring(self, a, value):
+        return np.pad(a, 1, constant_values=value)
+
     def ceil(self, x):
         return np.ceil(x)
 
@@ -319,10 +341,10 @@ class _NumpyOps:
         return a.reshape(h // 2, 2, w // 2, 2).transpose(1, 3, 0, 2).reshape(4, h // 2, w // 2)
 
 
-    def cloud_arrays(self, index: IndexedCloud) -> _CloudArrays:
-        key = ("numpy-arrays",)
+    def cloud_arrays(self, index: IndexedCloud, cloud=None, tag=()) -> _CloudArrays:
+        key = ("numpy-arrays", *tag)
         if key not in index.cache:
-            c = index.cloud
+            c = index.cloud if cloud is None else cloud
             rgb = c.rgb.astype(np.float64)
             index.cache[key] = _CloudArrays(
                 np.ascontiguousarray(c.xyz[:, 0]),
@@ -443,6 +465,9 @@ class _TorchOps:
     def full2(self, h: int, w: int, value: float):
         return self.torch.full((h, w), value, dtype=self.torch.float32, device=self.device)
 
+    def pad_ring(self, a, value):
+        return self.torch.nn.functional.pad(a[None, None], (1, 1, 1, 1), value=value)[0, 0]
+
     def pad2(self, a, dh: int, dw: int, value):
         if not (dh or dw):
             return a
@@ -485,10 +510,10 @@ class _TorchOps:
         return a.reshape(h // 2, 2, w // 2, 2).permute(1, 3, 0, 2).reshape(4, h // 2, w // 2)
 
 
-    def cloud_arrays(self, index: IndexedCloud) -> _CloudArrays:
-        key = ("torch-arrays", str(self.device))
+    def cloud_arrays(self, index: IndexedCloud, cloud=None, tag=()) -> _CloudArrays:
+        key = ("torch-arrays", str(self.device), *tag)
         if key not in index.cache:
-            c = index.cloud
+            c = index.cloud if cloud is None else cloud
             xyz = self.asarray(c.xyz)
             index.cache[key] = _CloudArrays(
                 xyz[:, 0].contiguous(),
@@ -543,10 +568,48 @@ class SplatRenderer:
         mode, the per-point spacing) so that no request pays for it; returns seconds spent. A
         map loader calls it once per map version; rendering without it computes the same lazily."""
         t0 = time.perf_counter()
-        self._ops.cloud_arrays(index)
-        if self.config.mode == "visibility":
-            point_spacing_of(index, self.config.spacing_neighbours)
+        self._drawn(index)
         return time.perf_counter() - t0
+
+    def _voxel_lod(self, index: IndexedCloud) -> VoxelLod | None:
+        cfg = self.config
+        if cfg.lod != "voxel" or cfg.lod_points_per_px is None:
+            return None
+        key = ("voxel-lod", cfg.lod_cell_m, cfg.lod_levels, cfg.spacing_neighbours)
+        if key not in index.cache:
+            index.cache[key] = build_voxel_lod(
+                index, point_spacing_of(index, cfg.spacing_neighbours), cfg.lod_cell_m, cfg.lod_levels)
+        return index.cache[key]
+
+    def _drawn(self, index: IndexedCloud):
+        """(backend arrays, per-point spacing or None, voxel LOD or None) of the cloud this
+        renderer draws: the index's points, followed by their voxel levels with ``lod="voxel"``."""
+        lod = self._voxel_lod(index)
+        with_spacing = self.config.mode == "visibility" or lod is not None
+        if lod is None:
+            arrays = self._ops.cloud_arrays(index)
+            spacing = point_spacing_of(index, self.config.spacing_neighbours) if with_spacing else None
+        else:
+            arrays = self._ops.cloud_arrays(index, lod.cloud, ("voxel-lod", lod.cell_m))
+            spacing = lod.spacing
+        return arrays, spacing, lod
+
+    def _runs(self, index: IndexedCloud, lod: VoxelLod | None, wfc: np.ndarray, cam: PinholeCamera,
+              frustum: Frustum) -> _Runs:
+        """The runs of the drawn cloud one view walks: culled blocks, at their level of detail."""
+        cfg = self.config
+        mask = index.visible_blocks(wfc, frustum) if cfg.cull else None
+        if lod is not None:
+            starts, counts = lod.select(index, mask, wfc, cam.fx, cfg.lod_cell_px)
+            return _Runs(starts, counts, np.ones(len(starts), np.float32))
+        full = index.counts if mask is None else index.counts[mask]
+        starts = index.starts if mask is None else index.starts[mask]
+        if cfg.lod == "subsample" and cfg.lod_points_per_px is not None:
+            kept = index.lod_counts(wfc, cam.fx, cfg.lod_points_per_px)
+            kept = kept if mask is None else kept[mask]
+            # Level of detail widens the spacing of the points it keeps by sqrt(all / kept).
+            return _Runs(starts, kept, np.sqrt(full / np.maximum(kept, 1)).astype(np.float32))
+        return _Runs(starts, full, np.ones(len(starts), np.float32))
 
     def render(
         self,
@@ -590,16 +653,13 @@ class SplatRenderer:
             hole_mask=np.ones((b, h, w), bool),
             labels=np.full((b, h, w), -1, np.int32) if labelled else None,
         )
-        arrays = self._ops.cloud_arrays(index)
+        arrays, spacing, lod = self._drawn(index)
 
         def one(i: int) -> tuple[int, float]:
             t0 = time.perf_counter()
             wfc = np.asarray(world_from_cameras[i], float)
-            mask = index.visible_blocks(wfc, frustum) if cfg.cull else None
-            counts = None
-            if cfg.lod_points_per_px is not None:
-                counts = index.lod_counts(wfc, cam.fx, cfg.lod_points_per_px)
-            (rgb, depth, hole, labels), n = self._render_one(arrays, index, mask, counts, wfc, cam, labelled)
+            runs = self._runs(index, lod, wfc, cam, frustum)
+            (rgb, depth, hole, labels), n = self._render_one(arrays, spacing, runs, wfc, cam, labelled)
             out.rgb[i], out.depth_m[i], out.hole_mask[i] = rgb, depth, hole
             if labelled:
                 out.labels[i] = labels
@@ -616,21 +676,19 @@ class SplatRenderer:
         out.batch_s = time.perf_counter() - t_batch
         return out
 
-    def _render_one(
-        self, arrays, index: IndexedCloud, mask, counts, wfc: np.ndarray, cam: PinholeCamera, labelled: bool
-    ):
-        """One view from the blocks in ``mask`` (None: all), ``counts[b]`` points of block ``b``
-        (None: all). Returns ((rgb, depth, hole, labels), number of points rendered)."""
+    def _render_one(self, arrays, spacing, runs: _Runs, wfc: np.ndarray, cam: PinholeCamera, labelled: bool):
+        """One view from the points of ``runs``. Returns ((rgb, depth, hole, labels), number of
+        points rendered)."""
         cfg = self.config
         h, w = cam.height_px, cam.width_px
         # Rows of K [R^T | -R^T t]: one affine map per image coordinate, evaluated elementwise (not
         # as a matmul) so that numpy, torch and the kernels round identically.
         proj = (cam.matrix() @ np.linalg.inv(wfc)[:3]).astype(np.float32)
         if cfg.mode == "paper" and cfg.algorithm == "exact":
-            return self._paper_exact(arrays, index, mask, counts, proj, h, w, labelled)
-        front = self._front_kernel(arrays, index, mask, counts, proj, h, w, labelled) if self._use_kernel else None
+            return self._paper_exact(arrays, runs, proj, h, w, labelled)
+        front = self._front_kernel(arrays, spacing, runs, proj, h, w, labelled) if self._use_kernel else None
         if front is None:
-            front = self._front_arrays(arrays, index, mask, counts, proj, h, w, labelled)
+            front = self._front_arrays(arrays, spacing, runs, proj, h, w, labelled)
         if front.n == 0:
             return _empty(h, w), 0
         if cfg.mode == "paper":
@@ -644,25 +702,16 @@ class SplatRenderer:
             return np.float32(1.0 + cfg.front_tolerance_rel), np.float32(cfg.front_tolerance_m)
         return np.float32(1.0 + cfg.depth_tolerance_rel), np.float32(cfg.depth_tolerance_m)
 
-    def _lod_scale(self, index: IndexedCloud, mask, counts):
-        """Per selected block: sqrt(points in the block / points kept), the factor by which level
-        of detail widens the spacing of the points it keeps."""
-        full = index.counts if mask is None else index.counts[mask]
-        kept = full if counts is None else (counts if mask is None else counts[mask])
-        return np.sqrt(full / np.maximum(kept, 1)).astype(np.float32), kept
-
-    def _front_kernel(self, arrays, index: IndexedCloud, mask, counts, proj, h, w, labelled) -> _Front | None:
+    def _front_kernel(self, arrays, spacing, runs: _Runs, proj, h, w, labelled) -> _Front | None:
         """The front layer from the compiled loops; None when a pixel overflows them."""
         cfg = self.config
-        starts = index.starts if mask is None else index.starts[mask]
-        scale, runs = self._lod_scale(index, mask, counts)
-        n = int(runs.sum())
+        n = int(runs.counts.sum())
         if n == 0:
             return _Front(n=0)
         with_spacing = cfg.mode == "visibility"
-        spacing = point_spacing_of(index, cfg.spacing_neighbours) if with_spacing else np.zeros(1, np.float32)
+        spacing = spacing if with_spacing else np.zeros(1, np.float32)
         zbuf, sums, best, overflow = kernels.front_pass(
-            arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, starts, runs, scale, proj.ravel(),
+            arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, runs.starts, runs.counts, runs.scale, proj.ravel(),
             np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, *self._front_tolerance(), labelled, with_spacing,
         )
         if overflow:
@@ -694,26 +743,24 @@ class SplatRenderer:
         qv = ops.rint(ops.clamp(v - iv + 0.5, 0.0, 1.0) * 255.0)
         return z, q, qu, qv
 
-    def _front_arrays(self, arrays, index: IndexedCloud, mask, counts, proj, h, w, labelled) -> _Front:
+    def _front_arrays(self, arrays, spacing, runs: _Runs, proj, h, w, labelled) -> _Front:
         """The front layer as array code (numpy or torch): the reference of the compiled loops."""
         ops, cfg = self._ops, self.config
         npad = (h + 2) * (w + 2)
-        idx_np = index.point_indices(mask, counts)
+        idx_np = runs.indices()
         n = len(idx_np)
         if n == 0:
             return _Front(n=0)
         idx = ops.asarray(idx_np)
         z, q, qu, qv = self._project(arrays, idx, proj, h, w)
         zbuf = ops.scatter_min(npad + 1, q, z)
-        spacing = None
+        sp = None
         if cfg.mode == "visibility":
-            scale, runs = self._lod_scale(index, mask, counts)
-            sp = point_spacing_of(index, cfg.spacing_neighbours)[idx_np] * np.repeat(scale, runs)
-            spacing = ops.asarray(sp)
+            sp = ops.asarray(spacing[idx_np] * np.repeat(runs.scale, runs.counts))
         # The front layer of each pixel: its points within epsilon of the pixel's own nearest.
         rel1, tol = self._front_tolerance()
         front = z <= zbuf[q] * float(rel1) + float(tol)
-        cnt, s_z, s_rgb, s_u, s_v, s_sp = ops.accumulate_front(npad + 1, q, front, z, arrays, idx, qu, qv, spacing)
+        cnt, s_z, s_rgb, s_u, s_v, s_sp = ops.accumulate_front(npad + 1, q, front, z, arrays, idx, qu, qv, sp)
         best = None
         if labelled:
             # Nearest point per source pixel (largest point id among exact ties, so every path agrees).
@@ -725,6 +772,8 @@ class SplatRenderer:
         """The nearest point's label per padded pixel (-1 where none)."""
         ops = self._ops
         best_pt = best[: (h + 2) * (w + 2)].reshape(h + 2, w + 2)
+        if self._use_kernel:
+            return kernels.labels_of(best_pt, arrays.labels)
         return ops.where(best_pt >= 0, ops.to_int64(arrays.labels[ops.clamp(best_pt, 0, None)]), -1)
 
     def _paper_compose(self, arrays, front: _Front, h, w, labelled):
@@ -749,11 +798,11 @@ class SplatRenderer:
         acc = self._layered(front.cnt, front.s_z, front.s_rgb, front.s_u, front.s_v, zpad, thr, h, w)
         return self._finish(acc, zpad, self._labels_pad(arrays, front.best, h, w) if labelled else None, h, w)
 
-    def _paper_exact(self, arrays, index: IndexedCloud, mask, counts, proj, h, w, labelled):
+    def _paper_exact(self, arrays, runs: _Runs, proj, h, w, labelled):
         """The paper's 3x3 splat point by point (``exact``, the reference of ``layered``)."""
         ops, cfg = self._ops, self.config
         npad = (h + 2) * (w + 2)
-        idx_np = index.point_indices(mask, counts)
+        idx_np = runs.indices()
         if len(idx_np) == 0:
             return _empty(h, w), 0
         idx = ops.asarray(idx_np)
@@ -819,8 +868,10 @@ class SplatRenderer:
             gap_levels=cfg.gap_levels, fill_levels=cfg.fill_levels, gap_max_m=cfg.gap_max_m,
             tol_rel1=float(np.float32(1.0 + cfg.visibility_tolerance_rel)), tol_abs_m=cfg.visibility_tolerance_m,
             slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
+            filter_rel=cfg.colour_filter_rel,
         )
-        rgb, depth, hole, labels = visibility.compose(ops, layer, params, h, w)
+        compose = visibility.compose_compiled if self._use_kernel else partial(visibility.compose, ops)
+        rgb, depth, hole, labels = compose(layer, params, h, w)
         if labels is not None:
             labels = ops.to_numpy(labels).astype(np.int32)
         return _images(ops, rgb, depth, hole, labels)
@@ -880,6 +931,24 @@ class SplatRenderer:
             npad, t_all, [k_all, k_all * z[p_all], k_all * c[:, 0], k_all * c[:, 1], k_all * c[:, 2]]
         )
         return ops.stack([s.reshape(h + 2, wp)[1 : 1 + h, 1 : 1 + w] for s in sums])
+
+
+@dataclass(frozen=True)
+class _Runs:
+    """What one view draws: points ``starts[r] : starts[r] + counts[r]`` of the drawn cloud, whose
+    spacing level of detail widens by ``scale[r]``."""
+
+    starts: np.ndarray  # int64
+    counts: np.ndarray  # int64
+    scale: np.ndarray  # float32
+
+    def indices(self) -> np.ndarray:
+        """The points of every run, int64, in run order."""
+        total = int(self.counts.sum())
+        if total == 0:
+            return np.empty(0, dtype=np.int64)
+        shift = self.starts - (np.cumsum(self.counts) - self.counts)
+        return np.repeat(shift, self.counts) + np.arange(total, dtype=np.int64)
 
 
 @dataclass

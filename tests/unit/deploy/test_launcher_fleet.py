@@ -59,3 +59,20 @@ def test_bad_robot_ids_and_keys_are_refused(monkeypatch):
         with pytest.raises(keys.KeyExprError):
             keys.robot_of(keys.MISSION_SUBMIT, bad)
     assert keys.robot_routes(keys.MAPPER_PREDICT) == ["ant/*/mapper/predict"]
+
+
+def test_renderer_replicas_share_requests_instead_of_splitting_robots(tmp_path):
+    """``--replica renderer=2``: two renderers, each with its own instance name (its instance route
+    ``<key>/@renderer-K``, which the router's ACL must allow), and no robot split: the renderer is not
+    robot-scoped, any replica answers any robot's request (round-robin, one answer per request)."""
+    lc = Launcher(tmp_path, robots=4, replicas={"renderer": 2})
+    plans = lc._service_procs("renderer")
+    assert [name for name, _ in plans] == ["renderer-0", "renderer-1"]
+    assert [env["ANT_INSTANCE"] for _, env in plans] == ["renderer-0", "renderer-1"]
+    assert all("ANT_SERVE_ROBOTS" not in env and env["ANT_CACHE_MAPS"] == "4" for _, env in plans)
+    assert lc.expected_instances()["renderer"] == 2
+    lc._router_argv("python")  # writes the credentials and the router's ACL for these instances
+    conf = (tmp_path / "zenoh" / "router.json5").read_text()
+    for instance in ("renderer-0", "renderer-1"):
+        assert keys.routed(keys.RENDER_VIEWS.format(), instance) in conf
+        assert keys.routed(keys.RENDER_MAP.format(), instance) in conf

@@ -78,6 +78,24 @@ def test_a_budget_stops_every_robot(tmp_path):
     # Every episode costs at least $0.001 (>= 2 steps x $0.0005): the first results cross it, so no robot
     # starts a second episode; the ones already running finish and are kept.
     report, _, missions = _run(3, tmp_path, budget_usd=0.001)
-    assert report.stopped and "episodes were not run" in report.stopped
+    assert report.stopped and "were not started" in report.stopped
     assert report.ran == sum(missions) and all(m <= 1 for m in missions)
     assert report.row["count"] == report.ran
+
+
+def test_a_budget_reached_mid_episode_cancels_the_missions_of_every_robot(tmp_path):
+    with fleet(3, tmp_path) as (worlds, lanes):
+        for w in worlds:
+            w.planner.interval_s = 0.1  # three robots walk at once, a step each 0.1 s
+        runner = EvalRunner(lanes[0].gateway, lanes[0].scenes,
+                            RunConfig(poll_s=0.01, max_steps=8, budget_tokens=400), tmp_path / "out",
+                            progress=False, scene_builder=lambda spec, d: box_scene(), lanes=lanes[1:])
+        report = runner.run(_episodes())
+        missions = [len(w.planner.requests) for w in worlds]
+    # 110 tokens per step: the budget is reached at about the fourth step of the three robots together,
+    # before any episode (3 to 6 steps) could end; every mission running then is cancelled.
+    assert {r.status for r in report.results} <= {"stopped", "done"} and report.row["errors"] == 0
+    assert report.row["stopped"] >= 2 and report.ran == sum(missions) and all(m <= 1 for m in missions)
+    # Overshoot: at most the steps in flight when the budget was seen (one or two per robot).
+    assert 440 <= report.spent.tokens <= 400 + 3 * 2 * 110
+    assert "were not started" in report.stopped

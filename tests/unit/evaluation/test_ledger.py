@@ -50,20 +50,42 @@ def test_ledger_per_step_per_episode_and_in_both_summaries(world, gateway, tmp_p
     assert line["prompt_tokens"] == "1000" and float(line["policy_s"]) == pytest.approx(0.05)
 
 
-def test_budget_stops_the_run_cleanly_and_the_run_resumes(world, gateway, tmp_path):
+def test_budget_stops_the_run_mid_episode_and_the_run_resumes(world, gateway, tmp_path):
     out = tmp_path / "out"
+    world.planner.interval_s = 0.05  # steps take time, as a real planner's do: the runner polls in between
     with gateway() as gw:
-        # Each episode costs 5 x $0.0005: the budget is crossed by the second episode, the third never starts.
+        # Each step costs $0.0005, an episode 5 steps: episode 1 spends $0.0025, episode 2 reaches $0.004
+        # at its third step and is cancelled there; episode 3 never starts.
         first = _runner(gw, world, out, budget_usd=0.004).run(_eps(3))
         assert first.ran == 2 and len(world.planner.requests) == 2
-        assert "budget of $0.0040 was reached ($0.0050 spent); 1 episodes were not run" in first.stopped
-        assert "Run stopped early" in (out / "summary.md").read_text()
-        assert first.row["count"] == 2  # finished episodes are kept
-        # Resumed with a larger budget: the spent dollars of the kept episodes count against it.
-        second = _runner(gw, world, out, budget_usd=0.0075).run(_eps(3))
-    assert second.ran == 1 and second.resumed == 2 and not second.stopped
-    assert second.row["cost_usd"] == pytest.approx(0.0075)
+        done, stopped = first.results
+        assert done.status == "done" and stopped.status == "stopped" and stopped.metrics is None
+        assert stopped.state == "cancelled" and "stopped mid-way: the budget of $0.0040 was reached" in stopped.reason
+        assert 3 <= len(stopped.ledger) < 5  # cancelled between steps, before its own end
+        assert "1 episodes were stopped mid-way and 1 were not started" in first.stopped
+        assert first.row["count"] == 1 and first.row["stopped"] == 1 and first.row["errors"] == 0
+        assert first.spent.usd == pytest.approx(0.0025 + stopped.cost_usd) and first.spent.usd < 0.004 + 0.0005 + 1e-9
+        md = (out / "summary.md").read_text()
+        assert "Run stopped early" in md and "Spent by the run, every attempt counted: $" in md
+        # Resumed with a larger budget: the stopped episode runs again, and what its first attempt spent counts.
+        second = _runner(gw, world, out, budget_usd=0.012).run(_eps(3))
+    assert second.ran == 2 and second.resumed == 1 and not second.stopped
+    assert [r.status for r in second.results] == ["done"] * 3 and second.row["stopped"] == 0
+    assert second.row["cost_usd"] == pytest.approx(0.0075)  # the kept episodes
+    assert second.spent.usd == pytest.approx(0.0075 + stopped.cost_usd)  # every attempt
     assert "Run stopped early" not in (out / "summary.md").read_text()
+
+
+def test_token_and_wall_time_budgets(world, gateway, tmp_path):
+    world.planner.interval_s = 0.05
+    with gateway() as gw:
+        # 110 tokens per step: 300 tokens are reached at the third step of the first episode.
+        tok = _runner(gw, world, tmp_path / "tokens", budget_tokens=300).run(_eps(2))
+        assert [r.status for r in tok.results] == ["stopped"] and "budget of 300 tokens was reached" in tok.stopped
+        assert 330 <= tok.spent.tokens < 550
+        world.planner.interval_s = 0.2  # an episode takes 1 s; the run may take 0.3 s
+        wall = _runner(gw, world, tmp_path / "wall", budget_wall_s=0.3).run(_eps(2))
+    assert [r.status for r in wall.results] == ["stopped"] and "wall-time budget of 0.3 s" in wall.stopped
 
 
 def _ctx(step, n_waypoints):

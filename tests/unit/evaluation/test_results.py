@@ -90,7 +90,7 @@ def test_summary_row_without_finished_episodes_has_no_metrics():
     row = summary_row([EpisodeResult(episode_id="1", scene_id="s", status="skipped")], "x")
     assert row["count"] == 0 and row["skipped"] == 1
     assert all(row[k] is None for k in ("NE", "SR", "SPL", "nDTW"))
-    assert "| x | 0 | 1 | 0 | - |" in markdown_table([row])
+    assert "| x | 0 | 1 | 0 | 0 | - |" in markdown_table([row])
 
 
 def test_tables_round_trip(tmp_path):

@@ -78,7 +78,7 @@ def test_full_run(world, gateway, episodes, tmp_path):
     assert report.row["count"] == 4 and report.row["skipped"] == 1 and report.row["SR"] == 75.0
     md = (tmp_path / "out" / "summary.md").read_text()
     assert "| 75.0 |" in md and "NOPE.glb" in md
-    assert (tmp_path / "out" / "summary.csv").read_text().startswith("label,count,skipped,errors,NE")
+    assert (tmp_path / "out" / "summary.csv").read_text().startswith("label,count,skipped,errors,stopped,NE")
 
 
 def test_resume_skips_finished_episodes(world, gateway, episodes, tmp_path):

@@ -152,3 +152,21 @@ def test_a_wall_seen_along_a_corridor_is_not_its_own_occluder():
     assert (out.labels[0][wall & ~out.hole_mask[0]] == 0).mean() >= 0.99
     seen = wall & ~out.hole_mask[0]
     assert np.quantile(np.abs(out.depth_m[0][seen] - z[seen]) / z[seen], 0.99) < 0.1
+
+
+def test_colour_filter_removes_sampling_noise_but_not_edges():
+    # A grey wall 3 m away whose points carry +-40 levels of noise (one sample per pixel there):
+    # the 3x3 reconstruction filter over the same surface lowers the pixel noise; a red square
+    # 1 m ahead keeps pure red inside its silhouette (no blend across the depth edge).
+    wall = _lattice(3.0, (-4.0, 4.0), (0.0, 2.6), 0.025, (128, 128, 128), 1, seed=4)
+    rng = np.random.default_rng(5)
+    wall.rgb[:] = np.clip(128 + rng.normal(0, 40, (len(wall), 1)), 0, 255).astype(np.uint8)
+    box = _lattice(1.0, (-0.2, 0.2), (1.05, 1.45), 0.01, (250, 0, 0), 0)
+    index = IndexedCloud(PointCloud.concatenate([box, wall]))
+    on = _render("visibility", index)
+    off = _render("visibility", index, colour_filter_rel=0.0)
+    far = (np.abs(on.depth_m[0] - 3.0) < 0.2) & ~on.hole_mask[0]
+    noise_on, noise_off = on.rgb[0][far][:, 0].std(), off.rgb[0][far][:, 0].std()
+    assert noise_on < noise_off / 1.5, (noise_on, noise_off)
+    near = (np.abs(on.depth_m[0] - 1.0) < 0.05) & ~on.hole_mask[0]
+    assert near.sum() > 1000 and (on.rgb[0][near][:, 1] == 0).all()  # no grey from the wall behind

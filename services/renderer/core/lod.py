@@ -1,0 +1,127 @@
+"""Precomputed point level of detail: voxel-averaged levels per spatial block, chosen per view by
+the projected size of a level's cell.
+
+This is the layered point LOD of Potree / Wimmer and Scheiblauer 2006 ("Instant Points: fast
+rendering of unprocessed point clouds"), with the per-block selection of sequential point trees
+(Dachsbacher, Vogelgsang and Stamminger 2003): level ``L >= 1`` replaces the points of each
+``cell_m * 2^(L-1)`` voxel of a block by one point at their mean position with their mean colour
+(and the label of the member nearest that mean); a view draws each block at the coarsest level
+whose cell still projects to at most ``cell_px`` pixels at the block's nearest point. A view then
+draws about one point per covered pixel per depth layer, whatever the density of the map and
+however far it reaches, instead of every point in the frustum; and because each level point is
+the average of what it stands for, a distant wall keeps its mean colour (prefiltering, as a
+texture's mip level does), which a random subsample of the same size does not.
+
+Levels are stored after the original points in one cloud, grouped by block like the original, so
+that a view's selection is a list of contiguous runs, exactly what the splat's front pass walks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.renderer.core.cloud import IndexedCloud
+from shared.cloud import PointCloud
+
+
+@dataclass(frozen=True)
+class VoxelLod:
+    """Level 0 (the index's points) followed by the voxel levels 1..L, one cloud.
+
+    Block ``b`` at level ``L`` is ``cloud[starts[L, b] : starts[L, b] + counts[L, b]]``; ``spacing``
+    is the local spacing of every point of ``cloud`` (level 0: measured; level L: the larger of
+    the cell and its members' mean spacing)."""
+
+    cloud: PointCloud
+    starts: np.ndarray  # int64 (L + 1, B)
+    counts: np.ndarray  # int64 (L + 1, B)
+    cell_m: tuple[float, ...]  # cell of each level (level 0: 0.0)
+    spacing: np.ndarray  # float32 (len(cloud),)
+
+    @property
+    def levels(self) -> int:
+        return len(self.cell_m) - 1
+
+    def select(self, index: IndexedCloud, mask: np.ndarray | None, world_from_camera: np.ndarray,
+               focal_px: float, cell_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """(starts, counts) of the runs a view draws: each block of ``mask`` (None: all) at the
+        coarsest level whose cell projects to at most ``cell_px`` pixels at its nearest point."""
+        blocks = np.arange(index.block_count) if mask is None else np.flatnonzero(mask)
+        cam = world_from_camera[:3, 3]
+        gap = np.maximum(np.maximum(index.block_min[blocks] - cam, cam - index.block_max[blocks]), 0.0)
+        dist = np.linalg.norm(gap, axis=1)
+        need_m = cell_px * dist / focal_px
+        # cell_L = cell_1 * 2^(L-1) <= need  <=>  L <= log2(need / cell_1) + 1
+        with np.errstate(divide="ignore"):
+            level = np.floor(np.log2(np.maximum(need_m, 1e-12) / self.cell_m[1])).astype(np.int64) + 1
+        level = np.clip(level, 0, self.levels)
+        return self.starts[level, blocks], self.counts[level, blocks]
+
+
+def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int) -> VoxelLod:
+    """The voxel levels of ``index`` (``spacing``: per point of ``index.cloud``).
+
+    Each level is built from the one below (a cell of level L is exactly the union of 2x2x2 cells
+    of level L - 1 on the same grid), carrying sums and counts, so its means are exact and the
+    build costs about one pass over the cloud plus one over each smaller level."""
+    cloud = index.cloud
+    lo = cloud.xyz.astype(np.float64).min(axis=0)
+    n_blocks = index.block_count
+    # The current level as voxels: block, integer cell, point count, sums of xyz / rgb / spacing,
+    # and a representative (position, label) for the label of the next level.
+    blk = np.repeat(np.arange(n_blocks, dtype=np.int64), index.counts)
+    xyz = cloud.xyz.astype(np.float64)
+    cnt = np.ones(len(cloud), np.float64)
+    s_xyz, s_rgb, s_sp = xyz, cloud.rgb.astype(np.float64), spacing.astype(np.float64)
+    rep_xyz, rep_lab = xyz, cloud.labels
+    cell_xyz = np.floor((xyz - lo) / cell_m).astype(np.int64)  # level-1 cells of the points
+    parts_xyz, parts_rgb, parts_lab, parts_sp = [], [], [], []
+    starts = [index.starts.astype(np.int64)]
+    counts = [index.counts.astype(np.int64)]
+    cells = [0.0]
+    offset = len(cloud)
+    for lev in range(1, levels + 1):
+        cell = cell_m * 2 ** (lev - 1)
+        if lev > 1:
+            cell_xyz = cell_xyz // 2  # floor(floor(x / c) / 2) == floor(x / 2c)
+        dims = cell_xyz.max(axis=0) + 1
+        key = ((blk * dims[0] + cell_xyz[:, 0]) * dims[1] + cell_xyz[:, 1]) * dims[2] + cell_xyz[:, 2]
+        uniq, inv = np.unique(key, return_inverse=True)
+        m = len(uniq)
+
+        def total(a):
+            return np.bincount(inv, weights=a, minlength=m)
+
+        n = total(cnt)
+        t_xyz = np.stack([total(s_xyz[:, k]) for k in range(3)], 1)
+        t_rgb = np.stack([total(s_rgb[:, k]) for k in range(3)], 1)
+        t_sp = total(s_sp)
+        mean = t_xyz / n[:, None]
+        if rep_lab is not None:
+            # The label of the member nearest the voxel's mean: a voxel on the edge between two
+            # objects takes the one its point stands on.
+            d2 = ((rep_xyz - mean[inv]) ** 2).sum(axis=1)
+            order = np.lexsort((d2, inv))
+            first = order[np.concatenate([[0], np.flatnonzero(np.diff(inv[order])) + 1])]
+            rep_xyz, rep_lab = rep_xyz[first], rep_lab[first]
+            parts_lab.append(rep_lab.astype(np.int32))
+        parts_xyz.append(mean.astype(np.float32))
+        parts_rgb.append(np.clip(np.rint(t_rgb / n[:, None]), 0, 255).astype(np.uint8))
+        parts_sp.append(np.maximum(t_sp / n, cell).astype(np.float32))
+        # Voxel keys sort by block first: each block's voxels are one run.
+        blk = uniq // (dims[0] * dims[1] * dims[2])
+        per_block = np.bincount(blk, minlength=n_blocks).astype(np.int64)
+        starts.append(offset + np.concatenate([[0], np.cumsum(per_block)[:-1]]).astype(np.int64))
+        counts.append(per_block)
+        cells.append(cell)
+        offset += m
+        # The next level groups these voxels: their cells, decoded from their keys.
+        cell_xyz = np.stack([(uniq // (dims[1] * dims[2])) % dims[0], (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
+        cnt, s_xyz, s_rgb, s_sp = n, t_xyz, t_rgb, t_sp
+    labels = None if cloud.labels is None else np.concatenate([cloud.labels.astype(np.int32), *parts_lab])
+    full = PointCloud(np.concatenate([cloud.xyz.astype(np.float32), *parts_xyz]),
+                      np.concatenate([cloud.rgb, *parts_rgb]), labels, cloud.label_names)
+    return VoxelLod(full, np.stack(starts), np.stack(counts), tuple(cells),
+                    np.concatenate([spacing.astype(np.float32), *parts_sp]))

@@ -1,0 +1,258 @@
+"""Compiled image-space passes of the ``visibility`` mode (numba), bit-identical to
+:func:`visibility.compose` on the numpy backend.
+
+The array version makes some 400 passes over a view's pixels (each ``where``, ``minimum`` and
+pyramid step is one), so a 256 x 256 view cost ~25 ms in memory traffic and temporaries alone.
+Here the same arithmetic runs as three fused loops (surfels and footprint classes; the four
+quadrant covers; visibility, pull and push) around OpenCV's min filters, which stay: they are
+exact and SIMD. The four quadrant covers are kept as one four-channel image, each channel mirrored
+so that its quadrant window lies above-left: one ``cv2.erode`` then dilates all four at once.
+
+Every operation keeps the float32 rounding of the numpy expression it replaces (NEP 50: a Python
+float meets a float32 array as a float32), so the tests compare the two paths exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.jit import AVAILABLE, numba
+
+_INF = np.float32(np.inf)
+
+
+def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, hq, wq, fs_focal, rmin, rmax, lut,
+             zmin, has, zmean, rgb, label, cls, hist):
+    """Padded per-pixel surfel (zmin, has, mean depth, mean colour, label) and footprint class
+    (-1: no surfel); ``hist[k]`` counts the pixels of class k."""
+    hp, wp = zmin_p.shape
+    half = np.float32(0.5)
+    one = np.float32(1.0)
+    for i in range(hq):
+        for j in range(wq):
+            inside = i < hp and j < wp
+            z = zmin_p[i, j] if inside else _INF
+            h = z < _INF
+            c = (cnt_p[i, j] if inside else np.float32(0.0)) if h else one
+            zmin[i, j] = z
+            has[i, j] = h
+            zmean[i, j] = (sz_p[i, j] if inside else np.float32(0.0)) / c
+            rgb[0, i, j] = (r_p[i, j] if inside else np.float32(0.0)) / c
+            rgb[1, i, j] = (g_p[i, j] if inside else np.float32(0.0)) / c
+            rgb[2, i, j] = (b_p[i, j] if inside else np.float32(0.0)) / c
+            if with_labels:
+                label[i, j] = lab_p[i, j] if inside else -1
+            if h:
+                sp = sp_p[i, j] / c
+                rad = np.ceil(sp * fs_focal / z - half)
+                rad = min(max(rad, rmin), rmax)
+                k = np.int32(lut[np.int64(rad + one)])
+                cls[i, j] = k
+                hist[k] += 1
+            else:
+                cls[i, j] = -1
+
+
+def _bucket(cls, hist):
+    """Pixel ids (i * wq + j) grouped by footprint class: class k is ``order[first[k]:first[k + 1]]``."""
+    hq, wq = cls.shape
+    first = np.zeros(hist.shape[0] + 1, np.int64)
+    for k in range(hist.shape[0]):
+        first[k + 1] = first[k] + hist[k]
+    fill = first[:-1].copy()
+    order = np.empty(first[-1], np.int64)
+    for i in range(hq):
+        for j in range(wq):
+            k = cls[i, j]
+            if k >= 0:
+                order[fill[k]] = i * wq + j
+                fill[k] += 1
+    return order, first
+
+
+def _add_sources(cov4, order, lo, hi, zmin):
+    """Sources ``order[lo:hi]`` (one footprint class) into the four mirrored quadrant covers (min)."""
+    hq, wq = zmin.shape
+    for s in range(lo, hi):
+        i, j = order[s] // wq, order[s] % wq
+        z = zmin[i, j]
+        ii, jj = hq - 1 - i, wq - 1 - j
+        cov4[i, j, 0] = min(cov4[i, j, 0], z)  # (-1, -1): as is
+        cov4[i, jj, 1] = min(cov4[i, jj, 1], z)  # (-1, +1): columns mirrored
+        cov4[ii, j, 2] = min(cov4[ii, j, 2], z)  # (+1, -1): rows mirrored
+        cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
+
+
+def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, levels, offs, dims,
+            pyr, pyr_lab, fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max,
+            out_z, out_rgb, out_lab, hole):
+    """Enclosing depths, the visibility test, the pull pyramid and the push, as the array code."""
+    hq, wq = zmin.shape
+    ninf = -_INF
+    zero = np.float32(0.0)
+    # far / near2 per pixel (only the crop's pixels are ever read).
+    far = np.empty((hq, wq), np.float32)
+    near2 = np.empty((hq, wq), np.float32)
+    lo = np.empty(4, np.float32)
+    for i in range(hq):
+        for j in range(wq):
+            ii, jj = hq - 1 - i, wq - 1 - j
+            lo[0] = cov4[i, j, 0]
+            lo[1] = cov4[i, jj, 1]
+            lo[2] = cov4[ii, j, 2]
+            lo[3] = cov4[ii, jj, 3]
+            f = ninf
+            for q in range(4):
+                sy = -1 if q < 2 else 1
+                sx = -1 if q % 2 == 0 else 1
+                out_r = i <= reach if sy < 0 else i >= h + 1 - reach
+                out_c = j <= reach if sx < 0 else j >= w + 1 - reach
+                v = ninf if (lo[q] == _INF and (out_r or out_c)) else lo[q]
+                f = max(f, v)
+            if f == ninf:
+                f = _INF
+            n2 = min(max(min(lo[0], lo[1]), min(lo[2], lo[3])), min(max(lo[0], lo[1]), max(lo[2], lo[3])))
+            far[i, j] = f
+            near2[i, j] = min(n2, f)
+    # Level 0 of the pyramid: the visible surfels. Channels: weight, sum z, sum r, g, b, zlo, zhi.
+    for i in range(hq):
+        for j in range(wq):
+            vis = has[i, j] and zmin[i, j] <= far[i, j] * tol_rel1 + tol_abs
+            wgt = np.float32(1.0) if vis else zero
+            t = i * wq + j
+            zm = zmean[i, j]
+            pyr[0, t] = wgt
+            pyr[1, t] = zm * wgt
+            pyr[2, t] = rgb[0, i, j] * wgt
+            pyr[3, t] = rgb[1, i, j] * wgt
+            pyr[4, t] = rgb[2, i, j] * wgt
+            pyr[5, t] = zm if vis else _INF
+            pyr[6, t] = zm if vis else ninf
+            if with_labels:
+                pyr_lab[t] = label[i, j] if vis else -1
+    # Pull: each coarser cell keeps the children within the tolerance of its nearest child.
+    mean = np.empty(4, np.float32)
+    kf = np.empty(4, np.float32)
+    kid = np.empty(4, np.int64)
+    for lev in range(1, levels + 1):
+        hl, wl = dims[lev, 0], dims[lev, 1]
+        wc = dims[lev - 1, 1]
+        o, oc = offs[lev], offs[lev - 1]
+        for i in range(hl):
+            for j in range(wl):
+                for c in range(4):
+                    kid[c] = oc + (2 * i + c // 2) * wc + 2 * j + c % 2
+                for c in range(4):
+                    wv = pyr[0, kid[c]]
+                    mean[c] = pyr[1, kid[c]] / (wv if wv > 0 else np.float32(1.0)) if wv > 0 else _INF
+                front = min(min(mean[0], mean[1]), min(mean[2], mean[3]))
+                thr = front * tol_rel1 + tol_abs
+                for c in range(4):
+                    kf[c] = np.float32(1.0) if mean[c] <= thr else zero
+                t = o + i * wl + j
+                for ch in range(5):
+                    acc = pyr[ch, kid[0]] * kf[0]
+                    acc = acc + pyr[ch, kid[1]] * kf[1]
+                    acc = acc + pyr[ch, kid[2]] * kf[2]
+                    acc = acc + pyr[ch, kid[3]] * kf[3]
+                    pyr[ch, t] = acc
+                zl = _INF
+                zh = ninf
+                for c in range(4):
+                    if kf[c] > 0:
+                        zl = min(zl, pyr[5, kid[c]])
+                        zh = max(zh, pyr[6, kid[c]])
+                pyr[5, t] = zl
+                pyr[6, t] = zh
+                if with_labels:
+                    lab = -1
+                    for c in range(4):
+                        if kf[c] > 0 and mean[c] == front:
+                            lab = pyr_lab[kid[c]]
+                            break
+                    pyr_lab[t] = lab
+    # Push: each crop pixel without a visible surfel takes its finest acceptable ancestor.
+    for i in range(1, h + 1):
+        for j in range(1, w + 1):
+            t0 = i * wq + j
+            if pyr[0, t0] > 0:
+                out_z[i - 1, j - 1] = zmean[i, j]
+                for ch in range(3):
+                    out_rgb[ch, i - 1, j - 1] = rgb[ch, i, j]
+                if with_labels:
+                    out_lab[i - 1, j - 1] = label[i, j]
+                hole[i - 1, j - 1] = False
+                continue
+            out_z[i - 1, j - 1] = zero
+            for ch in range(3):
+                out_rgb[ch, i - 1, j - 1] = zero
+            if with_labels:
+                out_lab[i - 1, j - 1] = -1
+            hole[i - 1, j - 1] = True
+            ref, ref_lo = far[i, j], near2[i, j]
+            covered = ref < _INF
+            for lev in range(1, levels + 1):
+                if lev > fill_levels and lev > gap_levels:
+                    break
+                t = offs[lev] + (i >> lev) * dims[lev, 1] + (j >> lev)
+                wgt = pyr[0, t]
+                safe = wgt if wgt > 0 else np.float32(1.0)
+                mz = pyr[1, t] / safe
+                take = False
+                if lev <= fill_levels:
+                    take = covered and wgt > 0 and mz <= ref * fill_hi[lev] + tol_abs
+                    take = take and mz >= ref_lo * fill_lo[lev] - tol_abs
+                if lev <= gap_levels and not take:
+                    zl, zh = pyr[5, t], pyr[6, t]
+                    take = (not covered) and wgt > 0 and (zh - zl <= zl * gap_rel[lev] + tol_abs)
+                    take = take and zl * gap_scale[lev] <= gap_max
+                if take:
+                    out_z[i - 1, j - 1] = mz
+                    for ch in range(3):
+                        out_rgb[ch, i - 1, j - 1] = pyr[2 + ch, t] / safe
+                    if with_labels:
+                        out_lab[i - 1, j - 1] = pyr_lab[t]
+                    hole[i - 1, j - 1] = False
+                    break
+
+
+def _colour_filter(rgb, depth, hole, rel, taps):
+    """:func:`visibility.colour_filter`, same taps, order and float32 rounding."""
+    h, w = depth.shape
+    out = np.empty_like(rgb)
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            if hole[i, j]:
+                out[0, i, j] = out[1, i, j] = out[2, i, j] = zero
+                continue
+            d = depth[i, j]
+            tol = d * rel
+            a0 = a1 = a2 = ws = zero
+            t = 0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    k = taps[t]
+                    t += 1
+                    r, c = i + dy, j + dx
+                    inside = 0 <= r < h and 0 <= c < w
+                    ok = inside and (not hole[r, c]) and abs(depth[r, c] - d) <= tol
+                    wt = k if ok else zero
+                    ws = ws + wt
+                    if inside:
+                        a0 = a0 + rgb[0, r, c] * wt
+                        a1 = a1 + rgb[1, r, c] * wt
+                        a2 = a2 + rgb[2, r, c] * wt
+            s = ws if ws > 0 else np.float32(1.0)
+            out[0, i, j] = a0 / s
+            out[1, i, j] = a1 / s
+            out[2, i, j] = a2 / s
+    return out
+
+
+if AVAILABLE:
+    _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+    surfels, bucket, add_sources, finish = _jit(_surfels), _jit(_bucket), _jit(_add_sources), _jit(_finish)
+    colour_filter = _jit(_colour_filter)
+else:  # pragma: no cover
+    surfels = bucket = add_sources = finish = colour_filter = None

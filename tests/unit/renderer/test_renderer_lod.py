@@ -1,0 +1,88 @@
+"""Voxel level of detail: a view draws about one point per pixel of a far surface however dense the
+map, the points it draws stand for the mean of what they replace, and the image stays the image
+of every point."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.renderer.core import RENDERERS, IndexedCloud
+from services.renderer.core.lod import build_voxel_lod
+from services.renderer.core.splat import point_spacing_of
+from shared.cloud import PointCloud
+from shared.geometry import PinholeCamera
+from shared.schemas import ViewPose
+
+CAM = PinholeCamera(128, 128, 90.0)
+
+
+def _wall(x_m: float, half_m: float, step_m: float, checker_m: float | None = None, seed: int = 0) -> PointCloud:
+    """A dense vertical wall at ``x = x_m`` (y in +-half_m, z 0-2.5 m), grey or a red/blue checker."""
+    ys, zs = np.arange(-half_m, half_m, step_m), np.arange(0.0, 2.5, step_m)
+    yy, zz = np.meshgrid(ys, zs)
+    n = yy.size
+    xyz = np.column_stack([np.full(n, x_m), yy.ravel(), zz.ravel()])
+    xyz += np.random.default_rng(seed).normal(0, step_m / 4, xyz.shape)
+    rgb = np.full((n, 3), 128, np.uint8)
+    if checker_m is not None:
+        odd = ((np.floor(yy.ravel() / checker_m) + np.floor(zz.ravel() / checker_m)) % 2).astype(bool)
+        rgb = np.where(odd[:, None], [[250, 0, 0]], [[0, 0, 250]]).astype(np.uint8)
+    return PointCloud(xyz, rgb, np.zeros(n, np.int32), {0: "wall"})
+
+
+def _view():
+    return [ViewPose(position_m=(0.0, 0.0, 0.0))]
+
+
+def test_drawn_points_follow_the_pixels_not_the_distance_or_density():
+    # The same 1 cm wall 2 m and 8 m away: without LOD a view draws every point in the frustum
+    # (more at 8 m: the frustum takes in more of the wall); with it, about the pixels covered.
+    near, far = IndexedCloud(_wall(2.0, 2.0, 0.01)), IndexedCloud(_wall(8.0, 8.0, 0.01, seed=1))
+    lod = RENDERERS.create("numpy")
+    off = RENDERERS.create("numpy", {"lod_points_per_px": None})
+    n_near = lod.render(near, _view(), CAM).visible_points[0]
+    n_far = lod.render(far, _view(), CAM).visible_points[0]
+    all_far = off.render(far, _view(), CAM).visible_points[0]
+    assert n_far <= 4 * CAM.width_px * CAM.height_px, n_far
+    assert n_far < all_far / 20, (n_far, all_far)
+    assert n_far < n_near, (n_far, n_near)
+    # and the wall is still a whole wall, at its depth
+    out = lod.render(far, _view(), CAM)
+    seen = ~out.hole_mask[0]
+    assert seen[58:70].mean() > 0.99  # the rows that see the wall (2.5 m high, camera at 1.25 m)
+    assert np.allclose(out.depth_m[0][seen], 8.0, atol=0.1)
+
+
+def test_level_points_are_the_means_of_their_voxels():
+    index = IndexedCloud(_wall(3.0, 1.0, 0.01, checker_m=0.02))
+    lod = build_voxel_lod(index, point_spacing_of(index, 4), cell_m=0.04, levels=3)
+    assert lod.cloud.xyz[: len(index)].tobytes() == index.cloud.xyz.tobytes()  # level 0 is the cloud
+    assert len(lod.cloud) > len(index)
+    for level in (1, 2, 3):
+        n = int(lod.counts[level].sum())
+        assert n < len(index) / 4 ** (level - 0.5), (level, n)
+        start = int(lod.starts[level].min())
+        rgb = lod.cloud.rgb[start : start + n].astype(float)
+        # 2 cm checker in >= 4 cm cells: every level point mixes red and blue
+        assert np.abs(rgb[:, 0] - rgb[:, 2]).mean() < 120, level
+        assert (lod.spacing[start : start + n] >= lod.cell_m[level] - 1e-6).all()
+    # blocks keep their points within their own bounds at every level
+    for level in (1, 2, 3):
+        for b in range(index.block_count):
+            s, c = lod.starts[level, b], lod.counts[level, b]
+            pts = lod.cloud.xyz[s : s + c]
+            assert (pts >= index.block_min[b] - 1e-4).all() and (pts <= index.block_max[b] + 1e-4).all()
+
+
+def test_a_far_checker_renders_its_mean_colour_and_matches_every_point():
+    # 2 cm checker 6 m away: a pixel is 4.7 cm there. Drawn from its voxel levels, the wall shows
+    # the checker's mean (purple), as drawing every point does, within a few levels.
+    index = IndexedCloud(_wall(6.0, 6.0, 0.01, checker_m=0.02))
+    a = RENDERERS.create("numpy").render(index, _view(), CAM)
+    b = RENDERERS.create("numpy", {"lod_points_per_px": None}).render(index, _view(), CAM)
+    both = ~a.hole_mask[0] & ~b.hole_mask[0]
+    assert both[58:70].mean() > 0.99
+    ra, rb = a.rgb[0][both].astype(float), b.rgb[0][both].astype(float)
+    assert abs(ra[:, 0].mean() - ra[:, 2].mean()) < 25  # purple, not red or blue pixels
+    assert np.abs(ra.mean(axis=0) - rb.mean(axis=0)).max() < 10
+    assert a.visible_points[0] < b.visible_points[0] / 5
