@@ -16,6 +16,7 @@ from deploy.up import api_token
 
 pytestmark = pytest.mark.e2e
 ROOT = Path(__file__).resolve().parents[2]
+SMALL_SCENE = "generated:3:area=50"
 
 
 def _read_until(proc: subprocess.Popen, pattern: str, timeout_s: float, seen: list[str]) -> re.Match:
@@ -42,7 +43,9 @@ def _read_until(proc: subprocess.Popen, pattern: str, timeout_s: float, seen: li
 def test_make_up_serves_the_api_with_a_token_until_ctrl_c(tmp_path):
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "ANT_API_TOKEN"}
-    proc = subprocess.Popen([sys.executable, "-m", "deploy.up", "--port", str(port), "--run-dir", str(tmp_path)],
+    # A small house: robot-io builds its scene before it is alive, and serving the API does not depend on it.
+    proc = subprocess.Popen([sys.executable, "-m", "deploy.up", "--port", str(port), "--run-dir", str(tmp_path),
+                             "--scene", SMALL_SCENE],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     seen: list[str] = []
     try:

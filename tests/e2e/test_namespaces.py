@@ -43,6 +43,7 @@ SERVER_SERVICES = ("planner", "mapper", "renderer", "reconstructor", "gateway")
 ROBOT_SERVICES = ("robot_io",)
 ROBOT = "robot0"
 CLONE_NEWNET = 0x40000000
+START_SCENE = "generated:3:area=50"
 
 
 def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -195,11 +196,16 @@ def test_router_gateway_planner_on_one_host_robot_on_another(netns, tmp_path):
                 env["ANT_PORT"] = str(http_port)
             server.start(name, [py, "-m", f"services.{name}"], env)
         for name in ROBOT_SERVICES:
-            robot.start(name, [py, "-m", f"services.{name}"],
-                        service_env(endpoint, name, robot_dir / "zenoh" / f"{name}.password", robot_dir))
+            env = service_env(endpoint, name, robot_dir / "zenoh" / f"{name}.password", robot_dir)
+            # robot-io starts in another small house (the default one costs seconds to build): the episode's
+            # scene switch below stays a real one.
+            env["ANT_ROBOT_CONFIG"] = json.dumps({"scene": START_SCENE})
+            robot.start(name, [py, "-m", f"services.{name}"], env)
 
-        # The episode (a generated house and its ground truth) is made while the services start.
-        ds, gt = generate_set(SetSpec(houses=1, per_house=1, floors=(1,), seed=7), with_gt=True)
+        # The episode (a generated house and its ground truth) is made while the services start; a small
+        # house, as what crosses the veth does not depend on its size.
+        ds, gt = generate_set(SetSpec(houses=1, per_house=1, floors=(1,), seed=7, area_m2=60.0), with_gt=True)
+        assert ds.episodes[0].scene_id != START_SCENE
         url = f"http://127.0.0.1:{http_port}"
         on_a = ThreadPoolExecutor(max_workers=1, initializer=_in_netns, initargs=(netns.server,))
         on_b = ThreadPoolExecutor(max_workers=1, initializer=_in_netns, initargs=(netns.robot,))

@@ -7,6 +7,7 @@ survived (faults, fuzzed payloads, HTTP cases, 5xx answers, lost missions and ev
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import threading
@@ -53,15 +54,25 @@ def wait_until(pred, timeout_s: float, what: str, interval_s: float = 0.1):
     return waiting.wait_until(pred, timeout_s, what, interval_s=interval_s, ignore=(httpx.HTTPError, OSError))
 
 
+@functools.lru_cache(maxsize=1)
+def _sim_scene():
+    """The scene robot-io simulates and its walkable viewpoints, built once per session: four fixtures and
+    tests sample it, and the default house and its nav grids cost seconds to build (read-only here)."""
+    from evaluation.clouds import walkable_viewpoints
+    from services.robot_io.core import ROBOTS
+
+    with ROBOTS.create("sim", {"scene": SCENE}) as robot:
+        return robot.scene, walkable_viewpoints(robot.scene)
+
+
 def scene_ply(density_per_m2: float = 60.0) -> bytes:
     """A PLY of points sampled from the scene robot-io simulates (the map a mission runs on)."""
     from evaluation.clouds import sample_scene_cloud
     from shared.cloud import encode
-    from services.robot_io.core import ROBOTS
 
-    with ROBOTS.create("sim", {"scene": SCENE}) as robot:
-        cloud = sample_scene_cloud(robot.scene, density_per_m2=density_per_m2, max_points=200_000)
-    return encode(cloud)
+    scene, viewpoints = _sim_scene()
+    return encode(sample_scene_cloud(scene, density_per_m2=density_per_m2, max_points=200_000,
+                                     viewpoints_m=viewpoints))
 
 
 @pytest.fixture(scope="session")
