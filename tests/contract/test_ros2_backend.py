@@ -291,3 +291,22 @@ def test_a_robot_without_depth_gives_views_without_depth_and_jpeg_colour_works()
             assert not pano.depth_m.any()
     finally:
         s.close()
+
+
+def test_frames_recorded_during_a_look_around_have_unique_indices_and_depth():
+    """The recording thread and look_around both make frames while the robot turns: an index given twice
+    was dropped downstream as a repeat (the reconstructor then waited its whole frame timeout for it), and a
+    colour image whose depth had not arrived yet became a frame without depth (the map build failed)."""
+    s = StandIn(camera_rate_hz=10.0)
+    robot = s.backend()
+    frames = []
+    try:
+        with robot.recording(frames.append, rate_hz=50.0):
+            robot.look_around()
+    finally:
+        robot.close()
+        s.close()
+    indices = [f.index for f in frames]
+    assert len(frames) >= 10
+    assert len(set(indices)) == len(indices), sorted(indices)
+    assert all(f.depth_m is not None for f in frames)

@@ -216,6 +216,9 @@ class Ros2Robot(Robot):
         self._teleport = n.client(p.teleport_service, "turtlesim/srv/TeleportAbsolute") if p.teleport_service else None
         self._sinks: list[tuple[FrameSink, float]] = []
         self._frame_index = 0
+        # The recording thread and look_around both make frames: an index taken twice would be dropped
+        # as a repeat downstream (the reconstructor then waited its whole frame timeout for it).
+        self._frame_lock = threading.Lock()
         self._rec_threads: list[tuple[threading.Event, threading.Thread]] = []
         self._map_cache: tuple[float, Any] | None = None
         try:
@@ -618,6 +621,10 @@ class Ros2Robot(Robot):
         if self.profile.depth:
             pairs = [x for x in self._depth.all() if abs(x[0] - t_c) <= self.config.stamp_match_s]
             dep = min(pairs, key=lambda x: abs(x[0] - t_c))[1] if pairs else None
+            if dep is None:
+                # The newest colour's depth has not arrived yet: no frame now (a frame without depth from
+                # a robot that has depth would fail the whole map build); the caller takes the next one.
+                return None
         sem = None
         if self.profile.semantic:
             sp = [x for x in self._sem.all() if abs(x[0] - t_c) <= self.config.stamp_match_s]
@@ -626,12 +633,14 @@ class Ros2Robot(Robot):
                 sem = self._resample(raw + 1, k, cam, nearest=True).astype(np.int32) - 1
         imu = self._imu.get()
         pose = self._pose_at(t_c)
-        frame = Frame(index=self._frame_index, timestamp_s=t_c, pose=pose, pitch_rad=pitch_rad,
+        with self._frame_lock:
+            index = self._frame_index
+            self._frame_index += 1
+        frame = Frame(index=index, timestamp_s=t_c, pose=pose, pitch_rad=pitch_rad,
                       imu_heading_rad=float(m.yaw_from_quaternion(imu[1].orientation)) if imu else pose.heading_rad,
                       camera=cam, rgb=self._resample(self._rgb(cmsg), k, cam, nearest=False),
                       depth_m=None if dep is None else self._resample(self._depth_m(dep), k, cam, nearest=True),
                       semantic=sem)
-        self._frame_index += 1
         return frame
 
     def _pose_at(self, t_s: float) -> Pose:
@@ -654,6 +663,9 @@ class Ros2Robot(Robot):
                 t0 = self.clock.now()
                 self._capture(t0, c.camera, True, end)  # waits for a frame taken after settling
                 f = self._frame()
+                while f is None and self.clock.now() < end:  # a newer colour whose depth is on its way
+                    self.clock.sleep(0.02)
+                    f = self._frame()
                 if f is not None:
                     frames.append(f)
                     for sink, _ in self._sinks:
