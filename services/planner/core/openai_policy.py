@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 from typing import Literal
 
-import openai
 from pydantic import Field, field_validator
 
 from shared.pricing import PriceTable
@@ -67,7 +66,17 @@ class OpenAIConfig(BackendConfig):
         return v
 
 
-_TRANSIENT = (openai.APITimeoutError, openai.APIConnectionError, openai.RateLimitError, openai.InternalServerError)
+def _openai():
+    # Imported on first use, not with the planner: the SDK costs ~2.6 s at every planner start (measured
+    # under load with -X importtime), and the default policy is the heuristic.
+    import openai
+
+    return openai
+
+
+def _transient() -> tuple[type[Exception], ...]:
+    o = _openai()
+    return (o.APITimeoutError, o.APIConnectionError, o.RateLimitError, o.InternalServerError)
 
 
 def retry_after_s(exc: Exception) -> float | None:
@@ -107,7 +116,7 @@ class OpenAIPolicy(Policy):
                 raise PolicyBackendError(f"no API key: set {config.api_key_env} or api_key in the policy config")
             key = "not-needed"  # local servers (vLLM, Ollama) usually take any key
         # Retries are ours (typed, logged, with jittered backoff), so the SDK's are off.
-        self._client = openai.OpenAI(api_key=key, base_url=config.base_url, timeout=config.timeout_s, max_retries=0)
+        self._client = _openai().OpenAI(api_key=key, base_url=config.base_url, timeout=config.timeout_s, max_retries=0)
         self._fallback: Policy | None = None
         self._rng = random.Random(0)
 
@@ -140,7 +149,7 @@ class OpenAIPolicy(Policy):
         for attempt in range(cfg.retries + 1):
             try:
                 resp = self._client.chat.completions.create(**kwargs)
-            except _TRANSIENT as exc:
+            except _transient() as exc:
                 if attempt >= cfg.retries:
                     raise PolicyBackendError(
                         f"{cfg.model}: {type(exc).__name__} after {attempt + 1} attempts: {exc}"
@@ -155,7 +164,7 @@ class OpenAIPolicy(Policy):
                 time.sleep(sleep)
                 delay *= 2.0
                 continue
-            except openai.APIError as exc:  # 4xx and the like: retrying will not help
+            except _openai().APIError as exc:  # 4xx and the like: retrying will not help
                 raise PolicyBackendError(f"{cfg.model}: {type(exc).__name__}: {exc}") from exc
             usage.calls += 1
             if resp.usage is not None:
