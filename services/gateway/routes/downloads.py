@@ -137,6 +137,9 @@ class RecordingWriter:
         self._queue: queue.Queue[tuple[str, int] | None] = queue.Queue(maxsize=1000)
         self._locks: dict[str, threading.Lock] = {}
         self._lock = threading.Lock()
+        # Set by close(): a worker waiting for a job to settle gives up at once, before the app closes the
+        # store under it (it used to wait out settle_s, longer than close() waits for it).
+        self._stopping = threading.Event()
         self._subs: list[Closeable] = [
             bus.subscribe(keys.MISSION_EVENTS.pattern(robot=settings.robot), JobEvent, self._on_event),
             bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=settings.robot), JobEvent, self._on_event),
@@ -161,7 +164,8 @@ class RecordingWriter:
             deadline = time.monotonic() + self.settle_s
             row = self.store.get_job(job_id)
             while (row is None or not row.terminal or row.last_seq < seq) and time.monotonic() < deadline:
-                time.sleep(0.05)
+                if self._stopping.wait(0.05):
+                    return
                 row = self.store.get_job(job_id)
             if row is None or not row.terminal or not recorded(row, self.settings):
                 continue
@@ -175,6 +179,7 @@ class RecordingWriter:
                 log.exception("could not record %s", job_id)
 
     def close(self) -> None:
+        self._stopping.set()
         for s in self._subs:
             s.close()
         self._subs.clear()
