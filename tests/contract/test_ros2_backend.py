@@ -113,7 +113,9 @@ def test_observe_turns_through_twelve_headings_and_returns_rgbd(standin):
 
 def test_a_move_into_a_wall_stops_at_the_safety_distance_and_reports_blocked(standin):
     with standin.backend(keys=standin.keys) as robot:
-        # The nearest wall from the scan: drive at it, twice as far as it is.
+        # The nearest wall from the scan: drive at it, twice as far as it is. The backend is up once it has
+        # odometry and a camera image; its first scan may still be on its way on a loaded machine.
+        wait_until(lambda: robot._scan.get() is not None, 30, "the first scan")
         scan = robot._scan.get()[1]
         r = np.asarray(scan.ranges)
         a = scan.angle_min + scan.angle_increment * np.arange(len(r))

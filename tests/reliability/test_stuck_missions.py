@@ -66,7 +66,10 @@ def test_stale_running_rows_are_failed_when_the_gateway_and_planner_restart_toge
                          "the stale row reconciled at start")
         tally.add("kill_pairs")
         tally.add("stuck_missions", 0 if rec["state"] == "failed" else 1)
-        assert rec["state"] == "failed" and "lost it" in rec["error"], rec
+        # Either way round, as above: the new incarnation already up ("restarted ... lost it"), or not yet
+        # (the old one's token gone: "went away"), which a loaded machine sees when the planner starts slowly.
+        assert rec["state"] == "failed" and "plan-live" in rec["error"], rec
+        assert "lost it" in rec["error"] or "went away" in rec["error"], rec
 
 
 def test_cancelling_an_orphan_succeeds_and_a_second_cancel_says_already_cancelled(live, live_gateway, tally):

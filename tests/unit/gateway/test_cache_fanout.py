@@ -170,7 +170,10 @@ def test_live_streams_share_frames_and_do_not_read_the_db(store, monkeypatch):
             return out
 
         streams = [asyncio.create_task(collect()) for _ in range(20)]
-        await asyncio.sleep(0.05)
+        for _ in range(500):  # the replays read in worker threads: up to 5 s on a loaded machine
+            if len(reads) >= 20:
+                break
+            await asyncio.sleep(0.01)
         assert len(reads) == 20  # each replayed event 0 from the database ...
         for seq in range(1, 6):
             stored = store.append_event(JobKind.MISSION, _event("m1", seq, JobState.SUCCEEDED if seq == 5
