@@ -44,8 +44,9 @@ from evaluation.results import EpisodeResult, ResultsLog
 from evaluation.runner import MapSource, RunConfig, episode_seed
 from services.mapper.core import PREDICTORS
 from services.planner.core.local import LocalStack, episode_options
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
+from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
+from shared.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import MissionOptions
 
 log = logging.getLogger(__name__)

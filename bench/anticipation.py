@@ -44,9 +44,9 @@ from pathlib import Path
 import numpy as np
 from skimage.metrics import structural_similarity
 
-from services.renderer.core import RENDERERS, IndexedCloud
 from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera, camera_pose
+from shared.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CameraIntrinsics
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,7 +131,7 @@ def free_poses(robot, n: int, seed: int) -> list[np.ndarray]:
 def candidate_poses(robot, index: IndexedCloud, n_agents: int, seed: int) -> list[np.ndarray]:
     """Camera poses at the candidates the waypoint predictor really proposes from random agent
     poses, facing away from the agent, at the candidate's own floor (as the renderer places it)."""
-    from services.mapper.core import PREDICTORS, DEFAULT_PREDICTOR
+    from services.mapper.core import DEFAULT_PREDICTOR, PREDICTORS
     from services.renderer.core import MapRenderer, SpatialMapper
     from shared.schemas import Pose, ViewPose
 

@@ -12,14 +12,14 @@ from __future__ import annotations
 import argparse
 import time
 
-
 from bench.common import percentiles_ms, table
 from evaluation.clouds import sample_scene_cloud
-from shared.vln_metrics import summarize
 from services.mapper.core import PREDICTORS
 from services.planner.core.local import LocalStack, episode_options
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
+from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS, generate_episodes
+from shared.pointrender import RENDERERS, IndexedCloud
+from shared.vln_metrics import summarize
 
 
 def stack_for(scene: str) -> tuple[LocalStack, object]:

@@ -26,9 +26,10 @@ from pathlib import Path
 import numpy as np
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from services.renderer.core import RENDERERS, IndexedCloud, SpatialMapper
+from services.renderer.core import SpatialMapper
 from services.renderer.tools import scenes
 from shared.geometry import PinholeCamera, camera_pose, rot_z
+from shared.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import Candidate, Pose, ViewPose
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

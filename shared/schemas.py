@@ -23,7 +23,6 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 from shared.arrays import Array
 from shared.geometry import PinholeCamera
 
-
 # --- limits -----------------------------------------------------------------------------------------
 # Every number a request carries is finite (``allow_inf_nan=False`` on every model) and inside a stated
 # range, checked when the message is decoded: a value outside it can only be a mistake or an attack,
@@ -500,7 +499,7 @@ class MapChunk(Message):
 # --- renderer --------------------------------------------------------------------------------------
 
 
-# The renderer's splat modes (services.renderer.core.splat.SplatConfig.mode): the paper's fixed 3x3
+# The renderer's splat modes (shared.pointrender.splat.SplatConfig.mode): the paper's fixed 3x3
 # Gaussian, or the occlusion-correct visibility splatting with hole filling (issue 20).
 SplatMode = Literal["paper", "visibility"]
 

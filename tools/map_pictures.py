@@ -18,8 +18,9 @@ import cv2
 import numpy as np
 
 from services.reconstructor.core import MapStore, ReconstructionConfig, Reconstructor
-from services.renderer.core import RENDERERS, IndexedCloud, SpatialMapper
+from services.renderer.core import SpatialMapper
 from shared.geometry import PinholeCamera
+from shared.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CameraIntrinsics, Pose
 
 

@@ -17,14 +17,20 @@ from typing import Any
 
 from pydantic import Field
 
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
-from shared.cloud import PointCloud
+from services.renderer.core import MapRenderer, SpatialMapper
 from shared import keys
 from shared.bus.typed import NotFound, RemoteError
 from shared.clients import MapClient
+from shared.cloud import PointCloud
+from shared.pointrender import RENDERERS, IndexedCloud
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    ErrorCode, MapInfo, RenderRequest, RenderResult, SpatialMapRequest, SpatialMapResult,
+    ErrorCode,
+    MapInfo,
+    RenderRequest,
+    RenderResult,
+    SpatialMapRequest,
+    SpatialMapResult,
 )
 
 log = logging.getLogger(__name__)

@@ -11,13 +11,13 @@ import pytest
 
 from services.reconstructor.core.errors import MapStoreError
 from services.reconstructor.core.store import MapStore
-from shared.cloud import CloudFormatError
 from shared import keys
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.base import QueryTarget
 from shared.bus.typed import TypedBus
+from shared.cloud import CloudFormatError
 from shared.codec import decode
-from shared.schemas import ErrorCode, ErrorReply, MoveRequest, PoseReply, ResetRequest, Pose
+from shared.schemas import ErrorCode, ErrorReply, MoveRequest, Pose, PoseReply, ResetRequest
 from tests.reliability.fuzzing import _envelope
 from tests.reliability.http_server import live_gateway
 
@@ -179,8 +179,9 @@ def _tiny_cloud(n: int, z_m: float = 3.0):
 @pytest.mark.parametrize("backend", ["numpy", "torch"])
 @pytest.mark.parametrize("n", [1, 5])
 def test_tiny_cloud_renders_holes_and_an_unknown_map(backend, n):
-    from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
-    from services.renderer.core.spatial_map import UNKNOWN, _COLOURS
+    from services.renderer.core import MapRenderer, SpatialMapper
+    from services.renderer.core.spatial_map import _COLOURS, UNKNOWN
+    from shared.pointrender import RENDERERS, IndexedCloud
     from shared.schemas import CameraIntrinsics, Candidate, CandidateKind, ViewPose
 
     index = IndexedCloud(_tiny_cloud(n))
@@ -203,8 +204,8 @@ def test_tiny_cloud_renders_holes_and_an_unknown_map(backend, n):
 
 
 def test_empty_cloud_is_a_typed_error_that_is_also_a_value_error():
-    from services.renderer.core import IndexedCloud
     from shared.cloud import EmptyCloudError, PointCloud
+    from shared.pointrender import IndexedCloud
     from shared.schemas import MapChunk
 
     with pytest.raises(EmptyCloudError):

@@ -28,13 +28,9 @@ import numpy as np
 from pydantic import Field
 from skimage.metrics import structural_similarity
 
-# The one declared use of another service's core (STYLE 12): metric alignment must render the regional
-# cloud exactly as the renderer service will render the finished map, so it uses the renderer's splatting
-# as a library (in-process, no bus) instead of a second copy of it. Nothing else in the reconstructor
-# imports services.renderer.
-from services.renderer.core import RENDERERS, IndexedCloud
 from shared.cloud import PointCloud
 from shared.geometry import camera_rotation, rot_z, wrap_angle
+from shared.pointrender import RENDERERS, IndexedCloud  # the renderer service's splatting, in-process
 from shared.registry import BackendConfig
 
 from .depth import MetricDepth

@@ -1,9 +1,13 @@
-"""Renderer core: anticipated views and the spatial map from a coloured point cloud (no bus here)."""
+"""Renderer core: anticipated views and the spatial map of a stored map (no bus here).
 
-from services.renderer.core import visibility
-from services.renderer.core.cloud import IndexedCloud
+The point splatting itself is the shared library :mod:`shared.pointrender` (the reconstructor's
+metric alignment renders with it too); this core binds it to one map (:class:`MapRenderer`), splits
+a map into floors and draws the top-down spatial map.
+"""
+
 from services.renderer.core.errors import (
     BackendUnavailableError,
+    MapMismatchError,
     RendererError,
 )
 from services.renderer.core.port import MapRenderer
@@ -13,16 +17,18 @@ from services.renderer.core.spatial_map import (
     SpatialMapImage,
     SpatialMapper,
 )
-from services.renderer.core.splat import (
+from shared.pointrender import (
     RENDERERS,
+    IndexedCloud,
     RenderedViews,
     SplatConfig,
     SplatRenderer,
     TorchSplatConfig,
+    visibility,
 )
 
 __all__ = [
-    "RENDERERS", "BackendUnavailableError", "IndexedCloud", "MapRenderer",
+    "RENDERERS", "BackendUnavailableError", "IndexedCloud", "MapMismatchError", "MapRenderer",
     "OccupancyGrid", "RenderedViews", "RendererError", "SpatialMapConfig",
     "SpatialMapImage", "SpatialMapper", "SplatConfig", "SplatRenderer", "TorchSplatConfig", "visibility",
 ]

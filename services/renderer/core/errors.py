@@ -1,14 +1,10 @@
-"""Typed errors of the renderer core (a cloud's own errors live with it, in :mod:`shared.cloud`)."""
+"""Typed errors of the renderer service's core (the point renderer's own are in :mod:`shared.pointrender`)."""
 
 from __future__ import annotations
 
+from shared.pointrender.errors import BackendUnavailableError, RendererError
 
-class RendererError(Exception):
-    """Base of every error raised by the renderer core."""
-
-
-class BackendUnavailableError(RendererError):
-    """A backend was asked for a device it cannot use (e.g. ``cuda`` without a GPU)."""
+__all__ = ["BackendUnavailableError", "MapMismatchError", "RendererError"]
 
 
 class MapMismatchError(RendererError, LookupError):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cloud import IndexedCloud
+from shared.pointrender.cloud import IndexedCloud
 
 
 class FloorHeights:

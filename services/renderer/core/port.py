@@ -10,13 +10,13 @@ import time
 
 import numpy as np
 
+from shared.pointrender.cloud import IndexedCloud
+from shared.pointrender.splat import SplatRenderer
 from shared.schemas import CameraIntrinsics, Candidate, Pose, RenderResult, SpatialMapResult, ViewPose
 
-from .cloud import IndexedCloud
 from .errors import MapMismatchError
 from .floors import floors_of
 from .spatial_map import SpatialMapper
-from .splat import SplatRenderer
 
 
 class MapRenderer:

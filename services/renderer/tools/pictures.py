@@ -16,10 +16,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.renderer.core import RENDERERS, IndexedCloud, OccupancyGrid, SpatialMapper
+from services.renderer.core import OccupancyGrid, SpatialMapper
 from services.renderer.core.spatial_map import FREE
 from services.renderer.tools import scenes
 from shared.geometry import PinholeCamera, camera_pose
+from shared.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import Candidate, Pose, ViewPose
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"

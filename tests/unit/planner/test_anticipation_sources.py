@@ -13,8 +13,9 @@ from services.mapper.core import PREDICTORS
 from services.planner.core import POLICIES
 from services.planner.core.mission import AnticipationError, MissionLoop, TrueSceneViews
 from services.planner.core.policy import Policy
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
+from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
+from shared.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CameraIntrinsics, MissionOptions, RenderRequest, SceneViewsRequest, ViewPose
 
 pytestmark = pytest.mark.timeout(120)

@@ -6,16 +6,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tests.unit.planner.test_planner_openai import FakeChatServer
 
 from evaluation.clouds import sample_scene_cloud
 from services.mapper.core import PREDICTORS
 from services.planner.core import POLICIES, OpenAIConfig
 from services.planner.core.mission import MissionLoop, MissionOutcome
 from services.planner.core.policy import Policy
-from services.renderer.core import RENDERERS, IndexedCloud, MapRenderer, SpatialMapper
+from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
-from shared.schemas import CandidateKind, JobEventKind, MissionEnd, MissionOptions, JobState, MoveResult, MoveStatus
+from shared.pointrender import RENDERERS, IndexedCloud
+from shared.schemas import CandidateKind, JobEventKind, JobState, MissionEnd, MissionOptions, MoveResult, MoveStatus
+from tests.unit.planner.test_planner_openai import FakeChatServer
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from services.renderer.core import IndexedCloud
 from services.renderer.tools import scenes
+from shared.pointrender import IndexedCloud
 
 
 @pytest.fixture(scope="session")

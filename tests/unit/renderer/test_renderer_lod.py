@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.renderer.core import RENDERERS, IndexedCloud
-from services.renderer.core.lod import build_voxel_lod
-from services.renderer.core.splat import point_spacing_of
 from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera
+from shared.pointrender import RENDERERS, IndexedCloud
+from shared.pointrender.lod import build_voxel_lod
+from shared.pointrender.splat import point_spacing_of
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(128, 128, 90.0)

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from services.renderer.core import RENDERERS, IndexedCloud, kernels
-from services.renderer.core.errors import BackendUnavailableError
-from shared.cloud import EmptyCloudError, PointCloud
 from services.renderer.tools import scenes
+from shared.cloud import EmptyCloudError, PointCloud
 from shared.geometry import PinholeCamera, camera_pose
+from shared.pointrender import RENDERERS, IndexedCloud, kernels
+from shared.pointrender.errors import BackendUnavailableError
 from shared.schemas import CameraIntrinsics, ViewPose
 
 CAM = PinholeCamera(256, 256, 90.0)

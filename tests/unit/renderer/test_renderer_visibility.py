@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.renderer.core import RENDERERS, IndexedCloud, visibility
-from shared.cloud import PointCloud
 from services.renderer.tools import scenes
+from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera
+from shared.pointrender import RENDERERS, IndexedCloud, visibility
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(256, 256, 90.0)

@@ -325,7 +325,7 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     (bit-identical; ~10x faster at 256 x 256). Same outputs."""
     import cv2
 
-    from services.renderer.core import visibility_kernels as vk
+    from shared.pointrender import visibility_kernels as vk
 
     levels = max(p.fill_levels, p.gap_levels)
     cell = 1 << levels

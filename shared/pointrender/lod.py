@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.renderer.core.cloud import IndexedCloud
 from shared.cloud import PointCloud
+from shared.pointrender.cloud import IndexedCloud
 
 
 @dataclass(frozen=True)

@@ -61,11 +61,11 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from services.renderer.core import kernels, visibility
-from services.renderer.core.cloud import Frustum, IndexedCloud
-from services.renderer.core.errors import BackendUnavailableError
-from services.renderer.core.lod import VoxelLod, build_voxel_lod
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
+from shared.pointrender import kernels, visibility
+from shared.pointrender.cloud import Frustum, IndexedCloud
+from shared.pointrender.errors import BackendUnavailableError
+from shared.pointrender.lod import VoxelLod, build_voxel_lod
 from shared.registry import BackendConfig, Registry
 from shared.schemas import CameraIntrinsics, ViewPose
 
