@@ -1,7 +1,8 @@
 """bench/ablation: paired ablations in-process, on as many episodes as an effect needs (issue 20).
 
-    python -m bench.ablation --preset true-views --houses 15 --per-house 20   # 300 episodes
-    python -m bench.ablation --preset splat --map rgbd
+    python -m bench.ablation --preset views --houses 15 --per-house 20       # 300 episodes
+    python -m bench.ablation --preset hfov --limit 100
+    python -m bench.ablation --preset cloud --map rgbd,noisy --limit 100     # curated / rgbd / noisy
     python -m bench.ablation --preset anticipation --map noisy --policy-config '{"anticipation_use": "replace"}'
 
 The variants are ``evaluation.presets`` (one table of ablations for both paths); the episodes are the
@@ -17,7 +18,9 @@ Maps (``--map``): ``rgbd`` (default), ``mono-sim`` and ``noisy`` are built the w
 them (explore -> tours -> the reconstructor; ``noisy``: the robot's sensor noise on during exploration
 and tours only, the reality gap of the paper) and cached with bench.anticipation's maps; ``curated`` is
 the sampled mesh, visible surfaces only. A variant that sets ``map_source`` (preset ``cloud``) gets
-``curated`` or the ``--map`` reconstruction. Navigation always runs on a noise-free robot.
+``curated`` or the ``--map`` reconstruction; ``--map rgbd,noisy`` runs every reconstructed variant once per
+map kind (``reconstructed (noisy)``, ...), all paired on the same episodes. Navigation always runs on a
+noise-free robot.
 
 Every episode runs every variant before the next episode starts, so a stopped run leaves complete pairs,
 and a rerun resumes (each variant's ``results.jsonl`` is the evaluation runner's format: compare folders
@@ -39,7 +42,7 @@ from typing import Any
 from bench.anticipation import build_map
 from evaluation.compare import compare_runs, comparison_markdown
 from evaluation.dataset import SetSpec, generate_set, parse_floors
-from evaluation.presets import presets
+from evaluation.presets import Variant, presets
 from evaluation.results import EpisodeResult, ResultsLog
 from evaluation.runner import MapSource, RunConfig, episode_seed
 from services.mapper.core import PREDICTORS
@@ -78,6 +81,29 @@ class ModePorts:
         return self.default.spatial_map(*a, **kw)
 
 
+def _map_kinds(text: str) -> list[str]:
+    kinds = [k.strip() for k in text.split(",") if k.strip()]
+    bad = [k for k in kinds if k not in MAP_KINDS]
+    if not kinds or bad or len(set(kinds)) != len(kinds):
+        raise argparse.ArgumentTypeError(f"map kinds from {', '.join(sorted(MAP_KINDS))}, each once; got {text!r}")
+    return kinds
+
+
+def expand_map_kinds(variants, base: RunConfig, map_kinds: list[str]):
+    """(variants, configs, map kind per variant): a reconstructed variant once per kind of ``map_kinds``
+    (labelled ``label (kind)`` when there are several), a curated one once."""
+    out_v, out_c, out_k = [], [], []
+    for v in variants:
+        cfg = RunConfig.model_validate({**base.model_dump(), **v.overrides})
+        if cfg.map_source == MapSource.CURATED:
+            out_v.append(v), out_c.append(cfg), out_k.append("curated")
+            continue
+        for kind in map_kinds:
+            label = v.label if len(map_kinds) == 1 else f"{v.label} ({kind})"
+            out_v.append(Variant(label, v.overrides)), out_c.append(cfg), out_k.append(kind)
+    return out_v, out_c, out_k
+
+
 def mission_options(cfg: RunConfig, ep) -> MissionOptions:
     """The options the evaluation runner sends for this variant and episode (same seed rule)."""
     opts = {k: getattr(cfg, k) for k in OPTION_FIELDS}
@@ -91,7 +117,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--per-house", type=int, default=20)
     ap.add_argument("--floors", default="1,2")
     ap.add_argument("--seed", type=int, default=0, help="the generated set's seed")
-    ap.add_argument("--map", default="rgbd", choices=sorted(MAP_KINDS))
+    ap.add_argument("--area-m2", type=float, default=None, help="house area (default: the generator's)")
+    ap.add_argument("--map", default="rgbd", type=_map_kinds,
+                    help=f"map kind(s) of the reconstructed variants, comma-separated: {', '.join(sorted(MAP_KINDS))}")
     ap.add_argument("--policy-config", default="{}", help="JSON: the heuristic's config for every variant")
     ap.add_argument("--max-steps", type=int, default=40)
     ap.add_argument("--limit", type=int, default=None, help="only the first N episodes of the set")
@@ -102,16 +130,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     preset = presets()[args.preset]
     base = RunConfig(policy="heuristic", policy_config=json.loads(args.policy_config), max_steps=args.max_steps,
                      spatial_map=False)  # the heuristic never reads the spatial map (results unchanged)
-    configs = [RunConfig.model_validate({**base.model_dump(), **v.overrides}) for v in preset.variants]
+    variants, configs, kinds = expand_map_kinds(preset.variants, base, args.map)
     modes = {c.anticipation_splat_mode or "visibility" for c in configs}
     # A policy config is part of the experiment (RunConfig.experiment_key): its own folder, never mixed.
     tag = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in json.dumps(base.policy_config,
                                                                                   sort_keys=True))
-    root = args.out / preset.name / (args.map if not base.policy_config else f"{args.map}__{tag}")
-    logs = [ResultsLog(root / v.slug / "results.jsonl") for v in preset.variants]
+    maps = ",".join(args.map)
+    root = args.out / preset.name / (maps if not base.policy_config else f"{maps}__{tag}")
+    logs = [ResultsLog(root / v.slug / "results.jsonl") for v in variants]
     done = [lg.load() for lg in logs]
 
-    dataset, _ = generate_set(SetSpec(houses=args.houses, per_house=args.per_house,
+    dataset, _ = generate_set(SetSpec(houses=args.houses, per_house=args.per_house, area_m2=args.area_m2,
                                       floors=parse_floors(args.floors), seed=args.seed), with_gt=False)
     episodes = dataset.episodes[: args.limit] if args.limit else dataset.episodes
     t0, ran = time.perf_counter(), 0
@@ -122,19 +151,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if not todo:
             continue
         clouds = {}
-        for src in {c.map_source for c in configs}:
-            kind = "curated" if src == MapSource.CURATED else args.map
+        for kind in dict.fromkeys(kinds):
             backend, noisy = MAP_KINDS[kind]
             map_robot, cloud = build_map(scene, backend, noisy)
             map_robot.close()
-            clouds[src] = (kind, cloud, ModePorts(cloud, modes))
+            clouds[kind] = (kind, cloud, ModePorts(cloud, modes))
         with closing(ROBOTS.create("sim", {"scene": scene})) as robot:
             predictor = PREDICTORS.create("geometric")
             for e in todo:
-                for v, cfg, lg, d in zip(preset.variants, configs, logs, done):
+                for v, cfg, kind, lg, d in zip(variants, configs, kinds, logs, done):
                     if str(e.episode_id) in d and d[str(e.episode_id)].status == "done":
                         continue
-                    kind, cloud, port = clouds[cfg.map_source]
+                    kind, cloud, port = clouds[kind]
                     stack = LocalStack(robot, predictor, port, cloud.label_names)
                     opts = mission_options(cfg, e)
                     ts = time.perf_counter()
@@ -155,15 +183,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     el = time.perf_counter() - t0
                     print(f"   {ran} episodes x {len(configs)} variants in {el:.0f} s ({scene})", flush=True)
 
-    runs = [(v.label, d) for v, d in zip(preset.variants, done)]
+    runs = [(v.label, d) for v, d in zip(variants, done)]
     md = comparison_markdown(runs)
     root.mkdir(parents=True, exist_ok=True)
-    (root / "table.md").write_text(f"# {preset.title} ({args.map} maps, in-process)\n\n{preset.paper}\n{md}",
+    (root / "table.md").write_text(f"# {preset.title} ({maps} maps, in-process)\n\n{preset.paper}\n{md}",
                                    encoding="utf-8")
     print(md)
     first, last = runs[0], runs[-1]
     sr = next(p for p in compare_runs(first[1], last[1]) if p.metric == "SR")
-    print(f"ablation {preset.name} ({args.map}, n={sr.n}): {last[0]} SR {sr.diff:+.1f} [{sr.lo:+.1f}, {sr.hi:+.1f}] "
+    print(f"ablation {preset.name} ({maps}, n={sr.n}): {last[0]} SR {sr.diff:+.1f} [{sr.lo:+.1f}, {sr.hi:+.1f}] "
           f"vs {first[0]}")
     return {"n": sr.n, "sr_diff": sr.diff, "lo": sr.lo, "hi": sr.hi}
 

@@ -18,9 +18,11 @@ def test_presets_mirror_the_paper(monkeypatch):
     monkeypatch.delenv("OPENAI_API_KEY", raising=False)
     monkeypatch.delenv("ANT_OPENAI_BASE_URL", raising=False)
     p = presets()
-    assert set(p) == {"cloud", "anticipation", "splat", "true-views", "hfov", "policies"}
-    assert [v.overrides["anticipation_splat_mode"] for v in p["splat"].variants] == ["visibility", "paper"]
-    assert [v.overrides.get("anticipation_views") for v in p["true-views"].variants] == ["map", "true-scene", None]
+    assert set(p) == {"cloud", "anticipation", "views", "hfov", "policies"}
+    views = p["views"].variants
+    assert [v.overrides["anticipation"] for v in views] == [False, True, True, True]
+    assert [(v.overrides.get("anticipation_views"), v.overrides.get("anticipation_splat_mode")) for v in views[1:]] \
+        == [("map", "visibility"), ("map", "paper"), ("true-scene", None)]
     assert [v.overrides["map_source"] for v in p["cloud"].variants] == ["curated", "reconstructed"]
     assert [v.overrides["anticipation_hfov_deg"] for v in p["hfov"].variants] == [60.0, 90.0, 120.0]
     assert [v.overrides["anticipation"] for v in p["anticipation"].variants] == [True, False]

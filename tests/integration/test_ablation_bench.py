@@ -1,0 +1,50 @@
+"""bench.ablation: every variant on the same episodes, one map build per kind, resumable."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bench import ablation, anticipation
+from evaluation.presets import Variant
+from evaluation.runner import RunConfig
+
+
+def test_a_reconstructed_variant_runs_once_per_map_kind_and_curated_once():
+    variants = (Variant("curated", {"map_source": "curated"}), Variant("reconstructed", {"map_source": "reconstructed"}))
+    v, c, k = ablation.expand_map_kinds(variants, RunConfig(), ["rgbd", "noisy"])
+    assert [x.label for x in v] == ["curated", "reconstructed (rgbd)", "reconstructed (noisy)"]
+    assert k == ["curated", "rgbd", "noisy"] and [x.map_source for x in c] == ["curated", "reconstructed", "reconstructed"]
+    v, _, k = ablation.expand_map_kinds(variants, RunConfig(), ["mono-sim"])
+    assert [x.label for x in v] == ["curated", "reconstructed"] and k == ["curated", "mono-sim"]
+
+
+def test_map_kinds_are_checked():
+    assert ablation._map_kinds("rgbd, noisy") == ["rgbd", "noisy"]
+    for bad in ("", "rgbd,rgbd", "lidar"):
+        with pytest.raises(Exception, match="map kinds"):
+            ablation._map_kinds(bad)
+
+
+def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
+    monkeypatch.setattr(anticipation, "MAPS", tmp_path / "maps")
+    argv = ["--preset", "views", "--houses", "1", "--per-house", "2", "--area-m2", "40", "--max-steps", "4",
+            "--out", str(tmp_path / "out")]
+    first = ablation.main(argv)
+    assert first["n"] == 2
+    root = tmp_path / "out" / "views" / "rgbd"
+    runs = {d.name: [json.loads(line) for line in (d / "results.jsonl").read_text().splitlines()]
+            for d in root.iterdir() if d.is_dir()}
+    assert set(runs) == {"without_anticipation", "map_views_visibility_splat", "map_views_paper_splat",
+                         "true-scene_views"}
+    for name, rows in runs.items():
+        assert sorted(r["episode_id"] for r in rows) == ["1", "2"] and all(r["status"] == "done" for r in rows)
+        assert all(r["options"]["anticipation"] == (name != "without_anticipation") for r in rows)
+    modes = {r["options"].get("anticipation_splat_mode") for r in runs["map_views_paper_splat"]}
+    assert modes == {"paper"}
+    assert (root / "table.md").read_text().count("| SR |") == 3  # three variants against the first
+    assert len(list((tmp_path / "maps").glob("*.ply"))) == 1  # one rgbd map, built once for every variant
+    ablation.main(argv)  # resumes: nothing left to run, nothing appended
+    for name, rows in runs.items():
+        assert len((root / name / "results.jsonl").read_text().splitlines()) == len(rows)
