@@ -21,7 +21,8 @@ from shared import keys
 from shared.bus.typed import RemoteError, TypedBus
 from shared.jobs import JobFailedError, await_job
 from shared.schemas import (
-    BuildMapRequest, CameraIntrinsics, CancelRequest, Candidate, CandidateSet, ExplorationRequest, Frame,
+    BuildCancelRequest, BuildMapRequest, CameraIntrinsics, CancelRequest, Candidate, CandidateSet,
+    ExplorationCancelRequest, ExplorationRequest, Frame,
     IMPORT_PART_BYTES, IMPORT_PART_MAX_BYTES,
     GeodesicReply, GeodesicRequest, JobAccepted, JobEvent, LoadSceneRequest, MapBuildFinished, MapImportProgress,
     MapImportRequest, MissionRequest,
@@ -176,6 +177,12 @@ class MapperClient:
         return self.bus.request(keys.MAPPER_EXPLORE.format(robot=self.robot), req, JobAccepted,
                                 timeout_s=self.timeout_s)
 
+    def cancel_everywhere(self, exploration_id: str) -> list[JobAccepted | RemoteError]:
+        """Ask every mapper replica to cancel the exploration (the one zenoh would pick need not run it)."""
+        return self.bus.request_all(keys.EXPLORATION_CANCEL.format(robot=self.robot),
+                                    ExplorationCancelRequest(exploration_id=exploration_id), JobAccepted,
+                                    timeout_s=self.timeout_s)
+
 
 class PlannerClient:
     """The planner's missions of one robot."""
@@ -261,13 +268,23 @@ class MapClient:
         """Run a map build job on the reconstructor to its end; ``on_event`` sees its progress.
 
         The budget is per event (``build_stall_s`` without one fails), not for the whole build: a large
-        map takes long, a dead reconstructor is noticed as soon as it stops talking."""
+        map takes long, a dead reconstructor is noticed as soon as it stops talking. ``cancel`` set
+        cancels the build on the reconstructor too (:meth:`cancel_build`) and raises
+        :class:`~shared.jobs.Cancelled` once it ended so (a build that stored its map before the cancel
+        reached it returns that map)."""
         end = await_job(self.bus, keys.MAP_BUILD.format(map=req.map_id), req,
                         keys.MAP_BUILD_EVENTS.format(map=req.map_id, build=req.build_id), on_event=on_event,
-                        stall_s=self.build_stall_s, submit_timeout_s=self.timeout_s, cancel=cancel)
+                        stall_s=self.build_stall_s, submit_timeout_s=self.timeout_s, cancel=cancel,
+                        cancel_remote=lambda: self.cancel_build(req.map_id, req.build_id))
         if not isinstance(end.data, MapBuildFinished):
             raise JobFailedError(f"map build {req.build_id} ended without its map ({type(end.data).__name__})")
         return end.data.info
+
+
+    def cancel_build(self, map_id: str, build_id: str) -> list[JobAccepted | RemoteError]:
+        """Ask every reconstructor to cancel a build of ``map_id`` (the answers, each accepted or not)."""
+        return self.bus.request_all(keys.MAP_BUILD_CANCEL.format(map=map_id), BuildCancelRequest(build_id=build_id),
+                                    JobAccepted, timeout_s=min(self.timeout_s, 10.0))
 
 
 class RendererClient:

@@ -64,12 +64,16 @@ class JobContext:
         self.cancel = cancel
         self._events = events
         self.step = 0  # the last step reported; terminal events carry it
+        self.stage: str | None = None  # the stage of the last staged progress reported; a cancel names it
 
     def emit(self, kind: JobEventKind, payload: EventPayload | None = None, *, step: int | None = None,
              images: dict[str, bytes] | None = None) -> JobEvent:
         """Publish one non-terminal event (the job is running)."""
         if step is not None:
             self.step = step
+        stage = getattr(payload, "stage", None)
+        if isinstance(stage, str):
+            self.stage = stage
         return self._events.emit(kind, JobState.RUNNING, step=self.step, data=payload, images=images)
 
     def progress(self, payload: EventPayload, **kw) -> JobEvent:
@@ -183,7 +187,9 @@ class JobRunner:
                 raise ValueError(f"a job body must end succeeded or failed, not {end.state}")
             events.emit(JobEventKind.FINISHED, end.state, step=max(end.step, ctx.step), data=end.payload)
         except Cancelled:
-            events.emit(JobEventKind.FINISHED, JobState.CANCELLED, step=ctx.step, data=JobCancelled())
+            message = f"cancelled on request while {ctx.stage}" if ctx.stage else "cancelled on request"
+            events.emit(JobEventKind.FINISHED, JobState.CANCELLED, step=ctx.step,
+                        data=JobCancelled(message=message, stage=ctx.stage))
         except RemoteError as exc:
             log.warning("%s %s failed: %s", self.name, job.job_id, exc)
             events.emit(JobEventKind.ERROR, JobState.FAILED, step=ctx.step,
@@ -196,28 +202,49 @@ class JobRunner:
 
 def await_job(bus: TypedBus, submit_key: str, request: Message, events_key: str, *,
               on_event: Callable[[JobEvent], None] | None = None, stall_s: float = 300.0,
-              submit_timeout_s: float = 10.0, cancel: threading.Event | None = None) -> JobEvent:
+              submit_timeout_s: float = 10.0, cancel: threading.Event | None = None,
+              cancel_remote: Callable[[], None] | None = None) -> JobEvent:
     """Submit ``request`` on ``submit_key`` and follow the job's events on ``events_key`` to its end.
 
     Returns the terminal event when the job succeeded; raises :class:`JobFailedError` when it failed or
     was cancelled, when it was refused, or when no event arrived for ``stall_s`` (the job's service
-    died). ``cancel`` set by the caller ends the wait with :class:`Cancelled`.
+    died).
+
+    ``cancel`` set by the caller (checked after every event, and at least every 0.25 s) stops the wait:
+
+    * with ``cancel_remote`` (a call that asks the job's service to cancel the job), that is called once
+      and the job is still followed to its end, so that the caller knows what the job left behind: it
+      raises :class:`Cancelled` when the job ended cancelled (or went silent for ``stall_s`` after the
+      ask: its service is gone), and returns the terminal event as usual when the job had succeeded
+      before the cancel reached it (its result is whole);
+    * without, the wait ends at once with :class:`Cancelled` and the job runs on.
     """
     inbox: queue.Queue[JobEvent] = queue.Queue()
     # Subscribe first: an event published between the reply and the subscription would be lost.
     sub = bus.subscribe(events_key, JobEvent, lambda _key, ev: inbox.put(ev))
+    poll_s = min(stall_s, 0.25 if cancel is not None else 1.0)
     try:
         reply = bus.request(submit_key, request, JobAccepted, timeout_s=submit_timeout_s)
         if not reply.accepted:
             raise JobFailedError(f"refused: {reply.reason or 'no reason given'}")
-        seen, last_s = -1, time.monotonic()
+        seen, last_s, asked = -1, time.monotonic(), False
         while True:
+            if cancel is not None and cancel.is_set() and not asked:
+                if cancel_remote is None:
+                    raise Cancelled()
+                asked = True
+                try:
+                    cancel_remote()
+                except Exception as exc:  # noqa: BLE001 - followed to its end either way; a dead service stalls
+                    log.warning("could not ask to cancel job %s: %s", reply.job_id, exc)
             try:
-                ev = inbox.get(timeout=min(stall_s, 1.0))
+                ev = inbox.get(timeout=poll_s)
             except queue.Empty:
-                if cancel is not None and cancel.is_set():
-                    raise Cancelled() from None
                 if time.monotonic() - last_s > stall_s:
+                    if asked:
+                        log.warning("job %s sent nothing for %.0f s after its cancel; taken as cancelled",
+                                    reply.job_id, stall_s)
+                        raise Cancelled() from None
                     raise JobFailedError(f"no event from job {reply.job_id} for {stall_s:.0f} s") from None
                 continue
             last_s = time.monotonic()
@@ -227,6 +254,8 @@ def await_job(bus: TypedBus, submit_key: str, request: Message, events_key: str,
             if on_event is not None:
                 on_event(ev)
             if ev.state in TERMINAL_STATES:
+                if ev.state == JobState.CANCELLED and asked:
+                    raise Cancelled()
                 if ev.state != JobState.SUCCEEDED:
                     why = getattr(ev.data, "error", "") or getattr(ev.data, "message", "") or ev.state.value
                     raise JobFailedError(f"job {reply.job_id} {ev.state.value}: {why}")

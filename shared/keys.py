@@ -180,6 +180,9 @@ MAPPER_TOURS = Key(f"{_R}/mapper/tours/{{region}}", "mapper", Usage.PUBLICATION,
 MAPPER_EXPLORE = Key(f"{_R}/mapper/explorations/submit", "mapper", Usage.QUERYABLE, "ExplorationRequest",
                      "JobAccepted", "start pre-exploration + tour recording + reconstruction",
             consumers=("gateway",))
+EXPLORATION_CANCEL = Key(f"{_R}/mapper/explorations/cancel", "mapper", Usage.QUERYABLE, "ExplorationCancelRequest",
+                         "JobAccepted", "cancel a running exploration (discovery, tours, or the map build it waits on)",
+            consumers=("gateway",))
 EXPLORATION_EVENTS = Key(f"{_R}/explorations/{{exploration}}/events", "mapper", Usage.PUBLICATION,
                          reply="JobEvent", doc="exploration progress events (mission_id = exploration id)",
             consumers=("gateway",))
@@ -196,6 +199,9 @@ MAP_CHUNK = Key(f"{ROOT}/maps/{{map}}/chunk", "reconstructor", Usage.QUERYABLE, 
 MAP_BUILD = Key(f"{ROOT}/maps/{{map}}/build", "reconstructor", Usage.QUERYABLE, "BuildMapRequest", "JobAccepted",
                 "start a job that reconstructs recorded tours into a stored map",
             consumers=("mapper",))
+MAP_BUILD_CANCEL = Key(f"{ROOT}/maps/{{map}}/builds/cancel", "reconstructor", Usage.QUERYABLE, "BuildCancelRequest",
+                       "JobAccepted", "cancel a map build of this map (nothing of it is stored)",
+                       consumers=("mapper",))
 MAP_BUILD_EVENTS = Key(f"{ROOT}/maps/{{map}}/builds/{{build}}/events", "reconstructor", Usage.PUBLICATION,
                        reply="JobEvent", doc="a map build's progress and its stored map (or why it failed)",
                        consumers=("mapper",))

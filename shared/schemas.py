@@ -45,6 +45,7 @@ Xyz_m = tuple[Metres, Metres, Metres]
 LabelId = Annotated[int, Field(ge=-1, le=LABEL_LIMIT)]
 Count = Annotated[int, Field(ge=0, le=SEQ_LIMIT)]
 Cost_usd = Annotated[float, Field(ge=0.0, le=1e6)]
+_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"  # a job id is one key segment (shared.keys.validate_segment)
 Duration_s = Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]
 
 
@@ -874,9 +875,13 @@ class MapBuildFinished(EventPayload):
 
 
 class JobCancelled(EventPayload):
+    """A job's end on request; ``stage`` is the stage of a staged job (an exploration, a map build) it
+    was stopped in (None: a job without stages, or stopped before its first)."""
+
     KINDS: ClassVar[tuple[str, ...]] = ("finished",)
     type: Literal["job_cancelled"] = "job_cancelled"
     message: str = "cancelled on request"
+    stage: str | None = Field(None, max_length=64)
 
 
 class JobFailed(EventPayload):
@@ -936,6 +941,20 @@ class ExplorationRequest(Message):
     record: bool | None = Field(None, description="write a Rerun recording (.rrd); None: the gateway's setting")
 
     FREE_FORM: ClassVar[tuple[str, ...]] = ("options",)
+
+
+class ExplorationCancelRequest(Message):
+    """Stop a running exploration (``EXPLORATION_CANCEL``): whose robot is the key's, which exploration
+    this says. Its ``cancelled`` event (with the stage it stopped in) follows on its events key."""
+
+    exploration_id: str = Field(pattern=_ID_PATTERN)
+
+
+class BuildCancelRequest(Message):
+    """Stop a map build (``MAP_BUILD_CANCEL``): the map is the key's, the build this says. A cancelled
+    build stores nothing: the map store keeps only the versions it had."""
+
+    build_id: str = Field(pattern=_ID_PATTERN)
 
 
 class BuildMapRequest(Message):

@@ -153,3 +153,113 @@ def test_await_job_gives_up_on_a_silent_job(buses):
     with pytest.raises(JobFailedError, match="no event from job s1"):
         await_job(client, "ant/test/submit", ExplorationRequest(exploration_id="s1", map_id="m"), KEY.format("s1"),
                   stall_s=0.5)
+
+
+def test_a_cancelled_staged_job_names_the_stage_it_was_stopped_in(buses):
+    a, b = buses
+    got = _collect(b, "j1")
+    inside = threading.Event()
+    runner = JobRunner(a, name="test", workers=1)
+
+    def staged(ctx):
+        ctx.progress(ExplorationProgress(stage="exploring", progress=0.1), step=1)
+        ctx.progress(ExplorationProgress(stage="touring", progress=0.3), step=2)
+        inside.set()
+        while True:  # a loop that checks its flag once per step, as the mapper's does
+            ctx.check_cancelled()
+            threading.Event().wait(0.01)
+
+    runner.submit("j1", staged, KEY.format("j1"))
+    wait_until(inside.is_set, what="the body to reach its touring stage")
+    assert runner.cancel("j1").accepted
+    (end,) = wait_until(lambda: _terminal(got), what="the cancelled event")
+    runner.close()
+    assert end.state == JobState.CANCELLED and end.step == 2
+    assert end.data.stage == "touring" and end.data.message == "cancelled on request while touring"
+
+
+class _RemoteBuild:
+    """A job service on ``server``: submit and cancel keys, its jobs run ``body``."""
+
+    def __init__(self, server, body):
+        self.runner = JobRunner(server, name="build", workers=1)
+        self.cancel_asks: list[str] = []
+        server.serve("ant/test/submit", ExplorationRequest, lambda req: self.runner.submit(
+            req.exploration_id, body, KEY.format(req.exploration_id)))
+
+    def cancel(self, job_id: str) -> None:
+        self.cancel_asks.append(job_id)
+        self.runner.cancel(job_id)
+
+
+def _slow_build(started: threading.Event):
+    def body(ctx):
+        for region in range(1000):  # ends only when cancelled
+            ctx.progress(ExplorationProgress(stage="reconstructing", progress=0.5, region=region), step=region)
+            started.set()
+            ctx.check_cancelled()
+            threading.Event().wait(0.01)
+        return JobEnd(JobState.SUCCEEDED, MapBuildFinished(info=_info()))
+    return body
+
+
+def test_await_job_passes_a_cancel_on_and_waits_for_the_job_to_end_cancelled(buses):
+    server, client = buses
+    started, cancel = threading.Event(), threading.Event()
+    remote = _RemoteBuild(server, _slow_build(started))
+    threading.Thread(target=lambda: (started.wait(10), cancel.set()), daemon=True).start()
+    seen: list[JobEvent] = []
+    with pytest.raises(Cancelled):
+        await_job(client, "ant/test/submit", ExplorationRequest(exploration_id="c1", map_id="m"), KEY.format("c1"),
+                  on_event=seen.append, stall_s=5, cancel=cancel, cancel_remote=lambda: remote.cancel("c1"))
+    # Asked once, and the wait ended on the job's own cancelled event (not before): it left nothing running.
+    assert remote.cancel_asks == ["c1"]
+    assert seen[-1].state == JobState.CANCELLED and seen[-1].data.stage == "reconstructing"
+    assert not remote.runner.busy()
+    remote.runner.close()
+
+
+def test_await_job_returns_a_job_that_succeeded_before_the_cancel_reached_it(buses):
+    server, client = buses
+    cancel = threading.Event()
+    remote = _RemoteBuild(server, _finished())
+
+    def late_cancel(job_id):  # the job is over by the time the ask arrives: refused, nothing to cancel
+        wait_until(lambda: not remote.runner.busy(), what="the job to end")
+        remote.cancel(job_id)
+
+    cancel.set()  # set before the submit: the ask goes out at once
+    end = await_job(client, "ant/test/submit", ExplorationRequest(exploration_id="c2", map_id="m"), KEY.format("c2"),
+                    stall_s=5, cancel=cancel, cancel_remote=lambda: late_cancel("c2"))
+    assert end.state == JobState.SUCCEEDED and isinstance(end.data, MapBuildFinished)
+    assert remote.cancel_asks == ["c2"]
+    remote.runner.close()
+
+
+def test_await_job_without_a_remote_cancel_stops_waiting_at_once(buses):
+    server, client = buses
+    started, cancel = threading.Event(), threading.Event()
+    remote = _RemoteBuild(server, _slow_build(started))
+    threading.Thread(target=lambda: (started.wait(10), cancel.set()), daemon=True).start()
+    with pytest.raises(Cancelled):
+        await_job(client, "ant/test/submit", ExplorationRequest(exploration_id="c3", map_id="m"), KEY.format("c3"),
+                  stall_s=5, cancel=cancel)
+    assert remote.runner.busy()  # nobody told it: it runs on
+    remote.runner.close()
+
+
+def test_await_job_takes_a_job_silent_after_its_cancel_as_cancelled(buses):
+    server, client = buses
+    server.serve("ant/test/submit", ExplorationRequest,
+                 lambda req: JobAccepted(job_id=req.exploration_id, accepted=True))
+    cancel, asks = threading.Event(), []
+    cancel.set()
+
+    def ask():
+        asks.append(1)
+        raise RemoteError("unavailable", "no reconstructor")
+
+    with pytest.raises(Cancelled):
+        await_job(client, "ant/test/submit", ExplorationRequest(exploration_id="c4", map_id="m"), KEY.format("c4"),
+                  stall_s=0.5, cancel=cancel, cancel_remote=ask)
+    assert asks == [1]
