@@ -4,6 +4,8 @@
 * ``MAP_BUILD``: accepts a build job (:mod:`shared.jobs`); the job (``core.build_job``) waits for the
   recordings to be complete, reconstructs, aligns and integrates them, stores the map atomically and
   announces it on ``MAP_UPDATED``, reporting its progress on ``MAP_BUILD_EVENTS``;
+* ``MAP_BUILD_CANCEL``: cancels a build of the key's map (the mapper's, when its exploration is
+  cancelled); the build stops at its next region and stores nothing;
 * ``MAP_LIST`` / ``MAP_INFO`` / ``MAP_CHUNK`` / ``MAP_IMPORT``: the map store over the bus.
 """
 
@@ -27,7 +29,7 @@ from shared.bus.typed import NotFound
 from shared.jobs import JobRunner
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportProgress, MapImportRequest, MapInfo,
+    BuildCancelRequest, BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportProgress, MapImportRequest, MapInfo,
     MapListReply, MapRequest, Ping,
 )
 
@@ -101,6 +103,8 @@ class ReconstructorService(Service[ReconstructorSettings]):
                                idle_s=settings.upload_idle_s)
         self._node: Node | None = None
         self._builds: JobRunner | None = None
+        self._build_maps: dict[str, str] = {}  # build id -> its map, for the builds queued or running
+        self._build_lock = threading.Lock()
 
     def backends(self) -> dict[str, str]:
         return {"reconstruction": DEFAULT_RECONSTRUCTOR, "store": str(self.store.root)}
@@ -120,6 +124,7 @@ class ReconstructorService(Service[ReconstructorSettings]):
         self._builds = JobRunner(node.bus, name="map build", workers=1,
                                  max_queued=self.settings.max_queued_builds)
         node.serve(keys.MAP_BUILD.pattern(), BuildMapRequest, self.build, workers=1)
+        node.serve(keys.MAP_BUILD_CANCEL.pattern(), BuildCancelRequest, self.cancel_build, workers=1, keyed=True)
 
     def stop(self) -> None:
         if self._builds is not None:
@@ -181,6 +186,25 @@ class ReconstructorService(Service[ReconstructorSettings]):
         config = ReconstructionConfig.model_validate(
             {"backend": req.reconstruction, "merge_voxel_m": s.merge_voxel_m, **req.options})
         assert self._builds is not None
-        return self._builds.submit(req.build_id, lambda ctx: build_map(
-            ctx, req, frames=self.frames, store=self.store, config=config, announce=self._announce,
-            frames_timeout_s=s.frames_timeout_s), keys.MAP_BUILD_EVENTS.format(map=req.map_id, build=req.build_id))
+        with self._build_lock:
+            reply = self._builds.submit(req.build_id, lambda ctx: build_map(
+                ctx, req, frames=self.frames, store=self.store, config=config, announce=self._announce,
+                frames_timeout_s=s.frames_timeout_s), keys.MAP_BUILD_EVENTS.format(map=req.map_id, build=req.build_id))
+            if reply.accepted:
+                active = set(self._builds.active())
+                self._build_maps = {b: m for b, m in self._build_maps.items() if b in active}
+                self._build_maps[req.build_id] = req.map_id
+        return reply
+
+    def cancel_build(self, key: str, req: BuildCancelRequest) -> JobAccepted:
+        """Cancel a queued or running build of the key's map: a request on map X's key cannot stop
+        another map's build."""
+        found = keys.MAP_BUILD_CANCEL.parse(key)
+        if found is None:
+            raise ValueError(f"{key!r} is not a concrete key of {keys.MAP_BUILD_CANCEL.template}")
+        assert self._builds is not None
+        with self._build_lock:
+            mine = self._build_maps.get(req.build_id) == found["map"]
+        if not mine:
+            return JobAccepted(job_id=req.build_id, accepted=False, reason=f"no such build of map {found['map']} here")
+        return self._builds.cancel(req.build_id)

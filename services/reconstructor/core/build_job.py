@@ -4,11 +4,15 @@ A job body for :class:`shared.jobs.JobRunner`, written against two ports - where
 and what to do with a stored map - so the same code runs behind the bus and in-process. It reports
 its progress (collecting frames, each region reconstructed, storing) as typed events; a build that
 cannot produce a map fails with the cause, and the frames it consumed are released either way.
+
+A cancel is seen while frames are awaited (every ``_CANCEL_POLL_S``), after each region and before
+storing: a cancelled build stores nothing (the store's save is atomic, and is never begun after one).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from typing import Protocol
 
@@ -20,6 +24,8 @@ from .pipeline import ReconstructionConfig, Reconstructor, RegionReport
 from .store import MapStore
 
 log = logging.getLogger(__name__)
+
+_CANCEL_POLL_S = 0.25  # how often a build waiting for a recording's frames looks at its cancel flag
 
 
 class FrameSource(Protocol):
@@ -38,10 +44,12 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
         raise ValueError("a build needs at least one recording")
     n = len(req.recordings)
     try:
+        ctx.progress(MapBuildProgress(stage="collecting", progress=0.0, regions=n,
+                                      message=f"waiting for the frames of {n} recordings"))
         regions = []
         for i, rec in enumerate(req.recordings):
             ctx.check_cancelled()
-            got = frames.wait(rec.recording, rec.frame_count, frames_timeout_s)
+            got = _collect(ctx, frames, rec.recording, rec.frame_count, frames_timeout_s)
             if len(got) < rec.frame_count:
                 log.warning("recording %s: %d of %d frames arrived", rec.recording, len(got), rec.frame_count)
             regions.append(region_from_frames(rec.region, rec.start_pose, got))
@@ -68,3 +76,14 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
             frames.drop(rec.recording)
     announce(info)
     return JobEnd(JobState.SUCCEEDED, MapBuildFinished(info=info))
+
+
+def _collect(ctx: JobContext, frames: FrameSource, recording: str, count: int, timeout_s: float) -> list[Frame]:
+    """The recording's frames once ``count`` arrived (what there is at the deadline), waited for in
+    slices so that a cancel is not held up by frames that never come (their robot stopped, say)."""
+    end = time.monotonic() + timeout_s
+    while True:
+        got = frames.wait(recording, count, min(_CANCEL_POLL_S, max(0.0, end - time.monotonic())))
+        if len(got) >= count or time.monotonic() >= end:
+            return got
+        ctx.check_cancelled()
