@@ -3,9 +3,11 @@
 ``MAPPER_PREDICT`` answers candidates for a panorama (the planner calls it at every step).
 ``MAPPER_EXPLORE`` accepts an exploration job (:mod:`shared.jobs`); the job itself is the core's
 :func:`~services.mapper.core.exploration_job.explore`, wired here to robot-io and the reconstructor
-over the bus. Its progress is published as events of the exploration.
+over the bus. Its progress is published as events of the exploration. ``EXPLORATION_CANCEL`` cancels
+the robot's exploration: it stops within one exploration step or tour move, or cancels the map build
+it waits on, and ends ``cancelled`` with the stage it was in.
 
-One mapper serves any number of robots: both queryables are served on a wildcard in the robot segment
+One mapper serves any number of robots: its queryables are served on a wildcard in the robot segment
 (or on the concrete keys of ``serve_robots``, so that replicas split the robots), and the robot id is
 taken from the key each request came on, never from its payload. Prediction is stateless per request;
 explorations are one at a time per robot (one body), concurrent across robots.
@@ -25,7 +27,9 @@ from shared import keys
 from shared.clients import MapClient, RobotClient
 from shared.jobs import JobRunner
 from shared.runner import FleetServiceSettings, Node, Service
-from shared.schemas import CameraIntrinsics, CandidateSet, ExplorationRequest, JobAccepted, Panorama
+from shared.schemas import (
+    CameraIntrinsics, CandidateSet, ExplorationCancelRequest, ExplorationRequest, JobAccepted, Panorama,
+)
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +67,8 @@ class MapperService(Service[MapperSettings]):
             node.serve(key, Panorama, self.predict)
         for key in keys.robot_routes(keys.MAPPER_EXPLORE, routes):
             node.serve(key, ExplorationRequest, self.submit, workers=1, keyed=True)
+        for key in keys.robot_routes(keys.EXPLORATION_CANCEL, routes):
+            node.serve(key, ExplorationCancelRequest, self.cancel, workers=1, keyed=True)
 
     def stop(self) -> None:
         with self._lock:
@@ -104,3 +110,18 @@ class MapperService(Service[MapperSettings]):
                 publish_tour=lambda t: node.bus.publish(
                     keys.MAPPER_TOURS.format(robot=robot_id, region=str(t.region)), t)),
                 keys.EXPLORATION_EVENTS.format(robot=robot_id, exploration=req.exploration_id))
+
+    def cancel(self, key: str, req: ExplorationCancelRequest) -> JobAccepted:
+        """Cancel the key's robot's exploration ``req.exploration_id`` (refused when it runs none such)."""
+        robot_id = keys.robot_of(keys.EXPLORATION_CANCEL, key)
+        with self._lock:
+            jobs = self._jobs.get(robot_id)
+        if jobs is None:
+            return JobAccepted(job_id=req.exploration_id, accepted=False, reason="no such exploration here")
+        return jobs.cancel(req.exploration_id)
+
+    def active(self) -> dict[str, list[str]]:
+        """Queued and running exploration ids per robot."""
+        with self._lock:
+            runners = dict(self._jobs)
+        return {robot: jobs.active() for robot, jobs in runners.items()}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -71,18 +72,24 @@ class Discovery:
 
 
 def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
-             predictor: WaypointPredictor | None = None) -> Discovery:
+             predictor: WaypointPredictor | None = None, checkpoint: Callable[[], None] | None = None) -> Discovery:
     """Explore with ``robot``, then find stairs, floors and regions and plan one tour per region.
 
     ``predictor`` overrides the one named in ``config`` (e.g. a shared, already loaded backend).
+    ``checkpoint`` is called before every exploration step and between the phases; it raises to
+    abandon the discovery (a cancelled exploration job stops within one step).
     """
     cfg = config or DiscoveryConfig()
     pred = predictor or PREDICTORS.create(cfg.predictor, cfg.predictor_config or None)
     t0 = time.perf_counter()
-    result = Explorer(pred, cfg.exploration).explore(robot)
+    result = Explorer(pred, cfg.exploration).explore(robot, checkpoint)
     t1 = time.perf_counter()
+    if checkpoint is not None:
+        checkpoint()
     scene = analyse(result, cfg.regions)
     t2 = time.perf_counter()
+    if checkpoint is not None:
+        checkpoint()
     tours = TourPlanner(cfg.tours).plan(scene)
     t3 = time.perf_counter()
     return Discovery(result, scene, tours, {

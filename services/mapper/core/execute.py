@@ -64,17 +64,19 @@ def execute_tours(
     rate_hz: float = 5.0,
     on_recording: Callable[[RegionRecording], None] | None = None,
     on_skip: Callable[[PlannedTour, TourExecutionError], None] | None = None,
+    checkpoint: Callable[[], None] | None = None,
 ) -> list[RegionRecording]:
     """Drive every tour in order; returns one recording per tour that could be driven.
 
     A tour whose start cannot be reached (a doorway the planner thought wider, say) is skipped
     and reported through ``on_skip``: one region short is a smaller map, not a failed exploration.
-    Only when no tour at all can be driven is that an error.
+    Only when no tour at all can be driven is that an error. ``checkpoint`` is called before every
+    move; it raises to abandon the tours (a cancelled job), a recording under way being stopped.
     """
     out = []
     for pt in tours:
         try:
-            rec = execute_tour(robot, pt, scene, rate_hz)
+            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint)
         except TourExecutionError as exc:
             log.warning("skipping region %d: %s", pt.tour.region, exc)
             if on_skip is not None:
@@ -88,11 +90,14 @@ def execute_tours(
     return out
 
 
-def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = None, rate_hz: float = 5.0) -> RegionRecording:
+def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = None, rate_hz: float = 5.0,
+                 checkpoint: Callable[[], None] | None = None) -> RegionRecording:
+    check = checkpoint or _no_checkpoint
     tour = pt.tour
     start = np.asarray(tour.start_pose.position_m)
+    check()
     if scene is not None:
-        _transit(robot, scene, start)
+        _transit(robot, scene, start, check)
     here = robot.pose
     d = start[:2] - here.xyz[:2]
     if np.hypot(*d) > 0.05:
@@ -116,6 +121,7 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
     path = np.asarray(tour.path_m)
     with robot.recording(sink, rate_hz):
         for k in range(len(path)):
+            check()  # inside the recording: abandoning it here stops the recording on the way out
             if k > 0:
                 cur = robot.pose.xyz
                 d = path[k, :2] - cur[:2]
@@ -139,7 +145,11 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
     return rec
 
 
-def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray) -> None:
+def _no_checkpoint() -> None:
+    pass
+
+
+def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Callable[[], None] = _no_checkpoint) -> None:
     """Walk over traversed edges from the node nearest the robot to the node nearest the goal."""
     g = scene.result.graph
     visited = g.nodes_with(NodeStatus.VISITED)
@@ -159,6 +169,7 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray) -> None:
         log.warning("no traversed route to the tour start; trying straight")
         return
     for n in route:
+        check()
         cur = robot.pose.xyz
         d = g.pos(n)[:2] - cur[:2]
         if math.hypot(*d) < 0.05:

@@ -7,11 +7,17 @@ remotely, a map builder, two publishers), so the mapper service only wires bus c
 2. one recorded tour per region: the robot publishes the frames, the reconstructor collects them; a
    region whose start cannot be reached is skipped and reported, the map is built from the rest;
 3. the map build, itself a job of the reconstructor, whose progress is relayed as this job's.
+
+A cancel (the job's flag) is seen before every exploration step, before every move of a tour, and
+while the build runs: then the build is cancelled on the reconstructor too, and waited for, so the
+job ends ``cancelled`` (with the stage it was in) only once the build has stored nothing. A build that
+had already stored its map when the cancel reached it is whole: the job then ends succeeded with it.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Protocol
@@ -38,7 +44,11 @@ class RecordingRobot(TourRobot, Protocol):
 
 
 class MapBuilder(Protocol):
-    def build(self, req: BuildMapRequest, *, on_event: Callable[[JobEvent], None] | None = None) -> MapInfo: ...
+    def build(self, req: BuildMapRequest, *, on_event: Callable[[JobEvent], None] | None = None,
+              cancel: threading.Event | None = None) -> MapInfo:
+        """Build to the end; ``cancel`` set cancels the build too and raises :class:`shared.jobs.Cancelled`
+        once it ended so."""
+        ...
 
 
 # Where each stage sits in the exploration's progress (0-1): discovery, tours, the map build.
@@ -53,7 +63,7 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     if req.max_steps is not None:  # a hard cap; otherwise the budget scales with the area discovered
         cfg.exploration.max_steps = req.max_steps
     ctx.progress(ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
-    disc = discover(robot, cfg)
+    disc = discover(robot, cfg, checkpoint=ctx.check_cancelled)
     ctx.check_cancelled()
     publish_graph(disc.nav_graph())
     for tour in disc.tour_messages():
@@ -89,7 +99,8 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
         ctx.progress(ExplorationProgress(stage="touring", progress=tours_progress(), region=pt.tour.region,
                                          message=f"region {pt.tour.region} skipped: {exc}"))
 
-    execute_tours(robot, disc.tours, disc.scene, rate_hz=tour_rate_hz, on_recording=on_recording, on_skip=on_skip)
+    execute_tours(robot, disc.tours, disc.scene, rate_hz=tour_rate_hz, on_recording=on_recording, on_skip=on_skip,
+                  checkpoint=ctx.check_cancelled)
     if not recordings:
         raise RuntimeError(f"no region tour could be recorded ({len(skipped)} skipped)")
     ctx.progress(ExplorationProgress(stage="reconstructing", progress=_BUILD_AT,
@@ -102,11 +113,12 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
                                              message=ev.data.message))
 
     scene = robot.scene()
+    ctx.check_cancelled()
     info = maps.build(BuildMapRequest(
         build_id=req.exploration_id, exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
         reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
         label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene} ({ended})"),
-        on_event=on_build_event)
+        on_event=on_build_event, cancel=ctx.cancel)
     return JobEnd(JobState.SUCCEEDED, ExplorationFinished(
         map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),
         skipped_regions=skipped, nodes=nodes, timings_s=timings_s, outcome=outcome,

@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Protocol, runtime_checkable
@@ -156,7 +157,9 @@ class Explorer:
                 base.model_copy(update={"angle_bins": self.config.scan_angle_bins})
             )
 
-    def explore(self, robot: ExplorerRobot) -> ExplorationResult:
+    def explore(self, robot: ExplorerRobot, checkpoint: Callable[[], None] | None = None) -> ExplorationResult:
+        """Run the frontier DFS to its end; ``checkpoint`` (if given) is called before every step and
+        may raise to abandon the exploration (a cancelled job), which then propagates."""
         cfg = self.config
         t0 = time.perf_counter()
         run = _Run(self, robot)
@@ -165,6 +168,8 @@ class Explorer:
         run.arrive(pano, previous=None, travelled_m=0.0)
         reason = StopReason.EXHAUSTED
         while True:
+            if checkpoint is not None:
+                checkpoint()
             budget = run.step_budget()
             if run.steps >= budget:
                 reason = StopReason.STEPS
