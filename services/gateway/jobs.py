@@ -1,5 +1,6 @@
-"""What the job routers (missions, explorations) and the robot router share: starting a job, following
-its events, serving its pictures, and the scene-switch guard. The routers import this, never each other.
+"""What the job routers (missions, explorations) and the robot router share: starting and cancelling a
+job, following its events, serving its pictures, and the scene-switch guard. The routers import this,
+never each other.
 """
 
 from __future__ import annotations
@@ -14,9 +15,9 @@ from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.events import parse_last_event_id, sse_stream
 from services.gateway.reaper import find_owner
 from services.gateway.records import JobKind
-from services.gateway.store import GatewayStore
+from services.gateway.store import GatewayStore, JobRow
 from shared.bus.typed import RemoteError
-from shared.schemas import JobAccepted, JobState
+from shared.schemas import ErrorCode, JobAccepted, JobState
 
 OPEN_STATES = [JobState.QUEUED, JobState.RUNNING]
 
@@ -69,6 +70,31 @@ def start_job(store, kind: JobKind, job_id: str, request_json: dict, http_reques
     settings = http_request.app.state.settings
     store.set_owner(job_id, find_owner(http_request.app.state.bus, service, reply.instance,
                                        timeout_s=settings.status_timeout_s))
+
+
+def cancel_job(store: GatewayStore, kind: JobKind, job_id: str, http_request: Request, service: str,
+               ask: Callable[[], list[JobAccepted | RemoteError]]) -> JobRow:
+    """Ask the job's workers to cancel it (``ask``: every replica's answer); returns its row afterwards.
+
+    404 for an unknown job, 409 for one that has ended (terminal states are final: a rejected cancel
+    changes nothing). The job's own ``cancelled`` event follows on its stream. A job no live worker runs
+    (an orphan: its worker died or restarted, none answered, or each said it has no such job) can never
+    finish, so it is cancelled here at once, as asked."""
+    row = store.get_job(job_id, kind)
+    if row is None:
+        raise GatewayError(f"no {kind.value} {job_id!r}", 404)
+    if row.state == JobState.CANCELLED:
+        raise GatewayError(f"{kind.value} {job_id!r} is already cancelled", 409)
+    if row.terminal:
+        raise GatewayError(f"{kind.value} {job_id!r} has already ended ({row.state.value})", 409)
+    answers = ask()
+    if not any(isinstance(a, JobAccepted) and a.accepted for a in answers):
+        failures = [a for a in answers if isinstance(a, RemoteError) and a.code != ErrorCode.NOT_FOUND]
+        if failures and len(failures) == len(answers):
+            raise GatewayError(remote_detail(failures[0], "cannot cancel"), remote_status(failures[0]))
+        why = f"no {service} answered" if not answers else f"no {service} runs it any more"
+        http_request.app.state.reaper.fail(kind, job_id, f"cancelled on request; {why}", state=JobState.CANCELLED)
+    return store.get_job(job_id, kind) or row
 
 
 def events_response(kind: JobKind, job_id: str, store, hub, settings, last_event_id: str | None,

@@ -113,6 +113,7 @@ def apply_event(summary: dict[str, Any], event: JobEvent, image_urls: dict[str, 
         case JobCancelled():
             summary["message"] = d.message
             summary["outcome"] = MissionOutcome.CANCELLED.value
+            summary["stage"] = d.stage or summary["stage"]  # the stage it was stopped in
         case JobFailed():
             summary["error"] = d.error
             summary["outcome"] = MissionOutcome.FAILED.value

@@ -22,7 +22,7 @@ from shared.bus.base import Closeable
 from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
     CancelRequest, Candidate, CandidateKind, Decision, EpisodeMetricsData, ExplorationFinished, ExplorationProgress,
-    ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled, LoadSceneRequest, MapChunk, MapChunkRequest,
+    ExplorationCancelRequest, ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled, LoadSceneRequest, MapChunk, MapChunkRequest,
     MapImportRequest, MapInfo, MapListReply, MapRequest, JobAccepted, JobEvent, JobEventKind,
     MissionFinished, MissionRequest, MissionStarted, JobState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
 )
@@ -207,31 +207,61 @@ class ScriptedPlanner:
 
 
 class ScriptedMapper:
-    """Serves MAPPER_EXPLORE; an exploration publishes progress events and finishes with its map."""
+    """Serves MAPPER_EXPLORE and EXPLORATION_CANCEL; an exploration publishes progress events and finishes
+    with its map. A map id containing ``"hang"`` holds at its last stage ("reconstructing") until the
+    exploration is cancelled (or 60 s), so a test can cancel it mid-way without racing its end. A
+    cancelled exploration ends ``cancelled`` with its stage and adds no map. ``cancels`` counts the
+    accepted cancels."""
 
     def __init__(self, bus: TypedBus, robot: str = "robot0", *, stages: int = 3, stage_interval_s: float = 0.01,
                  reconstructor: ScriptedReconstructor | None = None):
         self.bus, self.robot, self.stages, self.interval_s = bus, robot, stages, stage_interval_s
         self.reconstructor = reconstructor
+        self.cancels = 0
+        self._cancel: dict[str, threading.Event] = {}
         self._threads: list[threading.Thread] = []
-        self._entities = [bus.serve(keys.MAPPER_EXPLORE.format(robot=robot), ExplorationRequest, self._submit)]
+        self._entities = [bus.serve(keys.MAPPER_EXPLORE.format(robot=robot), ExplorationRequest, self._submit),
+                          bus.serve(keys.EXPLORATION_CANCEL.format(robot=robot), ExplorationCancelRequest,
+                                    self._cancel_req)]
 
     def _submit(self, req: ExplorationRequest) -> JobAccepted:
+        self._cancel[req.exploration_id] = threading.Event()
         t = threading.Thread(target=self._run, args=(req,), daemon=True)
         self._threads.append(t)
         t.start()
         return JobAccepted(job_id=req.exploration_id, accepted=True)
 
+    def _cancel_req(self, req: ExplorationCancelRequest) -> JobAccepted:
+        ev = self._cancel.get(req.exploration_id)
+        if ev is None or ev.is_set():
+            return JobAccepted(job_id=req.exploration_id, accepted=False, reason="no such exploration here")
+        ev.set()
+        self.cancels += 1
+        return JobAccepted(job_id=req.exploration_id, accepted=True)
+
     def _run(self, req: ExplorationRequest) -> None:
         key = keys.EXPLORATION_EVENTS.format(robot=self.robot, exploration=req.exploration_id)
-        names = ["discovery", "tours", "reconstruction"]
+        cancel = self._cancel[req.exploration_id]
+        names = ["exploring", "touring", "reconstructing"]
         self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=0, kind=JobEventKind.STARTED,
                                            state=JobState.RUNNING, data=ExplorationStarted(map_id=req.map_id)))
+        stage, sent = None, 0
         for i in range(1, self.stages + 1):
-            time.sleep(self.interval_s)
+            if cancel.wait(self.interval_s) if self.interval_s else cancel.is_set():
+                break
+            stage = names[min(i, len(names)) - 1]
             self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=i, kind=JobEventKind.PROGRESS, state=JobState.RUNNING,
-                step=i * 10, data=ExplorationProgress(stage=names[min(i, len(names)) - 1], progress=i / (self.stages + 1)),
+                step=i * 10, data=ExplorationProgress(stage=stage, progress=i / (self.stages + 1)),
                 images={"map": jpeg(spatial_map([(0, 0), (i, 0)], []))}))
+            sent = i
+            # The hold comes after the last stage's event: a test sees it running in that stage first.
+            if i == self.stages and "hang" in req.map_id and cancel.wait(60.0):
+                break
+        if cancel.is_set():
+            self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=sent + 1, kind=JobEventKind.FINISHED,
+                                           state=JobState.CANCELLED, step=sent * 10,
+                                           data=JobCancelled(message=f"cancelled on request while {stage}", stage=stage)))
+            return
         if self.reconstructor is not None:
             self.reconstructor.add_random(req.map_id, 2000)
         self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=self.stages + 1,
@@ -240,6 +270,8 @@ class ScriptedMapper:
                                                                                   regions=self.stages)))
 
     def close(self) -> None:
+        for ev in self._cancel.values():
+            ev.set()
         for e in self._entities:
             e.close()
         for t in self._threads:

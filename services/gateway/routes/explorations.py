@@ -1,4 +1,4 @@
-"""Explorations: pre-explore the robot's current scene and reconstruct it into a map."""
+"""Explorations: pre-explore the robot's current scene and reconstruct it into a map; cancel one."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError
 from services.gateway.records import ExplorationPage, ExplorationRecord, JobCreated, JobKind
-from services.gateway.jobs import events_response, image_response, start_job
+from services.gateway.jobs import cancel_job, events_response, image_response, start_job
 from services.gateway.params import (
     IMAGE_DOC, RECORD_DOC, SEGMENT, SSE_DOC, After, ExplorationId, IfNoneMatch, ImageName, LastEventId, Seq,
 )
@@ -93,6 +93,20 @@ def get_exploration(exploration_id: ExplorationId, cache: CacheDep, if_none_matc
     if entry is None:
         raise GatewayError(f"no exploration {exploration_id!r}", 404)
     return record_response(entry, if_none_match)
+
+
+@router.post("/{exploration_id}/cancel", response_model=JobCreated, status_code=status.HTTP_202_ACCEPTED,
+             dependencies=[Authorized], responses={401: {}, 404: {}, 409: {}, 503: {}})
+def cancel(exploration_id: ExplorationId, request: Request, bus: BusDep, store: StoreDep,
+           settings: SettingsDep) -> JobCreated:
+    """Ask the mapper to stop the exploration: it stops within one exploration step or tour move, or
+    cancels the map build it waits on (which then stores nothing). Its ``cancelled`` event, naming the
+    stage it stopped in, follows on the stream; an exploration whose build had already stored the map
+    ends succeeded. One no live mapper runs (an orphan) is cancelled here at once."""
+    row = cancel_job(store, JobKind.EXPLORATION, exploration_id, request, "mapper", lambda: MapperClient(
+        bus, settings.robot, timeout_s=settings.request_timeout_s).cancel_everywhere(exploration_id))
+    return JobCreated(id=exploration_id, state=row.state, url=f"/explorations/{exploration_id}",
+                      events_url=f"/explorations/{exploration_id}/events")
 
 
 @router.get("/{exploration_id}/events", response_class=StreamingResponse, responses=SSE_DOC)

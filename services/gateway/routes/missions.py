@@ -14,17 +14,32 @@ from services.gateway.cache import record_response
 from services.gateway.deps import Authorized, BusDep, CacheDep, HubDep, SettingsDep, StoreDep
 from services.gateway.errors import GatewayError, remote_detail, remote_status
 from services.gateway.events import event_json
-from services.gateway.jobs import events_response, image_response, start_job
+from services.gateway.jobs import cancel_job, events_response, image_response, start_job
 from services.gateway.params import (
-    IMAGE_DOC, RECORD_DOC, SEGMENT, SSE_DOC, After, IfNoneMatch, ImageName, LastEventId, MissionId, Seq,
+    IMAGE_DOC,
+    RECORD_DOC,
+    SEGMENT,
+    SSE_DOC,
+    After,
+    IfNoneMatch,
+    ImageName,
+    LastEventId,
+    MissionId,
+    Seq,
 )
 from services.gateway.records import (
-    EventRecord, JobCreated, JobKind, MissionPage, MissionRecord, MissionSummary, outcome_of,
+    EventRecord,
+    JobCreated,
+    JobKind,
+    MissionPage,
+    MissionRecord,
+    MissionSummary,
+    outcome_of,
 )
 from services.gateway.store import JobRow
 from shared.bus.typed import NoReplyError, RemoteError
 from shared.clients import MapClient, PlannerClient, RobotClient
-from shared.schemas import ErrorCode, Instruction, JobAccepted, JobState, MissionOptions, MissionRequest
+from shared.schemas import ErrorCode, Instruction, JobState, MissionOptions, MissionRequest
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/missions", tags=["missions"])
@@ -155,24 +170,10 @@ def get_mission(mission_id: MissionId, cache: CacheDep, if_none_match: IfNoneMat
 def cancel(mission_id: MissionId, request: Request, bus: BusDep, store: StoreDep, settings: SettingsDep) -> JobCreated:
     """Ask the planner to stop the mission; its ``cancelled`` event follows on the stream. A mission no
     live planner runs (an orphan: its planner died or restarted) is cancelled here at once."""
-    row = _get(store, mission_id)
-    if row.state == JobState.CANCELLED:
-        raise GatewayError(f"mission {mission_id!r} is already cancelled", 409)
-    if row.terminal:
-        raise GatewayError(f"mission {mission_id!r} has already ended ({row.state.value})", 409)
     # Every planner is asked: with replicas, the one zenoh would pick need not be the one running it.
-    answers = PlannerClient(bus, settings.robot, timeout_s=settings.request_timeout_s).cancel_everywhere(mission_id)
-    if not any(isinstance(a, JobAccepted) and a.accepted for a in answers):
-        failures = [a for a in answers if isinstance(a, RemoteError) and a.code != ErrorCode.NOT_FOUND]
-        if failures and len(failures) == len(answers):
-            raise GatewayError(remote_detail(failures[0], "cannot cancel"), remote_status(failures[0]))
-        # No planner runs it (none answered, or each said it has no such mission): it can never
-        # finish, so it ends here, cancelled as asked.
-        why = "no planner answered" if not answers else "no planner runs it any more"
-        request.app.state.reaper.fail(JobKind.MISSION, mission_id, f"cancelled on request; {why}",
-                                      state=JobState.CANCELLED)
+    row = cancel_job(store, JobKind.MISSION, mission_id, request, "planner", lambda: PlannerClient(
+        bus, settings.robot, timeout_s=settings.request_timeout_s).cancel_everywhere(mission_id))
     url, events_url = _links(mission_id)
-    row = _get(store, mission_id)
     return JobCreated(id=mission_id, state=row.state, url=url, events_url=events_url)
 
 

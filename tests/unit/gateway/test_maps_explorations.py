@@ -77,3 +77,51 @@ def test_exploration_reports_progress_and_builds_a_map(world, gateway):
             assert s.read().decode().count("\nid: ") + 0 >= 4
         assert client.post("/explorations", json={"max_steps": 0}).status_code == 422
         assert client.post("/explorations", json={"reconstruction": "a/b"}).status_code == 422
+
+
+def _exploration(client, xid):
+    return client.get(f"/explorations/{xid}").json()
+
+
+def test_cancel_a_running_exploration(world, gateway):
+    with gateway() as client:
+        # A map id with "hang": the scripted mapper holds in its last stage until cancelled.
+        xid = client.post("/explorations", json={"map_id": "hang-house"}).json()["id"]
+        wait_until(lambda: _exploration(client, xid)["stage"] == "reconstructing", what="the reconstructing stage")
+        r = client.post(f"/explorations/{xid}/cancel")
+        assert r.status_code == 202, r.text
+        assert r.json()["id"] == xid and r.json()["url"] == f"/explorations/{xid}"
+        rec = wait_until(lambda: (x := _exploration(client, xid))["state"] == "cancelled" and x, what="cancelled")
+        # The stage it was stopped in, said by the mapper's own final event.
+        assert rec["stage"] == "reconstructing" and rec["message"] == "cancelled on request while reconstructing"
+        assert rec["progress"] < 1.0 and world.mapper.cancels == 1
+        assert "hang-house" not in [m["map_id"] for m in client.get("/maps").json()]
+        again = client.post(f"/explorations/{xid}/cancel")
+        assert again.status_code == 409 and "already cancelled" in again.json()["detail"]
+        assert world.mapper.cancels == 1  # a refused cancel never reaches the mapper
+        assert client.post("/explorations/x-unknown/cancel").status_code == 404
+        assert client.post("/explorations/bad*id/cancel").status_code == 422
+        assert client.post(f"/missions/{xid}/cancel").status_code == 404  # an exploration is not a mission
+
+
+def test_cancelling_an_ended_exploration_is_refused_and_changes_nothing(world, gateway):
+    with gateway() as client:
+        xid = client.post("/explorations", json={"map_id": "done-house"}).json()["id"]
+        before = wait_until(lambda: (x := _exploration(client, xid))["state"] == "succeeded" and x)
+        r = client.post(f"/explorations/{xid}/cancel")
+        assert r.status_code == 409 and "already ended (succeeded)" in r.json()["detail"]
+        assert _exploration(client, xid) == before and world.mapper.cancels == 0
+
+
+def test_an_exploration_no_mapper_runs_is_cancelled_by_the_gateway(world, gateway):
+    from services.gateway.records import JobKind
+
+    with gateway() as client:
+        # A row the mapper never heard of (its mapper restarted and forgot it): it could never end.
+        client.app.state.store.create_job(JobKind.EXPLORATION, "x-orphan", {"map_id": "lost"})
+        r = client.post("/explorations/x-orphan/cancel")
+        assert r.status_code == 202 and r.json()["state"] == "cancelled"
+        rec = _exploration(client, "x-orphan")
+        assert rec["state"] == "cancelled" and "no mapper runs it any more" in rec["message"]
+        with client.stream("GET", "/explorations/x-orphan/events") as s:
+            assert "cancelled" in s.read().decode()

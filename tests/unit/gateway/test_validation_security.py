@@ -94,6 +94,7 @@ def test_token_protects_mutating_routes_only(world, gateway):
         assert client.post("/explorations", json={}).status_code == 401
         assert client.post("/maps?map_id=x", content=b"ply\n").status_code == 401
         assert client.post("/missions/m-x/cancel").status_code == 401
+        assert client.post("/explorations/x-x/cancel").status_code == 401
         ok = client.post("/missions", json=body, headers={"Authorization": "Bearer s3cret"})
         assert ok.status_code == 202
         # Reading needs no token.
@@ -117,7 +118,7 @@ def test_openapi_documents_every_route_with_a_response_model(world, gateway):
         assert client.get("/docs").status_code == 200
     paths = spec["paths"]
     for path in ["/missions", "/missions/{mission_id}", "/missions/{mission_id}/cancel", "/missions/{mission_id}/events",
-                 "/explorations", "/explorations/{exploration_id}", "/maps", "/maps/{map_id}",
+                 "/explorations", "/explorations/{exploration_id}", "/explorations/{exploration_id}/cancel", "/maps", "/maps/{map_id}",
                  "/maps/{map_id}/cloud.ply", "/status", "/health"]:
         assert path in paths, path
     assert "$ref" in str(paths["/missions/{mission_id}"]["get"]["responses"]["200"])
