@@ -138,6 +138,37 @@ def test_dashboard_explores_a_new_map_with_progress(live_gateway):
     assert [(x["map_id"], x["state"]) for x in explorations] == [("explored-house", "succeeded")]
 
 
+def test_dashboard_cancels_a_running_exploration_from_another_page(live_gateway):
+    """One page starts an exploration; a page opened later shows it running (the explore box follows an
+    open exploration) and cancels it; both pages then show it cancelled, with the stage it stopped in."""
+    status = "document.querySelector('#explore-status')"
+    with headless_chromium() as browser:
+        first, errors = open_dashboard(browser, live_gateway)
+        # A map id with "hang": the scripted mapper holds in its last stage until the exploration is cancelled.
+        first.fill("#explore-map", "hang-house")
+        first.click("#explore")
+        first.wait_for_function(f"{status}.textContent.includes('reconstructing')", timeout=15_000)
+        second, more_errors = open_dashboard(browser, live_gateway)
+        second.wait_for_function(f"{status}.textContent.includes('reconstructing')", timeout=15_000)
+        assert second.is_disabled("#explore") and second.is_visible("#explore-cancel")
+        second.click("#explore-cancel")
+        for page in (first, second):
+            page.wait_for_function(f"{status}.dataset.state === 'cancelled'", timeout=15_000)
+        texts = [p.text_content("#explore-status") for p in (first, second)]
+        hidden = [p.is_hidden("#explore-cancel") for p in (first, second)]
+        enabled = [not p.is_disabled("#explore") for p in (first, second)]
+        options = first.eval_on_selector_all("#map-select option", "os => os.map(o => o.value)")
+        shot = first.screenshot(full_page=True)
+    out = REPO / "runs" / "screenshots"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "dashboard-explore-cancelled.png").write_bytes(shot)
+    assert not errors and not more_errors, errors + more_errors
+    assert all(t.startswith("cancelled") and t.endswith("while reconstructing") for t in texts), texts
+    assert all(hidden) and all(enabled) and "hang-house" not in options
+    (rec,) = httpx.get(f"{live_gateway}/explorations", timeout=5).json()["items"]
+    assert rec["state"] == "cancelled" and rec["stage"] == "reconstructing" and rec["map_id"] == "hang-house"
+
+
 def test_dashboard_with_a_read_token_sends_it_on_every_read_and_its_steps_agree(tmp_path, caplog):
     """With ANT_READ_TOKEN set, the page takes the token from a #token= link, sends it on every fetch,
     EventSource, image and download (none is refused), keeps it out of the address bar and the access

@@ -344,6 +344,7 @@ async function cancel() {
 
 // --- explorations and uploads ----------------------------------------------------------------------
 let exploreStream = null;
+let exploring = null;    // id of the exploration in the explore box
 
 function showExploration(rec) {
   const box = $("#explore-box");
@@ -351,14 +352,20 @@ function showExploration(rec) {
   box.className = "job " + rec.state;
   $("#explore-progress").value = rec.progress == null ? 0 : rec.progress;
   const pct = rec.progress == null ? "" : ` ${Math.round(100 * rec.progress)}%`;
-  // A finished exploration shows how it ended, not the last stage it was in ("reconstructing 10 regions").
-  const what = rec.error ? `: ${rec.error}` : TERMINAL.has(rec.state) ? "" : rec.stage ? ` · ${rec.stage}` : "";
+  // A finished exploration shows how it ended, not the last stage it was in ("reconstructing 10 regions");
+  // a cancelled one says which stage the cancel stopped.
+  const what = rec.error ? `: ${rec.error}`
+    : rec.state === "cancelled" && rec.stage ? ` · while ${rec.stage}`
+    : TERMINAL.has(rec.state) ? "" : rec.stage ? ` · ${rec.stage}` : "";
   $("#explore-status").textContent = `${rec.state}${pct}${what}`;
   $("#explore-status").dataset.state = rec.state;
+  $("#explore-cancel").hidden = TERMINAL.has(rec.state);
 }
 
 function followExploration(created, mapId) {
   if (exploreStream) exploreStream.close();
+  exploring = created.id;
+  $("#explore-cancel").disabled = false;
   const rec = { state: "queued", progress: 0, stage: null, error: null };
   showExploration(rec);
   exploreStream = new EventSource(withToken(created.events_url));
@@ -394,6 +401,29 @@ async function explore(e) {
   } catch (ex) { err.textContent = ex.message; btn.disabled = false; }
 }
 
+async function cancelExploration() {
+  if (!exploring) return;
+  const err = $("#explore-error"), btn = $("#explore-cancel");
+  err.textContent = "";
+  setToken($("#token").value.trim());
+  btn.disabled = true;  // once: its cancelled event ends the stream and hides the button
+  try { await api(`/explorations/${encodeURIComponent(exploring)}/cancel`, { method: "POST" }); }
+  catch (ex) { err.textContent = ex.message; btn.disabled = false; }
+}
+
+// An exploration still running when the page opens (started by another tab, or by the evaluation
+// runner) is shown, and can be cancelled, as one started here.
+async function resumeExploration() {
+  try {
+    const page = await api("/explorations?state=running&state=queued&limit=1");
+    const x = page.items[0];
+    if (x && !exploreStream) {
+      $("#explore").disabled = true;
+      followExploration(x, x.map_id);
+    }
+  } catch (_) { /* the explore box stays empty */ }
+}
+
 async function upload(e) {
   e.preventDefault();
   const err = $("#upload-error"), status = $("#upload-status"), btn = $("#upload");
@@ -420,11 +450,12 @@ $("#explore-form").addEventListener("submit", explore);
 $("#upload-form").addEventListener("submit", upload);
 $("#mission-form").addEventListener("submit", submit);
 $("#cancel").addEventListener("click", cancel);
+$("#explore-cancel").addEventListener("click", cancelExploration);
 $("#state-filter").addEventListener("change", refreshMissions);
 $("#token").value = token();
 $("#token").addEventListener("change", () => { setToken($("#token").value.trim()); refreshAll(); });
 function refreshAll() { refreshStatus(); refreshMaps(); refreshMissions(); }
-refreshStatus(); refreshMaps(); refreshMissions().then(() => {
+refreshStatus(); refreshMaps(); resumeExploration(); refreshMissions().then(() => {
   const id = location.hash.slice(1);
   if (id) select(id);
 });
