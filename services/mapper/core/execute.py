@@ -76,7 +76,7 @@ def execute_tours(
     out = []
     for pt in tours:
         try:
-            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint)
+            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint)
         except TourExecutionError as exc:
             log.warning("skipping region %d: %s", pt.tour.region, exc)
             if on_skip is not None:

@@ -114,7 +114,7 @@ def test_a_tour_that_cannot_start_is_skipped_not_fatal(monkeypatch):
 
     calls = []
 
-    def fake_execute(robot, pt, scene, rate_hz):
+    def fake_execute(robot, pt, scene, rate_hz, checkpoint=None):
         if pt.tour.region == 1:
             raise TourExecutionError("region 1: could not reach the tour start (0.68 m)")
         calls.append(pt.tour.region)
@@ -124,7 +124,7 @@ def test_a_tour_that_cannot_start_is_skipped_not_fatal(monkeypatch):
     skipped = []
     out = ex.execute_tours(None, [T(0), T(1), T(2)], on_skip=lambda pt, e: skipped.append(pt.tour.region))
     assert out == [0, 2] and skipped == [1]
-    monkeypatch.setattr(ex, "execute_tour", lambda *a: (_ for _ in ()).throw(TourExecutionError("no")))
+    monkeypatch.setattr(ex, "execute_tour", lambda *a, **k: (_ for _ in ()).throw(TourExecutionError("no")))
     import pytest
 
     with pytest.raises(TourExecutionError, match="none of the 2 tours"):
