@@ -31,5 +31,16 @@ class MapUnavailable(EvaluationError):
     """No map could be obtained for a scene (exploration failed, upload refused, ...)."""
 
 
+class ExplorationStopped(EvaluationError):
+    """The run stopped (its budget was reached) while a robot explored a scene to build its map: the
+    exploration was cancelled through its gateway, and the scene's episodes were not started."""
+
+    def __init__(self, scene_id: str, exploration_id: str, state: str, stage: str | None, why: str):
+        where = f" while {stage}" if stage else ""
+        super().__init__(f"the exploration {exploration_id} building the map of {scene_id} was {state}{where} "
+                         f"({why})")
+        self.scene_id, self.exploration_id, self.state, self.stage, self.why = scene_id, exploration_id, state, stage, why
+
+
 class ResultsFormatError(EvaluationError):
     """A results file that cannot be read (not the runner's JSON lines)."""

@@ -109,6 +109,13 @@ class GatewayClient:
     def exploration(self, exploration_id: str) -> dict[str, Any]:
         return self._call("GET", f"/explorations/{exploration_id}")
 
+    def cancel_exploration(self, exploration_id: str) -> None:
+        try:
+            self._call("POST", f"/explorations/{exploration_id}/cancel")
+        except GatewayError as exc:
+            if exc.status != 409:  # already ended: nothing to cancel
+                raise
+
     def maps(self) -> list[dict[str, Any]]:
         return self._call("GET", "/maps")
 

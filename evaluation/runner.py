@@ -11,8 +11,10 @@ recorded as ``skipped`` with the reason. The summary (Markdown + CSV) is recompu
 A budget (dollars, tokens, wall seconds: :class:`evaluation.ledger.Budget`) is watched while missions
 run: when it is reached, every mission in flight is cancelled through its gateway and recorded as
 ``stopped`` (neither a policy failure nor a system error), no robot starts another episode, and the
-summary says what ended the run and what it spent. A resumed run (with a larger budget) runs the stopped
-episodes again.
+summary says what ended the run and what it spent. A robot that is exploring a scene to build its map
+when the budget is reached has that exploration cancelled through its gateway too (its map build stores
+nothing), and the scene's episodes count as not started. A resumed run (with a larger budget) runs the
+stopped episodes again.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from typing import Any, Literal, Protocol
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from evaluation.errors import (
-    ConfigError, EvaluationError, GatewayError, MapUnavailable, MissionTimeout, SceneSwitchError,
+    ConfigError, EvaluationError, ExplorationStopped, GatewayError, MapUnavailable, MissionTimeout, SceneSwitchError,
 )
 from evaluation.gateway_client import TERMINAL_STATES, GatewayClient
 from evaluation.ledger import Budget, Spent, ledger_markdown, stage_totals, step_ledger
@@ -97,8 +99,9 @@ class RunConfig(BaseModel):
     budget_wall_s: float | None = Field(None, gt=0, allow_inf_nan=False,
                                         description="stop the run once this call has run this many seconds")
     stop_wait_s: float = Field(120.0, gt=0, le=3600, allow_inf_nan=False,
-                               description="how long a mission cancelled by the budget may take to end (the "
-                                           "planner ends it between steps)")
+                               description="how long a mission or exploration cancelled by the budget may take "
+                                           "to end (the planner ends a mission between steps, the mapper an "
+                                           "exploration within a step or by cancelling its map build)")
 
     def experiment_key(self) -> dict[str, Any]:
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
@@ -231,6 +234,7 @@ class EvalRunner:
         self.lanes = [Lane(gateway, scenes), *lanes]
         self._stop = threading.Event()  # set: no robot starts another episode
         self._budget = Budget()  # the run's (see run()); unlimited for a lone run_episode()
+        self._explorations_stopped: list[ExplorationStopped] = []  # this run's, every robot's (shared list)
         self.out_dir = Path(out_dir)
         self.log = ResultsLog(self.out_dir / RESULTS_FILE)
         self.maps = map_cache or SceneMapIndex(self.out_dir / "maps.json")
@@ -296,6 +300,7 @@ class EvalRunner:
                         spent=sum((Spent.of(r) for r in self.log.attempts() if r.episode_id in selected_ids),
                                   Spent()))
         self._budget = budget
+        self._explorations_stopped.clear()
         why = budget.exceeded() if todo else ""
         n_stopped = 0
         try:
@@ -320,6 +325,8 @@ class EvalRunner:
         not_run = len(todo) - ran
         why = budget.exceeded() or why  # what was spent once every robot has stopped
         stopped = Budget.reason(why, n_stopped, not_run) if why and (n_stopped or not_run) else ""
+        if stopped and self._explorations_stopped:
+            stopped += "; " + "; ".join(str(x) for x in self._explorations_stopped)
         spent = budget.spent
         latest = self.log.load()
         results = [latest[str(e.episode_id)] for e in selected if str(e.episode_id) in latest]
@@ -337,7 +344,10 @@ class EvalRunner:
 
     def _halted(self) -> bool:
         """No episode may start: the run is stopping, or its budget is reached."""
-        return self._stop.is_set() or bool(self._budget.exceeded())
+        return bool(self._halt_reason())
+
+    def _halt_reason(self) -> str:
+        return self._budget.exceeded() or ("the run was interrupted" if self._stop.is_set() else "")
 
     def _concurrent(self, groups: dict[str, list[Episode]], gt: dict[str, GroundTruth], maps: dict[str, str]):
         """(scene, result) of every pending episode, one worker thread per robot over its shard of scenes.
@@ -454,6 +464,11 @@ class EvalRunner:
                 return
         try:
             map_id = self.ensure_map(scene_id, spec)
+        except ExplorationStopped as exc:
+            # Not the scene's failure: its episodes were never started and run on resume.
+            log.warning("%s", exc)
+            self._explorations_stopped.append(exc)
+            return
         except (EvaluationError, MetricsError) as exc:
             log.error("no map for %s: %s", scene_id, exc)
             for e in group:
@@ -477,22 +492,51 @@ class EvalRunner:
         if source is MapSource.CURATED:
             self._upload_curated(spec, map_id)
         else:
-            self._explore(map_id)
+            self._explore(map_id, scene_id)
         self.maps.put(scene_id, source, map_id)
         return map_id
 
-    def _explore(self, map_id: str) -> None:
+    def _explore(self, map_id: str, scene_id: str = "") -> None:
+        """Explore the robot's scene into ``map_id``. When the run stops meanwhile (its budget), the
+        exploration is cancelled and :class:`ExplorationStopped` raised; one that does not end in time is
+        cancelled too, so that no robot is left exploring for nobody."""
         cfg = self.config
         t0 = time.monotonic()
         try:
             xid = self.gateway.submit_exploration(map_id, max_steps=cfg.exploration_max_steps,
                                                   reconstruction=cfg.reconstruction)
-            rec = self.gateway.wait(self.gateway.exploration, xid, cfg.exploration_timeout_s, cfg.poll_s)
-        except (GatewayError, MissionTimeout) as exc:
+        except GatewayError as exc:
             raise MapUnavailable(f"exploration for {map_id}: {exc}") from None
+        try:
+            # Each poll looks at the run's budget, as a mission's polls do.
+            rec = self.gateway.wait(self.gateway.exploration, xid, cfg.exploration_timeout_s, cfg.poll_s,
+                                    until=lambda _rec: self._halted())
+        except MissionTimeout as exc:
+            self._cancel_exploration(xid)
+            raise MapUnavailable(f"exploration for {map_id}: {exc}") from None
+        except GatewayError as exc:
+            raise MapUnavailable(f"exploration for {map_id}: {exc}") from None
+        if rec["state"] not in TERMINAL_STATES:
+            why = self._halt_reason()
+            rec = self._cancel_exploration(xid)
+            if rec["state"] != "succeeded":  # one that stored its map before the cancel reached it is kept
+                raise ExplorationStopped(scene_id or map_id, xid, rec["state"], rec.get("stage"), why)
         if rec["state"] != "succeeded":
             raise MapUnavailable(f"exploration {xid} {rec['state']}: {rec.get('error') or rec.get('message') or ''}")
         log.info("explored and reconstructed %s in %.0f s", map_id, time.monotonic() - t0)
+
+    def _cancel_exploration(self, xid: str) -> dict[str, Any]:
+        """Cancel a running exploration and wait (``stop_wait_s``) for its end: the mapper stops it within
+        a step, or cancels the map build it waits on. Its record as it stands when it does not end."""
+        try:
+            self.gateway.cancel_exploration(xid)
+        except GatewayError as exc:
+            log.warning("could not cancel exploration %s: %s", xid, exc)
+        try:
+            return self.gateway.wait(self.gateway.exploration, xid, self.config.stop_wait_s, self.config.poll_s)
+        except MissionTimeout as exc:
+            log.warning("exploration %s did not end after its cancel: %s", xid, exc)
+            return self.gateway.exploration(xid)
 
     def _upload_curated(self, spec: str, map_id: str) -> None:
         from evaluation.clouds import sample_scene_cloud

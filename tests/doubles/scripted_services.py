@@ -208,8 +208,9 @@ class ScriptedPlanner:
 
 class ScriptedMapper:
     """Serves MAPPER_EXPLORE and EXPLORATION_CANCEL; an exploration publishes progress events and finishes
-    with its map. A map id containing ``"hang"`` holds at its last stage ("reconstructing") until the
-    exploration is cancelled (or 60 s), so a test can cancel it mid-way without racing its end. A
+    with its map. A map id containing ``"hang"`` (or every exploration, with ``hold`` set) holds at its
+    last stage ("reconstructing") until the exploration is cancelled (or 60 s), so a test can cancel it
+    mid-way without racing its end. A
     cancelled exploration ends ``cancelled`` with its stage and adds no map. ``cancels`` counts the
     accepted cancels."""
 
@@ -218,6 +219,7 @@ class ScriptedMapper:
         self.bus, self.robot, self.stages, self.interval_s = bus, robot, stages, stage_interval_s
         self.reconstructor = reconstructor
         self.cancels = 0
+        self.hold = False
         self._cancel: dict[str, threading.Event] = {}
         self._threads: list[threading.Thread] = []
         self._entities = [bus.serve(keys.MAPPER_EXPLORE.format(robot=robot), ExplorationRequest, self._submit),
@@ -255,7 +257,7 @@ class ScriptedMapper:
                 images={"map": jpeg(spatial_map([(0, 0), (i, 0)], []))}))
             sent = i
             # The hold comes after the last stage's event: a test sees it running in that stage first.
-            if i == self.stages and "hang" in req.map_id and cancel.wait(60.0):
+            if i == self.stages and (self.hold or "hang" in req.map_id) and cancel.wait(60.0):
                 break
         if cancel.is_set():
             self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=sent + 1, kind=JobEventKind.FINISHED,

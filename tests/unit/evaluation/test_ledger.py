@@ -153,3 +153,28 @@ def test_cli_estimate_calls_nothing(tmp_path, capsys):
     text = capsys.readouterr().out
     assert rc == 0 and "estimate for 4 episodes, 12 LLM calls, model gpt-4o" in text and "short" in text
     assert not (tmp_path / "out").exists()
+
+
+def test_a_budget_reached_while_a_scene_map_is_built_cancels_the_exploration(world, gateway, tmp_path):
+    out = tmp_path / "out"
+    world.mapper.hold = True  # its explorations hold in their reconstructing stage until cancelled
+    with gateway() as gw:
+        first = _runner(gw, world, out, budget_wall_s=0.3).run(_eps(2))
+        (x,) = gw.http.get("/explorations").json()["items"]
+        md = (out / "summary.md").read_text()
+        # Resumed without a budget: the scene is explored again (no map was kept) and its episodes run.
+        world.mapper.hold = False
+        second = _runner(gw, world, out).run(_eps(2))
+        explorations = gw.http.get("/explorations").json()["items"]
+    # Cancelled through the gateway, in whichever stage the budget found it (the scripted mapper holds in its
+    # last one); the run ended cleanly, no episode begun.
+    assert world.mapper.cancels == 1 and x["state"] == "cancelled"
+    assert x["stage"] in ("exploring", "touring", "reconstructing")
+    assert first.ran == 0 and first.results == [] and first.maps == {}
+    assert "the wall-time budget of 0.3 s was reached; 0 episodes were stopped mid-way and 2 were not started" \
+        in first.stopped
+    assert f"the exploration {x['id']} building the map of generated:1 was cancelled while {x['stage']}" \
+        in first.stopped
+    assert "**Run stopped early:** " + first.stopped in md
+    assert second.ran == 2 and [r.status for r in second.results] == ["done"] * 2 and not second.stopped
+    assert [e["state"] for e in explorations] == ["succeeded", "cancelled"]  # newest first
