@@ -39,7 +39,8 @@ class ExplorationStopped(EvaluationError):
         where = f" while {stage}" if stage else ""
         super().__init__(f"the exploration {exploration_id} building the map of {scene_id} was {state}{where} "
                          f"({why})")
-        self.scene_id, self.exploration_id, self.state, self.stage, self.why = scene_id, exploration_id, state, stage, why
+        self.scene_id, self.exploration_id, self.state = scene_id, exploration_id, state
+        self.stage, self.why = stage, why
 
 
 class ResultsFormatError(EvaluationError):

@@ -29,8 +29,8 @@ from shared.bus.typed import NotFound
 from shared.jobs import JobRunner
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
-    BuildCancelRequest, BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportProgress, MapImportRequest, MapInfo,
-    MapListReply, MapRequest, Ping,
+    BuildCancelRequest, BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportProgress,
+    MapImportRequest, MapInfo, MapListReply, MapRequest, Ping,
 )
 
 log = logging.getLogger(__name__)

@@ -22,7 +22,8 @@ from shared.bus.base import Closeable
 from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
     CancelRequest, Candidate, CandidateKind, Decision, EpisodeMetricsData, ExplorationFinished, ExplorationProgress,
-    ExplorationCancelRequest, ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled, LoadSceneRequest, MapChunk, MapChunkRequest,
+    ExplorationCancelRequest, ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled,
+    LoadSceneRequest, MapChunk, MapChunkRequest,
     MapImportRequest, MapInfo, MapListReply, MapRequest, JobAccepted, JobEvent, JobEventKind,
     MissionFinished, MissionRequest, MissionStarted, JobState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
 )
@@ -262,7 +263,8 @@ class ScriptedMapper:
         if cancel.is_set():
             self.bus.publish(key, JobEvent(job_id=req.exploration_id, seq=sent + 1, kind=JobEventKind.FINISHED,
                                            state=JobState.CANCELLED, step=sent * 10,
-                                           data=JobCancelled(message=f"cancelled on request while {stage}", stage=stage)))
+                                           data=JobCancelled(message=f"cancelled on request while {stage}",
+                                                             stage=stage)))
             return
         if self.reconstructor is not None:
             self.reconstructor.add_random(req.map_id, 2000)

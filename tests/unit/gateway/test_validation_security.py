@@ -118,7 +118,8 @@ def test_openapi_documents_every_route_with_a_response_model(world, gateway):
         assert client.get("/docs").status_code == 200
     paths = spec["paths"]
     for path in ["/missions", "/missions/{mission_id}", "/missions/{mission_id}/cancel", "/missions/{mission_id}/events",
-                 "/explorations", "/explorations/{exploration_id}", "/explorations/{exploration_id}/cancel", "/maps", "/maps/{map_id}",
+                 "/explorations", "/explorations/{exploration_id}", "/explorations/{exploration_id}/cancel",
+                 "/maps", "/maps/{map_id}",
                  "/maps/{map_id}/cloud.ply", "/status", "/health"]:
         assert path in paths, path
     assert "$ref" in str(paths["/missions/{mission_id}"]["get"]["responses"]["200"])
