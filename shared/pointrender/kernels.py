@@ -39,7 +39,7 @@ MAX_FRONT_POINTS = (1 << 21) // 255 - 1
 
 def _front_pass(
     x, y, z, rgb_packed, spacing, run_starts, run_counts, run_scale, proj, near, far, w, h, tol_rel1, tol_abs,
-    with_labels, with_spacing,
+    with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope,
 ):
     """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
 
@@ -47,7 +47,9 @@ def _front_pass(
     sums as float32 rows (8, P) (count, depth, r, g, b, u, v, and with ``with_spacing`` the sum of
     ``spacing[p] * run_scale[r]``: what ``accumulate_front`` returns),
     the id of the nearest point (int64 (P,), largest id among ties, -1 where none), and whether
-    some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid)."""
+    some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid).
+    With ``with_slope``, row 8 sums each front point's depth slope (``splat._point_slope`` of its
+    normal ``nx, ny, nz`` and the view's ``slope_consts``)."""
     wp = w + 2
     npad = (h + 2) * wp
     n = 0
@@ -101,6 +103,12 @@ def _front_pass(
     # other sums are exact integers, packed so that a point touches two cache lines, not eight.
     s_z = np.zeros(npad + 1, np.float64)
     s_sp = np.zeros(npad + 1 if with_spacing else 1, np.float64)
+    s_g = np.zeros(npad + 1 if with_slope else 1, np.float64)
+    cx, cy, cz = slope_consts[0], slope_consts[1], slope_consts[2]
+    ax, ay, az = slope_consts[3], slope_consts[4], slope_consts[5]
+    inv_f, inv_tan = slope_consts[6], slope_consts[7]
+    zero = np.float32(0.0)
+    min_plane = np.float32(1e-6)
     acc = np.zeros((npad + 1, 4), np.int64)  # count, packed rgb, packed uv, nearest id
     acc[:, 3] = -1
     k = 0
@@ -116,6 +124,13 @@ def _front_pass(
             s_z[t] += np.float64(zc)
             if with_spacing:
                 s_sp[t] += np.float64(spacing[p] * scale)
+            if with_slope:
+                # splat._point_slope, operation for operation.
+                d = nx[p] * (x[p] - cx) + ny[p] * (y[p] - cy) + nz[p] * (z[p] - cz)
+                cc = nx[p] * ax + ny[p] * ay + nz[p] * az
+                zs = zc * np.sqrt(max(one - cc * cc, zero))
+                den = max(max(abs(d), zs * inv_tan), min_plane)
+                s_g[t] += np.float64(zc * (zs / den) * inv_f)
             acc[t, 0] += 1
             acc[t, 1] += (c & 0xFF) | (((c >> 8) & 0xFF) << 21) | ((c >> 16) << 42)
             acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
@@ -124,7 +139,7 @@ def _front_pass(
     overflow = False
     for i in range(npad):
         overflow |= acc[i, 0] > MAX_FRONT_POINTS
-    sums = np.zeros((8, npad + 1), np.float32)
+    sums = np.zeros((9, npad + 1), np.float32)
     best = np.empty(npad + 1, np.int64)
     mask21 = (1 << 21) - 1
     mask32 = (1 << 32) - 1
@@ -140,6 +155,8 @@ def _front_pass(
         sums[6, i] = (uv >> 32) & mask32
         if with_spacing:
             sums[7, i] = s_sp[i]
+        if with_slope:
+            sums[8, i] = s_g[i]
         best[i] = acc[i, 3]
     return zbuf, sums, best, overflow
 
@@ -233,6 +250,7 @@ def warm_up() -> float:
             xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(1, np.int32), np.ones(1, np.float32), np.zeros(1, np.int64),
             np.ones(1, np.int64), np.ones(1, np.float32), np.zeros(12, np.float32), np.float32(0.05),
             np.float32(20.0), 4, 4, np.float32(1.05), np.float32(0.1), True, with_spacing,
+            xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(8, np.float32), with_spacing,
         )
     f32 = np.ones((3, 6, 6), np.float32)
     compose(

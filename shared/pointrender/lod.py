@@ -39,6 +39,9 @@ class VoxelLod:
     counts: np.ndarray  # int64 (L + 1, B)
     cell_m: tuple[float, ...]  # cell of each level (level 0: 0.0)
     spacing: np.ndarray  # float32 (len(cloud),)
+    # Unoriented unit normal of every point of ``cloud`` (None: not built); level L: the principal
+    # axis of its members' normals (the mean of n n^T, which does not depend on their signs).
+    normals: np.ndarray | None = None  # float32 (len(cloud), 3)
 
     @property
     def levels(self) -> int:
@@ -60,8 +63,9 @@ class VoxelLod:
         return self.starts[level, blocks], self.counts[level, blocks]
 
 
-def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int) -> VoxelLod:
-    """The voxel levels of ``index`` (``spacing``: per point of ``index.cloud``).
+def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int,
+                    normals: np.ndarray | None = None) -> VoxelLod:
+    """The voxel levels of ``index`` (``spacing`` and ``normals``, optional: per point of ``index.cloud``).
 
     Each level is built from the one below (a cell of level L is exactly the union of 2x2x2 cells
     of level L - 1 on the same grid), carrying sums and counts, so its means are exact and the
@@ -76,6 +80,12 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
     cnt = np.ones(len(cloud), np.float64)
     s_xyz, s_rgb, s_sp = xyz, cloud.rgb.astype(np.float64), spacing.astype(np.float64)
     rep_xyz, rep_lab = xyz, cloud.labels
+    # Sums of n n^T (xx, yy, zz, xy, xz, yz): a level's normal is their principal axis.
+    s_nn = None
+    if normals is not None:
+        n64 = normals.astype(np.float64)
+        s_nn = np.stack([n64[:, a] * n64[:, b] for a, b in _NN], 1)
+    parts_n = []
     cell_xyz = np.floor((xyz - lo) / cell_m).astype(np.int64)  # level-1 cells of the points
     parts_xyz, parts_rgb, parts_lab, parts_sp = [], [], [], []
     starts = [index.starts.astype(np.int64)]
@@ -98,6 +108,9 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
         t_xyz = np.stack([total(s_xyz[:, k]) for k in range(3)], 1)
         t_rgb = np.stack([total(s_rgb[:, k]) for k in range(3)], 1)
         t_sp = total(s_sp)
+        t_nn = None if s_nn is None else np.stack([total(s_nn[:, k]) for k in range(6)], 1)
+        if t_nn is not None:
+            parts_n.append(_principal_axis(t_nn))
         mean = t_xyz / n[:, None]
         if rep_lab is not None:
             # The label of the member nearest the voxel's mean: a voxel on the edge between two
@@ -119,9 +132,22 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
         offset += m
         # The next level groups these voxels: their cells, decoded from their keys.
         cell_xyz = np.stack([(uniq // (dims[1] * dims[2])) % dims[0], (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
-        cnt, s_xyz, s_rgb, s_sp = n, t_xyz, t_rgb, t_sp
+        cnt, s_xyz, s_rgb, s_sp, s_nn = n, t_xyz, t_rgb, t_sp, t_nn
     labels = None if cloud.labels is None else np.concatenate([cloud.labels.astype(np.int32), *parts_lab])
     full = PointCloud(np.concatenate([cloud.xyz.astype(np.float32), *parts_xyz]),
                       np.concatenate([cloud.rgb, *parts_rgb]), labels, cloud.label_names)
+    all_normals = None if normals is None else np.concatenate([normals.astype(np.float32), *parts_n])
     return VoxelLod(full, np.stack(starts), np.stack(counts), tuple(cells),
-                    np.concatenate([spacing.astype(np.float32), *parts_sp]))
+                    np.concatenate([spacing.astype(np.float32), *parts_sp]), all_normals)
+
+
+_NN = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def _principal_axis(s_nn: np.ndarray) -> np.ndarray:
+    """float32 (M, 3) unit principal axes of the symmetric matrices given by their six sums."""
+    m = np.empty((len(s_nn), 3, 3))
+    for k, (a, b) in enumerate(_NN):
+        m[:, a, b] = m[:, b, a] = s_nn[:, k]
+    _, vec = np.linalg.eigh(m)  # ascending eigenvalues: the last column is the principal axis
+    return vec[:, :, 2].astype(np.float32)

@@ -105,13 +105,26 @@ class SplatConfig(BackendConfig):
     # enclosing surface per pixel of the cell it comes from, as a surface seen this obliquely
     # (angle between the view ray and its normal) changes depth: tan(angle) / focal per pixel.
     fill_slope_deg: float = Field(60.0, ge=0.0, le=85.0)
-    # visibility mode: depth tolerance of the front layer and of the visibility test. Tighter than
-    # the paper's 0.10 m: the two faces of a 0.1 m wall must not blend.
     # visibility mode: the colour reconstruction filter (:func:`visibility.colour_filter`) blends
     # a pixel with its 3x3 neighbours whose depth is within this fraction of its own (0: off).
     colour_filter_rel: float = Field(0.05, ge=0.0, le=0.5)
-    visibility_tolerance_m: float = Field(0.04, ge=0.0)
-    visibility_tolerance_rel: float = Field(0.03, ge=0.0)
+    # visibility mode: depth tolerance of the visibility test (and of the hole filling's "same
+    # surface"): a surfel is background seen through a gap when it lies more than
+    #   visibility_tolerance_m + visibility_tolerance_rel * depth + visibility_slope_px * slope
+    # behind the surface that encloses it, where slope is its own surface's depth change per pixel
+    # (from the map's normals, capped at visibility_max_incidence_deg between ray and normal).
+    # This is the slope-scaled depth bias of z-buffered rendering (OpenGL's polygon offset
+    # factor): a surface seen face-on gets ~2-4 cm, below half the thinnest wall (10 cm between
+    # rooms in our houses), so a wall's far face no longer blends into its near face's pixels; a
+    # surface seen at a grazing angle gets the depth it spans over a few pixels, so it does not
+    # occlude itself. (The flat tolerance it replaces, 4 cm + 3 %, exceeded 10 cm beyond 2 m.)
+    # visibility_slope_px 0: no normals, the flat tolerance alone.
+    visibility_tolerance_m: float = Field(0.02, ge=0.0)
+    visibility_tolerance_rel: float = Field(0.005, ge=0.0)
+    visibility_slope_px: float = Field(1.0, ge=0.0, le=16.0)
+    visibility_max_incidence_deg: float = Field(80.0, gt=0.0, lt=90.0)
+    # Normal of a point: least-variance axis of it and this many nearest neighbours (once per map).
+    normal_neighbours: int = Field(10, ge=3, le=64)
     # visibility mode: the points a pixel's surfel averages lie this close behind its nearest one
     # (tighter still: a far wall's two faces, 0.1 m apart, must not average their colours).
     front_tolerance_m: float = Field(0.02, ge=0.0)
@@ -184,6 +197,14 @@ def point_spacing_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
     key = ("point-spacing", neighbours)
     if key not in index.cache:
         index.cache[key] = visibility.point_spacing(index.cloud.xyz, neighbours)
+    return index.cache[key]
+
+
+def point_normals_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
+    """Per-point unoriented unit normal (float32 (N, 3), in the index's point order), cached on the index."""
+    key = ("point-normals", neighbours)
+    if key not in index.cache:
+        index.cache[key] = visibility.point_normals(index.cloud.xyz, neighbours)
     return index.cache[key]
 
 
@@ -284,6 +305,9 @@ class _NumpyOps:
 
     def floor(self, x):
         return np.floor(x)
+
+    def sqrt(self, x):
+        return np.sqrt(x)
 
     def abs(self, x):
         return np.abs(x)
@@ -450,6 +474,9 @@ class _TorchOps:
     def floor(self, x):
         return self.torch.floor(x)
 
+    def sqrt(self, x):
+        return self.torch.sqrt(x)
+
     def abs(self, x):
         return self.torch.abs(x)
 
@@ -571,28 +598,46 @@ class SplatRenderer:
         self._drawn(index)
         return time.perf_counter() - t0
 
+    @property
+    def _with_slope(self) -> bool:
+        """Whether views need the map's normals (the slope-scaled visibility tolerance)."""
+        return self.config.mode == "visibility" and self.config.visibility_slope_px > 0
+
     def _voxel_lod(self, index: IndexedCloud) -> VoxelLod | None:
         cfg = self.config
         if cfg.lod != "voxel" or cfg.lod_points_per_px is None:
             return None
-        key = ("voxel-lod", cfg.lod_cell_m, cfg.lod_levels, cfg.spacing_neighbours)
+        nn = cfg.normal_neighbours if self._with_slope else None
+        key = ("voxel-lod", cfg.lod_cell_m, cfg.lod_levels, cfg.spacing_neighbours, nn)
         if key not in index.cache:
             index.cache[key] = build_voxel_lod(
-                index, point_spacing_of(index, cfg.spacing_neighbours), cfg.lod_cell_m, cfg.lod_levels)
+                index, point_spacing_of(index, cfg.spacing_neighbours), cfg.lod_cell_m, cfg.lod_levels,
+                None if nn is None else point_normals_of(index, nn))
         return index.cache[key]
 
     def _drawn(self, index: IndexedCloud):
-        """(backend arrays, per-point spacing or None, voxel LOD or None) of the cloud this
-        renderer draws: the index's points, followed by their voxel levels with ``lod="voxel"``."""
+        """(backend arrays, per-point spacing or None, per-point normals as three contiguous
+        float32 columns or None, voxel LOD or None) of the cloud this renderer draws: the index's
+        points, followed by their voxel levels with ``lod="voxel"``."""
+        cfg = self.config
         lod = self._voxel_lod(index)
-        with_spacing = self.config.mode == "visibility" or lod is not None
+        with_spacing = cfg.mode == "visibility" or lod is not None
         if lod is None:
             arrays = self._ops.cloud_arrays(index)
-            spacing = point_spacing_of(index, self.config.spacing_neighbours) if with_spacing else None
+            spacing = point_spacing_of(index, cfg.spacing_neighbours) if with_spacing else None
+            normals = point_normals_of(index, cfg.normal_neighbours) if self._with_slope else None
+            tag = ("points", cfg.normal_neighbours)
         else:
             arrays = self._ops.cloud_arrays(index, lod.cloud, ("voxel-lod", lod.cell_m))
             spacing = lod.spacing
-        return arrays, spacing, lod
+            normals = lod.normals
+            tag = ("voxel-lod", lod.cell_m, cfg.normal_neighbours)
+        if normals is not None:
+            key = ("normal-columns", self._ops.name, self.device, *tag)
+            if key not in index.cache:
+                index.cache[key] = tuple(self._ops.asarray(np.ascontiguousarray(normals[:, k])) for k in range(3))
+            normals = index.cache[key]
+        return arrays, spacing, normals, lod
 
     def _runs(self, index: IndexedCloud, lod: VoxelLod | None, wfc: np.ndarray, cam: PinholeCamera,
               frustum: Frustum) -> _Runs:
@@ -653,13 +698,13 @@ class SplatRenderer:
             hole_mask=np.ones((b, h, w), bool),
             labels=np.full((b, h, w), -1, np.int32) if labelled else None,
         )
-        arrays, spacing, lod = self._drawn(index)
+        arrays, spacing, normals, lod = self._drawn(index)
 
         def one(i: int) -> tuple[int, float]:
             t0 = time.perf_counter()
             wfc = np.asarray(world_from_cameras[i], float)
             runs = self._runs(index, lod, wfc, cam, frustum)
-            (rgb, depth, hole, labels), n = self._render_one(arrays, spacing, runs, wfc, cam, labelled)
+            (rgb, depth, hole, labels), n = self._render_one(arrays, spacing, normals, runs, wfc, cam, labelled)
             out.rgb[i], out.depth_m[i], out.hole_mask[i] = rgb, depth, hole
             if labelled:
                 out.labels[i] = labels
@@ -676,7 +721,8 @@ class SplatRenderer:
         out.batch_s = time.perf_counter() - t_batch
         return out
 
-    def _render_one(self, arrays, spacing, runs: _Runs, wfc: np.ndarray, cam: PinholeCamera, labelled: bool):
+    def _render_one(self, arrays, spacing, normals, runs: _Runs, wfc: np.ndarray, cam: PinholeCamera,
+                    labelled: bool):
         """One view from the points of ``runs``. Returns ((rgb, depth, hole, labels), number of
         points rendered)."""
         cfg = self.config
@@ -686,14 +732,22 @@ class SplatRenderer:
         proj = (cam.matrix() @ np.linalg.inv(wfc)[:3]).astype(np.float32)
         if cfg.mode == "paper" and cfg.algorithm == "exact":
             return self._paper_exact(arrays, runs, proj, h, w, labelled)
-        front = self._front_kernel(arrays, spacing, runs, proj, h, w, labelled) if self._use_kernel else None
+        slope = None if normals is None else _SlopeView(normals, self._slope_constants(wfc, cam))
+        front = self._front_kernel(arrays, spacing, slope, runs, proj, h, w, labelled) if self._use_kernel else None
         if front is None:
-            front = self._front_arrays(arrays, spacing, runs, proj, h, w, labelled)
+            front = self._front_arrays(arrays, spacing, slope, runs, proj, h, w, labelled)
         if front.n == 0:
             return _empty(h, w), 0
         if cfg.mode == "paper":
             return self._paper_compose(arrays, front, h, w, labelled), front.n
         return self._visibility_compose(arrays, front, cam, h, w, labelled), front.n
+
+    def _slope_constants(self, wfc: np.ndarray, cam: PinholeCamera) -> np.ndarray:
+        """float32 (8,): camera centre (world), optical axis (world), 1 / focal (px), and
+        1 / tan(max incidence): what :func:`_point_slope` needs of a view."""
+        cfg = self.config
+        inv_tan = 1.0 / math.tan(math.radians(cfg.visibility_max_incidence_deg))
+        return np.array([*wfc[:3, 3], *wfc[:3, 2], 1.0 / cam.fx, inv_tan], np.float32)
 
     def _front_tolerance(self) -> tuple[np.float32, np.float32]:
         """(1 + relative, absolute) depth tolerance of a pixel's front layer in this mode."""
@@ -702,7 +756,8 @@ class SplatRenderer:
             return np.float32(1.0 + cfg.front_tolerance_rel), np.float32(cfg.front_tolerance_m)
         return np.float32(1.0 + cfg.depth_tolerance_rel), np.float32(cfg.depth_tolerance_m)
 
-    def _front_kernel(self, arrays, spacing, runs: _Runs, proj, h, w, labelled) -> _Front | None:
+    def _front_kernel(self, arrays, spacing, slope: _SlopeView | None, runs: _Runs, proj, h, w,
+                      labelled) -> _Front | None:
         """The front layer from the compiled loops; None when a pixel overflows them."""
         cfg = self.config
         n = int(runs.counts.sum())
@@ -710,15 +765,20 @@ class SplatRenderer:
             return _Front(n=0)
         with_spacing = cfg.mode == "visibility"
         spacing = spacing if with_spacing else np.zeros(1, np.float32)
+        no_normal = np.zeros(1, np.float32)
+        nx, ny, nz = slope.normals if slope is not None else (no_normal, no_normal, no_normal)
+        consts = slope.constants if slope is not None else np.zeros(8, np.float32)
         zbuf, sums, best, overflow = kernels.front_pass(
             arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, runs.starts, runs.counts, runs.scale, proj.ravel(),
             np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, *self._front_tolerance(), labelled, with_spacing,
+            nx, ny, nz, consts, slope is not None,
         )
         if overflow:
             log.debug("a pixel's front layer exceeds %d points: array code for this view", kernels.MAX_FRONT_POINTS)
             return None
         return _Front(n, zbuf, sums[0], sums[1], [sums[2], sums[3], sums[4]], sums[5], sums[6],
-                      sums[7] if with_spacing else None, best if labelled else None)
+                      sums[7] if with_spacing else None, best if labelled else None,
+                      sums[8] if slope is not None else None)
 
     def _project(self, arrays, idx, proj, h, w):
         """Depth, padded target pixel (the miss bin for points off the image or out of range) and
@@ -743,7 +803,8 @@ class SplatRenderer:
         qv = ops.rint(ops.clamp(v - iv + 0.5, 0.0, 1.0) * 255.0)
         return z, q, qu, qv
 
-    def _front_arrays(self, arrays, spacing, runs: _Runs, proj, h, w, labelled) -> _Front:
+    def _front_arrays(self, arrays, spacing, slope: _SlopeView | None, runs: _Runs, proj, h, w,
+                      labelled) -> _Front:
         """The front layer as array code (numpy or torch): the reference of the compiled loops."""
         ops, cfg = self._ops, self.config
         npad = (h + 2) * (w + 2)
@@ -766,7 +827,15 @@ class SplatRenderer:
             # Nearest point per source pixel (largest point id among exact ties, so every path agrees).
             nearest = z == zbuf[q]
             best = ops.scatter_max_int(npad + 1, q[nearest], idx[nearest])
-        return _Front(n, zbuf, cnt, s_z, s_rgb, s_u, s_v, s_sp, best)
+        s_g = None
+        if slope is not None:
+            pts = idx[front]
+            # Points off the image are "front" in the miss bin (depth inf): nan there, never read.
+            with np.errstate(invalid="ignore"):
+                g = _point_slope(ops, arrays.x[pts], arrays.y[pts], arrays.z[pts], z[front],
+                                 *(c[pts] for c in slope.normals), slope.constants)
+            (s_g,) = ops.scatter_add(npad + 1, q[front], [g])
+        return _Front(n, zbuf, cnt, s_z, s_rgb, s_u, s_v, s_sp, best, s_g)
 
     def _labels_pad(self, arrays, best, h, w):
         """The nearest point's label per padded pixel (-1 where none)."""
@@ -861,6 +930,7 @@ class SplatRenderer:
         layer = visibility.FrontLayer(
             zmin=img(front.zbuf), count=img(front.cnt), sum_z=img(front.s_z), sum_rgb=[img(c) for c in front.s_rgb],
             sum_spacing=img(front.s_sp), label=self._labels_pad(arrays, front.best, h, w) if labelled else None,
+            sum_slope=None if front.s_g is None else img(front.s_g),
         )
         params = visibility.VisibilityParams(
             focal_px=float(cam.fx), footprint_scale=cfg.footprint_scale, max_radius_px=cfg.max_radius_px,
@@ -868,7 +938,7 @@ class SplatRenderer:
             gap_levels=cfg.gap_levels, fill_levels=cfg.fill_levels, gap_max_m=cfg.gap_max_m,
             tol_rel1=float(np.float32(1.0 + cfg.visibility_tolerance_rel)), tol_abs_m=cfg.visibility_tolerance_m,
             slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
-            filter_rel=cfg.colour_filter_rel,
+            filter_rel=cfg.colour_filter_rel, slope_px=cfg.visibility_slope_px,
         )
         compose = visibility.compose_compiled if self._use_kernel else partial(visibility.compose, ops)
         rgb, depth, hole, labels = compose(layer, params, h, w)
@@ -951,6 +1021,32 @@ class _Runs:
         return np.repeat(shift, self.counts) + np.arange(total, dtype=np.int64)
 
 
+@dataclass(frozen=True)
+class _SlopeView:
+    """What the slope-scaled tolerance needs of a view: the drawn cloud's normals (three float32
+    columns, backend arrays) and the view's constants (:meth:`SplatRenderer._slope_constants`)."""
+
+    normals: tuple
+    constants: np.ndarray  # float32 (8,)
+
+
+def _point_slope(ops, x, y, zw, zc, nx, ny, nz, consts):
+    """Per point, how much its surface's camera depth changes per pixel (m / px): for the tangent
+    plane n . X = d (camera frame), |grad z| = z^2 sqrt(nx^2 + ny^2) / (f |d|) = (z / f) * k with
+    k = z sqrt(1 - (n . axis)^2) / |n . (P - C)|, capped at tan(max incidence). ``zc``: camera
+    depth of the points. The compiled front pass repeats this expression operation for operation
+    in float32, so both paths round alike."""
+    cx, cy, cz, ax, ay, az, inv_f, inv_tan = (float(v) for v in consts)  # float32 values
+    d = nx * (x - cx) + ny * (y - cy) + nz * (zw - cz)
+    c = nx * ax + ny * ay + nz * az
+    zs = zc * ops.sqrt(ops.clamp(1.0 - c * c, 0.0, None))
+    den = ops.clamp(ops.maximum(ops.abs(d), zs * inv_tan), _MIN_PLANE_M, None)
+    return zc * (zs / den) * inv_f
+
+
+_MIN_PLANE_M = 1e-6  # float32 in both paths: a tangent plane through the camera still divides safely
+
+
 @dataclass
 class _Front:
     """The front layer of one view per padded pixel (flat, plus the miss bin at the end)."""
@@ -964,6 +1060,7 @@ class _Front:
     s_v: object = None
     s_sp: object = None  # sum of the front points' spacing (visibility mode only)
     best: object = None  # int64 nearest point id, -1 where none (labelled views only)
+    s_g: object = None  # sum of the front points' depth slope (m / px; slope-scaled tolerance only)
 
 
 def _images(ops, rgb, depth, hole, labels):

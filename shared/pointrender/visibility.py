@@ -17,7 +17,13 @@ with **pull-push hole filling**:
    min-dilation with a radius per source (radii rounded up to a few classes, exact min filters
    with the window on the quadrant's side); the farthest of the four quadrant depths is the
    surface that *encloses* the pixel. A surfel behind that surface (by more than the depth
-   tolerance) is background seen through a gap and is removed. Requiring all four quadrants
+   tolerance) is background seen through a gap and is removed. The tolerance is a slope-scaled
+   depth bias (as OpenGL's polygon offset, ``factor * slope + units``): a few centimetres plus
+   ``slope_px`` pixels' worth of the surfel's own surface's depth change per pixel, known from the
+   map's normals (:func:`point_normals`). A wall seen face-on thus gets ~2-3 cm, less than the
+   10 cm between the two faces of a wall between rooms, whose far face no longer fills the near
+   face's sampling gaps; a wall seen at a grazing angle gets the depth it spans across a pixel,
+   so its nearer surfels do not remove its farther ones. Requiring all four quadrants
    is what keeps two things right that a centred footprint gets wrong: a plane never encloses
    its own farther pixels (the quadrant up its depth gradient holds no nearer point), so a wall
    seen along a corridor is not its own occluder; and a background surfel just outside a
@@ -57,6 +63,8 @@ class FrontLayer:
     sum_rgb: list  # three float32 images
     sum_spacing: object | None  # float32, sum of the front points' spacing (m), LOD-scaled
     label: object | None  # int64, the nearest point's label, -1 where none
+    # float32, sum of the front points' depth slope (m per px of their surface), or None
+    sum_slope: object | None = None
 
 
 @dataclass(frozen=True)
@@ -76,6 +84,9 @@ class VisibilityParams:
     # Colour reconstruction filter: each pixel's colour is blended with its 3x3 neighbours
     # (binomial weights) whose depth lies within this fraction of its own (0: off).
     filter_rel: float = 0.0
+    # Slope-scaled tolerance of the visibility test: a surfel may lie this many pixels' worth of
+    # its own surface's depth slope (``FrontLayer.sum_slope``) behind the enclosing surface.
+    slope_px: float = 0.0
 
 
 def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
@@ -103,7 +114,10 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     radius = ops.ceil(spacing * (p.footprint_scale * p.focal_px) / ops.where(has, zmin, 1.0) - 0.5)
     radius = ops.where(has, ops.clamp(radius, float(p.min_radius_px), float(p.max_radius_px)), -1.0)
     far, near2 = enclosing_depth(ops, zmin, radius, p, h, w)
-    visible = has & (zmin <= far * p.tol_rel1 + p.tol_abs_m)
+    limit = far * p.tol_rel1 + p.tol_abs_m
+    if front.sum_slope is not None:
+        limit = limit + pad(front.sum_slope, 0.0) / count * p.slope_px
+    visible = has & (zmin <= limit)
 
     # 2. Pull: the pyramid of visible surfels, each cell averaging its front-band children.
     weight = ops.as_f32(visible)
@@ -320,6 +334,31 @@ def point_spacing(xyz: np.ndarray, neighbours: int = 4, lo_m: float = 0.002, hi_
     return np.clip(dist[:, 1:].mean(axis=1), lo_m, hi_m).astype(np.float32)
 
 
+def point_normals(xyz: np.ndarray, neighbours: int = 10, chunk: int = 1 << 17) -> np.ndarray:
+    """Unit surface normal per point (float32 (N, 3), sign arbitrary): the direction of least
+    variance of the point and its ``neighbours`` nearest points (principal component analysis,
+    Hoppe et al. 1992, "Surface reconstruction from unorganized points").
+
+    Unoriented on purpose: the visibility test needs only how steeply a surface is seen (its
+    slope), which does not depend on the normal's sign, and a map carries no record of the side
+    it was seen from. The neighbourhood (~4 cm at the maps' 2.6 cm spacing) stays on one face of
+    a 10 cm wall."""
+    from scipy.spatial import cKDTree
+
+    xyz = np.asarray(xyz, np.float64)
+    k = min(neighbours + 1, len(xyz))
+    _, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
+    nbr = nbr.reshape(len(xyz), k)
+    out = np.empty((len(xyz), 3), np.float32)
+    for lo in range(0, len(xyz), chunk):
+        p = xyz[nbr[lo : lo + chunk]]  # (c, k, 3)
+        p = p - p.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", p, p)
+        _, vec = np.linalg.eigh(cov)  # ascending eigenvalues: column 0 is the least variance
+        out[lo : lo + chunk] = vec[:, :, 0]
+    return out
+
+
 def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     """:func:`compose` on numpy arrays through the compiled loops of :mod:`visibility_kernels`
     (bit-identical; ~10x faster at 256 x 256). Same outputs."""
@@ -341,9 +380,12 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     cls = np.empty((hq, wq), np.int32)
     hist = np.zeros(p.max_radius_px + 1, np.int64)
     lab_in = front.label if with_labels else np.full((1, 1), -1, np.int64)
+    with_slope = front.sum_slope is not None
+    slope_tol = np.empty((hq, wq), f32)
     vk.surfels(front.zmin, front.count, front.sum_z, front.sum_rgb[0], front.sum_rgb[1], front.sum_rgb[2],
                front.sum_spacing, lab_in, with_labels, hq, wq, f32(p.footprint_scale * p.focal_px),
-               f32(p.min_radius_px), f32(p.max_radius_px), radius_lut(p), zmin, has, zmean, rgb, label, cls, hist)
+               f32(p.min_radius_px), f32(p.max_radius_px), radius_lut(p), zmin, has, zmean, rgb, label, cls, hist,
+               front.sum_slope if with_slope else front.zmin, with_slope, f32(p.slope_px), slope_tol)
     present = [int(k) for k in np.flatnonzero(hist)]
     order, first = vk.bucket(cls, hist)
     # The four quadrant covers, mirrored into one image so that one min filter serves them all.
@@ -377,6 +419,7 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     out_lab = np.empty((h, w) if with_labels else (1, 1), np.int64)
     hole = np.empty((h, w), bool)
     vk.finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
+              slope_tol, with_slope,
               levels, offs, dims, pyr, pyr_lab, p.fill_levels, p.gap_levels, fill_hi, fill_lo, gap_rel, gap_scale,
               f32(p.gap_max_m), out_z, out_rgb, out_lab, hole)
     if p.filter_rel > 0:

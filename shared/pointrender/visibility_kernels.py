@@ -22,9 +22,10 @@ _INF = np.float32(np.inf)
 
 
 def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, hq, wq, fs_focal, rmin, rmax, lut,
-             zmin, has, zmean, rgb, label, cls, hist):
-    """Padded per-pixel surfel (zmin, has, mean depth, mean colour, label) and footprint class
-    (-1: no surfel); ``hist[k]`` counts the pixels of class k."""
+             zmin, has, zmean, rgb, label, cls, hist, sl_p, with_slope, slope_px, slope_tol):
+    """Padded per-pixel surfel (zmin, has, mean depth, mean colour, label, and with ``with_slope``
+    the slope part of its visibility tolerance) and footprint class (-1: no surfel); ``hist[k]``
+    counts the pixels of class k."""
     hp, wp = zmin_p.shape
     half = np.float32(0.5)
     one = np.float32(1.0)
@@ -42,6 +43,8 @@ def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, hq, w
             rgb[2, i, j] = (b_p[i, j] if inside else np.float32(0.0)) / c
             if with_labels:
                 label[i, j] = lab_p[i, j] if inside else -1
+            if with_slope:
+                slope_tol[i, j] = (sl_p[i, j] if inside else np.float32(0.0)) / c * slope_px
             if h:
                 sp = sp_p[i, j] / c
                 rad = np.ceil(sp * fs_focal / z - half)
@@ -83,7 +86,8 @@ def _add_sources(cov4, order, lo, hi, zmin):
         cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
 
 
-def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, levels, offs, dims,
+def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, slope_tol, with_slope,
+            levels, offs, dims,
             pyr, pyr_lab, fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max,
             out_z, out_rgb, out_lab, hole):
     """Enclosing depths, the visibility test, the pull pyramid and the push, as the array code."""
@@ -117,7 +121,10 @@ def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_re
     # Level 0 of the pyramid: the visible surfels. Channels: weight, sum z, sum r, g, b, zlo, zhi.
     for i in range(hq):
         for j in range(wq):
-            vis = has[i, j] and zmin[i, j] <= far[i, j] * tol_rel1 + tol_abs
+            limit = far[i, j] * tol_rel1 + tol_abs
+            if with_slope:
+                limit = limit + slope_tol[i, j]
+            vis = has[i, j] and zmin[i, j] <= limit
             wgt = np.float32(1.0) if vis else zero
             t = i * wq + j
             zm = zmean[i, j]

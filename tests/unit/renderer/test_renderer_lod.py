@@ -10,7 +10,7 @@ from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera
 from shared.pointrender import RENDERERS, IndexedCloud
 from shared.pointrender.lod import build_voxel_lod
-from shared.pointrender.splat import point_spacing_of
+from shared.pointrender.splat import point_normals_of, point_spacing_of
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(128, 128, 90.0)
@@ -72,6 +72,23 @@ def test_level_points_are_the_means_of_their_voxels():
             s, c = lod.starts[level, b], lod.counts[level, b]
             pts = lod.cloud.xyz[s : s + c]
             assert (pts >= index.block_min[b] - 1e-4).all() and (pts <= index.block_max[b] + 1e-4).all()
+
+
+def test_level_normals_are_the_principal_axis_of_their_members_normals():
+    # A wall (normal +-x) and a floor (normal +-z) meeting in one block: the PCA normals of the
+    # points, and of every level's voxels away from the edge, are the surface's, whatever the sign.
+    wall = _wall(1.0, 0.5, 0.01)
+    floor = PointCloud(wall.xyz[:, [2, 1, 0]] * [1.0, 1.0, 0.0] + [1.2, 0.0, 0.0], wall.rgb, wall.labels, wall.label_names)
+    index = IndexedCloud(PointCloud.concatenate([wall, floor]))
+    normals = point_normals_of(index, 10)
+    lod = build_voxel_lod(index, point_spacing_of(index, 4), cell_m=0.04, levels=3, normals=normals)
+    assert np.allclose(np.linalg.norm(lod.normals, axis=1), 1.0, atol=1e-5)
+    xyz = lod.cloud.xyz
+    for axis, on_surface in ((0, np.abs(xyz[:, 0] - 1.0) < 0.02), (2, np.abs(xyz[:, 2]) < 0.02)):
+        away = on_surface & (xyz[:, 2] > 0.2) if axis == 0 else on_surface & (xyz[:, 0] > 1.3)
+        assert away.sum() > 100
+        assert np.quantile(np.abs(lod.normals[away, axis]), 0.01) > 0.95, axis
+    assert (np.abs(lod.normals[len(index):, 0]) > 0.95).any() and (np.abs(lod.normals[len(index):, 2]) > 0.95).any()
 
 
 def test_a_far_checker_renders_its_mean_colour_and_matches_every_point():

@@ -215,15 +215,17 @@ needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not instal
 
 
 @needs_numba
-@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("mode", [*MODES, "visibility-flat"])
 @pytest.mark.parametrize("hfov_deg", [60.0, 120.0])
 def test_compiled_kernel_is_bit_identical_to_array_code(room_index, hfov_deg, mode):
     cam = PinholeCamera(200, 150, hfov_deg)  # not square: rows and columns must not be swapped
     poses = [camera_pose(pos, h, p) for pos, h, p in scenes.room_view_poses(4, seed=13)]
     # Standing in a wall: points behind the camera, inside the near plane and at grazing angles.
     poses.append(camera_pose((4.0, 3.0, 0.0), 0.3, 0.0))
-    compiled = RENDERERS.create("numpy", {"kernel": "numba", "mode": mode})
-    array = RENDERERS.create("numpy", {"kernel": "numpy", "mode": mode})
+    # "visibility-flat": the visibility mode without the slope-scaled tolerance (no normals).
+    cfg = {"mode": "visibility", "visibility_slope_px": 0.0} if mode == "visibility-flat" else {"mode": mode}
+    compiled = RENDERERS.create("numpy", {"kernel": "numba", **cfg})
+    array = RENDERERS.create("numpy", {"kernel": "numpy", **cfg})
     assert compiled.kernel == "numba" and array.kernel == "array"
     a = compiled.render_poses(room_index, poses, cam)
     b = array.render_poses(room_index, poses, cam)
