@@ -124,6 +124,7 @@ class ExplorationResult:
     coverage_estimate: float = 1.0  # share of the mapped reachable free area within reach of a visited node
     mapped_free_m2: float = 0.0  # that free area (the explorer's own map)
     map_frontiers: int = 0  # candidates the map's frontiers added (the predictor did not propose them)
+    narrow_frontiers: int = 0  # ... of them behind passages only the narrow body passes
     open_stairs: int = 0  # flights seen climbing or descending whose continuation failed
     step_budget: int = 0
 
@@ -133,7 +134,8 @@ class ExplorationResult:
                 "step_budget": self.step_budget, "moves": self.moves,
                 "discovered_m2": round(self.discovered_m2, 1),
                 "coverage_estimate": round(self.coverage_estimate, 3), "mapped_free_m2": round(self.mapped_free_m2, 1),
-                "map_frontiers": self.map_frontiers, "open_stairs": self.open_stairs}
+                "map_frontiers": self.map_frontiers, "narrow_frontiers": self.narrow_frontiers,
+                "open_stairs": self.open_stairs}
 
 
 class Explorer:
@@ -202,6 +204,7 @@ class Explorer:
             coverage_estimate=coverage,
             mapped_free_m2=free_m2,
             map_frontiers=run.map_frontiers,
+            narrow_frontiers=run.narrow_frontiers,
             open_stairs=open_stairs,
             step_budget=run.step_budget(),
         )
@@ -229,6 +232,7 @@ class _Run:
         self.node_scan: dict[str, Scan] = {}  # the latest panorama's scan taken at each visited node
         self.space = FreeSpaceMap(explorer.scanner.angles_rad, self.cfg.frontier, self.cfg.same_floor_dz_m)
         self.map_frontiers = 0
+        self.narrow_frontiers = 0
 
     # --- budget and bookkeeping -------------------------------------------------------------------
 
@@ -387,18 +391,17 @@ class _Run:
     def _add_map_frontiers(self) -> int:
         """The predictor has nothing left: push the free-space map's reachable frontiers, nearest
         last (taken first). Those already seen from close by, or near a place that failed, are not
-        new; none left means the exploration is over."""
-        fl_min = self.cfg.floor_min_nodes
+        new. When none is left for the robot's body, the frontiers behind passages only a narrower
+        body passes are tried (``narrow_body_radius_m``): generated:2:area=500:floors=3 hid its
+        hallway, dining room and every flight behind a 0.35 m gap between a bed and a nightstand,
+        and the exploration ended 'finished' at 26 % coverage. None left means the exploration is
+        over."""
+        found = self._map_targets(None)
+        if not found and self.cfg.frontier.narrow_body_radius_m < self.cfg.frontier.body_radius_m:
+            found = self._map_targets(self.cfg.frontier.narrow_body_radius_m)
+            self.narrow_frontiers += len(found)
         here = self.pose.xyz
-        found: list[tuple[float, str]] = []
-        stairs = self.graph.positions([n for n in self.stair_nodes if n in self.graph.g])[:, :2]
-        for z, nodes in self._floor_nodes().items():
-            if len(nodes) < fl_min:
-                continue
-            for t in self.space.frontier_targets(z, nodes, self.cfg.visit_radius_m, stairs, accept=self._new_target):
-                nid = self.graph.add_observed(t.position_m, t.parent, 0.5)
-                if nid is not None:
-                    found.append((float(np.linalg.norm(t.position_m - here)), nid))
+        found = [(float(np.linalg.norm(self.graph.pos(n) - here)), n) for n in found]
         for _, nid in sorted(found, reverse=True):
             self.cells.add(self._cell(self.graph.pos(nid)))
             self.frontiers.append(nid)
@@ -406,6 +409,23 @@ class _Run:
         if found:
             log.debug("%d frontiers of the free-space map added", len(found))
         return len(found)
+
+    def _map_targets(self, body_radius_m: float | None) -> list[str]:
+        """The map's frontier targets for a body of ``body_radius_m`` (the config's: None) as new
+        frontier nodes; a target out of straight sight keeps the corners of its way."""
+        out: list[str] = []
+        stairs = self.graph.positions([n for n in self.stair_nodes if n in self.graph.g])[:, :2]
+        for z, nodes in self._floor_nodes().items():
+            if len(nodes) < self.cfg.floor_min_nodes:
+                continue
+            for t in self.space.frontier_targets(z, nodes, self.cfg.visit_radius_m, stairs, accept=self._new_target,
+                                                 body_radius_m=body_radius_m):
+                nid = self.graph.add_observed(t.position_m, t.parent, 0.5)
+                if nid is not None:
+                    if t.way_m:
+                        self.graph.g.nodes[nid]["way"] = [np.array([w[0], w[1], z]) for w in t.way_m]
+                    out.append(nid)
+        return out
 
     def _new_target(self, p: np.ndarray) -> bool:
         """A map frontier's target is new unless seen from close by, already a frontier, or near a
@@ -421,18 +441,33 @@ class _Run:
             log.info("frontier %s given up: its parent %s is out of reach from %s", target, parent, self.here)
             g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
             return
+        walked = 0.0  # on the way's legs since the last node
+        way = g.g.nodes[target].get("way") or []
+        if way:
+            ok, walked = self._walk_legs(way)
+            if not ok:
+                # Blocked on the way (a panorama where it stopped, if it got anywhere new).
+                self.blocked += 1
+                g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
+                return
+            if g.status(target) != NodeStatus.FRONTIER:
+                # A panorama on the way saw it from close by; a few cm past the last node are
+                # walked back so the graph stays truthful.
+                self._return_to(self.here)
+                return
+        base = self.here
         goal = g.pos(target)
         start = self.pose.xyz
         res = self._move(goal[0] - start[0], goal[1] - start[1])
         end = res.pose.xyz
-        travelled = res.travelled_m
+        travelled = walked + res.travelled_m
         if res.status == MoveStatus.REACHED:
             # The robot stands at the candidate; on stairs its true height puts it in another
             # voxel. The observed voxel stays in the graph, resolved, so that the same candidate
             # seen again from elsewhere is recognised and not chased in a loop.
             if g.node_id(end) != target:
                 g.g.nodes[target]["status"] = NodeStatus.COVERED
-            self.arrive(self.robot.observe(), previous=parent, travelled_m=travelled)
+            self.arrive(self.robot.observe(), previous=base, travelled_m=travelled)
             return
         self.blocked += 1
         g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
@@ -440,11 +475,35 @@ class _Run:
         if travelled >= self.cfg.min_progress_m and not self._near(
             end, (NodeStatus.VISITED,), self.cfg.visit_radius_m * 0.5
         ):
-            self.arrive(self.robot.observe(), previous=parent, travelled_m=travelled)
+            self.arrive(self.robot.observe(), previous=base, travelled_m=travelled)
         elif travelled > 1e-3:
-            # Stranded between nodes: go back to the parent so the graph stays truthful.
-            self._move(*(g.pos(parent)[:2] - end[:2]))
-            self.here = parent
+            # Stranded between nodes: go back to the node so the graph stays truthful.
+            self._move(*(g.pos(base)[:2] - end[:2]))
+            self.here = base
+
+    def _walk_legs(self, corners: list[np.ndarray]) -> tuple[bool, float]:
+        """Walk straight legs from the current node through ``corners`` (the map's way around
+        furniture, through a narrow passage), a panorama wherever a leg ends at least
+        ``min_progress_m`` past the last node, so every graph edge stays a straight move.
+        (False, 0) when a leg is blocked: a panorama where the robot stopped if it got that far,
+        else back to the last node; else (True, metres walked past the last node)."""
+        walked = 0.0  # since the last node
+        for wp in corners:
+            cur = self.pose.xyz
+            res = self._move(wp[0] - cur[0], wp[1] - cur[1])
+            walked += res.travelled_m
+            if res.status == MoveStatus.REACHED and walked < self.cfg.min_progress_m:
+                continue
+            if walked >= self.cfg.min_progress_m and not (
+                    res.status != MoveStatus.REACHED
+                    and self._near(res.pose.xyz, (NodeStatus.VISITED,), self.cfg.visit_radius_m * 0.5)):
+                self.arrive(self.robot.observe(), previous=self.here, travelled_m=walked)
+                walked = 0.0
+            if res.status != MoveStatus.REACHED:
+                if walked > 1e-3:
+                    self._return_to(self.here)
+                return False, 0.0
+        return True, walked
 
     def _walk_to(self, goal: str) -> bool:
         """Follow traversed edges from the current node to ``goal``, re-planning around a blocked one.
@@ -522,7 +581,10 @@ class _Run:
         lv = self.space.level_of(float(here[2]))
         if lv is None:
             return False
-        way = self.space.path(lv.z_m, here[:2], g.positions(others)[:, :2])
+        goals = g.positions(others)[:, :2]
+        way = self.space.path(lv.z_m, here[:2], goals)
+        if way is None:  # the way back may be a passage only the narrow body passes
+            way = self.space.path(lv.z_m, here[:2], goals, body_radius_m=self.cfg.frontier.narrow_body_radius_m)
         if way is None:
             return False
         goal, waypoints = way

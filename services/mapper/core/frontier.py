@@ -39,6 +39,13 @@ class FrontierConfig(BaseModel):
     cell_m: float = Field(0.1, gt=0.0, le=1.0)
     max_range_m: float = Field(5.0, gt=0.0)  # the scans' range: beyond it nothing is known
     body_radius_m: float = Field(0.2, ge=0.0, le=1.0)  # clearance a reachable cell needs
+    # Once no frontier is left for that body, passages only this wide a body passes are tried
+    # (VLN-CE's agent radius: the generated houses keep a 0.3 m gap between furniture, which the
+    # 0.2 m body never passes). The map is too coarse to be sure: the robot's own moves decide.
+    narrow_body_radius_m: float = Field(0.1, ge=0.0, le=1.0)
+    # A narrow way is routed through the middle of a passage: a step through a cell with less
+    # clearance than ``body_radius_m`` costs up to this many times its length.
+    narrow_cost_factor: float = Field(8.0, ge=0.0)
     min_frontier_cells: int = Field(6, ge=1)  # a border shorter than this is noise (a gap between rays)
     wall_shadow_cells: int = Field(3, ge=0, le=10)  # unknown this close to a wall cell is behind it
     frontier_join_cells: int = Field(2, ge=0, le=10)  # border pieces this close are one frontier
@@ -56,6 +63,9 @@ class FrontierTarget:
     position_m: np.ndarray  # (3,) on the level's floor
     parent: str  # the visited node from which the target lies in a straight, clear line
     frontier_cells: int  # size of the border it leads to
+    # Corners (x, y) to walk through from the parent first, when no straight line reaches the
+    # target (a way around furniture, through a narrow passage); empty: a straight move.
+    way_m: tuple[np.ndarray, ...] = ()
 
 
 class _Level:
@@ -163,9 +173,11 @@ class FreeSpaceMap:
 
     # --- queries --------------------------------------------------------------------------------
 
-    def _analyse(self, lv: _Level, visited_xy: np.ndarray):
-        """The level's grid, its reachable passable cells and the visited nodes' cells in it."""
+    def _analyse(self, lv: _Level, visited_xy: np.ndarray, body_radius_m: float | None = None):
+        """The level's grid, its reachable passable cells and the visited nodes' cells in it, and
+        every cell's clearance (m); passable for a body of ``body_radius_m`` (the config's)."""
         c = self.cfg
+        radius = c.body_radius_m if body_radius_m is None else body_radius_m
         cells, origin = lv.dense()
         free = cells == FREE
         # The robot's own cells are free whatever the rays said (a node beside a jamb).
@@ -174,12 +186,12 @@ class FreeSpaceMap:
         vidx = vidx[ok]
         free[vidx[:, 0], vidx[:, 1]] = True
         clear = ndimage.distance_transform_edt(free) * c.cell_m
-        passable = free & (clear >= c.body_radius_m)
+        passable = free & (clear >= radius)
         passable[vidx[:, 0], vidx[:, 1]] = True
         lab, _ = ndimage.label(passable, structure=np.ones((3, 3)))
         ids = np.unique(lab[vidx[:, 0], vidx[:, 1]])
         reach = np.isin(lab, ids[ids > 0])
-        return cells, origin, free, passable, reach, vidx
+        return cells, origin, free, passable, reach, vidx, clear
 
     def _near_mask(self, shape, origin: np.ndarray, xy: np.ndarray, extra_xy: np.ndarray | None,
                    radius_m: float) -> np.ndarray:
@@ -210,7 +222,8 @@ class FreeSpaceMap:
 
     def frontier_targets(self, level_z_m: float, visited: list[tuple[str, np.ndarray]],
                          exclude_radius_m: float = 0.0, extra_xy: np.ndarray | None = None,
-                         accept: Callable[[np.ndarray], bool] | None = None) -> list[FrontierTarget]:
+                         accept: Callable[[np.ndarray], bool] | None = None,
+                         body_radius_m: float | None = None) -> list[FrontierTarget]:
         """Reachable places next to unseen space on one level, one per frontier, each with a parent.
 
         Cells within ``exclude_radius_m`` of a visited node (or of ``extra_xy``: the stair nodes,
@@ -218,13 +231,20 @@ class FreeSpaceMap:
         already; a frontier is reached through its other cells, if any. ``accept`` (a target's
         position -> bool) is the caller's own test (seen from close by, failed before); a cell it
         refuses is passed over for the frontier's next one, so the test never hides a frontier.
+
+        A target lies in a straight, clear line from its parent where one does; otherwise it
+        carries the corners of the map's way there (``way_m``). A ``body_radius_m`` below the
+        config's asks for the frontiers only a narrower body reaches; their targets are always
+        routed, through the middle of the narrow passages (a straight line over cells that are
+        merely free grazes furniture), with the way's corners, if it has any.
         """
         c = self.cfg
         lv = self.level_of(level_z_m)
         if lv is None or not visited:
             return []
+        narrow = body_radius_m is not None and body_radius_m < c.body_radius_m
         vxy = np.stack([p[:2] for _, p in visited])
-        cells, origin, free, passable, reach, vidx = self._analyse(lv, vxy)
+        cells, origin, free, passable, reach, _, clear = self._analyse(lv, vxy, body_radius_m)
         if exclude_radius_m > 0.0:
             reach = reach & ~self._near_mask(cells.shape, origin, vxy, extra_xy, exclude_radius_m)
         border, lab, sizes = self._borders(free, self._open_unknown(cells))
@@ -247,38 +267,52 @@ class FreeSpaceMap:
         dv_cells = vdist[cand[:, 0], cand[:, 1]]
         out: list[FrontierTarget] = []
         blocked = ~passable
+        routes: _Routes | None = None  # the map's ways from the visited nodes, made when first needed
         for lab_k in np.unique(cl):
             mine = np.flatnonzero(cl == lab_k)
-            mine = mine[np.argsort(dv_cells[mine], kind="stable")]
-            # The nearest few first, then a spread over the rest (a long frontier may be in
-            # straight sight of a visited node only far along it).
-            spread = np.linspace(0, len(mine) - 1, min(len(mine), c.tries_per_frontier)).astype(int)
-            mine = mine[np.unique(np.r_[np.arange(min(len(mine), c.tries_per_frontier)), spread])]
-            mine = mine[np.argsort(dv_cells[mine], kind="stable")]
-            for k in mine:
-                cell = cand[k]
-                xy = (origin + cell + 0.5) * c.cell_m
-                dv = np.hypot(*(vxy - xy).T)
-                near = np.flatnonzero(dv <= c.max_parent_m)
-                if len(near) == 0:
-                    continue
-                # Every visited node in range, nearest first: the nearest few may all stand behind a
-                # wall (a bathroom beside the hallway that leads to the flight).
-                near = near[np.argsort(dv[near])]
-                pidx = np.floor(vxy[near] / c.cell_m).astype(np.int64) - origin
-                vis = line_of_sight(blocked, pidx, np.repeat(cell[None, :], len(near), axis=0))
-                if not vis.any():
-                    continue
-                pos = np.array([xy[0], xy[1], lv.z_m])
-                if accept is not None and not accept(pos):
-                    continue  # the caller knows it for covered or failed: the next cell may not be
-                parent = visited[int(near[np.argmax(vis)])][0]
-                out.append(FrontierTarget(pos, parent, int(sizes[lab_k])))
-                break
+            found = None if narrow else self._straight_target(
+                cand, mine, dv_cells, origin, vxy, visited, blocked, lv.z_m, accept)
+            if found is None:
+                if routes is None:
+                    routes = _Routes(self, passable, clear, origin, vxy)
+                found = routes.target(cand[mine], visited, lv.z_m, accept)
+            if found is not None:
+                pos, parent, way = found
+                out.append(FrontierTarget(pos, parent, int(sizes[lab_k]), way))
         return out
 
+    def _straight_target(self, cand, mine, dv_cells, origin, vxy, visited, blocked, z_m, accept):
+        """(position, parent, no corners) of the frontier's nearest cell that a visited node sees in
+        a straight line through passable cells and the caller accepts; None when none does."""
+        c = self.cfg
+        mine = mine[np.argsort(dv_cells[mine], kind="stable")]
+        # The nearest few first, then a spread over the rest (a long frontier may be in
+        # straight sight of a visited node only far along it).
+        spread = np.linspace(0, len(mine) - 1, min(len(mine), c.tries_per_frontier)).astype(int)
+        mine = mine[np.unique(np.r_[np.arange(min(len(mine), c.tries_per_frontier)), spread])]
+        mine = mine[np.argsort(dv_cells[mine], kind="stable")]
+        for k in mine:
+            cell = cand[k]
+            xy = (origin + cell + 0.5) * c.cell_m
+            dv = np.hypot(*(vxy - xy).T)
+            near = np.flatnonzero(dv <= c.max_parent_m)
+            if len(near) == 0:
+                continue
+            # Every visited node in range, nearest first: the nearest few may all stand behind a
+            # wall (a bathroom beside the hallway that leads to the flight).
+            near = near[np.argsort(dv[near])]
+            pidx = np.floor(vxy[near] / c.cell_m).astype(np.int64) - origin
+            vis = line_of_sight(blocked, pidx, np.repeat(cell[None, :], len(near), axis=0))
+            if not vis.any():
+                continue
+            pos = np.array([xy[0], xy[1], z_m])
+            if accept is not None and not accept(pos):
+                continue  # the caller knows it for covered or failed: the next cell may not be
+            return pos, visited[int(near[np.argmax(vis)])][0], ()
+        return None
+
     def path(self, level_z_m: float, start_xy: np.ndarray, goals_xy: np.ndarray,
-             max_waypoints: int = 64) -> tuple[int, list[np.ndarray]] | None:
+             max_waypoints: int = 64, body_radius_m: float | None = None) -> tuple[int, list[np.ndarray]] | None:
         """The shortest way for the robot's body through the map's passable cells from ``start_xy``
         to the nearest of ``goals_xy`` (K, 2): (that goal's index, straight-line waypoints after
         the start, the goal's own position last), or None when no goal is reachable on the map.
@@ -287,54 +321,26 @@ class FreeSpaceMap:
         along a door jamb one way and not the other): the map knows the doorway, the graph no
         longer does.
         """
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import dijkstra
-
         c = self.cfg
         lv = self.level_of(level_z_m)
         if lv is None or len(goals_xy) == 0:
             return None
         pts = np.vstack([np.asarray(start_xy, float)[None, :2], np.asarray(goals_xy, float)[:, :2]])
-        cells, origin, _, passable, _, _ = self._analyse(lv, pts)
+        cells, origin, _, passable, _, _, clear = self._analyse(lv, pts, body_radius_m)
         idx = np.floor(pts / c.cell_m).astype(np.int64) - origin
         inside = (idx >= 0).all(axis=1) & (idx < cells.shape).all(axis=1)
         if not inside[0]:
             return None
-        number = np.full(cells.shape, -1, np.int64)
-        number[passable] = np.arange(int(passable.sum()))
-        pad = np.pad(number, 1, constant_values=-1)
-        a = pad[1:-1, 1:-1]
-        rows, cols, w = [], [], []
-        for di, dj in ((1, 0), (0, 1), (1, 1), (1, -1)):  # each 8-neighbour pair once
-            b = pad[1 + di:pad.shape[0] - 1 + di, 1 + dj:pad.shape[1] - 1 + dj]
-            ok = (a >= 0) & (b >= 0)
-            rows.append(a[ok])
-            cols.append(b[ok])
-            w.append(np.full(int(ok.sum()), math.hypot(di, dj)))
-        n = int(passable.sum())
-        graph = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
-        src = int(number[idx[0, 0], idx[0, 1]])
-        dist, pred = dijkstra(graph, directed=False, indices=src, return_predecessors=True)
+        routes = _Routes(self, passable, clear, origin, pts[:1])
         gi = np.flatnonzero(inside[1:])
-        gnum = number[idx[1:][gi, 0], idx[1:][gi, 1]]
-        gd = np.where(gnum >= 0, dist[np.maximum(gnum, 0)], np.inf)
-        if len(gi) == 0 or not np.isfinite(gd).any():
+        if len(gi) == 0:
+            return None
+        gcells = idx[1:][gi]
+        gd = routes.distance(gcells)
+        if not np.isfinite(gd).any():
             return None
         best = int(np.argmin(gd))
-        chain = [int(gnum[best])]
-        while chain[-1] != src:
-            chain.append(int(pred[chain[-1]]))
-        flat = np.flatnonzero(passable.ravel())  # cell number -> flat index
-        route = np.stack(np.unravel_index(flat[np.array(chain[::-1])], cells.shape), axis=1)
-        # String pulling: from each waypoint, the farthest cell of the route in straight sight.
-        blocked = ~passable
-        out: list[np.ndarray] = []
-        k = 0
-        while k < len(route) - 1 and len(out) < max_waypoints:
-            later = np.arange(k + 1, len(route))
-            vis = line_of_sight(blocked, np.repeat(route[k][None, :], len(later), axis=0), route[later])
-            k = int(later[np.flatnonzero(vis)[-1]]) if vis.any() else k + 1
-            out.append((origin + route[k] + 0.5) * c.cell_m)
+        out = routes.corners(gcells[best], pts[0], max_waypoints)
         if not out:
             return None
         out[-1] = pts[1 + gi[best]].copy()
@@ -358,7 +364,7 @@ class FreeSpaceMap:
             vxy = next((v for z, v in visited_by_level.items() if abs(z - lv.z_m) < self.dz), None)
             if vxy is None or len(vxy) == 0:
                 continue
-            cells, origin, free, _, _, vidx = self._analyse(lv, vxy)
+            cells, origin, free, _, _, vidx, _ = self._analyse(lv, vxy)
             lab, _ = ndimage.label(free, structure=np.ones((3, 3)))
             ids = np.unique(lab[vidx[:, 0], vidx[:, 1]])
             seen = np.isin(lab, ids[ids > 0])
@@ -373,3 +379,115 @@ class FreeSpaceMap:
             total += int(seen.sum() + beyond.sum())
             near_total += int((seen & near).sum())
         return (near_total / total if total else 1.0), total * c.cell_m**2
+
+
+class _Routes:
+    """The map's shortest ways from a set of start cells (visited nodes) over the passable cells of
+    one level, for a body that may be narrower than the config's: a step through a cell with less
+    clearance than ``body_radius_m`` costs more (up to ``narrow_cost_factor`` times its length), so
+    a way through a narrow passage keeps to its middle. Every cell's way goes back to its nearest
+    start (one multi-source Dijkstra)."""
+
+    def __init__(self, space: FreeSpaceMap, passable: np.ndarray, clear: np.ndarray, origin: np.ndarray,
+                 starts_xy: np.ndarray):
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        c = space.cfg
+        self.cfg, self.origin, self.shape = c, origin, passable.shape
+        self.passable, self.clear = passable, clear
+        number = np.full(passable.shape, -1, np.int64)
+        n = int(passable.sum())
+        number[passable] = np.arange(n)
+        self.number = number
+        wide = max(c.body_radius_m, 1e-9)
+        penalty = 1.0 + c.narrow_cost_factor * np.clip((wide - clear) / wide, 0.0, 1.0)
+        pad = np.pad(number, 1, constant_values=-1)
+        ppad = np.pad(penalty, 1)
+        a = pad[1:-1, 1:-1]
+        pa = ppad[1:-1, 1:-1]
+        rows, cols, w = [], [], []
+        for di, dj in ((1, 0), (0, 1), (1, 1), (1, -1)):  # each 8-neighbour pair once
+            b = pad[1 + di:pad.shape[0] - 1 + di, 1 + dj:pad.shape[1] - 1 + dj]
+            pb = ppad[1 + di:pad.shape[0] - 1 + di, 1 + dj:pad.shape[1] - 1 + dj]
+            ok = (a >= 0) & (b >= 0)
+            rows.append(a[ok])
+            cols.append(b[ok])
+            w.append(math.hypot(di, dj) * 0.5 * (pa[ok] + pb[ok]))
+        graph = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+        sidx = np.floor(np.asarray(starts_xy)[:, :2] / c.cell_m).astype(np.int64) - origin
+        sok = (sidx >= 0).all(axis=1) & (sidx < passable.shape).all(axis=1)
+        snum = np.full(len(sidx), -1, np.int64)
+        snum[sok] = number[sidx[sok, 0], sidx[sok, 1]]
+        self.start_of_cell = {int(v): k for k, v in reversed(list(enumerate(snum))) if v >= 0}
+        if not self.start_of_cell:
+            self.dist = np.full(n, np.inf)
+            return
+        self.dist, self.pred, self.source = dijkstra(
+            graph, directed=False, indices=sorted(self.start_of_cell), return_predecessors=True, min_only=True)
+
+    def distance(self, cells: np.ndarray) -> np.ndarray:
+        """Way cost (cells) to each of ``cells`` (N, 2); inf where none (or not passable)."""
+        num = self.number[cells[:, 0], cells[:, 1]]
+        return np.where(num >= 0, self.dist[np.maximum(num, 0)], np.inf)
+
+    def _chain(self, cell: np.ndarray) -> np.ndarray:
+        """(M, 2) cells of the way from its start to ``cell``."""
+        chain = [int(self.number[cell[0], cell[1]])]
+        while self.pred[chain[-1]] >= 0:
+            chain.append(int(self.pred[chain[-1]]))
+        flat = np.flatnonzero(self.passable.ravel())  # cell number -> flat index
+        return np.stack(np.unravel_index(flat[np.array(chain[::-1])], self.shape), axis=1)
+
+    def corners(self, cell: np.ndarray, start_xy: np.ndarray | None = None,
+                max_waypoints: int = 64) -> list[np.ndarray]:
+        """The way to ``cell`` as straight legs: each corner (x, y) after the start, ``cell`` last.
+
+        String pulling: from each corner, the farthest cell of the way that a straight leg reaches
+        through cells of the way itself or cells at least as clear as the way's narrowest one and
+        as the config's body needs. So a leg never grazes what the way kept away from, and in a
+        passage narrower than that body the legs follow the way's own cells: in a 0.35 m gap a
+        0.1 m body has 15 cm to spare, and a leg allowed through any cell as clear as the way's
+        narrowest cut a nightstand's corner by 3 cm. Legs start at the start's true position
+        (``start_xy``, else its cell's centre), checked at four samples a cell."""
+        c = self.cfg
+        route = self._chain(cell)
+        inner = route[1:-1]
+        neck = float(self.clear[inner[:, 0], inner[:, 1]].min()) if len(inner) else 0.0
+        ok = self.passable & (self.clear >= max(neck, c.body_radius_m))
+        ok[route[:, 0], route[:, 1]] = True
+        blocked = ~ok
+        # Index space with cell centres on integers: rounding a point gives the cell it lies in.
+        pts = route.astype(np.float64)
+        if start_xy is not None:
+            pts[0] = np.asarray(start_xy, float)[:2] / c.cell_m - self.origin - 0.5
+        out: list[np.ndarray] = []
+        k = 0
+        while k < len(route) - 1 and len(out) < max_waypoints:
+            later = np.arange(k + 1, len(route))
+            span = float(np.abs(pts[later] - pts[k]).max())
+            vis = line_of_sight(blocked, np.repeat(pts[k][None, :], len(later), axis=0), pts[later],
+                                samples=int(math.ceil(span * 4.0)) + 2)
+            k = int(later[np.flatnonzero(vis)[-1]]) if vis.any() else k + 1
+            out.append((self.origin + route[k] + 0.5) * c.cell_m)
+        return out
+
+    def target(self, cells: np.ndarray, visited: list[tuple[str, np.ndarray]], z_m: float,
+               accept: Callable[[np.ndarray], bool] | None) -> tuple[np.ndarray, str, tuple] | None:
+        """(position, parent, corners before it) of the frontier cell nearest by the way that the
+        caller accepts, among the first ``tries_per_frontier``; None when none is reachable."""
+        c = self.cfg
+        d = self.distance(cells)
+        order = np.argsort(d, kind="stable")
+        order = order[np.isfinite(d[order])][: c.tries_per_frontier]
+        for k in order:
+            xy = (self.origin + cells[k] + 0.5) * c.cell_m
+            pos = np.array([xy[0], xy[1], z_m])
+            if accept is not None and not accept(pos):
+                continue
+            num = int(self.number[cells[k][0], cells[k][1]])
+            start = self.start_of_cell[int(self.source[num])]
+            legs = self.corners(cells[k], visited[start][1])
+            parent = visited[start][0]
+            return pos, parent, tuple(legs[:-1])
+        return None
