@@ -374,7 +374,7 @@ class _Run:
         """Frontiers that a new visited node sees from close by are covered, not visited."""
         for f in self.graph.near(pos, self.cfg.visit_radius_m, self.cfg.same_floor_dz_m, NodeStatus.FRONTIER):
             if self._sees(nid, self.graph.pos(f)):
-                self.graph.g.nodes[f]["status"] = NodeStatus.COVERED
+                self.graph.set_status(f, NodeStatus.COVERED)
 
     # --- DFS --------------------------------------------------------------------------------------
 
@@ -439,7 +439,7 @@ class _Run:
         if parent != self.here and not self._walk_to(parent):
             # Could not get back to where the frontier was seen from: give it up.
             log.info("frontier %s given up: its parent %s is out of reach from %s", target, parent, self.here)
-            g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
+            g.set_status(target, NodeStatus.UNREACHABLE)
             return
         walked = 0.0  # on the way's legs since the last node
         way = g.g.nodes[target].get("way") or []
@@ -448,7 +448,7 @@ class _Run:
             if not ok:
                 # Blocked on the way (a panorama where it stopped, if it got anywhere new).
                 self.blocked += 1
-                g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
+                g.set_status(target, NodeStatus.UNREACHABLE)
                 return
             if g.status(target) != NodeStatus.FRONTIER:
                 # A panorama on the way saw it from close by; a few cm past the last node are
@@ -466,11 +466,11 @@ class _Run:
             # voxel. The observed voxel stays in the graph, resolved, so that the same candidate
             # seen again from elsewhere is recognised and not chased in a loop.
             if g.node_id(end) != target:
-                g.g.nodes[target]["status"] = NodeStatus.COVERED
+                g.set_status(target, NodeStatus.COVERED)
             self.arrive(self.robot.observe(), previous=base, travelled_m=travelled)
             return
         self.blocked += 1
-        g.g.nodes[target]["status"] = NodeStatus.UNREACHABLE
+        g.set_status(target, NodeStatus.UNREACHABLE)
         log.debug("candidate %s unreachable (blocked after %.2f m)", target, travelled)
         if travelled >= self.cfg.min_progress_m and not self._near(
             end, (NodeStatus.VISITED,), self.cfg.visit_radius_m * 0.5
@@ -516,7 +516,7 @@ class _Run:
         g = self.graph
         for _ in range(self.cfg.replan_attempts):
             try:
-                path = nx.shortest_path(g.traversed(), self.here, goal, weight="length")
+                path = nx.shortest_path(g.walked(), self.here, goal, weight="length")
             except (nx.NetworkXNoPath, nx.NodeNotFound):
                 if not self._reconnect():
                     return False
@@ -534,8 +534,7 @@ class _Run:
             if res.status != MoveStatus.REACHED:
                 self.blocked += 1
                 log.info("blocked on a traversed edge %s -> %s after %.2f m", self.here, nxt, res.travelled_m)
-                if g.g.has_edge(self.here, nxt):
-                    g.g.remove_edge(self.here, nxt)
+                g.remove_edge(self.here, nxt)
                 self._return_to(self.here)
                 return False
             self.here = nxt
@@ -550,7 +549,7 @@ class _Run:
         """Join the current node to the nearest visited nodes it has no traversed path to, directly."""
         g = self.graph
         here = g.pos(self.here)
-        reach = nx.node_connected_component(g.traversed(), self.here)
+        reach = nx.node_connected_component(g.walked(), self.here)
         others = [n for n in g.nodes_with(NodeStatus.VISITED) if n not in reach]
         if not others:
             return False
