@@ -111,3 +111,30 @@ def test_a_scan_marks_the_cells_of_the_plain_ray_cast():
         free, occ = _plain_scan_cells(m, pos, heading, obst)
         assert _marked(m.levels[0].free) == free
         assert _marked(m.levels[0].occ) == occ
+
+
+def test_nearest_partitioned_node_is_networkxs_answer():
+    """Regions: a stair or observed node takes the region of the partitioned node nearest over the
+    walked edges (the smallest id among equally near ones): one scipy search for all of them gives
+    what a networkx search per node gave."""
+    from services.mapper.core.regions import _nearest_partitioned
+
+    rng = np.random.default_rng(11)
+    for seed in range(3):
+        g = _random_graph(seed)
+        visited = g.nodes_with(NodeStatus.VISITED)
+        partitioned = {n: int(rng.integers(4)) for n in visited if rng.random() < 0.7}
+        ask = _nearest_partitioned(g, g.g, partitioned)
+        view = nx.Graph(g.traversed())
+        for n in g.g.nodes:
+            if n in partitioned:
+                continue
+            ref = g.g.nodes[n].get("parent") or n
+            if ref in partitioned:
+                continue
+            try:
+                lengths = nx.single_source_dijkstra_path_length(view, ref, weight="length")
+                expected = partitioned[min((d, m) for m, d in lengths.items() if m in partitioned)[1]]
+            except (ValueError, nx.NodeNotFound):
+                expected = None
+            assert ask(ref) == expected
