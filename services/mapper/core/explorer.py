@@ -115,7 +115,9 @@ class ExplorationResult:
     moves: int  # move_to calls
     unreachable: int
     blocked_moves: int
-    finished: bool  # True: no frontier left and no flight left unclimbed; False: see stop_reason
+    # True: no frontier left to try, none of the map's left open, and no flight left unclimbed;
+    # False: see stop_reason, open_frontiers and open_stairs.
+    finished: bool
     duration_s: float
     start_pose: Pose
     scan_angles_rad: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -125,6 +127,10 @@ class ExplorationResult:
     mapped_free_m2: float = 0.0  # that free area (the explorer's own map)
     map_frontiers: int = 0  # candidates the map's frontiers added (the predictor did not propose them)
     narrow_frontiers: int = 0  # ... of them behind passages only the narrow body passes
+    # Frontiers of the map that no visited node came near, left when the exploration ended: seen
+    # through a gap nobody could walk, or tried and failed. The coverage estimate counts the space
+    # behind them as missed.
+    open_frontiers: int = 0
     open_stairs: int = 0  # flights seen climbing or descending whose continuation failed
     step_budget: int = 0
 
@@ -135,7 +141,7 @@ class ExplorationResult:
                 "discovered_m2": round(self.discovered_m2, 1),
                 "coverage_estimate": round(self.coverage_estimate, 3), "mapped_free_m2": round(self.mapped_free_m2, 1),
                 "map_frontiers": self.map_frontiers, "narrow_frontiers": self.narrow_frontiers,
-                "open_stairs": self.open_stairs}
+                "open_frontiers": self.open_frontiers, "open_stairs": self.open_stairs}
 
 
 class Explorer:
@@ -185,7 +191,7 @@ class Explorer:
             break
         g = run.graph
         open_stairs = run.open_stairs()
-        coverage, free_m2 = run.coverage_estimate()
+        coverage, free_m2, left_open = run.coverage_estimate()
         return ExplorationResult(
             graph=g,
             scans=run.scans,
@@ -195,7 +201,7 @@ class Explorer:
             moves=run.moves,
             unreachable=len(g.nodes_with(NodeStatus.UNREACHABLE)),
             blocked_moves=run.blocked,
-            finished=reason == StopReason.EXHAUSTED and open_stairs == 0,
+            finished=reason == StopReason.EXHAUSTED and open_stairs == 0 and left_open == 0,
             duration_s=time.perf_counter() - t0,
             start_pose=start_pose,
             scan_angles_rad=self.scanner.angles_rad.copy(),
@@ -205,6 +211,7 @@ class Explorer:
             mapped_free_m2=free_m2,
             map_frontiers=run.map_frontiers,
             narrow_frontiers=run.narrow_frontiers,
+            open_frontiers=left_open,
             open_stairs=open_stairs,
             step_budget=run.step_budget(),
         )
@@ -258,14 +265,14 @@ class _Run:
                 out.setdefault(lv.z_m, []).append((n, p))
         return out
 
-    def coverage_estimate(self) -> tuple[float, float]:
+    def coverage_estimate(self) -> tuple[float, float, int]:
         """(Share of the mapped free area reachable from the visited nodes that lies within the
         coverage radius of one, that area m2). Free space seen through a door but never walked
         to lowers it; a graph of nodes alone cannot see that space."""
         by_level = {z: np.stack([p[:2] for _, p in nodes]) for z, nodes in self._floor_nodes().items()}
         # Stair nodes stand over the flights, which each floor's map holds as free ground.
         stairs = [n for n in self.stair_nodes if n in self.graph.g]
-        return self.space.coverage(by_level, self.graph.positions(stairs)[:, :2])
+        return self.space.coverage_report(by_level, self.graph.positions(stairs)[:, :2])
 
     def open_stairs(self) -> int:
         """Stair nodes above the highest explored floor or below the lowest: a flight that leads on.

@@ -355,7 +355,16 @@ class FreeSpaceMap:
 
     def coverage(self, visited_by_level: dict[float, np.ndarray],
                  extra_xy: np.ndarray | None = None) -> tuple[float, float]:
-        """(share of the seen area within ``coverage_radius_m`` of a visited node, that area m2).
+        """(share of the seen area within ``coverage_radius_m`` of a visited node, that area m2);
+        see :meth:`coverage_report`."""
+        share, area, _ = self.coverage_report(visited_by_level, extra_xy)
+        return share, area
+
+    def coverage_report(self, visited_by_level: dict[float, np.ndarray],
+                        extra_xy: np.ndarray | None = None) -> tuple[float, float, int]:
+        """(share of the seen area within ``coverage_radius_m`` of a visited node, that area m2,
+        frontiers left open: borders of seen free space with unseen space that no visited node
+        came near).
 
         The seen area is every free cell joined to a visited node through free cells, whether or
         not the map knows a way for the robot's body there (a room seen between the chairs of a
@@ -367,6 +376,7 @@ class FreeSpaceMap:
         c = self.cfg
         near_total = 0
         total = 0
+        left_open = 0
         for lv in self.levels:
             vxy = next((v for z, v in visited_by_level.items() if abs(z - lv.z_m) < self.dz), None)
             if vxy is None or len(vxy) == 0:
@@ -380,12 +390,13 @@ class FreeSpaceMap:
             border, lab_b, sizes = self._borders(seen, unknown)
             # Border cells of a frontier (not noise) that no visited node came near: open.
             open_border = border & (sizes[lab_b] >= c.min_frontier_cells) & ~near
+            left_open += len(np.unique(lab_b[open_border]))
             depth = max(1, int(round(c.open_frontier_depth_m / c.cell_m)))
             beyond = (ndimage.binary_dilation(open_border, iterations=depth, mask=unknown | open_border)
                       & unknown) if open_border.any() else np.zeros_like(unknown)
             total += int(seen.sum() + beyond.sum())
             near_total += int((seen & near).sum())
-        return (near_total / total if total else 1.0), total * c.cell_m**2
+        return (near_total / total if total else 1.0), total * c.cell_m**2, left_open
 
 
 class _Routes:
