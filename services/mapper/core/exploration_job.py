@@ -122,5 +122,5 @@ def describe_outcome(outcome: ExplorationOutcome) -> str:
     elif outcome.open_stairs:
         ended = f"{outcome.open_stairs} stair nodes lead past the explored floors"
     else:
-        ended = f"{outcome.open_frontiers} frontiers seen but never reached"
+        ended = f"{outcome.open_frontiers} frontiers seen but never tried"
     return f"{ended}, coverage estimate {outcome.coverage_estimate:.0%}"

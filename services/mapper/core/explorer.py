@@ -127,9 +127,9 @@ class ExplorationResult:
     mapped_free_m2: float = 0.0  # that free area (the explorer's own map)
     map_frontiers: int = 0  # candidates the map's frontiers added (the predictor did not propose them)
     narrow_frontiers: int = 0  # ... of them behind passages only the narrow body passes
-    # Frontiers of the map that no visited node came near, left when the exploration ended: seen
-    # through a gap nobody could walk, or tried and failed. The coverage estimate counts the space
-    # behind them as missed.
+    # Frontiers of the map that no visited node came near and that were never tried, left when the
+    # exploration ended (seen through a gap the map knows no way through). Those tried and failed
+    # count in ``unreachable``. The coverage estimate counts the space behind both as missed.
     open_frontiers: int = 0
     open_stairs: int = 0  # flights seen climbing or descending whose continuation failed
     step_budget: int = 0
@@ -240,6 +240,7 @@ class _Run:
         self.space = FreeSpaceMap(explorer.scanner.angles_rad, self.cfg.frontier, self.cfg.same_floor_dz_m)
         self.map_frontiers = 0
         self.narrow_frontiers = 0
+        self.map_targets: list[str] = []  # the nodes the map's frontiers added
 
     # --- budget and bookkeeping -------------------------------------------------------------------
 
@@ -267,12 +268,19 @@ class _Run:
 
     def coverage_estimate(self) -> tuple[float, float, int]:
         """(Share of the mapped free area reachable from the visited nodes that lies within the
-        coverage radius of one, that area m2). Free space seen through a door but never walked
-        to lowers it; a graph of nodes alone cannot see that space."""
+        coverage radius of one, that area m2, frontiers left open and never tried). Free space seen
+        through a door but never walked to lowers it; a graph of nodes alone cannot see that space."""
         by_level = {z: np.stack([p[:2] for _, p in nodes]) for z, nodes in self._floor_nodes().items()}
         # Stair nodes stand over the flights, which each floor's map holds as free ground.
         stairs = [n for n in self.stair_nodes if n in self.graph.g]
-        return self.space.coverage_report(by_level, self.graph.positions(stairs)[:, :2])
+        # A frontier target stands within max_backoff_m of its frontier, and the next is refused
+        # near one that failed (visit_radius_m): a frontier with a failed target that near was
+        # tried. (A predictor candidate that failed near it is no attempt at it: a straight move
+        # into a gap the map holds a way through only for a narrower body.)
+        failed = self.graph.positions([n for n in self.map_targets
+                                       if self.graph.status(n) == NodeStatus.UNREACHABLE])
+        return self.space.coverage_report(by_level, self.graph.positions(stairs)[:, :2], failed,
+                                          self.cfg.frontier.max_backoff_m + self.cfg.visit_radius_m)
 
     def open_stairs(self) -> int:
         """Stair nodes above the highest explored floor or below the lowest: a flight that leads on.
@@ -432,6 +440,7 @@ class _Run:
                     if t.way_m:
                         self.graph.g.nodes[nid]["way"] = [np.array([w[0], w[1], z]) for w in t.way_m]
                     out.append(nid)
+                    self.map_targets.append(nid)
         return out
 
     def _new_target(self, p: np.ndarray) -> bool:

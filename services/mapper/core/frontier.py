@@ -361,10 +361,12 @@ class FreeSpaceMap:
         return share, area
 
     def coverage_report(self, visited_by_level: dict[float, np.ndarray],
-                        extra_xy: np.ndarray | None = None) -> tuple[float, float, int]:
+                        extra_xy: np.ndarray | None = None,
+                        failed_xyz: np.ndarray | None = None, failed_radius_m: float = 0.0) -> tuple[float, float, int]:
         """(share of the seen area within ``coverage_radius_m`` of a visited node, that area m2,
-        frontiers left open: borders of seen free space with unseen space that no visited node
-        came near).
+        frontiers left open and never tried: borders of seen free space with unseen space that no
+        visited node came near, and no place the robot failed to reach (``failed_xyz`` (N, 3))
+        lies within ``failed_radius_m`` of: the robot tried those and could not get there).
 
         The seen area is every free cell joined to a visited node through free cells, whether or
         not the map knows a way for the robot's body there (a room seen between the chairs of a
@@ -390,7 +392,14 @@ class FreeSpaceMap:
             border, lab_b, sizes = self._borders(seen, unknown)
             # Border cells of a frontier (not noise) that no visited node came near: open.
             open_border = border & (sizes[lab_b] >= c.min_frontier_cells) & ~near
-            left_open += len(np.unique(lab_b[open_border]))
+            if open_border.any():
+                labels = np.unique(lab_b[open_border])
+                if failed_xyz is not None and len(failed_xyz):
+                    fxy = failed_xyz[np.abs(failed_xyz[:, 2] - lv.z_m) < self.dz, :2]
+                    if len(fxy):
+                        tried = self._near_mask(cells.shape, origin, fxy, None, failed_radius_m)
+                        labels = np.setdiff1d(labels, lab_b[open_border & tried])
+                left_open += len(labels)
             depth = max(1, int(round(c.open_frontier_depth_m / c.cell_m)))
             beyond = (ndimage.binary_dilation(open_border, iterations=depth, mask=unknown | open_border)
                       & unknown) if open_border.any() else np.zeros_like(unknown)

@@ -89,4 +89,4 @@ def test_space_seen_past_a_gap_nobody_tried_keeps_the_exploration_unfinished():
     assert r.stop_reason == "exhausted" and r.open_frontiers >= 1
     assert not r.finished
     assert r.coverage_estimate < 0.9
-    assert "frontiers seen but never reached" in describe_outcome(ExplorationOutcome(**r.summary()))
+    assert "frontiers seen but never tried" in describe_outcome(ExplorationOutcome(**r.summary()))
