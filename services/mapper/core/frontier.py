@@ -75,6 +75,8 @@ class _Level:
         self.z_m = z_m
         self.free: dict[tuple[int, int], np.ndarray] = {}
         self.occ: dict[tuple[int, int], np.ndarray] = {}
+        self.version = 0  # bumped by every scan: what was worked out from an older grid is stale
+        self._dense: tuple[int, tuple[np.ndarray, np.ndarray]] | None = None
 
     def add(self, ix: np.ndarray, iy: np.ndarray, store: dict) -> None:
         """Mark cells (``ix[k]``, ``iy[k]``) in ``store``: on a local box first, then OR-ed into the
@@ -82,6 +84,7 @@ class _Level:
         sorting)."""
         if len(ix) == 0:
             return
+        self.version += 1
         lo = (int(ix.min()), int(iy.min()))
         shape = (int(ix.max()) - lo[0] + 1, int(iy.max()) - lo[1] + 1)
         box = np.zeros(shape, bool)
@@ -100,7 +103,10 @@ class _Level:
                 arr[x0 - cx * CHUNK:x1 - cx * CHUNK, y0 - cy * CHUNK:y1 - cy * CHUNK] |= part
 
     def dense(self) -> tuple[np.ndarray, np.ndarray]:
-        """(cells, origin cell index): UNKNOWN / FREE / OCCUPIED over the chunks' bounding box."""
+        """(cells, origin cell index): UNKNOWN / FREE / OCCUPIED over the chunks' bounding box
+        (read-only: the same arrays until the next scan)."""
+        if self._dense is not None and self._dense[0] == self.version:
+            return self._dense[1]
         keys = np.array(list(self.free) + list(self.occ))
         lo, hi = keys.min(axis=0), keys.max(axis=0)
         shape = tuple(((hi - lo + 1) * CHUNK).tolist())
@@ -113,7 +119,11 @@ class _Level:
         cells = np.full(shape, UNKNOWN, np.uint8)
         cells[free] = FREE
         cells[occ] = OCCUPIED  # a wall seen once stays a wall
-        return cells, lo * CHUNK
+        origin = lo * CHUNK
+        cells.setflags(write=False)
+        origin.setflags(write=False)
+        self._dense = (self.version, (cells, origin))
+        return cells, origin
 
 
 def _spread_labels(lab: np.ndarray, through: np.ndarray, steps: int) -> np.ndarray:
@@ -138,6 +148,10 @@ class FreeSpaceMap:
         self.angles_rad = np.asarray(angles_rad, dtype=np.float64)
         self.dz = same_floor_dz_m
         self.levels: list[_Level] = []
+        # Per level, the last grid worked out for a set of visited nodes (and the frontiers' own
+        # analysis of it): the map's frontiers for the robot's body and then for the narrow body,
+        # and the coverage estimate, ask the same questions of the same grid one after another.
+        self._memo: dict[int, tuple[tuple, dict]] = {}
         c = self.cfg
         self._samples = np.arange(0.0, c.max_range_m, c.cell_m * 0.5)
 
@@ -180,19 +194,38 @@ class FreeSpaceMap:
 
     # --- queries --------------------------------------------------------------------------------
 
+    def _memo_for(self, lv: _Level, visited_xy: np.ndarray) -> dict:
+        """The level's memo for this grid version and these visited nodes (a fresh one otherwise)."""
+        key = (lv.version, visited_xy.shape, visited_xy.tobytes())
+        slot = self._memo.get(id(lv))
+        if slot is None or slot[0] != key:
+            slot = self._memo[id(lv)] = (key, {})
+        return slot[1]
+
+    def _grid(self, lv: _Level, visited_xy: np.ndarray):
+        """(cells, origin, free with the visited nodes' cells, those cells, clearance m), read-only."""
+        memo = self._memo_for(lv, visited_xy)
+        if "grid" not in memo:
+            c = self.cfg
+            cells, origin = lv.dense()
+            free = cells == FREE
+            # The robot's own cells are free whatever the rays said (a node beside a jamb).
+            vidx = np.floor(visited_xy / c.cell_m).astype(np.int64) - origin
+            ok = (vidx >= 0).all(axis=1) & (vidx < cells.shape).all(axis=1)
+            vidx = vidx[ok]
+            free[vidx[:, 0], vidx[:, 1]] = True
+            clear = ndimage.distance_transform_edt(free) * c.cell_m
+            for a in (free, vidx, clear):
+                a.setflags(write=False)
+            memo["grid"] = (cells, origin, free, vidx, clear)
+        return memo["grid"]
+
     def _analyse(self, lv: _Level, visited_xy: np.ndarray, body_radius_m: float | None = None):
         """The level's grid, its reachable passable cells and the visited nodes' cells in it, and
         every cell's clearance (m); passable for a body of ``body_radius_m`` (the config's)."""
         c = self.cfg
         radius = c.body_radius_m if body_radius_m is None else body_radius_m
-        cells, origin = lv.dense()
-        free = cells == FREE
-        # The robot's own cells are free whatever the rays said (a node beside a jamb).
-        vidx = np.floor(visited_xy / c.cell_m).astype(np.int64) - origin
-        ok = (vidx >= 0).all(axis=1) & (vidx < cells.shape).all(axis=1)
-        vidx = vidx[ok]
-        free[vidx[:, 0], vidx[:, 1]] = True
-        clear = ndimage.distance_transform_edt(free) * c.cell_m
+        cells, origin, free, vidx, clear = self._grid(lv, visited_xy)
         passable = free & (clear >= radius)
         passable[vidx[:, 0], vidx[:, 1]] = True
         lab, _ = ndimage.label(passable, structure=np.ones((3, 3)))
@@ -252,25 +285,33 @@ class FreeSpaceMap:
         narrow = body_radius_m is not None and body_radius_m < c.body_radius_m
         vxy = np.stack([p[:2] for _, p in visited])
         cells, origin, free, passable, reach, _, clear = self._analyse(lv, vxy, body_radius_m)
-        if exclude_radius_m > 0.0:
-            reach = reach & ~self._near_mask(cells.shape, origin, vxy, extra_xy, exclude_radius_m)
-        border, lab, sizes = self._borders(free, self._open_unknown(cells))
+        memo = self._memo_for(lv, vxy)
+        ekey = ("frontiers", exclude_radius_m, None if extra_xy is None else (extra_xy.shape, extra_xy.tobytes()))
+        if ekey not in memo:
+            excluded = (self._near_mask(cells.shape, origin, vxy, extra_xy, exclude_radius_m)
+                        if exclude_radius_m > 0.0 else None)
+            border, lab, sizes = self._borders(free, self._open_unknown(cells))
+            # For every free cell: a border cell (and so its frontier) within the backoff, measured
+            # through free cells. A straight-line nearest border would reach through a wall: a
+            # room's cells beside the next room's frontier stood for it, were rejected as seen,
+            # and the frontier's own cells beyond a passage were never tried.
+            near_lab = _spread_labels(lab, free, int(c.max_backoff_m / c.cell_m)) if len(sizes) > 1 else None
+            # Per frontier, its reachable cells nearest to a visited node first (just past the
+            # ring already looked at): the robot creeps along the frontier in short straight
+            # moves, each from a visited node that sees the target through passable cells.
+            vdist = (ndimage.distance_transform_edt(~self._near_mask(cells.shape, origin, vxy, None, 0.0))
+                     if len(sizes) > 1 else None)
+            memo[ekey] = (excluded, sizes, near_lab, vdist)
+        excluded, sizes, near_lab, vdist = memo[ekey]
         if len(sizes) == 1:
             return []
-        # For every free cell: a border cell (and so its frontier) within the backoff, measured
-        # through free cells. A straight-line nearest border would reach through a wall: a room's
-        # cells beside the next room's frontier stood for it, were rejected as seen, and the
-        # frontier's own cells beyond a passage were never tried.
-        near_lab = _spread_labels(lab, free, int(c.max_backoff_m / c.cell_m))
+        if excluded is not None:
+            reach = reach & ~excluded
         ok = reach & (near_lab > 0) & (sizes[near_lab] >= c.min_frontier_cells)
         cand = np.argwhere(ok)
         if len(cand) == 0:
             return []
         cl = near_lab[cand[:, 0], cand[:, 1]]
-        # Per frontier, its reachable cells nearest to a visited node first (just past the ring
-        # already looked at): the robot creeps along the frontier in short straight moves, each
-        # from a visited node that sees the target through passable cells.
-        vdist = ndimage.distance_transform_edt(~self._near_mask(cells.shape, origin, vxy, None, 0.0))
         dv_cells = vdist[cand[:, 0], cand[:, 1]]
         out: list[FrontierTarget] = []
         blocked = ~passable

@@ -138,3 +138,20 @@ def test_nearest_partitioned_node_is_networkxs_answer():
             except (ValueError, nx.NodeNotFound):
                 expected = None
             assert ask(ref) == expected
+
+
+def test_a_new_scan_is_never_answered_from_the_memo():
+    """The map's analysis of a grid is kept for the next question about the same visited nodes
+    (the narrow pass after the wide one); a scan in between must make it stale."""
+    from tests.unit.mapper.test_frontier import ANGLES, corridor_scan
+
+    m = FreeSpaceMap(ANGLES)
+    start = np.array([0.0, 0.0, 0.0])
+    m.add_scan(start, 0.0, corridor_scan(0.0, 12.0))
+    nodes = [("a", start)]
+    assert len(m.frontier_targets(0.0, nodes, exclude_radius_m=0.8)) == 1
+    assert len(m.frontier_targets(0.0, nodes, exclude_radius_m=0.8, body_radius_m=0.1)) == 1
+    for x in range(4, 12):  # someone else walks the corridor to its closed end
+        p = np.array([float(x), 0.0, 0.0])
+        m.add_scan(p, 0.0, corridor_scan(p[0], 12.0))
+    assert m.frontier_targets(0.0, nodes, exclude_radius_m=0.8) == []
