@@ -819,6 +819,8 @@ class ExplorationOutcome(BaseModel):
     open_stairs: Count = 0  # stair nodes past the last explored floor: a flight leads on
     mapped_free_m2: float = Field(0.0, ge=0.0, le=WORLD_LIMIT_M**2)  # free floor in the explorer's own map
     map_frontiers: Count = 0  # targets the map's frontiers added where the predictor proposed none
+    narrow_frontiers: Count = 0  # ... of them behind passages only a narrower body than the planned one passes
+    open_frontiers: Count = 0  # frontiers no visited node came near and none was tried when it ended
 
 
 class StageProgress(EventPayload):

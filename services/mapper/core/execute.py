@@ -149,8 +149,16 @@ def _no_checkpoint() -> None:
     pass
 
 
-def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Callable[[], None] = _no_checkpoint) -> None:
-    """Walk over traversed edges from the node nearest the robot to the node nearest the goal."""
+def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Callable[[], None] = _no_checkpoint,
+             replan_attempts: int = 5) -> None:
+    """Walk over traversed edges from the node nearest the robot to the node nearest the goal.
+
+    An edge walked one way during exploration may not be walkable back the same straight way (the
+    simulator slid along a bed's corner into a nook between the bed and a wardrobe, and the
+    straight line back clips that corner): a blocked edge is left out, the robot steps back to the
+    node it came from, and the route is planned again, as exploration does. ``check`` is called
+    before every move (a cancelled exploration stops here).
+    """
     g = scene.result.graph
     visited = g.nodes_with(NodeStatus.VISITED)
     if not visited:
@@ -163,18 +171,58 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Calla
 
     a = nearest(robot.pose.xyz)
     b = nearest(goal_m)
-    try:
-        route = nx.shortest_path(g.traversed(), a, b, weight="length")
-    except nx.NetworkXNoPath:
-        log.warning("no traversed route to the tour start; trying straight")
-        return
-    for n in route:
-        check()
-        cur = robot.pose.xyz
-        d = g.pos(n)[:2] - cur[:2]
-        if math.hypot(*d) < 0.05:
+    edges = nx.Graph(g.traversed())  # a copy: blocked edges are dropped for this transit only
+    for _ in range(replan_attempts):
+        try:
+            route = nx.shortest_path(edges, a, b, weight="length")
+        except (nx.NetworkXNoPath, nx.NodeNotFound):
+            a = _rejoin(robot, g, edges, a, b)
+            if a is None:
+                log.warning("no traversed route to the tour start; trying straight")
+                return
             continue
-        res = robot.move_to(float(d[0]), float(d[1]))
-        if res.status != MoveStatus.REACHED:
-            log.warning("transit blocked towards node %s", n)
+        prev = None
+        for n in route:
+            cur = robot.pose.xyz
+            d = g.pos(n)[:2] - cur[:2]
+            if math.hypot(*d) >= 0.05:
+                check()
+                res = robot.move_to(float(d[0]), float(d[1]))
+                if res.status != MoveStatus.REACHED:
+                    log.warning("transit blocked towards node %s; planning around that edge", n)
+                    if prev is None:
+                        return
+                    edges.remove_edge(prev, n)
+                    back = g.pos(prev)[:2] - robot.pose.xyz[:2]
+                    if math.hypot(*back) > 1e-3:
+                        robot.move_to(float(back[0]), float(back[1]))
+                    a = prev
+                    break
+            prev = n
+        else:
             return
+
+
+def _rejoin(robot: TourRobot, g, edges: nx.Graph, here: str, goal: str, radius_m: float = 3.0,
+            tries: int = 3) -> str | None:
+    """The robot stands at ``here``, cut off from ``goal`` (its only edge back was blocked): a
+    direct move to one of the nearest visited nodes on the goal's side, on the same floor and
+    within ``radius_m``; the node reached, or None."""
+    if goal not in edges:
+        return None
+    side = list(nx.node_connected_component(edges, goal))
+    p = g.positions(side)
+    at = g.pos(here)
+    dist = np.where(np.abs(p[:, 2] - at[2]) < 0.4, np.linalg.norm(p[:, :2] - at[:2], axis=1), np.inf)
+    for k in np.argsort(dist)[:tries]:
+        if dist[k] > radius_m:
+            break
+        d = p[k, :2] - robot.pose.xyz[:2]
+        res = robot.move_to(float(d[0]), float(d[1]))
+        if res.status == MoveStatus.REACHED:
+            edges.add_edge(here, side[k], length=res.travelled_m)
+            return side[k]
+        back = at[:2] - robot.pose.xyz[:2]
+        if math.hypot(*back) > 1e-3:
+            robot.move_to(float(back[0]), float(back[1]))
+    return None

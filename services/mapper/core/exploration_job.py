@@ -131,6 +131,8 @@ def describe_outcome(outcome: ExplorationOutcome) -> str:
         ended = "no frontier left"
     elif outcome.stop_reason != "exhausted":
         ended = f"stopped by its {outcome.stop_reason} budget after {outcome.steps} of {outcome.step_budget} steps"
-    else:
+    elif outcome.open_stairs:
         ended = f"{outcome.open_stairs} stair nodes lead past the explored floors"
+    else:
+        ended = f"{outcome.open_frontiers} frontiers seen but never tried"
     return f"{ended}, coverage estimate {outcome.coverage_estimate:.0%}"

@@ -192,24 +192,14 @@ def analyse(result: ExplorationResult, config: RegionConfig | None = None) -> Sc
     # Stair nodes and observed nodes take the region of their nearest partitioned neighbour (one
     # search per such neighbour, shared by every node seen from it: a flight's candidates are many).
     partitioned = dict(node_region)
-    traversed = None
-    nearest: dict[str, int | None] = {}
+    nearest = _nearest_partitioned(gg, g, partitioned)
     for n in g.nodes:
         if n in node_region:
             continue
         ref = g.nodes[n].get("parent") or n
         r = node_region.get(ref)
         if r is None and ref in g:
-            if ref not in nearest:
-                if traversed is None:
-                    traversed = nx.Graph(gg.traversed())  # a plain copy: searches on a view are slow
-                try:
-                    lengths = nx.single_source_dijkstra_path_length(traversed, ref, weight="length")
-                    best = min((d, m) for m, d in lengths.items() if m in partitioned)
-                    nearest[ref] = partitioned[best[1]]
-                except (ValueError, nx.NodeNotFound):
-                    nearest[ref] = None
-            r = nearest[ref]
+            r = nearest(ref)
         if r is not None:
             node_region[n] = r
     for n in g.nodes:
@@ -218,6 +208,42 @@ def analyse(result: ExplorationResult, config: RegionConfig | None = None) -> Sc
             g.nodes[n]["floor"] = region_floor[node_region[n]]
     log.info("%d floors, %d stair nodes, %d regions", len(floors), len(stairs), len(regions))
     return SceneMap(result, floors, stairs, regions, region_floor, node_region)
+
+
+def _nearest_partitioned(gg, g: nx.Graph, partitioned: dict[str, int]):
+    """ref -> the region of the partitioned node nearest to ``ref`` over the traversed edges (the
+    smallest id among equally near ones), None when none is reachable or ``ref`` is not visited.
+
+    The searches run as one multi-source Dijkstra (scipy) from every node that may ask, before the
+    first question: a networkx search per stair node took 1.4 s of 2.2 at 1,000 m2 on three floors.
+    The lengths are the same sums along the same shortest paths, so the answers are networkx's."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    asking = sorted({ref for n in g.nodes if n not in partitioned
+                     for ref in [g.nodes[n].get("parent") or n] if ref not in partitioned and ref in g})
+    walked = gg.walked()
+    index = {n: k for k, n in enumerate(walked.nodes)}
+    sources = [r for r in asking if r in index]
+    answers: dict[str, int | None] = dict.fromkeys(asking)
+    if sources and partitioned:
+        e = list(walked.edges(data="length"))
+        u = np.array([index[a] for a, _, _ in e], dtype=np.int64)
+        v = np.array([index[b] for _, b, _ in e], dtype=np.int64)
+        w = np.array([x for _, _, x in e], dtype=np.float64)
+        m = len(index)
+        csr = coo_matrix((np.r_[w, w], (np.r_[u, v], np.r_[v, u])), shape=(m, m)).tocsr()
+        dist = dijkstra(csr, directed=True, indices=[index[r] for r in sources])
+        cols = [index[n] for n in partitioned if n in index]
+        names = np.array([n for n in partitioned if n in index])
+        sub = dist[:, cols]
+        for k, ref in enumerate(sources):
+            d = sub[k]
+            if not np.isfinite(d).any():
+                continue
+            best = min(names[d == d.min()])
+            answers[ref] = partitioned[str(best)]
+    return answers.get
 
 
 def _partition(gg, fl: Floor, cfg: RegionConfig) -> list[set[str]]:

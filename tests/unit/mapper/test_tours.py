@@ -129,3 +129,43 @@ def test_a_tour_that_cannot_start_is_skipped_not_fatal(monkeypatch):
 
     with pytest.raises(TourExecutionError, match="none of the 2 tours"):
         ex.execute_tours(None, [T(0), T(1)])
+
+
+def test_the_walk_graph_is_the_robots_own_moves():
+    """Poses back at a place within a few cm are one place; a move walked both ways is one edge;
+    the moves of another floor and the flight are left out."""
+    from services.mapper.core.tours import walk_graph
+
+    traj = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1.02, 0.01, 0], [0.01, 0, 0],  # out and back
+                     [0, 2, 0], [0, 3, 1.2], [0, 4, 2.8], [1, 4, 2.8]], float)
+    g, xy = walk_graph(traj, 0.0)
+    assert len(xy) == 4 and np.allclose(xy[:3], [[0, 0], [1, 0], [1, 1]])  # each place at its first pose
+    d = dijkstra(g, indices=[0])[0]
+    assert d[2] == pytest.approx(2.0)  # along the moves, not straight across
+    assert d[3] == pytest.approx(2.0)
+    assert g.nnz == 2 * 3  # (0,1), (1,2), (0,3): the return moves add nothing
+    g2, xy2 = walk_graph(traj, 2.8)
+    assert len(xy2) == 2 and g2.nnz == 2
+
+
+def test_walked_tours_stand_and_move_only_where_the_robot_did():
+    from services.mapper.core import discover
+    from services.mapper.core.tours import TourConfig, TourPlanner
+    from services.mapper.tools.boxworld import BoxWorldRobot, rooms_world
+    from shared.geometry import PinholeCamera
+
+    d = discover(BoxWorldRobot(rooms_world(), PinholeCamera(48, 48, 90.0)))
+    traj = d.result.trajectory_m
+    tours = TourPlanner(TourConfig(paths_on="walked")).plan(d.scene)
+    assert len(tours) == len(d.tours)
+    a, b = traj[:-1, :2], traj[1:, :2]
+    ab = b - a
+    for pt in tours:
+        assert pt.tour.coverage >= 0.9 * pt.achievable_coverage - 1e-9
+        assert pt.order_length_m <= pt.nn_length_m + 1e-9
+        for hub in np.asarray(pt.tour.hubs_m):
+            assert np.hypot(*(traj[:, :2] - hub[:2]).T).min() < 1e-6  # a pose it stood at
+        for p in np.asarray(pt.tour.path_m):
+            # On one of its moves: the distance to the nearest trajectory segment.
+            t = np.clip(((p[:2] - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-12), 0.0, 1.0)
+            assert np.hypot(*(a + ab * t[:, None] - p[:2]).T).min() < 1e-6
