@@ -18,7 +18,7 @@ The ladder (issue 21) runs 100 / 200 / 500 / 1,000 m2 by 1 / 2 / 3 floors, 5 see
 seconds of explore (split into the robot's time - rendering and moving in the simulator - and the
 mapper's own), analyse and plan, and set cover + 2-opt; then a least-squares fit of each cost
 against the reachable area, ``cost ~ area^k``, and the issue's targets met or not:
-coverage >= 95 % on every rung; mapper explore + plan <= 30 s at 1,000 m2; set cover + 2-opt <= 2 s
+coverage >= 95 % on every rung; explore + plan <= 30 s wall at 1,000 m2 (simulator included); set cover + 2-opt <= 2 s
 at 1,000 m2; tours no longer than a nearest-neighbour tour over the same hubs.
 
 ``--save-exploration`` keeps each scene's exploration (a pickle, local files only); ``--replan``
@@ -263,14 +263,17 @@ def print_ladder(rows: list[dict], radius_m: float) -> dict:
     targets = {
         "coverage >= 95 % on every rung": all(r["coverage"] >= 0.95 for r in rows),
         "every floor reached": all(r["floors_reached"] == r["scene_floors"] for r in rows),
-        "mapper explore + plan <= 30 s at 1,000 m2": bool(big) and max(
-            r["mapper_explore_s"] + r["plan_s"] for r in big) <= 30.0,
+        # The issue's figure is the wall time of the whole exploration, simulator included: the robot's
+        # share is printed beside it, not subtracted from it.
+        "explore + plan <= 30 s wall at 1,000 m2": bool(big) and max(
+            r["explore_s"] + r["plan_s"] for r in big) <= 30.0,
         "set cover + 2-opt <= 2 s at 1,000 m2": bool(big) and max(r["set_cover_2opt_s"] for r in big) <= 2.0,
         "tours no longer than nearest neighbour": all(r["tour_vs_nn_ratio"] <= 1.0 + 1e-9 for r in rows),
     }
     if big:
         print(f"  at 1,000 m2: explore + plan wall {max(r['explore_s'] + r['plan_s'] for r in big):.1f} s max "
-              f"(robot {max(r['robot_s'] for r in big):.1f} s of it)")
+              f"(robot {max(r['robot_s'] for r in big):.1f} s of it; the mapper's own explore + plan "
+              f"{max(r['mapper_explore_s'] + r['plan_s'] for r in big):.1f} s max)")
     print("targets:")
     for k, ok in targets.items():
         print(f"  [{'x' if ok else ' '}] {k}")
