@@ -18,8 +18,8 @@ The ladder (issue 21) runs 100 / 200 / 500 / 1,000 m2 by 1 / 2 / 3 floors, 5 see
 seconds of explore (split into the robot's time - rendering and moving in the simulator - and the
 mapper's own), analyse and plan, and set cover + 2-opt; then a least-squares fit of each cost
 against the reachable area, ``cost ~ area^k``, and the issue's targets met or not:
-coverage >= 95 % on every rung; explore + plan <= 30 s wall at 1,000 m2 (simulator included); set cover + 2-opt <= 2 s
-at 1,000 m2; tours no longer than a nearest-neighbour tour over the same hubs.
+coverage >= 95 % on every rung; explore + plan <= 30 s wall at 1,000 m2 (simulator included); set cover
++ 2-opt <= 2 s at 1,000 m2; tours no longer than a nearest-neighbour tour over the same hubs.
 
 ``--save-exploration`` keeps each scene's exploration (a pickle, local files only); ``--replan``
 runs analyse and plan again on saved explorations, so planning can be timed and profiled without
