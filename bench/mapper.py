@@ -181,7 +181,7 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
         "unreachable": d.result.unreachable,
         "finished": d.result.finished,
         "outcome": d.result.summary(),
-        "ray_caster": robot.renderer.ray_caster,
+        "ray_caster": robot.renderer.caster_for(size_px, size_px),
         "robot_s": round(timed.robot_s, 2),
         "robot_cpu_s": round(timed.robot_cpu_s, 2),
         "observe_s": round(timed.observe_s, 2),

@@ -10,8 +10,8 @@ numpy does fast:
   ray) by one compiled loop (:func:`write_rays`). Directions have unit camera-z, so the ``t_hit``
   open3d returns *is* the z-depth; no per-pixel division.
 * **One cast.** All views go to one ``cast_rays`` call (Embree parallelises across them).
-* **Or no rays at all.** ``ray_caster="raster"`` (or ``"auto"`` on a scene below
-  :data:`RASTER_MAX_TRIANGLES`) answers :meth:`SceneRenderer.render` with :class:`.raster.RasterScene`:
+* **Or no rays at all.** ``ray_caster="raster"`` (or ``"auto"`` where it is the cheaper, see
+  :func:`resolve_ray_caster`) answers :meth:`SceneRenderer.render` with :class:`.raster.RasterScene`:
   the same ``t_hit`` / primitive id / barycentric uv per pixel (up to rounding on triangle edges and
   ties between coincident faces, see there), in the calling thread. Single rays, ``cast``,
   ``cast_shaded``, ``first_hit_distance`` and the navigation grid stay on Embree.
@@ -41,18 +41,22 @@ log = logging.getLogger(__name__)
 
 RayCaster = Literal["auto", "embree", "raster"]
 
-# "auto" rasterises scenes up to this many triangles. Measured (bench/robot_io.py, CPU per 12-view
-# panorama, raster / Embree, 2 shared cores): generated houses of 11 k / 29 k / 53 k triangles
-# 0.17-0.25 at 256 px and 0.6-1.0 at 64 px; Replica office0 (50 k, a dense scan) 0.26 at 256 px and
-# 1.0 at 64 px. The rasteriser's cost grows with the triangles in view, Embree's with the rays: at
-# the mapper's 64 px the two meet near 50 k triangles, so above that Embree keeps the job.
-RASTER_MAX_TRIANGLES = 60_000
+# "auto" rasterises views of W x H pixels of scenes up to RASTER_TRIANGLES_PER_PIXEL * W * H triangles.
+# The rasteriser's cost grows with the triangles in view, Embree's with the rays, so the crossover
+# is a triangle count per pixel. Measured (CPU per 12-view panorama, raster / Embree, one run each,
+# 2 shared cores): Replica office0 subdivided to 200 k triangles 0.45 at 256 px, 0.94 at 128 px,
+# 2.0 at 64 px; to 800 k 0.88 / 1.9 / 3.9; a 3-floor 1,000 m2 house (60 k) 0.25 / 0.46 / 0.97;
+# Replica office0 (50 k) 0.28 at 256 px, 0.95 at 64 px. They meet near 15 triangles per pixel
+# (60 k at 64 px, 200-250 k at 128 px, ~1 M at 256 px); 12 keeps "auto" on the winning side.
+RASTER_TRIANGLES_PER_PIXEL = 12
 
 
-def resolve_ray_caster(name: RayCaster, triangle_count: int) -> Literal["embree", "raster"]:
-    """The backend that ``name`` selects for a scene of ``triangle_count`` triangles."""
+def resolve_ray_caster(name: RayCaster, triangle_count: int, pixels_per_view: int) -> Literal["embree", "raster"]:
+    """The backend that ``name`` selects for views of ``pixels_per_view`` pixels of a scene of
+    ``triangle_count`` triangles."""
     if name == "auto":
-        return "raster" if AVAILABLE and triangle_count <= RASTER_MAX_TRIANGLES else "embree"
+        fits = triangle_count <= RASTER_TRIANGLES_PER_PIXEL * pixels_per_view
+        return "raster" if AVAILABLE and fits else "embree"
     if name not in ("embree", "raster"):
         raise ValueError(f"unknown ray caster {name!r}; known: auto, embree, raster")
     if name == "raster" and not AVAILABLE:
@@ -141,7 +145,8 @@ class SceneRenderer:
     """Casts camera rays into one scene; thread-safe (one Embree scene, read-only after build).
 
     ``ray_caster`` picks what answers :meth:`render` (image batches): ``"embree"``, ``"raster"``
-    or ``"auto"`` (raster up to :data:`RASTER_MAX_TRIANGLES`); :attr:`ray_caster` says which it is.
+    or ``"auto"`` (per call, by the image size: :func:`resolve_ray_caster`); :meth:`caster_for`
+    says which answers a given size. The rasteriser's tables are built on its first use.
     """
 
     def __init__(self, scene: Scene, nthreads: int = 0, use_kernel: bool = True, ray_caster: RayCaster = "auto"):
@@ -152,8 +157,9 @@ class SceneRenderer:
         mesh.vertex.positions = o3d.core.Tensor(scene.vertices.astype(np.float32))
         mesh.triangle.indices = o3d.core.Tensor(scene.triangles.astype(np.int32))
         self._rc.add_triangles(mesh)
-        self.ray_caster = resolve_ray_caster(ray_caster, len(scene.triangles))
-        self._raster = RasterScene(scene.vertices, scene.triangles) if self.ray_caster == "raster" else None
+        resolve_ray_caster(ray_caster, len(scene.triangles), 1)  # a bad name fails here, not at the first view
+        self.ray_caster = ray_caster
+        self._raster: RasterScene | None = None
         self._tables = ShadingTables.build(scene.vertex_colors, scene.triangles, scene.triangle_labels, scene.texture)
         self.use_kernel = use_kernel
         self._tri_mean: np.ndarray | None = None
@@ -167,6 +173,10 @@ class SceneRenderer:
     @property
     def triangle_count(self) -> int:
         return self._tables.miss_row
+
+    def caster_for(self, width_px: int, height_px: int) -> Literal["embree", "raster"]:
+        """What :meth:`render` uses for views of this size."""
+        return resolve_ray_caster(self.ray_caster, self.triangle_count, width_px * height_px)
 
     def triangle_colors(self) -> np.ndarray:
         """(T, 3) float32 mean vertex colour of each triangle, in [0, 1]."""
@@ -211,8 +221,10 @@ class SceneRenderer:
         single = poses.ndim == 2
         poses = poses[None] if single else poses
         b, h, w = len(poses), k.height_px, k.width_px
-        if self._raster is not None:
+        if self.caster_for(w, h) == "raster":
             with self._lock:  # the rasteriser's scratch buffers
+                if self._raster is None:
+                    self._raster = RasterScene(self.scene.vertices, self.scene.triangles)
                 hit = self._raster.cast_views(poses, k.fx, k.fy, k.cx, k.cy, w, h)
         else:
             mats = ray_matrices(poses)

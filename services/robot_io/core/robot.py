@@ -161,8 +161,9 @@ class SimConfig(BackendConfig):
     start_pose: Pose | None = None
     render_threads: int = Field(0, ge=0)  # Embree's threads; 0: all cores
     # What renders panoramas and frames: Embree's ray caster, or the single-threaded z-buffer
-    # rasteriser (same per-pixel hits, 4-6x less CPU at 256 px on the houses; see render.py). "auto":
-    # raster up to render.RASTER_MAX_TRIANGLES (60 k), where the two meet at the mapper's 64 px.
+    # rasteriser (same per-pixel hits; 4-5x less CPU at 256 px on the houses and Replica). "auto":
+    # raster up to 12 triangles per pixel of a view (49 k at 64 x 64, 786 k at 256 x 256), below the
+    # measured crossover of ~15 (render.RASTER_TRIANGLES_PER_PIXEL).
     ray_caster: Literal["auto", "embree", "raster"] = "auto"
     # reset() refuses a pose farther than this from walkable ground instead of snapping it to some
     # corner (a start pose at (1e6, 1e6) is a mistake, not a place).

@@ -258,24 +258,38 @@ def test_habitat_test_assets(shared_data, name):
 
 
 def test_auto_picks_raster_below_the_crossover_and_embree_above(monkeypatch):
-    scene = _scene([[0, 0, 1], [1, 0, 1], [0, 1, 1]], [[0, 1, 2]])
-    assert SceneRenderer(scene).ray_caster == "raster"
-    assert SceneRenderer(scene, ray_caster="embree").ray_caster == "embree"
-    monkeypatch.setattr(render, "RASTER_MAX_TRIANGLES", 0)
-    assert SceneRenderer(scene).ray_caster == "embree"
-    assert SceneRenderer(scene, ray_caster="raster").ray_caster == "raster"
-    assert render.resolve_ray_caster("auto", render.RASTER_MAX_TRIANGLES) == "raster"
+    # 200 triangles: raster for views of 17 pixels or more at 12 triangles per pixel.
+    scene = _scene(np.random.default_rng(1).uniform(-1, 1, (600, 3)) + [0, 0, 3], np.arange(600).reshape(200, 3))
+    auto, embree, raster = (SceneRenderer(scene, ray_caster=n) for n in ("auto", "embree", "raster"))
+    assert render.RASTER_TRIANGLES_PER_PIXEL == 12
+    assert auto.caster_for(5, 4) == "raster" and auto.caster_for(4, 4) == "embree"
+    assert embree.caster_for(256, 256) == "embree" and raster.caster_for(1, 1) == "raster"
+    assert render.resolve_ray_caster("auto", 49152, 64 * 64) == "raster"
+    assert render.resolve_ray_caster("auto", 49153, 64 * 64) == "embree"
+    # Each answers render() with the backend it names (the rasteriser is built on first use) ...
+    pose = np.eye(4)
+    for r, k, used in ((auto, Intrinsics(4, 4, 1.5, 1.5, 4, 4), False), (auto, Intrinsics(5, 5, 2, 2, 5, 5), True)):
+        r.render(pose, k)
+        assert (r._raster is not None) == used
+    # ... and gives the same picture either way.
+    k = Intrinsics(30.0, 30.0, 15.5, 15.5, 32, 32)
+    a, b = embree.render(pose, k), raster.render(pose, k)
+    assert np.array_equal(a.depth_m > 0, b.depth_m > 0) and np.allclose(a.depth_m, b.depth_m, rtol=DEPTH_RTOL, atol=0)
+    monkeypatch.setattr(render, "AVAILABLE", False)  # no numba: auto falls back, raster refuses
+    assert auto.caster_for(256, 256) == "embree"
+    with pytest.raises(RuntimeError):
+        SceneRenderer(scene, ray_caster="raster")
     with pytest.raises(ValueError):
-        render.resolve_ray_caster("optix", 1)
+        render.resolve_ray_caster("optix", 1, 1)
 
 
 def test_sim_config_selects_the_caster_and_both_render_the_same_panorama(house_robot):
     with pytest.raises(ValidationError):
         SimConfig(ray_caster="optix")
-    assert house_robot.config.ray_caster == "auto" and house_robot.renderer.ray_caster == "raster"
+    assert house_robot.config.ray_caster == "auto" and house_robot.renderer.caster_for(64, 64) == "raster"
     robots = {name: SimRobot(SimConfig(scene=house_robot.config.scene, camera=house_robot.camera, ray_caster=name),
                              scene=house_robot.scene) for name in ("embree", "raster")}
-    assert {n: r.renderer.ray_caster for n, r in robots.items()} == {"embree": "embree", "raster": "raster"}
+    assert {n: r.renderer.caster_for(64, 64) for n, r in robots.items()} == {"embree": "embree", "raster": "raster"}
     a, b = (robots[n].observe() for n in ("embree", "raster"))
     hit = a.depth_m > 0
     assert np.array_equal(hit, b.depth_m > 0)
