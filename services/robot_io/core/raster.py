@@ -125,11 +125,11 @@ class RasterScene:
         self.corners = np.ascontiguousarray(corners.reshape(-1, 3).T)
         n_chunks = -(-n // CHUNK)
         self.chunk_lo = np.minimum(np.arange(n_chunks + 1, dtype=np.int64) * CHUNK, n)
-        self.box_lo = np.empty((n_chunks, 3))
-        self.box_hi = np.empty((n_chunks, 3))
-        for c in range(n_chunks):
-            pts = corners[self.chunk_lo[c]:self.chunk_lo[c + 1]].reshape(-1, 3)
-            self.box_lo[c], self.box_hi[c] = pts.min(axis=0), pts.max(axis=0)
+        # The last chunk padded with copies of its last triangle, which leave its box as it is.
+        padded = np.concatenate([corners, np.repeat(corners[-1:], n_chunks * CHUNK - n, axis=0)])
+        padded = padded.reshape(n_chunks, CHUNK * 3, 3)
+        self.box_lo = np.ascontiguousarray(padded.min(axis=1))
+        self.box_hi = np.ascontiguousarray(padded.max(axis=1))
         # Half the box diagonal, a hair more, so rounding never culls a visible box.
         self.box_rad = 0.5 * np.linalg.norm(self.box_hi - self.box_lo, axis=1) * (1 + 1e-9) + 1e-9
         self._setup = np.empty((max(n, 1), _SETUP), np.float64)
@@ -137,7 +137,7 @@ class RasterScene:
         self._chunk_order = np.empty(n_chunks, np.int64)
         self._chunk_key = np.empty(n_chunks, np.float64)
         self._chunk_rect = np.empty((n_chunks, 4), np.int64)
-        self._cam = np.empty((6, CHUNK * 3), np.float64)  # x, y, z, column, row of a chunk's vertices
+        self._cam = np.empty((5, CHUNK * 3), np.float64)  # x, y, z, column, row of a chunk's vertices
         self._code = np.empty(CHUNK * 3, np.int64)
 
     def cast_views(self, world_from_camera: np.ndarray, fx: float, fy: float, cx: float, cy: float,

@@ -110,6 +110,11 @@ def test_both_faces_are_hit_and_degenerate_triangles_never():
     assert set(np.unique(r["primitive_ids"])) == {0, 1, MISS_ID}
 
 
+def test_an_empty_scene_misses_everywhere():
+    r = raster_hits(RasterScene(np.zeros((0, 3)), np.zeros((0, 3), np.int64)), np.eye(4)[None], SKEWED)
+    assert np.all(r["primitive_ids"] == MISS_ID) and np.all(np.isinf(r["t_hit"])) and not r["primitive_uvs"].any()
+
+
 def test_triangles_behind_and_across_the_camera_plane():
     # A floor under the camera reaching far behind it, a wall beside it from behind to in front, a
     # triangle entirely behind it: the parts in front are drawn, without clipping.
