@@ -56,25 +56,30 @@ PREDICTOR_KNOBS = {"cwp": {}, "wide": WIDE_EXPLORATION}
 
 
 class TimedRobot:
-    """The simulator behind a stopwatch: how much of the exploration's wall time is the robot's."""
+    """The simulator behind a stopwatch: how much of the exploration's wall (and process CPU) time
+    is the robot's; ``observe_s`` / ``observe_cpu_s`` the panoramas' share of it."""
 
     def __init__(self, robot):
         self.robot = robot
-        self.robot_s = 0.0
+        self.robot_s = self.robot_cpu_s = self.observe_s = self.observe_cpu_s = 0.0
 
     def observe(self):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         try:
             return self.robot.observe()
         finally:
-            self.robot_s += time.perf_counter() - t
+            self.robot_s += (dt := time.perf_counter() - t)
+            self.robot_cpu_s += (dc := time.process_time() - c)
+            self.observe_s += dt
+            self.observe_cpu_s += dc
 
     def move_to(self, dx_m: float, dy_m: float):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         try:
             return self.robot.move_to(dx_m, dy_m)
         finally:
             self.robot_s += time.perf_counter() - t
+            self.robot_cpu_s += time.process_time() - c
 
 
 def floors_reached(scene, visited_m: np.ndarray) -> int:
@@ -122,16 +127,16 @@ def replan(path: str, repeat: int) -> dict:
 
 
 def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide",
-              save_dir: str | None = None) -> dict:
+              save_dir: str | None = None, ray_caster: str = "auto") -> dict:
     from services.robot_io.core.robot import ROBOTS
 
     cam = CameraIntrinsics(width_px=size_px, height_px=size_px, hfov_deg=90.0)
-    robot = ROBOTS.create("sim", {"scene": scene, "camera": cam})
+    robot = ROBOTS.create("sim", {"scene": scene, "camera": cam, "ray_caster": ray_caster})
     timed = TimedRobot(robot)
     cfg = DiscoveryConfig(predictor_config=PREDICTOR_KNOBS[predictor])
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     d = discover(timed, cfg)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     if save_dir:
         import pickle
         from pathlib import Path
@@ -176,7 +181,11 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
         "unreachable": d.result.unreachable,
         "finished": d.result.finished,
         "outcome": d.result.summary(),
+        "ray_caster": robot.renderer.caster_for(size_px, size_px),
         "robot_s": round(timed.robot_s, 2),
+        "robot_cpu_s": round(timed.robot_cpu_s, 2),
+        "observe_s": round(timed.observe_s, 2),
+        "observe_cpu_s": round(timed.observe_cpu_s, 2),
         "mapper_explore_s": round(d.timings_s["explore"] - timed.robot_s, 2),
         f"coverage_visited_{radius_m:g}m": round(coverage_of(reach, visited, radius_m), 3),
         f"coverage_explored_{radius_m:g}m": round(coverage_of(reach, explored, radius_m), 3),
@@ -190,6 +199,7 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
         "tour_vs_nn_ratio": round(ours / nn, 3) if nn > 0 else 1.0,
         "timings_s": {k: round(v, 2) for k, v in d.timings_s.items()},
         "wall_s": round(wall, 1),
+        "cpu_s": round(cpu, 1),
         "per_region": regions,
     }
 
@@ -337,6 +347,8 @@ def main() -> None:
     ap.add_argument("--save-exploration", default=None, help="--scenes: pickle each exploration into this folder")
     ap.add_argument("--replan", nargs="+", default=None, help="analyse + plan again on saved explorations")
     ap.add_argument("--repeat", type=int, default=1, help="--replan: best of this many runs")
+    ap.add_argument("--ray-caster", choices=["auto", "embree", "raster"], default="auto",
+                    help="--scenes: what renders the simulator's panoramas (SimConfig.ray_caster)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     if args.replan:
@@ -358,7 +370,7 @@ def main() -> None:
                 ap.error("--rungs takes AREAxFLOORS with 1 to 3 floors, e.g. 200x3")
         run_ladder(args.full, args.jobs, args.size or 64, args.radius, args.json, args.rows, rungs, args.seeds)
         return
-    rows = [run_scene(s, args.size or 96, args.radius, args.predictor, args.save_exploration)
+    rows = [run_scene(s, args.size or 96, args.radius, args.predictor, args.save_exploration, args.ray_caster)
             for s in args.scenes]
     for r in rows:
         print(json.dumps({k: v for k, v in r.items() if k != "per_region"}))

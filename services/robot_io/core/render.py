@@ -1,4 +1,5 @@
-"""RGB-D-semantic rendering of a :class:`Scene` with open3d's Embree ray caster.
+"""RGB-D-semantic rendering of a :class:`Scene` with open3d's Embree ray caster (or, for image
+batches, the z-buffer rasteriser of :mod:`.raster`, which returns the same per-pixel hits).
 
 The hot path (a 12-view panorama is ~0.8 M rays) is organised around what Embree needs and what
 numpy does fast:
@@ -9,6 +10,11 @@ numpy does fast:
   ray) by one compiled loop (:func:`write_rays`). Directions have unit camera-z, so the ``t_hit``
   open3d returns *is* the z-depth; no per-pixel division.
 * **One cast.** All views go to one ``cast_rays`` call (Embree parallelises across them).
+* **Or no rays at all.** ``ray_caster="raster"`` (or ``"auto"`` where it is the cheaper, see
+  :func:`resolve_ray_caster`) answers :meth:`SceneRenderer.render` with :class:`.raster.RasterScene`:
+  the same ``t_hit`` / primitive id / barycentric uv per pixel (up to rounding on triangle edges and
+  ties between coincident faces, see there), in the calling thread. Single rays, ``cast``,
+  ``cast_shaded``, ``first_hit_distance`` and the navigation grid stay on Embree.
 * **Lookups, not maths.** Colour (flat, barycentric vertex colours or texture), labels and the
   zeroing of misses are table lookups per pixel, fused into one compiled pass
   (:mod:`.shading`; numpy fallback with identical output).
@@ -20,16 +26,42 @@ import logging
 import threading
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Literal
 
 import numpy as np
 import open3d as o3d
 
 from shared.geometry import PinholeCamera, camera_poses
 
+from .raster import RasterScene
 from .scene import Scene
 from .shading import AVAILABLE, ShadingTables, numba, shade
 
 log = logging.getLogger(__name__)
+
+RayCaster = Literal["auto", "embree", "raster"]
+
+# "auto" rasterises views of W x H pixels of scenes up to RASTER_TRIANGLES_PER_PIXEL * W * H triangles.
+# The rasteriser's cost grows with the triangles in view, Embree's with the rays, so the crossover
+# is a triangle count per pixel. Measured (CPU per 12-view panorama, raster / Embree, one run each,
+# 2 shared cores): Replica office0 subdivided to 200 k triangles 0.45 at 256 px, 0.94 at 128 px,
+# 2.0 at 64 px; to 800 k 0.88 / 1.9 / 3.9; a 3-floor 1,000 m2 house (60 k) 0.25 / 0.46 / 0.97;
+# Replica office0 (50 k) 0.28 at 256 px, 0.95 at 64 px. They meet near 15 triangles per pixel
+# (60 k at 64 px, 200-250 k at 128 px, ~1 M at 256 px); 12 keeps "auto" on the winning side.
+RASTER_TRIANGLES_PER_PIXEL = 12
+
+
+def resolve_ray_caster(name: RayCaster, triangle_count: int, pixels_per_view: int) -> Literal["embree", "raster"]:
+    """The backend that ``name`` selects for views of ``pixels_per_view`` pixels of a scene of
+    ``triangle_count`` triangles."""
+    if name == "auto":
+        fits = triangle_count <= RASTER_TRIANGLES_PER_PIXEL * pixels_per_view
+        return "raster" if AVAILABLE and fits else "embree"
+    if name not in ("embree", "raster"):
+        raise ValueError(f"unknown ray caster {name!r}; known: auto, embree, raster")
+    if name == "raster" and not AVAILABLE:
+        raise RuntimeError("the raster ray caster needs numba; install it or use ray_caster='embree'")
+    return name
 
 @dataclass
 class RenderOutput:
@@ -110,9 +142,14 @@ def write_rays(rays: np.ndarray, mats: np.ndarray, out: np.ndarray, use_kernel: 
 
 
 class SceneRenderer:
-    """Casts camera rays into one scene; thread-safe (one Embree scene, read-only after build)."""
+    """Casts camera rays into one scene; thread-safe (one Embree scene, read-only after build).
 
-    def __init__(self, scene: Scene, nthreads: int = 0, use_kernel: bool = True):
+    ``ray_caster`` picks what answers :meth:`render` (image batches): ``"embree"``, ``"raster"``
+    or ``"auto"`` (per call, by the image size: :func:`resolve_ray_caster`); :meth:`caster_for`
+    says which answers a given size. The rasteriser's tables are built on its first use.
+    """
+
+    def __init__(self, scene: Scene, nthreads: int = 0, use_kernel: bool = True, ray_caster: RayCaster = "auto"):
         self.scene = scene
         self.nthreads = nthreads
         self._rc = o3d.t.geometry.RaycastingScene()
@@ -120,6 +157,9 @@ class SceneRenderer:
         mesh.vertex.positions = o3d.core.Tensor(scene.vertices.astype(np.float32))
         mesh.triangle.indices = o3d.core.Tensor(scene.triangles.astype(np.int32))
         self._rc.add_triangles(mesh)
+        resolve_ray_caster(ray_caster, len(scene.triangles), 1)  # a bad name fails here, not at the first view
+        self.ray_caster = ray_caster
+        self._raster: RasterScene | None = None
         self._tables = ShadingTables.build(scene.vertex_colors, scene.triangles, scene.triangle_labels, scene.texture)
         self.use_kernel = use_kernel
         self._tri_mean: np.ndarray | None = None
@@ -133,6 +173,10 @@ class SceneRenderer:
     @property
     def triangle_count(self) -> int:
         return self._tables.miss_row
+
+    def caster_for(self, width_px: int, height_px: int) -> Literal["embree", "raster"]:
+        """What :meth:`render` uses for views of this size."""
+        return resolve_ray_caster(self.ray_caster, self.triangle_count, width_px * height_px)
 
     def triangle_colors(self) -> np.ndarray:
         """(T, 3) float32 mean vertex colour of each triangle, in [0, 1]."""
@@ -177,16 +221,23 @@ class SceneRenderer:
         single = poses.ndim == 2
         poses = poses[None] if single else poses
         b, h, w = len(poses), k.height_px, k.width_px
-        mats = ray_matrices(poses)
-        with self._lock:
-            # A reused ray buffer: a fresh 20 MB allocation per panorama costs as much as the maths.
-            if self._buf is None or self._buf.shape != (b, h * w, 6):
-                self._buf = np.empty((b, h * w, 6), np.float32)
-            write_rays(_homogeneous_rays(k), mats, self._buf, self.use_kernel)
-            hit = self._rc.cast_rays(o3d.core.Tensor.from_numpy(self._buf), nthreads=self.nthreads)
-        depth = hit["t_hit"].numpy().reshape(b, h, w)
-        prim = hit["primitive_ids"].numpy().reshape(b, h, w)
-        uv = hit["primitive_uvs"].numpy().reshape(b, h, w, 2)
+        if self.caster_for(w, h) == "raster":
+            with self._lock:  # the rasteriser's scratch buffers
+                if self._raster is None:
+                    self._raster = RasterScene(self.scene.vertices, self.scene.triangles)
+                hit = self._raster.cast_views(poses, k.fx, k.fy, k.cx, k.cy, w, h)
+        else:
+            mats = ray_matrices(poses)
+            with self._lock:
+                # A reused ray buffer: a fresh 20 MB allocation per panorama costs as much as the maths.
+                if self._buf is None or self._buf.shape != (b, h * w, 6):
+                    self._buf = np.empty((b, h * w, 6), np.float32)
+                write_rays(_homogeneous_rays(k), mats, self._buf, self.use_kernel)
+                out = self._rc.cast_rays(o3d.core.Tensor.from_numpy(self._buf), nthreads=self.nthreads)
+            hit = {key: out[key].numpy() for key in ("t_hit", "primitive_ids", "primitive_uvs")}
+        depth = hit["t_hit"].reshape(b, h, w)
+        prim = hit["primitive_ids"].reshape(b, h, w)
+        uv = hit["primitive_uvs"].reshape(b, h, w, 2)
         rgb, sem = shade(self._tables, prim, uv, depth, with_semantic, use_kernel=self.use_kernel)
         if single:
             return RenderOutput(rgb[0], depth[0], None if sem is None else sem[0])
