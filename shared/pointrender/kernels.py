@@ -120,6 +120,11 @@ def _front_pass(
             zc = z_of[k]
             uv = np.int64(uv_of[k])
             k += 1
+            if t == npad:
+                # Off the image or behind its pixel's front layer (~80 % of the drawn points on an
+                # agent-built map: the far faces of walls, the rooms behind them): the spare bin
+                # is never read, so these points need no sums.
+                continue
             c = np.int64(rgb_packed[p])
             s_z[t] += np.float64(zc)
             if with_spacing:
