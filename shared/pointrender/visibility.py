@@ -372,24 +372,26 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     hq, wq = -(-hp // cell) * cell, -(-wp // cell) * cell
     f32 = np.float32
     with_labels = front.label is not None
-    zmin = np.empty((hq, wq), f32)
-    has = np.empty((hq, wq), bool)
-    zmean = np.empty((hq, wq), f32)
-    rgb = np.empty((3, hq, wq), f32)
-    label = np.empty((hq, wq) if with_labels else (1, 1), np.int64)
-    cls = np.empty((hq, wq), np.int32)
+    # Surfels and covers on the padded grid only: the pyramid's extra pixels hold no surfel, so
+    # no footprint reaches past the padded grid (the erosion's border is the same +inf).
+    zmin = np.empty((hp, wp), f32)
+    has = np.empty((hp, wp), bool)
+    zmean = np.empty((hp, wp), f32)
+    rgb = np.empty((3, hp, wp), f32)
+    label = np.empty((hp, wp) if with_labels else (1, 1), np.int64)
+    cls = np.empty((hp, wp), np.int32)
     hist = np.zeros(p.max_radius_px + 1, np.int64)
     lab_in = front.label if with_labels else np.full((1, 1), -1, np.int64)
     with_slope = front.sum_slope is not None
-    slope_tol = np.empty((hq, wq), f32)
+    slope_tol = np.empty((hp, wp) if with_slope else (1, 1), f32)
     vk.surfels(front.zmin, front.count, front.sum_z, front.sum_rgb[0], front.sum_rgb[1], front.sum_rgb[2],
-               front.sum_spacing, lab_in, with_labels, hq, wq, f32(p.footprint_scale * p.focal_px),
+               front.sum_spacing, lab_in, with_labels, f32(p.footprint_scale * p.focal_px),
                f32(p.min_radius_px), f32(p.max_radius_px), radius_lut(p), zmin, has, zmean, rgb, label, cls, hist,
                front.sum_slope if with_slope else front.zmin, with_slope, f32(p.slope_px), slope_tol)
     present = [int(k) for k in np.flatnonzero(hist)]
     order, first = vk.bucket(cls, hist)
     # The four quadrant covers, mirrored into one image so that one min filter serves them all.
-    cov4 = np.full((hq, wq, 4), np.inf, f32)
+    cov4 = np.full((hp, wp, 4), np.inf, f32)
     border = (float("inf"),) * 4
     for i, k in enumerate(reversed(present)):
         vk.add_sources(cov4, order, first[k], first[k + 1], zmin)
@@ -418,7 +420,7 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     out_rgb = np.empty((3, h, w), f32)
     out_lab = np.empty((h, w) if with_labels else (1, 1), np.int64)
     hole = np.empty((h, w), bool)
-    vk.finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
+    vk.finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
               slope_tol, with_slope,
               levels, offs, dims, pyr, pyr_lab, p.fill_levels, p.gap_levels, fill_hi, fill_lo, gap_rel, gap_scale,
               f32(p.gap_max_m), out_z, out_rgb, out_lab, hole)
