@@ -62,7 +62,7 @@ import numpy as np
 from pydantic import Field
 
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
-from shared.pointrender import kernels, visibility
+from shared.pointrender import kernels, visibility, visibility_kernels
 from shared.pointrender.cloud import Frustum, IndexedCloud
 from shared.pointrender.errors import BackendUnavailableError
 from shared.pointrender.lod import VoxelLod, build_voxel_lod
@@ -940,8 +940,11 @@ class SplatRenderer:
             slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
             filter_rel=cfg.colour_filter_rel, slope_px=cfg.visibility_slope_px,
         )
-        compose = visibility.compose_compiled if self._use_kernel else partial(visibility.compose, ops)
-        rgb, depth, hole, labels = compose(layer, params, h, w)
+        if self._use_kernel:
+            rgb, depth, hole, labels = visibility.compose_compiled(layer, params, h, w)
+            return (visibility_kernels.rgb8(rgb), depth, hole,
+                    None if labels is None else labels.astype(np.int32))
+        rgb, depth, hole, labels = visibility.compose(ops, layer, params, h, w)
         if labels is not None:
             labels = ops.to_numpy(labels).astype(np.int32)
         return _images(ops, rgb, depth, hole, labels)
