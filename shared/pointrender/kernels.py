@@ -37,6 +37,41 @@ from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
 MAX_FRONT_POINTS = (1 << 21) // 255 - 1
 
 
+def _project_run_py(xs, ys, zs, proj, near, far, w, h, qo, zo, uo, with_uv):
+    """Project one run of points: padded target pixel ``qo`` (the spare bin ``(h + 2) * (w + 2)``
+    for points that miss the image or the depth range), camera depth ``zo`` and, with ``with_uv``,
+    the quantised sub-pixel offset ``uo`` (qu + 256 qv). Branch-free over the run so that it
+    vectorises; out-of-range depths divide by one instead, so u, v stay finite and convert
+    safely. Every pass that needs a point's pixel calls this, so all agree to the bit."""
+    wp = w + 2
+    a0, a1, a2, a3 = proj[0], proj[1], proj[2], proj[3]
+    b0, b1, b2, b3 = proj[4], proj[5], proj[6], proj[7]
+    c0, c1, c2, c3 = proj[8], proj[9], proj[10], proj[11]
+    one = np.float32(1.0)
+    half = np.float32(0.5)
+    for i in range(xs.shape[0]):
+        px, py, pz = xs[i], ys[i], zs[i]
+        zc = px * c0 + py * c1 + pz * c2 + c3
+        in_range = (zc > near) & (zc < far)
+        inv = one / (zc if in_range else one)
+        u = (px * a0 + py * a1 + pz * a2 + a3) * inv
+        v = (px * b0 + py * b1 + pz * b2 + b3) * inv
+        fu = np.floor(u + half)
+        fv = np.floor(v + half)
+        valid = in_range & (fu >= -1) & (fu <= w) & (fv >= -1) & (fv <= h)
+        iu = np.int32(fu if valid else np.float32(-1.0))
+        iv = np.int32(fv if valid else np.float32(h + 1))  # (h + 2) * wp + 0 = npad
+        qo[i] = (iv + 1) * wp + (iu + 1)
+        zo[i] = zc
+        if with_uv:
+            du = min(max(np.float64(u) - np.float64(fu) + 0.5, 0.0), 1.0) * 255.0
+            dv = min(max(np.float64(v) - np.float64(fv) + 0.5, 0.0), 1.0) * 255.0
+            uo[i] = np.int32(np.rint(du)) + 256 * np.int32(np.rint(dv))
+
+
+_project_run = numba.njit(nogil=True, cache=True, error_model="numpy")(_project_run_py) if AVAILABLE else _project_run_py
+
+
 def _front_pass(
     x, y, z, rgb_packed, spacing, run_starts, run_counts, run_scale, proj, near, far, w, h, tol_rel1, tol_abs,
     with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope,
@@ -58,37 +93,14 @@ def _front_pass(
     q_of = np.empty(n, np.int32)
     z_of = np.empty(n, np.float32)
     uv_of = np.empty(n, np.int32)  # qu + 256 qv
-    a0, a1, a2, a3 = proj[0], proj[1], proj[2], proj[3]
-    b0, b1, b2, b3 = proj[4], proj[5], proj[6], proj[7]
-    c0, c1, c2, c3 = proj[8], proj[9], proj[10], proj[11]
     one = np.float32(1.0)
-    half = np.float32(0.5)
-    # Pass 1a, projection: branch-free over contiguous slices so that it vectorises. Points that
-    # miss the image (or the depth range) all go to the spare bin ``npad``, never read back;
-    # out-of-range depths divide by one instead, so u, v stay finite and convert safely.
+    # Pass 1a, projection (:func:`_project_run`).
     k0 = 0
     for r in range(run_counts.shape[0]):
         s = run_starts[r]
         m = run_counts[r]
-        xs, ys, zs = x[s : s + m], y[s : s + m], z[s : s + m]
-        qo, zo, uo = q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m]
-        for i in range(m):
-            px, py, pz = xs[i], ys[i], zs[i]
-            zc = px * c0 + py * c1 + pz * c2 + c3
-            in_range = (zc > near) & (zc < far)
-            inv = one / (zc if in_range else one)
-            u = (px * a0 + py * a1 + pz * a2 + a3) * inv
-            v = (px * b0 + py * b1 + pz * b2 + b3) * inv
-            fu = np.floor(u + half)
-            fv = np.floor(v + half)
-            valid = in_range & (fu >= -1) & (fu <= w) & (fv >= -1) & (fv <= h)
-            iu = np.int32(fu if valid else np.float32(-1.0))
-            iv = np.int32(fv if valid else np.float32(h + 1))  # (h + 2) * wp + 0 = npad
-            qo[i] = (iv + 1) * wp + (iu + 1)
-            du = min(max(np.float64(u) - np.float64(fu) + 0.5, 0.0), 1.0) * 255.0
-            dv = min(max(np.float64(v) - np.float64(fv) + 0.5, 0.0), 1.0) * 255.0
-            uo[i] = np.int32(np.rint(du)) + 256 * np.int32(np.rint(dv))
-            zo[i] = zc
+        _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h,
+                     q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m], True)
         k0 += m
     # Pass 1b, per-pixel minimum depth.
     zbuf = np.full(npad + 1, np.inf, np.float32)
