@@ -238,12 +238,55 @@ def _labels_of(best, labels):
     return out
 
 
+def _visible_blocks(block_min, block_max, centre, radius, rot, t, normals, offsets, out):
+    """``IndexedCloud.visible_blocks`` block by block: the bounding-sphere test settles most
+    blocks, the eight corners of the box the rest (a block is out when all its corners lie
+    outside one plane). ``rot``, ``t``: world_from_camera rotation and translation."""
+    n_planes = normals.shape[0]
+    norms = np.empty(n_planes)
+    for k in range(n_planes):
+        norms[k] = np.sqrt(normals[k, 0] ** 2 + normals[k, 1] ** 2 + normals[k, 2] ** 2)
+    cam = np.empty(3)
+    for b in range(block_min.shape[0]):
+        # Camera-frame centre: (c - t) @ rot.
+        for a in range(3):
+            cam[a] = ((centre[b, 0] - t[0]) * rot[0, a] + (centre[b, 1] - t[1]) * rot[1, a]
+                      + (centre[b, 2] - t[2]) * rot[2, a])
+        out[b] = True
+        sphere_in = True
+        for k in range(n_planes):
+            d = cam[0] * normals[k, 0] + cam[1] * normals[k, 1] + cam[2] * normals[k, 2] + offsets[k]
+            if d > radius[b] * norms[k]:
+                sphere_in = False
+                break
+        if not sphere_in:
+            out[b] = False
+            continue
+        for k in range(n_planes):
+            all_out = True
+            for c in range(8):
+                x = block_max[b, 0] if c & 4 else block_min[b, 0]
+                y = block_max[b, 1] if c & 2 else block_min[b, 1]
+                z = block_max[b, 2] if c & 1 else block_min[b, 2]
+                d = offsets[k]
+                for a in range(3):
+                    ca = (x - t[0]) * rot[0, a] + (y - t[1]) * rot[1, a] + (z - t[2]) * rot[2, a]
+                    d += ca * normals[k, a]
+                if not d > 0:
+                    all_out = False
+                    break
+            if all_out:
+                out[b] = False
+                break
+
+
 if AVAILABLE:
+    visible_blocks = numba.njit(nogil=True, cache=True)(_visible_blocks)
     labels_of = numba.njit(nogil=True, cache=True)(_labels_of)
     front_pass = numba.njit(nogil=True, cache=True, error_model="numpy")(_front_pass)
     compose = numba.njit(nogil=True, cache=True, error_model="numpy")(_compose)
 else:  # pragma: no cover
-    front_pass = compose = labels_of = None
+    front_pass = compose = labels_of = visible_blocks = None
 
 
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
