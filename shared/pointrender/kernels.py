@@ -74,7 +74,7 @@ _project_run = numba.njit(nogil=True, cache=True, error_model="numpy")(_project_
 
 def _front_pass(
     x, y, z, rgb_packed, spacing, run_starts, run_counts, run_scale, proj, near, far, w, h, tol_rel1, tol_abs,
-    with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope,
+    with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope, with_uv,
 ):
     """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
 
@@ -84,7 +84,8 @@ def _front_pass(
     the id of the nearest point (int64 (P,), largest id among ties, -1 where none), and whether
     some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid).
     With ``with_slope``, row 8 sums each front point's depth slope (``splat._point_slope`` of its
-    normal ``nx, ny, nz`` and the view's ``slope_consts``)."""
+    normal ``nx, ny, nz`` and the view's ``slope_consts``). Without ``with_uv`` the offset rows
+    are zero: only the paper's 3x3 splat reads them, and the projection is cheaper without."""
     wp = w + 2
     npad = (h + 2) * wp
     n = 0
@@ -92,7 +93,7 @@ def _front_pass(
         n += run_counts[r]
     q_of = np.empty(n, np.int32)
     z_of = np.empty(n, np.float32)
-    uv_of = np.empty(n, np.int32)  # qu + 256 qv
+    uv_of = np.empty(n if with_uv else 1, np.int32)  # qu + 256 qv
     one = np.float32(1.0)
     # Pass 1a, projection (:func:`_project_run`).
     k0 = 0
@@ -100,7 +101,7 @@ def _front_pass(
         s = run_starts[r]
         m = run_counts[r]
         _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h,
-                     q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m], True)
+                     q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m] if with_uv else uv_of, with_uv)
         k0 += m
     # Pass 1b, per-pixel minimum depth.
     zbuf = np.full(npad + 1, np.inf, np.float32)
@@ -130,7 +131,7 @@ def _front_pass(
         for p in range(s, s + run_counts[r]):
             t = q_of[k]
             zc = z_of[k]
-            uv = np.int64(uv_of[k])
+            uv = np.int64(uv_of[k]) if with_uv else np.int64(0)
             k += 1
             if t == npad:
                 # Off the image or behind its pixel's front layer (~80 % of the drawn points on an
@@ -150,7 +151,8 @@ def _front_pass(
                 s_g[t] += np.float64(zc * (zs / den) * inv_f)
             acc[t, 0] += 1
             acc[t, 1] += (c & 0xFF) | (((c >> 8) & 0xFF) << 21) | ((c >> 16) << 42)
-            acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
+            if with_uv:
+                acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
             if with_labels:
                 acc[t, 3] = max(acc[t, 3], p if zc == zbuf[t] else -1)
     overflow = False
@@ -310,7 +312,7 @@ def warm_up() -> float:
             xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(1, np.int32), np.ones(1, np.float32), np.zeros(1, np.int64),
             np.ones(1, np.int64), np.ones(1, np.float32), np.zeros(12, np.float32), np.float32(0.05),
             np.float32(20.0), 4, 4, np.float32(1.05), np.float32(0.1), True, with_spacing,
-            xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(8, np.float32), with_spacing,
+            xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(8, np.float32), with_spacing, not with_spacing,
         )
     f32 = np.ones((3, 6, 6), np.float32)
     compose(

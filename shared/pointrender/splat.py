@@ -820,7 +820,7 @@ class SplatRenderer:
         zbuf, sums, best, overflow = kernels.front_pass(
             arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, runs.starts, runs.counts, runs.scale, proj.ravel(),
             np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, *self._front_tolerance(), labelled, with_spacing,
-            nx, ny, nz, consts, slope is not None,
+            nx, ny, nz, consts, slope is not None, cfg.mode == "paper",
         )
         if overflow:
             log.debug("a pixel's front layer exceeds %d points: array code for this view", kernels.MAX_FRONT_POINTS)
