@@ -210,11 +210,18 @@ def point_spacing_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
     return index.cache[key]
 
 
-def point_normals_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
-    """Per-point unoriented unit normal (float32 (N, 3), in the index's point order), cached on the index."""
+def point_normals_of(index: IndexedCloud, neighbours: int, spacing_neighbours: int | None = None) -> np.ndarray:
+    """Per-point unoriented unit normal (float32 (N, 3), in the index's point order), cached on the
+    index; with ``spacing_neighbours`` the spacing of :func:`point_spacing_of` comes from the same
+    neighbour query when it is not cached yet."""
     key = ("point-normals", neighbours)
     if key not in index.cache:
-        index.cache[key] = visibility.point_normals(index.cloud.xyz, neighbours)
+        sp_key = ("point-spacing", spacing_neighbours)
+        if spacing_neighbours is not None and sp_key not in index.cache:
+            index.cache[sp_key], index.cache[key] = visibility.point_spacing_and_normals(
+                index.cloud.xyz, spacing_neighbours, neighbours)
+        else:
+            index.cache[key] = visibility.point_normals(index.cloud.xyz, neighbours)
     return index.cache[key]
 
 
@@ -620,9 +627,9 @@ class SplatRenderer:
         nn = cfg.normal_neighbours if self._with_slope else None
         key = ("voxel-lod", cfg.lod_cell_m, cfg.lod_levels, cfg.spacing_neighbours, nn)
         if key not in index.cache:
+            normals = None if nn is None else point_normals_of(index, nn, cfg.spacing_neighbours)
             index.cache[key] = build_voxel_lod(
-                index, point_spacing_of(index, cfg.spacing_neighbours), cfg.lod_cell_m, cfg.lod_levels,
-                None if nn is None else point_normals_of(index, nn))
+                index, point_spacing_of(index, cfg.spacing_neighbours), cfg.lod_cell_m, cfg.lod_levels, normals)
         return index.cache[key]
 
     def _drawn(self, index: IndexedCloud):
@@ -634,8 +641,8 @@ class SplatRenderer:
         with_spacing = cfg.mode == "visibility" or lod is not None
         if lod is None:
             arrays = self._ops.cloud_arrays(index)
+            normals = point_normals_of(index, cfg.normal_neighbours, cfg.spacing_neighbours) if self._with_slope else None
             spacing = point_spacing_of(index, cfg.spacing_neighbours) if with_spacing else None
-            normals = point_normals_of(index, cfg.normal_neighbours) if self._with_slope else None
             tag = ("points", cfg.normal_neighbours)
         else:
             arrays = self._ops.cloud_arrays(index, lod.cloud, ("voxel-lod", lod.cell_m))

@@ -334,7 +334,7 @@ def point_spacing(xyz: np.ndarray, neighbours: int = 4, lo_m: float = 0.002, hi_
     return np.clip(dist[:, 1:].mean(axis=1), lo_m, hi_m).astype(np.float32)
 
 
-def point_normals(xyz: np.ndarray, neighbours: int = 10, chunk: int = 1 << 17) -> np.ndarray:
+def point_normals(xyz: np.ndarray, neighbours: int = 10) -> np.ndarray:
     """Unit surface normal per point (float32 (N, 3), sign arbitrary): the direction of least
     variance of the point and its ``neighbours`` nearest points (principal component analysis,
     Hoppe et al. 1992, "Surface reconstruction from unorganized points").
@@ -343,20 +343,30 @@ def point_normals(xyz: np.ndarray, neighbours: int = 10, chunk: int = 1 << 17) -
     slope), which does not depend on the normal's sign, and a map carries no record of the side
     it was seen from. The neighbourhood (~4 cm at the maps' 2.6 cm spacing) stays on one face of
     a 10 cm wall."""
+    return point_spacing_and_normals(xyz, 1, neighbours)[1]
+
+
+def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, normal_neighbours: int = 10,
+                              chunk: int = 1 << 17) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_spacing` and :func:`point_normals` from one nearest-neighbour query (a map's
+    load pays for one tree and one query, not two); the spacing is the one ``point_spacing``
+    returns, to the bit (the nearest distances of a longer query are the same values)."""
     from scipy.spatial import cKDTree
 
     xyz = np.asarray(xyz, np.float64)
-    k = min(neighbours + 1, len(xyz))
-    _, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
-    nbr = nbr.reshape(len(xyz), k)
-    out = np.empty((len(xyz), 3), np.float32)
+    k = min(max(normal_neighbours, spacing_neighbours) + 1, len(xyz))
+    dist, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
+    dist, nbr = dist.reshape(len(xyz), k), nbr.reshape(len(xyz), k)
+    spacing = np.clip(dist[:, 1 : spacing_neighbours + 1].mean(axis=1), 0.002, 0.1).astype(np.float32)
+    kn = min(normal_neighbours + 1, k)
+    normals = np.empty((len(xyz), 3), np.float32)
     for lo in range(0, len(xyz), chunk):
-        p = xyz[nbr[lo : lo + chunk]]  # (c, k, 3)
+        p = xyz[nbr[lo : lo + chunk, :kn]]  # (c, k, 3)
         p = p - p.mean(axis=1, keepdims=True)
         cov = np.einsum("nki,nkj->nij", p, p)
         _, vec = np.linalg.eigh(cov)  # ascending eigenvalues: column 0 is the least variance
-        out[lo : lo + chunk] = vec[:, :, 0]
-    return out
+        normals[lo : lo + chunk] = vec[:, :, 0]
+    return spacing, normals
 
 
 def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
