@@ -102,12 +102,26 @@ class IndexedCloud:
     def block_count(self) -> int:
         return len(self.starts)
 
-    def visible_blocks(self, world_from_camera: np.ndarray, frustum: Frustum) -> np.ndarray:
+    def visible_blocks(self, world_from_camera: np.ndarray, frustum: Frustum, compiled: bool = True) -> np.ndarray:
         """Boolean mask of blocks that may hold a point inside ``frustum`` (conservative).
 
         A block whose bounding sphere lies outside a plane has its box outside too, so the sphere
         test (one point per block) settles most blocks of a large map and only the rest take the
-        exact eight-corner test: the result is the box test's, at a fraction of its cost."""
+        exact eight-corner test: the result is the box test's, at a fraction of its cost. With
+        ``compiled`` (and numba) the same tests run block by block (0.5 -> ~0.05 ms for the
+        2,700 blocks of a 1,000 m2 three-storey building); they may round differently from the
+        array code only for a box that touches a plane to the last bit, which the frustum's
+        two-pixel margin keeps off the image."""
+        from shared.pointrender import kernels
+
+        if compiled and kernels.AVAILABLE:
+            mask = np.empty(len(self.starts), bool)
+            kernels.visible_blocks(self.block_min, self.block_max, self.block_centre, self.block_radius,
+                                   np.ascontiguousarray(world_from_camera[:3, :3], np.float64),
+                                   np.ascontiguousarray(world_from_camera[:3, 3], np.float64),
+                                   np.ascontiguousarray(frustum.normals, np.float64),
+                                   np.ascontiguousarray(frustum.offsets, np.float64), mask)
+            return mask
         r = world_from_camera[:3, :3]
         t = world_from_camera[:3, 3]
         centre = (self.block_centre - t) @ r  # (B, 3) in the camera frame

@@ -37,9 +37,44 @@ from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
 MAX_FRONT_POINTS = (1 << 21) // 255 - 1
 
 
+def _project_run_py(xs, ys, zs, proj, near, far, w, h, qo, zo, uo, with_uv):
+    """Project one run of points: padded target pixel ``qo`` (the spare bin ``(h + 2) * (w + 2)``
+    for points that miss the image or the depth range), camera depth ``zo`` and, with ``with_uv``,
+    the quantised sub-pixel offset ``uo`` (qu + 256 qv). Branch-free over the run so that it
+    vectorises; out-of-range depths divide by one instead, so u, v stay finite and convert
+    safely. Every pass that needs a point's pixel calls this, so all agree to the bit."""
+    wp = w + 2
+    a0, a1, a2, a3 = proj[0], proj[1], proj[2], proj[3]
+    b0, b1, b2, b3 = proj[4], proj[5], proj[6], proj[7]
+    c0, c1, c2, c3 = proj[8], proj[9], proj[10], proj[11]
+    one = np.float32(1.0)
+    half = np.float32(0.5)
+    for i in range(xs.shape[0]):
+        px, py, pz = xs[i], ys[i], zs[i]
+        zc = px * c0 + py * c1 + pz * c2 + c3
+        in_range = (zc > near) & (zc < far)
+        inv = one / (zc if in_range else one)
+        u = (px * a0 + py * a1 + pz * a2 + a3) * inv
+        v = (px * b0 + py * b1 + pz * b2 + b3) * inv
+        fu = np.floor(u + half)
+        fv = np.floor(v + half)
+        valid = in_range & (fu >= -1) & (fu <= w) & (fv >= -1) & (fv <= h)
+        iu = np.int32(fu if valid else np.float32(-1.0))
+        iv = np.int32(fv if valid else np.float32(h + 1))  # (h + 2) * wp + 0 = npad
+        qo[i] = (iv + 1) * wp + (iu + 1)
+        zo[i] = zc
+        if with_uv:
+            du = min(max(np.float64(u) - np.float64(fu) + 0.5, 0.0), 1.0) * 255.0
+            dv = min(max(np.float64(v) - np.float64(fv) + 0.5, 0.0), 1.0) * 255.0
+            uo[i] = np.int32(np.rint(du)) + 256 * np.int32(np.rint(dv))
+
+
+_project_run = numba.njit(nogil=True, cache=True, error_model="numpy")(_project_run_py) if AVAILABLE else _project_run_py
+
+
 def _front_pass(
     x, y, z, rgb_packed, spacing, run_starts, run_counts, run_scale, proj, near, far, w, h, tol_rel1, tol_abs,
-    with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope,
+    with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope, with_uv,
 ):
     """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
 
@@ -49,7 +84,8 @@ def _front_pass(
     the id of the nearest point (int64 (P,), largest id among ties, -1 where none), and whether
     some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid).
     With ``with_slope``, row 8 sums each front point's depth slope (``splat._point_slope`` of its
-    normal ``nx, ny, nz`` and the view's ``slope_consts``)."""
+    normal ``nx, ny, nz`` and the view's ``slope_consts``). Without ``with_uv`` the offset rows
+    are zero: only the paper's 3x3 splat reads them, and the projection is cheaper without."""
     wp = w + 2
     npad = (h + 2) * wp
     n = 0
@@ -57,38 +93,15 @@ def _front_pass(
         n += run_counts[r]
     q_of = np.empty(n, np.int32)
     z_of = np.empty(n, np.float32)
-    uv_of = np.empty(n, np.int32)  # qu + 256 qv
-    a0, a1, a2, a3 = proj[0], proj[1], proj[2], proj[3]
-    b0, b1, b2, b3 = proj[4], proj[5], proj[6], proj[7]
-    c0, c1, c2, c3 = proj[8], proj[9], proj[10], proj[11]
+    uv_of = np.empty(n if with_uv else 1, np.int32)  # qu + 256 qv
     one = np.float32(1.0)
-    half = np.float32(0.5)
-    # Pass 1a, projection: branch-free over contiguous slices so that it vectorises. Points that
-    # miss the image (or the depth range) all go to the spare bin ``npad``, never read back;
-    # out-of-range depths divide by one instead, so u, v stay finite and convert safely.
+    # Pass 1a, projection (:func:`_project_run`).
     k0 = 0
     for r in range(run_counts.shape[0]):
         s = run_starts[r]
         m = run_counts[r]
-        xs, ys, zs = x[s : s + m], y[s : s + m], z[s : s + m]
-        qo, zo, uo = q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m]
-        for i in range(m):
-            px, py, pz = xs[i], ys[i], zs[i]
-            zc = px * c0 + py * c1 + pz * c2 + c3
-            in_range = (zc > near) & (zc < far)
-            inv = one / (zc if in_range else one)
-            u = (px * a0 + py * a1 + pz * a2 + a3) * inv
-            v = (px * b0 + py * b1 + pz * b2 + b3) * inv
-            fu = np.floor(u + half)
-            fv = np.floor(v + half)
-            valid = in_range & (fu >= -1) & (fu <= w) & (fv >= -1) & (fv <= h)
-            iu = np.int32(fu if valid else np.float32(-1.0))
-            iv = np.int32(fv if valid else np.float32(h + 1))  # (h + 2) * wp + 0 = npad
-            qo[i] = (iv + 1) * wp + (iu + 1)
-            du = min(max(np.float64(u) - np.float64(fu) + 0.5, 0.0), 1.0) * 255.0
-            dv = min(max(np.float64(v) - np.float64(fv) + 0.5, 0.0), 1.0) * 255.0
-            uo[i] = np.int32(np.rint(du)) + 256 * np.int32(np.rint(dv))
-            zo[i] = zc
+        _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h,
+                     q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m] if with_uv else uv_of, with_uv)
         k0 += m
     # Pass 1b, per-pixel minimum depth.
     zbuf = np.full(npad + 1, np.inf, np.float32)
@@ -118,8 +131,13 @@ def _front_pass(
         for p in range(s, s + run_counts[r]):
             t = q_of[k]
             zc = z_of[k]
-            uv = np.int64(uv_of[k])
+            uv = np.int64(uv_of[k]) if with_uv else np.int64(0)
             k += 1
+            if t == npad:
+                # Off the image or behind its pixel's front layer (~80 % of the drawn points on an
+                # agent-built map: the far faces of walls, the rooms behind them): the spare bin
+                # is never read, so these points need no sums.
+                continue
             c = np.int64(rgb_packed[p])
             s_z[t] += np.float64(zc)
             if with_spacing:
@@ -133,7 +151,8 @@ def _front_pass(
                 s_g[t] += np.float64(zc * (zs / den) * inv_f)
             acc[t, 0] += 1
             acc[t, 1] += (c & 0xFF) | (((c >> 8) & 0xFF) << 21) | ((c >> 16) << 42)
-            acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
+            if with_uv:
+                acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
             if with_labels:
                 acc[t, 3] = max(acc[t, 3], p if zc == zbuf[t] else -1)
     overflow = False
@@ -221,12 +240,55 @@ def _labels_of(best, labels):
     return out
 
 
+def _visible_blocks(block_min, block_max, centre, radius, rot, t, normals, offsets, out):
+    """``IndexedCloud.visible_blocks`` block by block: the bounding-sphere test settles most
+    blocks, the eight corners of the box the rest (a block is out when all its corners lie
+    outside one plane). ``rot``, ``t``: world_from_camera rotation and translation."""
+    n_planes = normals.shape[0]
+    norms = np.empty(n_planes)
+    for k in range(n_planes):
+        norms[k] = np.sqrt(normals[k, 0] ** 2 + normals[k, 1] ** 2 + normals[k, 2] ** 2)
+    cam = np.empty(3)
+    for b in range(block_min.shape[0]):
+        # Camera-frame centre: (c - t) @ rot.
+        for a in range(3):
+            cam[a] = ((centre[b, 0] - t[0]) * rot[0, a] + (centre[b, 1] - t[1]) * rot[1, a]
+                      + (centre[b, 2] - t[2]) * rot[2, a])
+        out[b] = True
+        sphere_in = True
+        for k in range(n_planes):
+            d = cam[0] * normals[k, 0] + cam[1] * normals[k, 1] + cam[2] * normals[k, 2] + offsets[k]
+            if d > radius[b] * norms[k]:
+                sphere_in = False
+                break
+        if not sphere_in:
+            out[b] = False
+            continue
+        for k in range(n_planes):
+            all_out = True
+            for c in range(8):
+                x = block_max[b, 0] if c & 4 else block_min[b, 0]
+                y = block_max[b, 1] if c & 2 else block_min[b, 1]
+                z = block_max[b, 2] if c & 1 else block_min[b, 2]
+                d = offsets[k]
+                for a in range(3):
+                    ca = (x - t[0]) * rot[0, a] + (y - t[1]) * rot[1, a] + (z - t[2]) * rot[2, a]
+                    d += ca * normals[k, a]
+                if not d > 0:
+                    all_out = False
+                    break
+            if all_out:
+                out[b] = False
+                break
+
+
 if AVAILABLE:
+    visible_blocks = numba.njit(nogil=True, cache=True)(_visible_blocks)
     labels_of = numba.njit(nogil=True, cache=True)(_labels_of)
     front_pass = numba.njit(nogil=True, cache=True, error_model="numpy")(_front_pass)
     compose = numba.njit(nogil=True, cache=True, error_model="numpy")(_compose)
 else:  # pragma: no cover
-    front_pass = compose = labels_of = None
+    front_pass = compose = labels_of = visible_blocks = None
 
 
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
@@ -250,7 +312,7 @@ def warm_up() -> float:
             xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(1, np.int32), np.ones(1, np.float32), np.zeros(1, np.int64),
             np.ones(1, np.int64), np.ones(1, np.float32), np.zeros(12, np.float32), np.float32(0.05),
             np.float32(20.0), 4, 4, np.float32(1.05), np.float32(0.1), True, with_spacing,
-            xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(8, np.float32), with_spacing,
+            xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(8, np.float32), with_spacing, not with_spacing,
         )
     f32 = np.ones((3, 6, 6), np.float32)
     compose(

@@ -62,7 +62,7 @@ import numpy as np
 from pydantic import Field
 
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
-from shared.pointrender import kernels, visibility
+from shared.pointrender import kernels, occlusion, visibility, visibility_kernels
 from shared.pointrender.cloud import Frustum, IndexedCloud
 from shared.pointrender.errors import BackendUnavailableError
 from shared.pointrender.lod import VoxelLod, build_voxel_lod
@@ -146,6 +146,16 @@ class SplatConfig(BackendConfig):
     lod_cell_m: float = Field(0.04, ge=0.005, le=1.0)  # level 1; each further level doubles it
     lod_levels: int = Field(5, ge=1, le=8)
     lod_points_per_px: float | None = Field(6.0, gt=0.0)  # "subsample"; None: no LOD (either kind)
+    # visibility mode, compiled path: blocks wholly behind the surfaces of the blocks nearer than
+    # occlusion_near_m are not drawn (:mod:`occlusion`; the images are identical), in views that
+    # draw at least occlusion_min_points after frustum culling and level of detail. Off: it culls
+    # ~45 % of the drawn points (0.55 M -> 0.29-0.34 M per view in a 1,000 m2 three-storey
+    # building, 0.15 -> 0.09 M on the generated:0 rgbd map), but a hidden point costs the front
+    # pass only ~7.5 ns and the occluder (the near blocks projected, their quadrant covers) ~3 ms:
+    # measured +8 % (building) and +19 % (rgbd map) CPU per view.
+    occlusion_cull: bool = False
+    occlusion_near_m: float = Field(3.0, gt=0.0)
+    occlusion_min_points: int = Field(60_000, ge=0)
     # numpy backend: the per-point passes of ``layered`` run as compiled loops (numba) when it is
     # installed ("auto"), always ("numba": an error without it) or never ("numpy": array code).
     # Both give identical images; the compiled loops are ~5x faster.
@@ -200,11 +210,18 @@ def point_spacing_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
     return index.cache[key]
 
 
-def point_normals_of(index: IndexedCloud, neighbours: int) -> np.ndarray:
-    """Per-point unoriented unit normal (float32 (N, 3), in the index's point order), cached on the index."""
+def point_normals_of(index: IndexedCloud, neighbours: int, spacing_neighbours: int | None = None) -> np.ndarray:
+    """Per-point unoriented unit normal (float32 (N, 3), in the index's point order), cached on the
+    index; with ``spacing_neighbours`` the spacing of :func:`point_spacing_of` comes from the same
+    neighbour query when it is not cached yet."""
     key = ("point-normals", neighbours)
     if key not in index.cache:
-        index.cache[key] = visibility.point_normals(index.cloud.xyz, neighbours)
+        sp_key = ("point-spacing", spacing_neighbours)
+        if spacing_neighbours is not None and sp_key not in index.cache:
+            index.cache[sp_key], index.cache[key] = visibility.point_spacing_and_normals(
+                index.cloud.xyz, spacing_neighbours, neighbours)
+        else:
+            index.cache[key] = visibility.point_normals(index.cloud.xyz, neighbours)
     return index.cache[key]
 
 
@@ -610,9 +627,9 @@ class SplatRenderer:
         nn = cfg.normal_neighbours if self._with_slope else None
         key = ("voxel-lod", cfg.lod_cell_m, cfg.lod_levels, cfg.spacing_neighbours, nn)
         if key not in index.cache:
+            normals = None if nn is None else point_normals_of(index, nn, cfg.spacing_neighbours)
             index.cache[key] = build_voxel_lod(
-                index, point_spacing_of(index, cfg.spacing_neighbours), cfg.lod_cell_m, cfg.lod_levels,
-                None if nn is None else point_normals_of(index, nn))
+                index, point_spacing_of(index, cfg.spacing_neighbours), cfg.lod_cell_m, cfg.lod_levels, normals)
         return index.cache[key]
 
     def _drawn(self, index: IndexedCloud):
@@ -624,8 +641,8 @@ class SplatRenderer:
         with_spacing = cfg.mode == "visibility" or lod is not None
         if lod is None:
             arrays = self._ops.cloud_arrays(index)
+            normals = point_normals_of(index, cfg.normal_neighbours, cfg.spacing_neighbours) if self._with_slope else None
             spacing = point_spacing_of(index, cfg.spacing_neighbours) if with_spacing else None
-            normals = point_normals_of(index, cfg.normal_neighbours) if self._with_slope else None
             tag = ("points", cfg.normal_neighbours)
         else:
             arrays = self._ops.cloud_arrays(index, lod.cloud, ("voxel-lod", lod.cell_m))
@@ -704,6 +721,8 @@ class SplatRenderer:
             t0 = time.perf_counter()
             wfc = np.asarray(world_from_cameras[i], float)
             runs = self._runs(index, lod, wfc, cam, frustum)
+            if self._cull_occlusion:
+                runs = self._occlusion(index, lod, arrays, spacing, runs, wfc, cam)
             (rgb, depth, hole, labels), n = self._render_one(arrays, spacing, normals, runs, wfc, cam, labelled)
             out.rgb[i], out.depth_m[i], out.hole_mask[i] = rgb, depth, hole
             if labelled:
@@ -720,6 +739,43 @@ class SplatRenderer:
         out.view_s = [dt for _, dt in done]
         out.batch_s = time.perf_counter() - t_batch
         return out
+
+    @property
+    def _cull_occlusion(self) -> bool:
+        """Occlusion culling runs where the visibility test it relies on runs compiled; the array
+        paths (numpy reference, torch) draw every block, with the same images."""
+        return self.config.occlusion_cull and self.config.mode == "visibility" and self._use_kernel
+
+    def _occlusion(self, index: IndexedCloud, lod: VoxelLod | None, arrays, spacing, runs: _Runs,
+                   wfc: np.ndarray, cam: PinholeCamera) -> _Runs:
+        """``runs`` without the runs wholly behind the near ones' surfaces (:mod:`occlusion`)."""
+        cfg = self.config
+        if int(runs.counts.sum()) < cfg.occlusion_min_points:
+            return runs
+        key = ("occlusion-runs", "voxel" if lod is not None else "points", cfg.lod_cell_m, cfg.lod_levels,
+               cfg.spacing_neighbours)
+        if key not in index.cache:
+            starts, counts = (lod.starts, lod.counts) if lod is not None else (index.starts, index.counts)
+            index.cache[key] = occlusion.run_table(starts, counts, spacing, index.block_count)
+        f = float(cam.fx)
+        slope = 0.0
+        if self._with_slope:
+            slope = cfg.visibility_slope_px * math.tan(math.radians(cfg.visibility_max_incidence_deg)) / f
+        rel1, tol = self._front_tolerance()
+        params = occlusion.OcclusionParams(
+            near_m=cfg.occlusion_near_m, min_points=cfg.occlusion_min_points, focal_px=f,
+            footprint_scale=cfg.footprint_scale, min_radius_px=min(cfg.min_radius_px, cfg.max_radius_px),
+            max_radius_px=cfg.max_radius_px, front_rel1=float(rel1), front_tol_m=float(tol),
+            vis_rel1=float(np.float32(1.0 + cfg.visibility_tolerance_rel)), vis_tol_m=cfg.visibility_tolerance_m,
+            slope_per_m=slope, near_clip_m=cfg.near_m, far_clip_m=cfg.far_m)
+        lut = visibility.radius_lut(self._visibility_params(cam))
+        proj = (cam.matrix() @ np.linalg.inv(wfc)[:3]).astype(np.float32)
+        keep = occlusion.cull(arrays.x, arrays.y, arrays.z, spacing, runs.starts, runs.counts, runs.scale,
+                              index.cache[key], index.block_min, index.block_max, proj, wfc, cam.matrix(),
+                              cam.height_px, cam.width_px, lut, params)
+        if keep.all():
+            return runs
+        return _Runs(runs.starts[keep], runs.counts[keep], runs.scale[keep])
 
     def _render_one(self, arrays, spacing, normals, runs: _Runs, wfc: np.ndarray, cam: PinholeCamera,
                     labelled: bool):
@@ -771,7 +827,7 @@ class SplatRenderer:
         zbuf, sums, best, overflow = kernels.front_pass(
             arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, runs.starts, runs.counts, runs.scale, proj.ravel(),
             np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, *self._front_tolerance(), labelled, with_spacing,
-            nx, ny, nz, consts, slope is not None,
+            nx, ny, nz, consts, slope is not None, cfg.mode == "paper",
         )
         if overflow:
             log.debug("a pixel's front layer exceeds %d points: array code for this view", kernels.MAX_FRONT_POINTS)
@@ -932,7 +988,19 @@ class SplatRenderer:
             sum_spacing=img(front.s_sp), label=self._labels_pad(arrays, front.best, h, w) if labelled else None,
             sum_slope=None if front.s_g is None else img(front.s_g),
         )
-        params = visibility.VisibilityParams(
+        params = self._visibility_params(cam)
+        if self._use_kernel:
+            rgb, depth, hole, labels = visibility.compose_compiled(layer, params, h, w)
+            return (visibility_kernels.rgb8(rgb), depth, hole,
+                    None if labels is None else labels.astype(np.int32))
+        rgb, depth, hole, labels = visibility.compose(ops, layer, params, h, w)
+        if labels is not None:
+            labels = ops.to_numpy(labels).astype(np.int32)
+        return _images(ops, rgb, depth, hole, labels)
+
+    def _visibility_params(self, cam: PinholeCamera) -> visibility.VisibilityParams:
+        cfg = self.config
+        return visibility.VisibilityParams(
             focal_px=float(cam.fx), footprint_scale=cfg.footprint_scale, max_radius_px=cfg.max_radius_px,
             min_radius_px=min(cfg.min_radius_px, cfg.max_radius_px),
             gap_levels=cfg.gap_levels, fill_levels=cfg.fill_levels, gap_max_m=cfg.gap_max_m,
@@ -940,11 +1008,6 @@ class SplatRenderer:
             slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
             filter_rel=cfg.colour_filter_rel, slope_px=cfg.visibility_slope_px,
         )
-        compose = visibility.compose_compiled if self._use_kernel else partial(visibility.compose, ops)
-        rgb, depth, hole, labels = compose(layer, params, h, w)
-        if labels is not None:
-            labels = ops.to_numpy(labels).astype(np.int32)
-        return _images(ops, rgb, depth, hole, labels)
 
     def _surfels(self, cnt, s_z, s_rgb, s_u, s_v, h, w):
         """Per source pixel: the five summed channels (count, depth, r, g, b) as (5, H+2, W+2) and

@@ -334,7 +334,7 @@ def point_spacing(xyz: np.ndarray, neighbours: int = 4, lo_m: float = 0.002, hi_
     return np.clip(dist[:, 1:].mean(axis=1), lo_m, hi_m).astype(np.float32)
 
 
-def point_normals(xyz: np.ndarray, neighbours: int = 10, chunk: int = 1 << 17) -> np.ndarray:
+def point_normals(xyz: np.ndarray, neighbours: int = 10) -> np.ndarray:
     """Unit surface normal per point (float32 (N, 3), sign arbitrary): the direction of least
     variance of the point and its ``neighbours`` nearest points (principal component analysis,
     Hoppe et al. 1992, "Surface reconstruction from unorganized points").
@@ -343,20 +343,30 @@ def point_normals(xyz: np.ndarray, neighbours: int = 10, chunk: int = 1 << 17) -
     slope), which does not depend on the normal's sign, and a map carries no record of the side
     it was seen from. The neighbourhood (~4 cm at the maps' 2.6 cm spacing) stays on one face of
     a 10 cm wall."""
+    return point_spacing_and_normals(xyz, 1, neighbours)[1]
+
+
+def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, normal_neighbours: int = 10,
+                              chunk: int = 1 << 17) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_spacing` and :func:`point_normals` from one nearest-neighbour query (a map's
+    load pays for one tree and one query, not two); the spacing is the one ``point_spacing``
+    returns, to the bit (the nearest distances of a longer query are the same values)."""
     from scipy.spatial import cKDTree
 
     xyz = np.asarray(xyz, np.float64)
-    k = min(neighbours + 1, len(xyz))
-    _, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
-    nbr = nbr.reshape(len(xyz), k)
-    out = np.empty((len(xyz), 3), np.float32)
+    k = min(max(normal_neighbours, spacing_neighbours) + 1, len(xyz))
+    dist, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
+    dist, nbr = dist.reshape(len(xyz), k), nbr.reshape(len(xyz), k)
+    spacing = np.clip(dist[:, 1 : spacing_neighbours + 1].mean(axis=1), 0.002, 0.1).astype(np.float32)
+    kn = min(normal_neighbours + 1, k)
+    normals = np.empty((len(xyz), 3), np.float32)
     for lo in range(0, len(xyz), chunk):
-        p = xyz[nbr[lo : lo + chunk]]  # (c, k, 3)
+        p = xyz[nbr[lo : lo + chunk, :kn]]  # (c, k, 3)
         p = p - p.mean(axis=1, keepdims=True)
         cov = np.einsum("nki,nkj->nij", p, p)
         _, vec = np.linalg.eigh(cov)  # ascending eigenvalues: column 0 is the least variance
-        out[lo : lo + chunk] = vec[:, :, 0]
-    return out
+        normals[lo : lo + chunk] = vec[:, :, 0]
+    return spacing, normals
 
 
 def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
@@ -372,24 +382,26 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     hq, wq = -(-hp // cell) * cell, -(-wp // cell) * cell
     f32 = np.float32
     with_labels = front.label is not None
-    zmin = np.empty((hq, wq), f32)
-    has = np.empty((hq, wq), bool)
-    zmean = np.empty((hq, wq), f32)
-    rgb = np.empty((3, hq, wq), f32)
-    label = np.empty((hq, wq) if with_labels else (1, 1), np.int64)
-    cls = np.empty((hq, wq), np.int32)
+    # Surfels and covers on the padded grid only: the pyramid's extra pixels hold no surfel, so
+    # no footprint reaches past the padded grid (the erosion's border is the same +inf).
+    zmin = np.empty((hp, wp), f32)
+    has = np.empty((hp, wp), bool)
+    zmean = np.empty((hp, wp), f32)
+    rgb = np.empty((3, hp, wp), f32)
+    label = np.empty((hp, wp) if with_labels else (1, 1), np.int64)
+    cls = np.empty((hp, wp), np.int32)
     hist = np.zeros(p.max_radius_px + 1, np.int64)
     lab_in = front.label if with_labels else np.full((1, 1), -1, np.int64)
     with_slope = front.sum_slope is not None
-    slope_tol = np.empty((hq, wq), f32)
+    slope_tol = np.empty((hp, wp) if with_slope else (1, 1), f32)
     vk.surfels(front.zmin, front.count, front.sum_z, front.sum_rgb[0], front.sum_rgb[1], front.sum_rgb[2],
-               front.sum_spacing, lab_in, with_labels, hq, wq, f32(p.footprint_scale * p.focal_px),
+               front.sum_spacing, lab_in, with_labels, f32(p.footprint_scale * p.focal_px),
                f32(p.min_radius_px), f32(p.max_radius_px), radius_lut(p), zmin, has, zmean, rgb, label, cls, hist,
                front.sum_slope if with_slope else front.zmin, with_slope, f32(p.slope_px), slope_tol)
     present = [int(k) for k in np.flatnonzero(hist)]
     order, first = vk.bucket(cls, hist)
     # The four quadrant covers, mirrored into one image so that one min filter serves them all.
-    cov4 = np.full((hq, wq, 4), np.inf, f32)
+    cov4 = np.full((hp, wp, 4), np.inf, f32)
     border = (float("inf"),) * 4
     for i, k in enumerate(reversed(present)):
         vk.add_sources(cov4, order, first[k], first[k + 1], zmin)
@@ -418,7 +430,7 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     out_rgb = np.empty((3, h, w), f32)
     out_lab = np.empty((h, w) if with_labels else (1, 1), np.int64)
     hole = np.empty((h, w), bool)
-    vk.finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
+    vk.finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
               slope_tol, with_slope,
               levels, offs, dims, pyr, pyr_lab, p.fill_levels, p.gap_levels, fill_hi, fill_lo, gap_rel, gap_scale,
               f32(p.gap_max_m), out_z, out_rgb, out_lab, hole)

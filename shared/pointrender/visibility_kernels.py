@@ -21,30 +21,30 @@ from shared.jit import AVAILABLE, numba
 _INF = np.float32(np.inf)
 
 
-def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, hq, wq, fs_focal, rmin, rmax, lut,
+def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, fs_focal, rmin, rmax, lut,
              zmin, has, zmean, rgb, label, cls, hist, sl_p, with_slope, slope_px, slope_tol):
-    """Padded per-pixel surfel (zmin, has, mean depth, mean colour, label, and with ``with_slope``
-    the slope part of its visibility tolerance) and footprint class (-1: no surfel); ``hist[k]``
-    counts the pixels of class k."""
+    """Per pixel of the padded grid: the surfel (zmin, has, mean depth, mean colour, label, and with
+    ``with_slope`` the slope part of its visibility tolerance) and footprint class (-1: no
+    surfel); ``hist[k]`` counts the pixels of class k. (The array code pads these images further
+    for the pyramid; the extra pixels hold no surfel, and :func:`_finish` reads them as such.)"""
     hp, wp = zmin_p.shape
     half = np.float32(0.5)
     one = np.float32(1.0)
-    for i in range(hq):
-        for j in range(wq):
-            inside = i < hp and j < wp
-            z = zmin_p[i, j] if inside else _INF
+    for i in range(hp):
+        for j in range(wp):
+            z = zmin_p[i, j]
             h = z < _INF
-            c = (cnt_p[i, j] if inside else np.float32(0.0)) if h else one
+            c = cnt_p[i, j] if h else one
             zmin[i, j] = z
             has[i, j] = h
-            zmean[i, j] = (sz_p[i, j] if inside else np.float32(0.0)) / c
-            rgb[0, i, j] = (r_p[i, j] if inside else np.float32(0.0)) / c
-            rgb[1, i, j] = (g_p[i, j] if inside else np.float32(0.0)) / c
-            rgb[2, i, j] = (b_p[i, j] if inside else np.float32(0.0)) / c
+            zmean[i, j] = sz_p[i, j] / c
+            rgb[0, i, j] = r_p[i, j] / c
+            rgb[1, i, j] = g_p[i, j] / c
+            rgb[2, i, j] = b_p[i, j] / c
             if with_labels:
-                label[i, j] = lab_p[i, j] if inside else -1
+                label[i, j] = lab_p[i, j]
             if with_slope:
-                slope_tol[i, j] = (sl_p[i, j] if inside else np.float32(0.0)) / c * slope_px
+                slope_tol[i, j] = sl_p[i, j] / c * slope_px
             if h:
                 sp = sp_p[i, j] / c
                 rad = np.ceil(sp * fs_focal / z - half)
@@ -86,47 +86,56 @@ def _add_sources(cov4, order, lo, hi, zmin):
         cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
 
 
-def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, slope_tol, with_slope,
-            levels, offs, dims,
+def _finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, slope_tol,
+            with_slope, levels, offs, dims,
             pyr, pyr_lab, fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max,
             out_z, out_rgb, out_lab, hole):
-    """Enclosing depths, the visibility test, the pull pyramid and the push, as the array code."""
-    hq, wq = zmin.shape
+    """Enclosing depths, the visibility test, the pull pyramid and the push, as the array code.
+
+    The surfel images and the covers span the padded grid ``zmin.shape``; the pyramid spans
+    ``hq`` x ``wq`` (the padded grid rounded up to its coarsest cell), whose extra pixels hold no
+    surfel."""
+    hp, wp = zmin.shape
     ninf = -_INF
     zero = np.float32(0.0)
-    # far / near2 per pixel (only the crop's pixels are ever read).
-    far = np.empty((hq, wq), np.float32)
-    near2 = np.empty((hq, wq), np.float32)
-    lo = np.empty(4, np.float32)
+    # far / near2 per pixel of the padded grid, and level 0 of the pyramid (the visible surfels;
+    # channels: weight, sum z, sum r, g, b, zlo, zhi), in one pass.
+    far = np.empty((hp, wp), np.float32)
+    near2 = np.empty((hp, wp), np.float32)
     for i in range(hq):
         for j in range(wq):
-            ii, jj = hq - 1 - i, wq - 1 - j
-            lo[0] = cov4[i, j, 0]
-            lo[1] = cov4[i, jj, 1]
-            lo[2] = cov4[ii, j, 2]
-            lo[3] = cov4[ii, jj, 3]
+            t = i * wq + j
+            if i >= hp or j >= wp:
+                for ch in range(5):
+                    pyr[ch, t] = zero
+                pyr[5, t] = _INF
+                pyr[6, t] = ninf
+                if with_labels:
+                    pyr_lab[t] = -1
+                continue
+            ii, jj = hp - 1 - i, wp - 1 - j
+            l0 = cov4[i, j, 0]
+            l1 = cov4[i, jj, 1]
+            l2 = cov4[ii, j, 2]
+            l3 = cov4[ii, jj, 3]
+            # A quadrant that reaches past the image and found nothing does not count.
+            top, left = i <= reach, j <= reach
+            bottom, right = i >= h + 1 - reach, j >= w + 1 - reach
             f = ninf
-            for q in range(4):
-                sy = -1 if q < 2 else 1
-                sx = -1 if q % 2 == 0 else 1
-                out_r = i <= reach if sy < 0 else i >= h + 1 - reach
-                out_c = j <= reach if sx < 0 else j >= w + 1 - reach
-                v = ninf if (lo[q] == _INF and (out_r or out_c)) else lo[q]
-                f = max(f, v)
+            f = max(f, ninf if (l0 == _INF and (top or left)) else l0)
+            f = max(f, ninf if (l1 == _INF and (top or right)) else l1)
+            f = max(f, ninf if (l2 == _INF and (bottom or left)) else l2)
+            f = max(f, ninf if (l3 == _INF and (bottom or right)) else l3)
             if f == ninf:
                 f = _INF
-            n2 = min(max(min(lo[0], lo[1]), min(lo[2], lo[3])), min(max(lo[0], lo[1]), max(lo[2], lo[3])))
+            n2 = min(max(min(l0, l1), min(l2, l3)), min(max(l0, l1), max(l2, l3)))
             far[i, j] = f
             near2[i, j] = min(n2, f)
-    # Level 0 of the pyramid: the visible surfels. Channels: weight, sum z, sum r, g, b, zlo, zhi.
-    for i in range(hq):
-        for j in range(wq):
-            limit = far[i, j] * tol_rel1 + tol_abs
+            limit = f * tol_rel1 + tol_abs
             if with_slope:
                 limit = limit + slope_tol[i, j]
             vis = has[i, j] and zmin[i, j] <= limit
             wgt = np.float32(1.0) if vis else zero
-            t = i * wq + j
             zm = zmean[i, j]
             pyr[0, t] = wgt
             pyr[1, t] = zm * wgt
@@ -138,45 +147,53 @@ def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_re
             if with_labels:
                 pyr_lab[t] = label[i, j] if vis else -1
     # Pull: each coarser cell keeps the children within the tolerance of its nearest child.
-    mean = np.empty(4, np.float32)
-    kf = np.empty(4, np.float32)
-    kid = np.empty(4, np.int64)
+    # The four children (a, b over c, d) are scalars, not a small array, and each channel's sum
+    # is taken in the array code's order: a, b, c, d.
+    one = np.float32(1.0)
     for lev in range(1, levels + 1):
         hl, wl = dims[lev, 0], dims[lev, 1]
         wc = dims[lev - 1, 1]
         o, oc = offs[lev], offs[lev - 1]
         for i in range(hl):
+            row0 = oc + 2 * i * wc
+            row1 = row0 + wc
             for j in range(wl):
-                for c in range(4):
-                    kid[c] = oc + (2 * i + c // 2) * wc + 2 * j + c % 2
-                for c in range(4):
-                    wv = pyr[0, kid[c]]
-                    mean[c] = pyr[1, kid[c]] / (wv if wv > 0 else np.float32(1.0)) if wv > 0 else _INF
-                front = min(min(mean[0], mean[1]), min(mean[2], mean[3]))
+                a, b = row0 + 2 * j, row0 + 2 * j + 1
+                c, d = row1 + 2 * j, row1 + 2 * j + 1
+                wa, wb, wc_, wd = pyr[0, a], pyr[0, b], pyr[0, c], pyr[0, d]
+                ma = pyr[1, a] / wa if wa > 0 else _INF
+                mb = pyr[1, b] / wb if wb > 0 else _INF
+                mc = pyr[1, c] / wc_ if wc_ > 0 else _INF
+                md = pyr[1, d] / wd if wd > 0 else _INF
+                front = min(min(ma, mb), min(mc, md))
                 thr = front * tol_rel1 + tol_abs
-                for c in range(4):
-                    kf[c] = np.float32(1.0) if mean[c] <= thr else zero
+                ka = one if ma <= thr else zero
+                kb = one if mb <= thr else zero
+                kc = one if mc <= thr else zero
+                kd = one if md <= thr else zero
                 t = o + i * wl + j
                 for ch in range(5):
-                    acc = pyr[ch, kid[0]] * kf[0]
-                    acc = acc + pyr[ch, kid[1]] * kf[1]
-                    acc = acc + pyr[ch, kid[2]] * kf[2]
-                    acc = acc + pyr[ch, kid[3]] * kf[3]
+                    acc = pyr[ch, a] * ka
+                    acc = acc + pyr[ch, b] * kb
+                    acc = acc + pyr[ch, c] * kc
+                    acc = acc + pyr[ch, d] * kd
                     pyr[ch, t] = acc
-                zl = _INF
-                zh = ninf
-                for c in range(4):
-                    if kf[c] > 0:
-                        zl = min(zl, pyr[5, kid[c]])
-                        zh = max(zh, pyr[6, kid[c]])
-                pyr[5, t] = zl
-                pyr[6, t] = zh
+                pyr[5, t] = min(min(pyr[5, a] if ka > 0 else _INF, pyr[5, b] if kb > 0 else _INF),
+                                min(pyr[5, c] if kc > 0 else _INF, pyr[5, d] if kd > 0 else _INF))
+                pyr[6, t] = max(max(pyr[6, a] if ka > 0 else ninf, pyr[6, b] if kb > 0 else ninf),
+                                max(pyr[6, c] if kc > 0 else ninf, pyr[6, d] if kd > 0 else ninf))
                 if with_labels:
-                    lab = -1
-                    for c in range(4):
-                        if kf[c] > 0 and mean[c] == front:
-                            lab = pyr_lab[kid[c]]
-                            break
+                    # The label of the nearest kept child, the first in that order on ties.
+                    if ka > 0 and ma == front:
+                        lab = pyr_lab[a]
+                    elif kb > 0 and mb == front:
+                        lab = pyr_lab[b]
+                    elif kc > 0 and mc == front:
+                        lab = pyr_lab[c]
+                    elif kd > 0 and md == front:
+                        lab = pyr_lab[d]
+                    else:
+                        lab = -1
                     pyr_lab[t] = lab
     # Push: each crop pixel without a visible surfel takes its finest acceptable ancestor.
     for i in range(1, h + 1):
@@ -224,42 +241,98 @@ def _finish(cov4, reach, h, w, zmin, has, zmean, rgb, label, with_labels, tol_re
 
 
 def _colour_filter(rgb, depth, hole, rel, taps):
-    """:func:`visibility.colour_filter`, same taps, order and float32 rounding."""
+    """:func:`visibility.colour_filter`, same taps, order and float32 rounding. The images are
+    read through a one-pixel ring (depth +inf, colour 0; holes +inf too) so that the tap loop
+    needs no bounds tests: a ring or hole tap fails the depth test and adds colour * 0 = +0,
+    which leaves a sum as it was, as skipping it does."""
     h, w = depth.shape
-    out = np.empty_like(rgb)
     zero = np.float32(0.0)
+    dpad = np.full((h + 2, w + 2), _INF, np.float32)
+    cpad = np.zeros((3, h + 2, w + 2), np.float32)
     for i in range(h):
         for j in range(w):
-            if hole[i, j]:
-                out[0, i, j] = out[1, i, j] = out[2, i, j] = zero
-                continue
-            d = depth[i, j]
+            if not hole[i, j]:
+                dpad[i + 1, j + 1] = depth[i, j]
+            for ch in range(3):
+                cpad[ch, i + 1, j + 1] = rgb[ch, i, j]
+    out = np.empty_like(rgb)
+    one = np.float32(1.0)
+    k0, k1, k2, k3, k4, k5, k6, k7, k8 = taps[0], taps[1], taps[2], taps[3], taps[4], taps[5], taps[6], taps[7], taps[8]
+    # Branch-free over a row (a hole pixel computes garbage from d = +inf and is zeroed at the
+    # end), the nine taps written out in their fixed order: the row loop vectorises.
+    for i in range(h):
+        for j in range(w):
+            d = dpad[i + 1, j + 1]
             tol = d * rel
             a0 = a1 = a2 = ws = zero
-            t = 0
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    k = taps[t]
-                    t += 1
-                    r, c = i + dy, j + dx
-                    inside = 0 <= r < h and 0 <= c < w
-                    ok = inside and (not hole[r, c]) and abs(depth[r, c] - d) <= tol
-                    wt = k if ok else zero
-                    ws = ws + wt
-                    if inside:
-                        a0 = a0 + rgb[0, r, c] * wt
-                        a1 = a1 + rgb[1, r, c] * wt
-                        a2 = a2 + rgb[2, r, c] * wt
-            s = ws if ws > 0 else np.float32(1.0)
-            out[0, i, j] = a0 / s
-            out[1, i, j] = a1 / s
-            out[2, i, j] = a2 / s
+            wt = k0 if abs(dpad[i + 0, j + 0] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 0, j + 0] * wt
+            a1 = a1 + cpad[1, i + 0, j + 0] * wt
+            a2 = a2 + cpad[2, i + 0, j + 0] * wt
+            wt = k1 if abs(dpad[i + 0, j + 1] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 0, j + 1] * wt
+            a1 = a1 + cpad[1, i + 0, j + 1] * wt
+            a2 = a2 + cpad[2, i + 0, j + 1] * wt
+            wt = k2 if abs(dpad[i + 0, j + 2] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 0, j + 2] * wt
+            a1 = a1 + cpad[1, i + 0, j + 2] * wt
+            a2 = a2 + cpad[2, i + 0, j + 2] * wt
+            wt = k3 if abs(dpad[i + 1, j + 0] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 1, j + 0] * wt
+            a1 = a1 + cpad[1, i + 1, j + 0] * wt
+            a2 = a2 + cpad[2, i + 1, j + 0] * wt
+            wt = k4 if abs(dpad[i + 1, j + 1] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 1, j + 1] * wt
+            a1 = a1 + cpad[1, i + 1, j + 1] * wt
+            a2 = a2 + cpad[2, i + 1, j + 1] * wt
+            wt = k5 if abs(dpad[i + 1, j + 2] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 1, j + 2] * wt
+            a1 = a1 + cpad[1, i + 1, j + 2] * wt
+            a2 = a2 + cpad[2, i + 1, j + 2] * wt
+            wt = k6 if abs(dpad[i + 2, j + 0] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 2, j + 0] * wt
+            a1 = a1 + cpad[1, i + 2, j + 0] * wt
+            a2 = a2 + cpad[2, i + 2, j + 0] * wt
+            wt = k7 if abs(dpad[i + 2, j + 1] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 2, j + 1] * wt
+            a1 = a1 + cpad[1, i + 2, j + 1] * wt
+            a2 = a2 + cpad[2, i + 2, j + 1] * wt
+            wt = k8 if abs(dpad[i + 2, j + 2] - d) <= tol else zero
+            ws = ws + wt
+            a0 = a0 + cpad[0, i + 2, j + 2] * wt
+            a1 = a1 + cpad[1, i + 2, j + 2] * wt
+            a2 = a2 + cpad[2, i + 2, j + 2] * wt
+            s = ws if ws > 0 else one
+            hl = hole[i, j]
+            out[0, i, j] = zero if hl else a0 / s
+            out[1, i, j] = zero if hl else a1 / s
+            out[2, i, j] = zero if hl else a2 / s
+    return out
+
+
+def _rgb8(rgb):
+    """(3, H, W) float32 -> (H, W, 3) uint8, rounded half to even and clipped: what
+    ``splat._images`` does with numpy, in one pass instead of four."""
+    _, h, w = rgb.shape
+    out = np.empty((h, w, 3), np.uint8)
+    for i in range(h):
+        for j in range(w):
+            for ch in range(3):
+                out[i, j, ch] = np.uint8(min(max(np.rint(rgb[ch, i, j]), np.float32(0.0)), np.float32(255.0)))
     return out
 
 
 if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
     surfels, bucket, add_sources, finish = _jit(_surfels), _jit(_bucket), _jit(_add_sources), _jit(_finish)
-    colour_filter = _jit(_colour_filter)
+    colour_filter, rgb8 = _jit(_colour_filter), _jit(_rgb8)
 else:  # pragma: no cover
-    surfels = bucket = add_sources = finish = colour_filter = None
+    surfels = bucket = add_sources = finish = colour_filter = rgb8 = None

@@ -15,6 +15,7 @@ from services.renderer.tools import scenes
 from shared.cloud import EmptyCloudError, PointCloud
 from shared.geometry import PinholeCamera, camera_pose
 from shared.pointrender import RENDERERS, IndexedCloud, kernels
+from shared.pointrender.cloud import Frustum
 from shared.pointrender.errors import BackendUnavailableError
 from shared.schemas import CameraIntrinsics, ViewPose
 
@@ -268,3 +269,18 @@ def test_numba_kernel_requested_without_numba(monkeypatch):
         RENDERERS.create("numpy", {"kernel": "numba"})
     # "auto" falls back to the array code.
     assert RENDERERS.create("numpy").kernel == "array"
+
+
+@needs_numba
+def test_compiled_frustum_culling_selects_the_blocks_the_array_code_selects(room_index):
+    rng = np.random.default_rng(3)
+    lo, hi = room_index.cloud.xyz.min(axis=0), room_index.cloud.xyz.max(axis=0)
+    selected = 0
+    for cam in (PinholeCamera(256, 256, 90.0), PinholeCamera(200, 150, 120.0)):
+        frustum = Frustum.for_camera(cam, 0.05, 20.0)
+        for _ in range(100):
+            pose = camera_pose(rng.uniform(lo, hi), rng.uniform(-np.pi, np.pi), rng.uniform(-0.8, 0.8), 0.0)
+            a = room_index.visible_blocks(pose, frustum)
+            assert np.array_equal(a, room_index.visible_blocks(pose, frustum, compiled=False))
+            selected += int(a.sum())
+    assert 0 < selected < 200 * room_index.block_count  # some blocks in view, not all of them

@@ -132,6 +132,18 @@ def test_point_spacing_follows_the_sampling():
     assert np.median(sp[len(coarse) :]) == pytest.approx(0.01, rel=0.1)
 
 
+def test_spacing_and_normals_from_one_query_match_the_separate_ones():
+    wall = _lattice(1.0, (0.0, 1.0), (0.0, 1.0), 0.02, (0, 0, 0), 0, jitter_m=0.002)
+    floor = PointCloud(wall.xyz[:, [1, 2, 0]] * [1.0, 1.0, 0.0], wall.rgb)  # z = 0: normal +-z
+    xyz = np.concatenate([wall.xyz, floor.xyz])
+    spacing, normals = visibility.point_spacing_and_normals(xyz, 4, 10)
+    assert np.array_equal(spacing, visibility.point_spacing(xyz, 4))
+    assert np.array_equal(normals, visibility.point_normals(xyz, 10))
+    inner = (np.abs(xyz[:, 2] - 0.5) < 0.4) & (np.abs(xyz[:, 1] - 0.5) < 0.4)
+    assert np.quantile(np.abs(normals[: len(wall)][inner[: len(wall)], 0]), 0.01) > 0.95  # the wall faces x
+    assert np.quantile(np.abs(normals[len(wall) :, 2]), 0.01) > 0.95  # the floor faces z
+
+
 def test_a_wall_seen_along_a_corridor_is_not_its_own_occluder():
     # A wall 0.6 m to the left running from 0.3 m to 6 m ahead, and an end wall at 6.5 m: seen at
     # grazing angles, the wall's nearer footprints must not remove (or leave holes in) its farther
