@@ -103,7 +103,13 @@ def build_map(spec: str, backend: str, noisy: bool = False, size_px: int = 128, 
     robot_cfg = {"scene": spec, "camera": cam}
     if noisy:
         robot_cfg["noise"] = NOISY
-    name = f"{spec.replace(':', '_').replace('=', '-')}_{backend}{'_noisy' if noisy else ''}_{size_px}.ply"
+    # A scanned mesh (Replica) is explored with the profile for cluttered real scans, as a user of a scan
+    # asks for it (``options.profile`` of an exploration); a generated house with the default.
+    from services.robot_io.core.scene import is_generated_spec
+
+    profile = "default" if is_generated_spec(spec) else "cluttered-scan"
+    tag = "" if profile == "default" else f"_{profile}"
+    name = f"{spec.replace(':', '_').replace('=', '-')}_{backend}{'_noisy' if noisy else ''}{tag}_{size_px}.ply"
     path = MAPS / name
     robot = ROBOTS.create("sim", robot_cfg)
     if backend == "curated":
@@ -112,11 +118,11 @@ def build_map(spec: str, backend: str, noisy: bool = False, size_px: int = 128, 
         return robot, sample_scene_cloud(robot.scene)
     if path.exists():
         return robot, PointCloud.load(path)
-    from services.mapper.core import discover, execute_tours
+    from services.mapper.core import discover, discovery_config, execute_tours
     from services.reconstructor.core import ReconstructionConfig, Reconstructor
 
     t0 = time.perf_counter()
-    d = discover(robot)
+    d = discover(robot, discovery_config(profile))
     recs = execute_tours(robot, d.tours, d.scene, rate_hz=rate_hz)
     with Reconstructor(ReconstructionConfig(backend=backend)) as r:
         cloud = r.build_from_recordings(recs, robot.scene.label_names).cloud

@@ -22,7 +22,7 @@ from typing import Any
 from pydantic import Field
 
 from services.mapper.core import DEFAULT_PREDICTOR, PREDICTORS, WaypointPredictor
-from services.mapper.core.exploration_job import explore
+from services.mapper.core.exploration_job import explore, request_discovery_config
 from shared import keys
 from shared.clients import MapClient, RobotClient
 from shared.jobs import JobRunner
@@ -86,6 +86,10 @@ class MapperService(Service[MapperSettings]):
         robot_id = keys.robot_of(keys.MAPPER_EXPLORE, key)
         keys.validate_segment(req.exploration_id, "exploration id")
         keys.validate_segment(req.map_id, "map id")
+        try:  # refused before it is accepted: a bad profile or knob never becomes a failed job
+            request_discovery_config(req)
+        except (KeyError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
+            return JobAccepted(job_id=req.exploration_id, accepted=False, reason=f"bad exploration options: {exc}")
         s = self.settings
         with self._lock:
             jobs = self._jobs.get(robot_id)

@@ -97,3 +97,14 @@ def test_load_scene_switches_the_simulator_and_refuses_bad_specs(system):
         robot.load_scene("/no/such/mesh.ply")
     assert robot.scene().scene == other.scene  # a failed load leaves the current scene in place
     robot.load_scene("generated:0")
+
+
+def test_exploration_options_are_refused_before_the_job_is_accepted(system):
+    """A bad discovery profile or knob is an answer to the submit, not a failed job: nothing starts."""
+    from shared.schemas import ExplorationRequest
+
+    mapper = MapperClient(TypedBus(FakeBus(system)), "robot0")
+    for i, options in enumerate([{"profile": "no-such-profile"}, {"discovery": {"exploration": {"nope": 1}}},
+                                 {"profile": 3}, {"discovery": []}]):
+        ack = mapper.explore(ExplorationRequest(exploration_id=f"x-bad{i}", map_id="m", options=options))
+        assert not ack.accepted and "bad exploration options" in ack.reason, options

@@ -4,7 +4,13 @@ Pure Python (numpy/scipy/networkx/open3d); the bus adapter in ``services/mapper/
 decodes requests, calls these functions and encodes the results.
 """
 
-from services.mapper.core.discovery import Discovery, DiscoveryConfig, discover
+from services.mapper.core.discovery import (
+    DISCOVERY_PROFILES,
+    Discovery,
+    DiscoveryConfig,
+    discover,
+    discovery_config,
+)
 from services.mapper.core.errors import (
     ExplorationError,
     MapperError,
@@ -28,10 +34,10 @@ from services.mapper.core.regions import RegionConfig, SceneMap, analyse
 from services.mapper.core.tours import PlannedTour, TourConfig, TourPlanner
 
 __all__ = [
-    "DEFAULT_PREDICTOR", "PREDICTORS", "Discovery", "DiscoveryConfig", "ExplorationConfig",
+    "DEFAULT_PREDICTOR", "DISCOVERY_PROFILES", "PREDICTORS", "Discovery", "DiscoveryConfig", "ExplorationConfig",
     "ExplorationError", "ExplorationResult", "Explorer", "ExplorerRobot", "GeometricPredictor",
     "GeometricPredictorConfig", "GridGraph", "MapperError", "NodeStatus", "PlannedTour",
     "PlanningError", "Prediction", "PredictorError", "RegionConfig", "RegionRecording", "SceneMap",
     "TourConfig", "TourExecutionError", "TourPlanner", "TourRobot", "WaypointPredictor",
-    "analyse", "create_predictor", "discover", "execute_tour", "execute_tours",
+    "analyse", "create_predictor", "discover", "discovery_config", "execute_tour", "execute_tours",
 ]

@@ -36,6 +36,27 @@ CLUTTERED_SCAN: dict = {
 }
 
 
+#: Named discovery profiles (an exploration's ``options.profile``): the scene kind a user knows and
+#: the mapper cannot tell from its scans. ``options.discovery`` overrides fields on top of one.
+DISCOVERY_PROFILES: dict[str, dict] = {"default": {}, "cluttered-scan": CLUTTERED_SCAN}
+
+
+def discovery_config(profile: str = "default", overrides: dict | None = None) -> DiscoveryConfig:
+    """The :class:`DiscoveryConfig` of a named profile with ``overrides`` merged in (nested dicts field
+    by field). Raises ``KeyError`` for an unknown profile and pydantic's ``ValidationError`` for bad
+    overrides."""
+    if profile not in DISCOVERY_PROFILES:
+        raise KeyError(f"unknown discovery profile {profile!r}; known: {', '.join(DISCOVERY_PROFILES)}")
+
+    def merge(base: dict, top: dict) -> dict:
+        out = dict(base)
+        for k, v in top.items():
+            out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        return out
+
+    return DiscoveryConfig.model_validate(merge(DISCOVERY_PROFILES[profile], overrides or {}))
+
+
 class DiscoveryConfig(BaseModel):
     """Everything Algorithm 1 takes; the defaults are the paper's."""
 

@@ -28,7 +28,7 @@ from shared.schemas import (
     MapInfo, NavGraph, RecordReply, SceneSummary, Tour, TourRecording,
 )
 
-from .discovery import DiscoveryConfig, discover
+from .discovery import DiscoveryConfig, discover, discovery_config
 from .execute import RegionRecording, TourRobot, execute_tours
 
 log = logging.getLogger(__name__)
@@ -55,13 +55,26 @@ class MapBuilder(Protocol):
 _TOURS_AT, _BUILD_AT, _BUILD_SPAN = 0.3, 0.8, 0.2
 
 
+def request_discovery_config(req: ExplorationRequest) -> DiscoveryConfig:
+    """What an exploration request asks for: ``options.profile`` (:data:`DISCOVERY_PROFILES`, e.g.
+    ``cluttered-scan`` for a real scan), ``options.discovery`` overrides on top of it, and
+    ``max_steps`` as a hard cap (otherwise the budget scales with the area discovered). Raises
+    ``KeyError`` / ``ValueError`` for options the mapper refuses before accepting the job."""
+    profile = req.options.get("profile", "default")
+    overrides = req.options.get("discovery", {})
+    if not isinstance(profile, str) or not isinstance(overrides, dict):
+        raise ValueError("options.profile must be a profile name and options.discovery an object")
+    cfg = discovery_config(profile, overrides)
+    if req.max_steps is not None:
+        cfg.exploration.max_steps = req.max_steps
+    return cfg
+
+
 def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, maps: MapBuilder,
             publish_graph: Callable[[NavGraph], None], publish_tour: Callable[[Tour], None],
             tour_rate_hz: float) -> JobEnd:
     t0 = time.perf_counter()
-    cfg = DiscoveryConfig.model_validate(req.options.get("discovery", {}))
-    if req.max_steps is not None:  # a hard cap; otherwise the budget scales with the area discovered
-        cfg.exploration.max_steps = req.max_steps
+    cfg = request_discovery_config(req)
     ctx.progress(ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
     disc = discover(robot, cfg, checkpoint=ctx.check_cancelled)
     ctx.check_cancelled()

@@ -122,3 +122,18 @@ def test_execute_tours_records_frames_per_region(run):
         assert np.allclose(rec.start_pose.position_m[:2], pt.tour.start_pose.position_m[:2], atol=0.06)
         idx = [f.index for f in rec.frames]
         assert len(idx) == len(set(idx))
+
+
+def test_a_profile_is_data_and_overrides_merge_into_it_field_by_field():
+    from services.mapper.core import DISCOVERY_PROFILES, discovery_config
+    from services.mapper.core.discovery import CLUTTERED_SCAN
+
+    assert discovery_config() == DiscoveryConfig()
+    scan = discovery_config("cluttered-scan")
+    assert DISCOVERY_PROFILES["cluttered-scan"] is CLUTTERED_SCAN
+    assert scan.tours.paths_on == "walked" and scan.predictor_config["body_radius_m"] == 0.1
+    # One nested knob overridden; the profile's other knobs at that level stay.
+    mixed = discovery_config("cluttered-scan", {"exploration": {"visit_radius_m": 0.5}})
+    assert mixed.exploration.visit_radius_m == 0.5 and mixed.exploration.min_progress_m == 0.1
+    with pytest.raises(KeyError, match="cluttered-scan"):
+        discovery_config("office")
