@@ -357,7 +357,13 @@ def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, norm
     k = min(max(normal_neighbours, spacing_neighbours) + 1, len(xyz))
     dist, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
     dist, nbr = dist.reshape(len(xyz), k), nbr.reshape(len(xyz), k)
-    spacing = np.clip(dist[:, 1 : spacing_neighbours + 1].mean(axis=1), 0.002, 0.1).astype(np.float32)
+    if k - 1 < spacing_neighbours:
+        # Fewer points than neighbours asked for: point_spacing's query pads with infinite
+        # distances, so every point gets the upper clip; say so here rather than average an empty
+        # or short slice (a one-point map made NaN radii, which no table lookup survives).
+        spacing = np.full(len(xyz), 0.1, np.float32)
+    else:
+        spacing = np.clip(dist[:, 1 : spacing_neighbours + 1].mean(axis=1), 0.002, 0.1).astype(np.float32)
     kn = min(normal_neighbours + 1, k)
     normals = np.empty((len(xyz), 3), np.float32)
     for lo in range(0, len(xyz), chunk):

@@ -144,6 +144,17 @@ def test_spacing_and_normals_from_one_query_match_the_separate_ones():
     assert np.quantile(np.abs(normals[len(wall) :, 2]), 0.01) > 0.95  # the floor faces z
 
 
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_spacing_of_a_cloud_smaller_than_the_neighbourhood_is_finite(n):
+    # A one-point map averaged an empty slice (NaN radius) and the torch renderer then indexed
+    # its radius table with NaN; too few neighbours must mean isolated points (the upper clip),
+    # exactly as point_spacing's padded query says.
+    xyz = np.arange(3 * n, dtype=np.float64).reshape(n, 3) * 0.01
+    spacing, normals = visibility.point_spacing_and_normals(xyz, 4, 10)
+    assert np.isfinite(spacing).all() and np.array_equal(spacing, visibility.point_spacing(xyz, 4))
+    assert normals.shape == (n, 3)
+
+
 def test_a_wall_seen_along_a_corridor_is_not_its_own_occluder():
     # A wall 0.6 m to the left running from 0.3 m to 6 m ahead, and an end wall at 6.5 m: seen at
     # grazing angles, the wall's nearer footprints must not remove (or leave holes in) its farther
