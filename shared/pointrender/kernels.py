@@ -37,13 +37,14 @@ from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
 MAX_FRONT_POINTS = (1 << 21) // 255 - 1
 
 
-def _project_run_py(xs, ys, zs, proj, near, far, w, h, qo, zo, uo, with_uv):
-    """Project one run of points: padded target pixel ``qo`` (the spare bin ``(h + 2) * (w + 2)``
-    for points that miss the image or the depth range), camera depth ``zo`` and, with ``with_uv``,
+def _project_run_py(xs, ys, zs, proj, near, far, w, h, qo, zo, uo, with_uv, pad=1):
+    """Project one run of points: target pixel ``qo`` of the image padded by ``pad`` pixels on
+    every side (the spare bin ``(h + 2 pad) * (w + 2 pad)`` for points that miss the padded image or
+    the depth range), camera depth ``zo`` and, with ``with_uv``,
     the quantised sub-pixel offset ``uo`` (qu + 256 qv). Branch-free over the run so that it
     vectorises; out-of-range depths divide by one instead, so u, v stay finite and convert
     safely. Every pass that needs a point's pixel calls this, so all agree to the bit."""
-    wp = w + 2
+    wp = w + 2 * pad
     a0, a1, a2, a3 = proj[0], proj[1], proj[2], proj[3]
     b0, b1, b2, b3 = proj[4], proj[5], proj[6], proj[7]
     c0, c1, c2, c3 = proj[8], proj[9], proj[10], proj[11]
@@ -58,10 +59,10 @@ def _project_run_py(xs, ys, zs, proj, near, far, w, h, qo, zo, uo, with_uv):
         v = (px * b0 + py * b1 + pz * b2 + b3) * inv
         fu = np.floor(u + half)
         fv = np.floor(v + half)
-        valid = in_range & (fu >= -1) & (fu <= w) & (fv >= -1) & (fv <= h)
-        iu = np.int32(fu if valid else np.float32(-1.0))
-        iv = np.int32(fv if valid else np.float32(h + 1))  # (h + 2) * wp + 0 = npad
-        qo[i] = (iv + 1) * wp + (iu + 1)
+        valid = in_range & (fu >= -pad) & (fu <= w - 1 + pad) & (fv >= -pad) & (fv <= h - 1 + pad)
+        iu = np.int32(fu if valid else np.float32(-pad))
+        iv = np.int32(fv if valid else np.float32(h + pad))  # (h + 2 pad) * wp + 0 = npad
+        qo[i] = (iv + pad) * wp + (iu + pad)
         zo[i] = zc
         if with_uv:
             du = min(max(np.float64(u) - np.float64(fu) + 0.5, 0.0), 1.0) * 255.0
@@ -74,7 +75,7 @@ _project_run = numba.njit(nogil=True, cache=True, error_model="numpy")(_project_
 
 def _front_pass(
     x, y, z, rgb_packed, spacing, run_starts, run_counts, run_scale, proj, near, far, w, h, tol_rel1, tol_abs,
-    with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope, with_uv,
+    with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope, with_uv, pad=1,
 ):
     """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
 
@@ -85,9 +86,11 @@ def _front_pass(
     some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid).
     With ``with_slope``, row 8 sums each front point's depth slope (``splat._point_slope`` of its
     normal ``nx, ny, nz`` and the view's ``slope_consts``). Without ``with_uv`` the offset rows
-    are zero: only the paper's 3x3 splat reads them, and the projection is cheaper without."""
-    wp = w + 2
-    npad = (h + 2) * wp
+    are zero: only the paper's 3x3 splat reads them, and the projection is cheaper without.
+    ``pad``: the pixels on each side of the image that points are projected into (1: the 3x3
+    splat's ring; the visibility mode adds a guard band, :class:`splat.SplatConfig` ``guard_px``)."""
+    wp = w + 2 * pad
+    npad = (h + 2 * pad) * wp
     n = 0
     for r in range(run_counts.shape[0]):
         n += run_counts[r]
@@ -101,7 +104,7 @@ def _front_pass(
         s = run_starts[r]
         m = run_counts[r]
         _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h,
-                     q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m] if with_uv else uv_of, with_uv)
+                     q_of[k0 : k0 + m], z_of[k0 : k0 + m], uv_of[k0 : k0 + m] if with_uv else uv_of, with_uv, pad)
         k0 += m
     # Pass 1b, per-pixel minimum depth.
     zbuf = np.full(npad + 1, np.inf, np.float32)

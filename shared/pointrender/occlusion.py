@@ -97,11 +97,12 @@ class OcclusionParams:
 
 def cull(x, y, z, spacing, starts, counts, scale, table: RunTable, block_min, block_max,
          proj: np.ndarray, world_from_camera: np.ndarray, intrinsics: np.ndarray, h: int, w: int,
-         lut: np.ndarray, p: OcclusionParams) -> np.ndarray:
+         lut: np.ndarray, p: OcclusionParams, pad: int = 1) -> np.ndarray:
     """Boolean mask of the runs ``starts, counts`` (scale: their spacing factor) a view must draw:
     False for those wholly behind the occluder of its near runs (module docstring). ``x, y, z,
     spacing``: the drawn cloud; ``proj``: float32 (3, 4) K [R^T | -R^T t] as the front pass
-    uses it; ``lut``: :func:`visibility.radius_lut`."""
+    uses it; ``lut``: :func:`visibility.radius_lut`; ``pad``: the pixels around the image the
+    front pass projects into (its ring and guard band: the covers span them all)."""
     keep = np.ones(len(starts), bool)
     if len(starts) == 0 or int(counts.sum()) < p.min_points:
         return keep
@@ -122,8 +123,8 @@ def cull(x, y, z, spacing, starts, counts, scale, table: RunTable, block_min, bl
     z2 = float(z_b[~phase1].min())
     z_safe = (z2 - p.front_tol_m) / p.front_rel1
     zbuf, spmin = occluder_depths(x, y, z, spacing, starts[phase1], counts[phase1], scale[phase1], proj.ravel(),
-                                  np.float32(p.near_clip_m), np.float32(p.far_clip_m), w, h)
-    tiles, reach = occluder_tiles(zbuf, spmin, z_safe, h, w, lut, p)
+                                  np.float32(p.near_clip_m), np.float32(p.far_clip_m), w, h, pad)
+    tiles, reach = occluder_tiles(zbuf, spmin, z_safe, h + 2 * (pad - 1), w + 2 * (pad - 1), lut, p)
     if reach < 0:
         return keep
     # Screen rectangles (padded pixel coordinates) of the farther runs (a box wholly in front of
@@ -136,23 +137,24 @@ def cull(x, y, z, spacing, starts, counts, scale, table: RunTable, block_min, bl
     r_exp = np.clip(np.ceil(p.footprint_scale * p.focal_px * s_view / zp - 0.5), p.min_radius_px, p.max_radius_px)
     r_cls = lut[(r_exp + 1).astype(np.int64)].astype(np.int64)
     grow = r_cls + 2  # + the padding ring and rounding of u, v to pixels
-    col0 = np.floor(u.min(axis=1) + 0.5).astype(np.int64) + 1 - grow
-    col1 = np.floor(u.max(axis=1) + 0.5).astype(np.int64) + 1 + grow
-    row0 = np.floor(v.min(axis=1) + 0.5).astype(np.int64) + 1 - grow
-    row1 = np.floor(v.max(axis=1) + 0.5).astype(np.int64) + 1 + grow
+    col0 = np.floor(u.min(axis=1) + 0.5).astype(np.int64) + pad - grow
+    col1 = np.floor(u.max(axis=1) + 0.5).astype(np.int64) + pad + grow
+    row0 = np.floor(v.min(axis=1) + 0.5).astype(np.int64) + pad - grow
+    row1 = np.floor(v.max(axis=1) + 0.5).astype(np.int64) + pad + grow
     ahead = (zc[far_runs] > p.near_clip_m).all(axis=1)
     # The depth a surfel at z' or beyond exceeds its enclosing depth's tolerance by, at least.
     margin = zp * (1.0 - p.slope_per_m * p.front_rel1) - p.slope_per_m * p.front_tol_m
-    hidden = cull_test(tiles, TILE_PX, row0, row1, col0, col1, margin, r_cls, ahead, reach, h + 2, w + 2,
+    hidden = cull_test(tiles, TILE_PX, row0, row1, col0, col1, margin, r_cls, ahead, reach, h + 2 * pad, w + 2 * pad,
                        np.float32(p.vis_rel1), np.float32(p.vis_tol_m))
     keep[far_runs[hidden]] = False
     return keep
 
 
-def _occluder_depths(x, y, z, spacing, starts, counts, scale, proj, near, far, w, h):
-    """Per padded pixel (plus the spare bin): the nearest depth of the runs' points and the
-    smallest spacing among them, projected exactly as the front pass projects them."""
-    npad = (h + 2) * (w + 2)
+def _occluder_depths(x, y, z, spacing, starts, counts, scale, proj, near, far, w, h, pad):
+    """Per pixel of the image padded by ``pad`` (plus the spare bin): the nearest depth of the
+    runs' points and the smallest spacing among them, projected exactly as the front pass
+    projects them."""
+    npad = (h + 2 * pad) * (w + 2 * pad)
     zbuf = np.full(npad + 1, np.inf, np.float32)
     spmin = np.full(npad + 1, np.inf, np.float32)
     m_max = 0
@@ -163,7 +165,8 @@ def _occluder_depths(x, y, z, spacing, starts, counts, scale, proj, near, far, w
     uv_of = np.empty(1, np.int32)
     for r in range(counts.shape[0]):
         s, m, sc = starts[r], counts[r], scale[r]
-        _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h, q_of[:m], z_of[:m], uv_of, False)
+        _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h, q_of[:m], z_of[:m], uv_of, False,
+                     pad)
         for i in range(m):
             q = q_of[i]
             zbuf[q] = min(zbuf[q], z_of[i])

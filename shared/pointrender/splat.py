@@ -94,11 +94,23 @@ class SplatConfig(BackendConfig):
     min_radius_px: int = Field(1, ge=0, le=8)
     # Pull-push levels: covered pixels may take an ancestor up to 2^fill_levels px wide; gaps that
     # no footprint covers only up to 2^gap_levels px, and only inside one surface.
-    fill_levels: int = Field(5, ge=0, le=6)
+    # 6: a near surface the map samples sparsely (a door frame 0.2 m away, its points ~20 px
+    # apart) encloses pixels no 32 px cell of its own surfels reaches.
+    fill_levels: int = Field(6, ge=0, le=6)
     gap_levels: int = Field(5, ge=0, le=6)
     # ... and only where such a cell spans at most this much of the surface: a crack in a near
     # wall is filled, an unmapped stretch of a far room is left a hole.
     gap_max_m: float = Field(0.08, gt=0.0, le=1.0)
+    # visibility mode: points are also projected into a band this many pixels wide around the
+    # image, whose surfels are drawn nowhere but count in the visibility test's footprints. A
+    # pixel near the border then sees the surface that continues past the edge: without the band
+    # its quadrant towards the edge held only the few columns inside the image, and on a near
+    # wall sampled at ~6 px those often held nothing but the room behind, which the test then
+    # kept (most of the leak below 1 m on agent-built maps: bench.anticipation). A band as wide
+    # as max_radius_px makes the border test the interior's; 16 px catches nearly all of it (a
+    # footprint wider than 16 px belongs to a surface nearer than ~0.4 m) for +27 % pixels in the
+    # covers' min filters.
+    guard_px: int = Field(16, ge=0, le=64)
     # Local spacing of a point: mean distance to this many nearest neighbours (once per map).
     spacing_neighbours: int = Field(4, ge=1, le=32)
     # visibility mode: hole filling accepts a fill value this much farther or nearer than the
@@ -341,8 +353,10 @@ class _NumpyOps:
     def full2(self, h: int, w: int, value: float):
         return np.full((h, w), value, np.float32)
 
-    def pad2(self, a, dh: int, dw: int, value):
-        return np.pad(a, ((0, dh), (0, dw)), constant_values=value) if dh or dw else a
+    def pad2(self, a, top: int, bottom: int, left: int, right: int, value):
+        if not (top or bottom or left or right):
+            return a
+        return np.pad(a, ((top, bottom), (left, right)), constant_values=value)
 
     def pad_ring(self, a, value):
         return np.pad(a, 1, constant_values=value)
@@ -512,11 +526,12 @@ class _TorchOps:
     def pad_ring(self, a, value):
         return self.torch.nn.functional.pad(a[None, None], (1, 1, 1, 1), value=value)[0, 0]
 
-    def pad2(self, a, dh: int, dw: int, value):
-        if not (dh or dw):
+    def pad2(self, a, top: int, bottom: int, left: int, right: int, value):
+        if not (top or bottom or left or right):
             return a
-        out = self.torch.full((a.shape[0] + dh, a.shape[1] + dw), value, dtype=a.dtype, device=self.device)
-        out[: a.shape[0], : a.shape[1]] = a
+        h, w = a.shape
+        out = self.torch.full((top + h + bottom, left + w + right), value, dtype=a.dtype, device=self.device)
+        out[top : top + h, left : left + w] = a
         return out
 
     def ceil(self, x):
@@ -772,7 +787,7 @@ class SplatRenderer:
         proj = (cam.matrix() @ np.linalg.inv(wfc)[:3]).astype(np.float32)
         keep = occlusion.cull(arrays.x, arrays.y, arrays.z, spacing, runs.starts, runs.counts, runs.scale,
                               index.cache[key], index.block_min, index.block_max, proj, wfc, cam.matrix(),
-                              cam.height_px, cam.width_px, lut, params)
+                              cam.height_px, cam.width_px, lut, params, self._pad)
         if keep.all():
             return runs
         return _Runs(runs.starts[keep], runs.counts[keep], runs.scale[keep])
@@ -827,7 +842,7 @@ class SplatRenderer:
         zbuf, sums, best, overflow = kernels.front_pass(
             arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, runs.starts, runs.counts, runs.scale, proj.ravel(),
             np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, *self._front_tolerance(), labelled, with_spacing,
-            nx, ny, nz, consts, slope is not None, cfg.mode == "paper",
+            nx, ny, nz, consts, slope is not None, cfg.mode == "paper", self._pad,
         )
         if overflow:
             log.debug("a pixel's front layer exceeds %d points: array code for this view", kernels.MAX_FRONT_POINTS)
@@ -836,11 +851,17 @@ class SplatRenderer:
                       sums[7] if with_spacing else None, best if labelled else None,
                       sums[8] if slope is not None else None)
 
-    def _project(self, arrays, idx, proj, h, w):
-        """Depth, padded target pixel (the miss bin for points off the image or out of range) and
-        the quantised sub-pixel offsets of the points ``idx``."""
+    @property
+    def _pad(self) -> int:
+        """Pixels on each side of the image that a view's points are projected into: the 3x3
+        splat's ring, and in the visibility mode the guard band of its footprints as well."""
+        return 1 + (self.config.guard_px if self.config.mode == "visibility" else 0)
+
+    def _project(self, arrays, idx, proj, h, w, pad=1):
+        """Depth, target pixel of the image padded by ``pad`` (the miss bin for points off it or
+        out of range) and the quantised sub-pixel offsets of the points ``idx``."""
         ops, cfg = self._ops, self.config
-        wp, npad = w + 2, (h + 2) * (w + 2)
+        wp, npad = w + 2 * pad, (h + 2 * pad) * (w + 2 * pad)
         x, y, zw = arrays.x[idx], arrays.y[idx], arrays.z[idx]
         (a0, a1, a2, a3), (b0, b1, b2, b3), (c0, c1, c2, c3) = ([float(v) for v in row] for row in proj)
         z = x * c0 + y * c1 + zw * c2 + c3
@@ -850,8 +871,8 @@ class SplatRenderer:
             v = (x * b0 + y * b1 + zw * b2 + b3) * inv
         iu = ops.floor_int(u + 0.5)
         iv = ops.floor_int(v + 0.5)
-        valid = (z > cfg.near_m) & (z < cfg.far_m) & (iu >= -1) & (iu <= w) & (iv >= -1) & (iv <= h)
-        q = ops.where(valid, (iv + 1) * wp + (iu + 1), npad)
+        valid = (z > cfg.near_m) & (z < cfg.far_m) & (iu >= -pad) & (iu <= w - 1 + pad) & (iv >= -pad) & (iv <= h - 1 + pad)
+        q = ops.where(valid, (iv + pad) * wp + (iu + pad), npad)
         z = ops.where(valid, z, math.inf)
         # Sub-pixel offsets of each point from its pixel centre, quantised to 1/255 px so that
         # the backends' sums agree exactly (and numpy can pack them into one exact float64 sum).
@@ -863,13 +884,14 @@ class SplatRenderer:
                       labelled) -> _Front:
         """The front layer as array code (numpy or torch): the reference of the compiled loops."""
         ops, cfg = self._ops, self.config
-        npad = (h + 2) * (w + 2)
+        pad = self._pad
+        npad = (h + 2 * pad) * (w + 2 * pad)
         idx_np = runs.indices()
         n = len(idx_np)
         if n == 0:
             return _Front(n=0)
         idx = ops.asarray(idx_np)
-        z, q, qu, qv = self._project(arrays, idx, proj, h, w)
+        z, q, qu, qv = self._project(arrays, idx, proj, h, w, pad)
         zbuf = ops.scatter_min(npad + 1, q, z)
         sp = None
         if cfg.mode == "visibility":
@@ -893,10 +915,10 @@ class SplatRenderer:
             (s_g,) = ops.scatter_add(npad + 1, q[front], [g])
         return _Front(n, zbuf, cnt, s_z, s_rgb, s_u, s_v, s_sp, best, s_g)
 
-    def _labels_pad(self, arrays, best, h, w):
-        """The nearest point's label per padded pixel (-1 where none)."""
+    def _labels_pad(self, arrays, best, h, w, pad=1):
+        """The nearest point's label per pixel of the image padded by ``pad`` (-1 where none)."""
         ops = self._ops
-        best_pt = best[: (h + 2) * (w + 2)].reshape(h + 2, w + 2)
+        best_pt = best[: (h + 2 * pad) * (w + 2 * pad)].reshape(h + 2 * pad, w + 2 * pad)
         if self._use_kernel:
             return kernels.labels_of(best_pt, arrays.labels)
         return ops.where(best_pt >= 0, ops.to_int64(arrays.labels[ops.clamp(best_pt, 0, None)]), -1)
@@ -977,7 +999,8 @@ class SplatRenderer:
     def _visibility_compose(self, arrays, front: _Front, cam: PinholeCamera, h, w, labelled):
         """Footprints, visibility and pull-push filling of the front-layer surfels (:mod:`visibility`)."""
         ops, cfg = self._ops, self.config
-        hp, wp = h + 2, w + 2
+        pad = self._pad
+        hp, wp = h + 2 * pad, w + 2 * pad
         npad = hp * wp
 
         def img(a):
@@ -985,7 +1008,7 @@ class SplatRenderer:
 
         layer = visibility.FrontLayer(
             zmin=img(front.zbuf), count=img(front.cnt), sum_z=img(front.s_z), sum_rgb=[img(c) for c in front.s_rgb],
-            sum_spacing=img(front.s_sp), label=self._labels_pad(arrays, front.best, h, w) if labelled else None,
+            sum_spacing=img(front.s_sp), label=self._labels_pad(arrays, front.best, h, w, pad) if labelled else None,
             sum_slope=None if front.s_g is None else img(front.s_g),
         )
         params = self._visibility_params(cam)
@@ -1006,7 +1029,7 @@ class SplatRenderer:
             gap_levels=cfg.gap_levels, fill_levels=cfg.fill_levels, gap_max_m=cfg.gap_max_m,
             tol_rel1=float(np.float32(1.0 + cfg.visibility_tolerance_rel)), tol_abs_m=cfg.visibility_tolerance_m,
             slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
-            filter_rel=cfg.colour_filter_rel, slope_px=cfg.visibility_slope_px,
+            filter_rel=cfg.colour_filter_rel, slope_px=cfg.visibility_slope_px, guard_px=self._pad - 1,
         )
 
     def _surfels(self, cnt, s_z, s_rgb, s_u, s_v, h, w):

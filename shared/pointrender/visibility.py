@@ -28,6 +28,9 @@ with **pull-push hole filling**:
    its own farther pixels (the quadrant up its depth gradient holds no nearer point), so a wall
    seen along a corridor is not its own occluder; and a background surfel just outside a
    foreground silhouette keeps its place, so footprints do not grow objects (nor their labels).
+   The footprints include those of the points just outside the image (a guard band, as
+   screen-space passes render one): otherwise a pixel near the border has only the few columns
+   between it and the edge on that side, and the room behind a near wall passes there.
 2. *Hole filling* (pull-push, Marroquim, Kraus and Cavalcanti 2007, "Efficient point-based
    rendering using image reconstruction"; Grossman and Dally 1998): the visible surfels are pulled
    into an image pyramid in which each coarse cell averages only the children in the front depth
@@ -55,7 +58,9 @@ import numpy as np
 
 @dataclass
 class FrontLayer:
-    """Per padded pixel ((H + 2) x (W + 2)): the front-layer surfel the splat's front pass left."""
+    """Per pixel of the image padded by its 1-pixel ring and ``VisibilityParams.guard_px`` more on
+    every side ((H + 2 + 2g) x (W + 2 + 2g)): the front-layer surfel the splat's front pass left.
+    The guard band's surfels only count as footprints of the visibility test."""
 
     zmin: object  # float32, inf where no point
     count: object  # float32
@@ -87,19 +92,32 @@ class VisibilityParams:
     # Slope-scaled tolerance of the visibility test: a surfel may lie this many pixels' worth of
     # its own surface's depth slope (``FrontLayer.sum_slope``) behind the enclosing surface.
     slope_px: float = 0.0
+    # Width of the band around the padded image (pixels) whose surfels the front layer holds as
+    # footprints only (:class:`splat.SplatConfig` ``guard_px`` says why).
+    guard_px: int = 0
 
 
 def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     """The view (rgb (3, H, W) float, depth (H, W), hole (H, W) bool, labels (H, W) int64 or None)."""
     levels = max(p.fill_levels, p.gap_levels)
-    cell = 1 << levels
     hp, wp = h + 2, w + 2
-    # The pyramid halves each level: pad the grid to a multiple of its coarsest cell.
-    hq, wq = -(-hp // cell) * cell, -(-wp // cell) * cell
+    hq, wq, oy, ox = pyramid_grid(h, w, levels)
     inf = float("inf")
+    g = p.guard_px
+    inner = (slice(g, g + hp), slice(g, g + wp))
 
-    def pad(a, value):
-        return ops.pad2(a, hq - hp, wq - wp, value)
+    def pad(a, value):  # the padded image (without the guard band), centred in the pyramid's grid
+        return ops.pad2(a[inner], oy, hq - hp - oy, ox, wq - wp - ox, value)
+
+    # 1. Visibility: the enclosing depth of each pixel from per-source footprints (those of the
+    # guard band included), then the test of each surfel against the enclosing depth of its own pixel.
+    has_g = front.zmin < inf
+    count_g = ops.where(has_g, front.count, 1.0)
+    spacing = front.sum_spacing / count_g
+    radius = ops.ceil(spacing * (p.footprint_scale * p.focal_px) / ops.where(has_g, front.zmin, 1.0) - 0.5)
+    radius = ops.where(has_g, ops.clamp(radius, float(p.min_radius_px), float(p.max_radius_px)), -1.0)
+    far, near2 = enclosing_depth(ops, front.zmin, radius, p, h + 2 * g, w + 2 * g)
+    far, near2 = pad(far, inf), pad(near2, inf)
 
     zmin = pad(front.zmin, inf)
     has = zmin < inf
@@ -107,13 +125,6 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     zmean = pad(front.sum_z, 0.0) / count
     rgb = [pad(c, 0.0) / count for c in front.sum_rgb]
     label = None if front.label is None else pad(front.label, -1)
-
-    # 1. Visibility: the enclosing depth of each pixel from per-source footprints, then the
-    # test of each surfel against the enclosing depth of its own pixel.
-    spacing = pad(front.sum_spacing, 0.0) / count
-    radius = ops.ceil(spacing * (p.footprint_scale * p.focal_px) / ops.where(has, zmin, 1.0) - 0.5)
-    radius = ops.where(has, ops.clamp(radius, float(p.min_radius_px), float(p.max_radius_px)), -1.0)
-    far, near2 = enclosing_depth(ops, zmin, radius, p, h, w)
     limit = far * p.tol_rel1 + p.tol_abs_m
     if front.sum_slope is not None:
         limit = limit + pad(front.sum_slope, 0.0) / count * p.slope_px
@@ -132,8 +143,9 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     out_rgb = [ops.where(visible, c, 0.0) for c in rgb]
     out_lab = None if label is None else ops.where(visible, label, -1)
     done = visible
-    rows, cols = ops.nonzero2(~visible[crop_of(h, w)])
-    rows, cols = rows + 1, cols + 1  # padded coordinates
+    crop = crop_of(h, w, oy, ox)
+    rows, cols = ops.nonzero2(~visible[crop])
+    rows, cols = rows + 1 + oy, cols + 1 + ox  # pyramid coordinates
     ref, ref_lo = far[rows, cols], near2[rows, cols]
     covered = ref < inf
     tol_rel = p.tol_rel1 - 1.0
@@ -171,7 +183,6 @@ def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
         keep = ~take
         rows, cols, ref, ref_lo, covered = rows[keep], cols[keep], ref[keep], ref_lo[keep], covered[keep]
 
-    crop = crop_of(h, w)
     hole = ~done[crop]
     rgb_img = ops.stack([c[crop] for c in out_rgb])
     if p.filter_rel > 0:
@@ -241,8 +252,10 @@ def enclosing_depth(ops, zmin, radius, p: VisibilityParams, h: int, w: int):
     surfel (the quadrants away from the silhouette see the background): footprints do not grow
     objects. The depth of a filled pixel must lie between ``near2`` and ``far``.
 
-    A quadrant whose window leaves the image and holds no footprint is not counted: the surface
-    may continue beyond the border. Radii are rounded up to a few classes so that the dilation
+    ``zmin`` and ``radius`` span the image of ``h`` x ``w`` padded by one pixel (and by any rows
+    and columns of +inf / -1 on the bottom and right). A quadrant whose window leaves that image
+    and holds no footprint is not counted: the surface may continue beyond the border (what the
+    renderer's guard band makes rare: the image here is the view grown by it). Radii are rounded up to a few classes so that the dilation
     costs a handful of exact min filters (O(1) per pixel whatever the size); the sources of class
     k join at the step after which k pixels of dilation remain."""
     inf = float("inf")
@@ -278,9 +291,22 @@ def enclosing_depth(ops, zmin, radius, p: VisibilityParams, h: int, w: int):
     return far, ops.minimum(near2, far)
 
 
-def crop_of(h: int, w: int):
-    """The image inside the padded (and pyramid-padded) grid."""
-    return slice(1, 1 + h), slice(1, 1 + w)
+def crop_of(h: int, w: int, oy: int = 0, ox: int = 0):
+    """The image inside the padded grid placed at (``oy``, ``ox``) of the pyramid's grid."""
+    return slice(1 + oy, 1 + oy + h), slice(1 + ox, 1 + ox + w)
+
+
+def pyramid_grid(h: int, w: int, levels: int) -> tuple[int, int, int, int]:
+    """``(hq, wq, oy, ox)``: the pull-push pyramid's grid (the padded image's (h + 2) x (w + 2)
+    rounded up to a multiple of its coarsest cell, 2^levels) and where the padded image sits in
+    it: centred, so that no image border falls at the start of a coarse cell with nothing of the
+    image beyond it. (At the corner, (256 + 2) rows in a grid of 288 put the last image row alone
+    with the ring below it in every cell up to 32 px: a pixel there whose own surfel the
+    visibility test removed had no ancestor to fill from but the ring, and stayed a hole.)"""
+    cell = 1 << levels
+    hp, wp = h + 2, w + 2
+    hq, wq = -(-hp // cell) * cell, -(-wp // cell) * cell
+    return hq, wq, (hq - hp) // 2, (wq - wp) // 2
 
 
 @dataclass
@@ -383,19 +409,20 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     from shared.pointrender import visibility_kernels as vk
 
     levels = max(p.fill_levels, p.gap_levels)
-    cell = 1 << levels
     hp, wp = h + 2, w + 2
-    hq, wq = -(-hp // cell) * cell, -(-wp // cell) * cell
+    hq, wq, oy, ox = pyramid_grid(h, w, levels)
     f32 = np.float32
     with_labels = front.label is not None
-    # Surfels and covers on the padded grid only: the pyramid's extra pixels hold no surfel, so
-    # no footprint reaches past the padded grid (the erosion's border is the same +inf).
+    g = p.guard_px
+    # Footprint classes and covers on the padded grid with its guard band, surfels on the padded
+    # grid only: the pyramid's extra pixels hold no surfel, so no footprint reaches past the
+    # guard band (the erosion's border is the same +inf).
     zmin = np.empty((hp, wp), f32)
     has = np.empty((hp, wp), bool)
     zmean = np.empty((hp, wp), f32)
     rgb = np.empty((3, hp, wp), f32)
     label = np.empty((hp, wp) if with_labels else (1, 1), np.int64)
-    cls = np.empty((hp, wp), np.int32)
+    cls = np.empty(front.zmin.shape, np.int32)
     hist = np.zeros(p.max_radius_px + 1, np.int64)
     lab_in = front.label if with_labels else np.full((1, 1), -1, np.int64)
     with_slope = front.sum_slope is not None
@@ -403,14 +430,14 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     vk.surfels(front.zmin, front.count, front.sum_z, front.sum_rgb[0], front.sum_rgb[1], front.sum_rgb[2],
                front.sum_spacing, lab_in, with_labels, f32(p.footprint_scale * p.focal_px),
                f32(p.min_radius_px), f32(p.max_radius_px), radius_lut(p), zmin, has, zmean, rgb, label, cls, hist,
-               front.sum_slope if with_slope else front.zmin, with_slope, f32(p.slope_px), slope_tol)
+               front.sum_slope if with_slope else front.zmin, with_slope, f32(p.slope_px), slope_tol, g)
     present = [int(k) for k in np.flatnonzero(hist)]
     order, first = vk.bucket(cls, hist)
     # The four quadrant covers, mirrored into one image so that one min filter serves them all.
-    cov4 = np.full((hp, wp, 4), np.inf, f32)
+    cov4 = np.full((*front.zmin.shape, 4), np.inf, f32)
     border = (float("inf"),) * 4
     for i, k in enumerate(reversed(present)):
-        vk.add_sources(cov4, order, first[k], first[k + 1], zmin)
+        vk.add_sources(cov4, order, first[k], first[k + 1], front.zmin)
         nxt = present[-2 - i] if i + 1 < len(present) else 0
         if k > nxt:
             m = k - nxt
@@ -436,7 +463,7 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
     out_rgb = np.empty((3, h, w), f32)
     out_lab = np.empty((h, w) if with_labels else (1, 1), np.int64)
     hole = np.empty((h, w), bool)
-    vk.finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
+    vk.finish(cov4, g, reach, h, w, hq, wq, oy, ox, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
               slope_tol, with_slope,
               levels, offs, dims, pyr, pyr_lab, p.fill_levels, p.gap_levels, fill_hi, fill_lo, gap_rel, gap_scale,
               f32(p.gap_max_m), out_z, out_rgb, out_lab, hole)

@@ -22,30 +22,22 @@ _INF = np.float32(np.inf)
 
 
 def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, fs_focal, rmin, rmax, lut,
-             zmin, has, zmean, rgb, label, cls, hist, sl_p, with_slope, slope_px, slope_tol):
-    """Per pixel of the padded grid: the surfel (zmin, has, mean depth, mean colour, label, and with
-    ``with_slope`` the slope part of its visibility tolerance) and footprint class (-1: no
-    surfel); ``hist[k]`` counts the pixels of class k. (The array code pads these images further
-    for the pyramid; the extra pixels hold no surfel, and :func:`_finish` reads them as such.)"""
-    hp, wp = zmin_p.shape
+             zmin, has, zmean, rgb, label, cls, hist, sl_p, with_slope, slope_px, slope_tol, guard):
+    """Per pixel of the padded grid grown by its ``guard`` band (the inputs ``*_p`` and ``cls``):
+    the footprint class (-1: no surfel), ``hist[k]`` counting the pixels of class k; per pixel of
+    the padded grid (the outputs, ``guard`` in from the inputs' border): the surfel (zmin, has,
+    mean depth, mean colour, label, and with ``with_slope`` the slope part of its visibility
+    tolerance). (The array code pads these images further for the pyramid; the extra pixels hold
+    no surfel, and :func:`_finish` reads them as such.)"""
+    hg, wg = zmin_p.shape
+    hp, wp = zmin.shape
     half = np.float32(0.5)
     one = np.float32(1.0)
-    for i in range(hp):
-        for j in range(wp):
+    for i in range(hg):
+        for j in range(wg):
             z = zmin_p[i, j]
-            h = z < _INF
-            c = cnt_p[i, j] if h else one
-            zmin[i, j] = z
-            has[i, j] = h
-            zmean[i, j] = sz_p[i, j] / c
-            rgb[0, i, j] = r_p[i, j] / c
-            rgb[1, i, j] = g_p[i, j] / c
-            rgb[2, i, j] = b_p[i, j] / c
-            if with_labels:
-                label[i, j] = lab_p[i, j]
-            if with_slope:
-                slope_tol[i, j] = sl_p[i, j] / c * slope_px
-            if h:
+            if z < _INF:
+                c = cnt_p[i, j]
                 sp = sp_p[i, j] / c
                 rad = np.ceil(sp * fs_focal / z - half)
                 rad = min(max(rad, rmin), rmax)
@@ -54,6 +46,22 @@ def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, fs_fo
                 hist[k] += 1
             else:
                 cls[i, j] = -1
+    for i in range(hp):
+        for j in range(wp):
+            ig, jg = i + guard, j + guard
+            z = zmin_p[ig, jg]
+            h = z < _INF
+            c = cnt_p[ig, jg] if h else one
+            zmin[i, j] = z
+            has[i, j] = h
+            zmean[i, j] = sz_p[ig, jg] / c
+            rgb[0, i, j] = r_p[ig, jg] / c
+            rgb[1, i, j] = g_p[ig, jg] / c
+            rgb[2, i, j] = b_p[ig, jg] / c
+            if with_labels:
+                label[i, j] = lab_p[ig, jg]
+            if with_slope:
+                slope_tol[i, j] = sl_p[ig, jg] / c * slope_px
 
 
 def _bucket(cls, hist):
@@ -86,26 +94,28 @@ def _add_sources(cov4, order, lo, hi, zmin):
         cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
 
 
-def _finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, slope_tol,
+def _finish(cov4, guard, reach, h, w, hq, wq, oy, ox, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, slope_tol,
             with_slope, levels, offs, dims,
             pyr, pyr_lab, fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max,
             out_z, out_rgb, out_lab, hole):
     """Enclosing depths, the visibility test, the pull pyramid and the push, as the array code.
 
-    The surfel images and the covers span the padded grid ``zmin.shape``; the pyramid spans
-    ``hq`` x ``wq`` (the padded grid rounded up to its coarsest cell), whose extra pixels hold no
-    surfel."""
+    The surfel images span the padded grid ``zmin.shape``, the covers that grid grown by its
+    ``guard`` band; the pyramid spans ``hq`` x ``wq`` (the padded grid rounded up to its coarsest
+    cell, placed at (``oy``, ``ox``) of it), whose extra pixels hold no surfel."""
     hp, wp = zmin.shape
+    hg, wg = cov4.shape[0], cov4.shape[1]
     ninf = -_INF
     zero = np.float32(0.0)
     # far / near2 per pixel of the padded grid, and level 0 of the pyramid (the visible surfels;
     # channels: weight, sum z, sum r, g, b, zlo, zhi), in one pass.
     far = np.empty((hp, wp), np.float32)
     near2 = np.empty((hp, wp), np.float32)
-    for i in range(hq):
-        for j in range(wq):
-            t = i * wq + j
-            if i >= hp or j >= wp:
+    for iq in range(hq):
+        for jq in range(wq):
+            t = iq * wq + jq
+            i, j = iq - oy, jq - ox
+            if i < 0 or j < 0 or i >= hp or j >= wp:
                 for ch in range(5):
                     pyr[ch, t] = zero
                 pyr[5, t] = _INF
@@ -113,14 +123,15 @@ def _finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels
                 if with_labels:
                     pyr_lab[t] = -1
                 continue
-            ii, jj = hp - 1 - i, wp - 1 - j
-            l0 = cov4[i, j, 0]
-            l1 = cov4[i, jj, 1]
-            l2 = cov4[ii, j, 2]
+            ig, jg = i + guard, j + guard
+            ii, jj = hg - 1 - ig, wg - 1 - jg
+            l0 = cov4[ig, jg, 0]
+            l1 = cov4[ig, jj, 1]
+            l2 = cov4[ii, jg, 2]
             l3 = cov4[ii, jj, 3]
-            # A quadrant that reaches past the image and found nothing does not count.
-            top, left = i <= reach, j <= reach
-            bottom, right = i >= h + 1 - reach, j >= w + 1 - reach
+            # A quadrant that reaches past the guard band and found nothing does not count.
+            top, left = ig <= reach, jg <= reach
+            bottom, right = ig >= hg - 1 - reach, jg >= wg - 1 - reach
             f = ninf
             f = max(f, ninf if (l0 == _INF and (top or left)) else l0)
             f = max(f, ninf if (l1 == _INF and (top or right)) else l1)
@@ -198,7 +209,8 @@ def _finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels
     # Push: each crop pixel without a visible surfel takes its finest acceptable ancestor.
     for i in range(1, h + 1):
         for j in range(1, w + 1):
-            t0 = i * wq + j
+            iq, jq = i + oy, j + ox
+            t0 = iq * wq + jq
             if pyr[0, t0] > 0:
                 out_z[i - 1, j - 1] = zmean[i, j]
                 for ch in range(3):
@@ -218,7 +230,7 @@ def _finish(cov4, reach, h, w, hq, wq, zmin, has, zmean, rgb, label, with_labels
             for lev in range(1, levels + 1):
                 if lev > fill_levels and lev > gap_levels:
                     break
-                t = offs[lev] + (i >> lev) * dims[lev, 1] + (j >> lev)
+                t = offs[lev] + (iq >> lev) * dims[lev, 1] + (jq >> lev)
                 wgt = pyr[0, t]
                 safe = wgt if wgt > 0 else np.float32(1.0)
                 mz = pyr[1, t] / safe

@@ -28,7 +28,10 @@ def _identical(a, b):
 
 
 @needs_numba
-@pytest.mark.parametrize("near_m", [3.0, 4.0])
+# Near distances at which this flat has blocks to cull: few (its two rooms are small, most blocks
+# are seen), and fewer since the guard band (covers now span 16 px past the image border, where a
+# quadrant reaching past them reads +inf and proves nothing): at 3 m none is left.
+@pytest.mark.parametrize("near_m", [4.0, 5.0])
 def test_culling_changes_no_pixel_of_the_built_flat(room_index, near_m):
     poses = [camera_pose(pos, h, p) for pos, h, p in scenes.room_view_poses(8, seed=21)]
     poses.append(camera_pose((4.0, 3.0, 0.0), 0.3, 0.0))  # standing in a wall

@@ -223,6 +223,9 @@ def test_compiled_kernel_is_bit_identical_to_array_code(room_index, hfov_deg, mo
     poses = [camera_pose(pos, h, p) for pos, h, p in scenes.room_view_poses(4, seed=13)]
     # Standing in a wall: points behind the camera, inside the near plane and at grazing angles.
     poses.append(camera_pose((4.0, 3.0, 0.0), 0.3, 0.0))
+    # Outside the flat, facing its corner: empty space around it, so that both paths leave holes
+    # (the flat's dense cloud leaves none inside).
+    poses.append(camera_pose((-2.0, -2.0, 0.0), math.pi / 4, 0.0))
     # "visibility-flat": the visibility mode without the slope-scaled tolerance (no normals).
     cfg = {"mode": "visibility", "visibility_slope_px": 0.0} if mode == "visibility-flat" else {"mode": mode}
     compiled = RENDERERS.create("numpy", {"kernel": "numba", **cfg})
