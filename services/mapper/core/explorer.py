@@ -499,8 +499,8 @@ class _Run:
             self.arrive(self.robot.observe(), previous=base, travelled_m=travelled)
         elif travelled > 1e-3:
             # Stranded between nodes: go back to the node so the graph stays truthful.
-            self._move(*(g.pos(base)[:2] - end[:2]))
             self.here = base
+            self._return_to(base)
 
     def _walk_legs(self, corners: list[np.ndarray]) -> tuple[bool, float]:
         """Walk straight legs from the current node through ``corners`` (the map's way around
@@ -562,9 +562,20 @@ class _Run:
         return True
 
     def _return_to(self, nid: str) -> None:
+        """Step back to node ``nid`` (the current node) after a blocked or abandoned move. Where
+        the robot does not get back (it slid off a flight's side and stands a floor lower), the
+        graph's idea of where it stands is wrong: it takes a panorama where it is, a new node
+        that the next walk rejoins by :meth:`_reconnect`. generated:4:area=200:floors=2 believed
+        its robot on a stair node 0.56 m up while it stood on the ground floor 0.7 m away, gave
+        up every frontier left as out of reach, and ended at 51 % coverage, one floor."""
         back = self.graph.pos(nid)[:2] - self.pose.xyz[:2]
         if math.hypot(*back) > 1e-3:
             self._move(*back)
+        d = self.pose.xyz - self.graph.pos(nid)
+        if math.hypot(d[0], d[1]) > self.cfg.min_progress_m or abs(d[2]) >= self.cfg.stair_rise_m:
+            log.info("robot did not get back to %s (%.2f m off, %.2f m below or above): a new node where it is",
+                     nid, math.hypot(d[0], d[1]), d[2])
+            self.arrive(self.robot.observe(), previous=None, travelled_m=0.0)
 
     def _reconnect(self) -> bool:
         """Join the current node to the nearest visited nodes it has no traversed path to, directly."""
