@@ -95,17 +95,11 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
     check = checkpoint or _no_checkpoint
     tour = pt.tour
     start = np.asarray(tour.start_pose.position_m)
+    path = np.asarray(tour.path_m)
     check()
     if scene is not None:
         _transit(robot, scene, start, check)
-    here = robot.pose
-    d = start[:2] - here.xyz[:2]
-    if np.hypot(*d) > 0.05:
-        res = robot.move_to(float(d[0]), float(d[1]))
-        if res.status != MoveStatus.REACHED:
-            raise TourExecutionError(
-                f"region {tour.region}: could not reach the tour start ({res.travelled_m:.2f} m)"
-            )
+    first = _reach_tour_start(robot, tour.region, path if len(path) else start[None], scene, check)
     turn = float(wrap_angle(tour.start_pose.heading_rad - robot.pose.heading_rad))
     if abs(turn) > 1e-3:
         robot.turn(turn)
@@ -118,11 +112,14 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
 
     rec = RegionRecording(region=tour.region, start_pose=robot.pose)
     hubs = set(pt.hub_path_index)
-    path = np.asarray(tour.path_m)
+    # Hubs before the first reachable sample are looked around from there, their nearest
+    # reachable place on the path.
+    if any(k < first for k in hubs):
+        hubs.add(first)
     with robot.recording(sink, rate_hz):
-        for k in range(len(path)):
+        for k in range(first, len(path)):
             check()  # inside the recording: abandoning it here stops the recording on the way out
-            if k > 0:
+            if k > first:
                 cur = robot.pose.xyz
                 d = path[k, :2] - cur[:2]
                 if np.hypot(*d) > 1e-3:
@@ -147,6 +144,34 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
 
 def _no_checkpoint() -> None:
     pass
+
+
+def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: SceneMap | None,
+                      check: Callable[[], None], samples: tuple[int, ...] = (0, 1, 2, 3, 4, 6, 8, 12)) -> int:
+    """Move straight to the tour's start, or, where the simulator (or the world) has no room for
+    the robot there, to the first of the later path ``samples`` it can reach, each approached over
+    the exploration's walked edges from the node nearest it: the index of the sample reached. A
+    tour's hubs are chosen on the scans' free-space map, which misses desk edges and clutter; a
+    1,000 m2 building lost 2 of its 40 regions to a start inside a piece of furniture, the whole
+    region unrecorded for one unreachable pose."""
+    tried = [k for k in samples if k < len(path)]
+    travelled = 0.0
+    for n, k in enumerate(tried):
+        if n and scene is not None:
+            _transit(robot, scene, path[k], check)
+        d = path[k, :2] - robot.pose.xyz[:2]
+        if np.hypot(*d) <= 0.05:
+            return k
+        check()
+        res = robot.move_to(float(d[0]), float(d[1]))
+        travelled += res.travelled_m
+        if res.status == MoveStatus.REACHED:
+            if k:
+                log.info("region %d: tour start out of reach; starting at path sample %d", region, k)
+            return k
+    raise TourExecutionError(
+        f"region {region}: could not reach the tour start nor {len(tried) - 1} later path samples ({travelled:.2f} m)"
+    )
 
 
 def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Callable[[], None] = _no_checkpoint,

@@ -169,3 +169,91 @@ def test_walked_tours_stand_and_move_only_where_the_robot_did():
             # On one of its moves: the distance to the nearest trajectory segment.
             t = np.clip(((p[:2] - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-12), 0.0, 1.0)
             assert np.hypot(*(a + ab * t[:, None] - p[:2]).T).min() < 1e-6
+
+
+class _BoxRobot:
+    """A robot on a plane with one forbidden disc (a piece of furniture the scans missed): a move
+    into it stops at its edge. It records frames at every look-around (one frame per look)."""
+
+    def __init__(self, xy, blocked_xy, blocked_r_m):
+        from shared.schemas import Pose
+
+        self._Pose = Pose
+        self.xy = np.asarray(xy, float)
+        self.blocked, self.r = np.asarray(blocked_xy, float), blocked_r_m
+        self.heading = 0.0
+        self.looks: list[np.ndarray] = []
+
+    @property
+    def pose(self):
+        return self._Pose(position_m=(float(self.xy[0]), float(self.xy[1]), 0.0), heading_rad=self.heading)
+
+    def move_to(self, dx_m, dy_m):
+        from shared.schemas import MoveResult, MoveStatus
+
+        goal = self.xy + [dx_m, dy_m]
+        n = max(2, int(np.hypot(dx_m, dy_m) / 0.01))
+        pos = self.xy
+        for t in np.linspace(0.0, 1.0, n)[1:]:
+            p = self.xy + t * (goal - self.xy)
+            if np.hypot(*(p - self.blocked)) < self.r:
+                travelled = float(np.hypot(*(pos - self.xy)))
+                self.xy = pos
+                return MoveResult(status=MoveStatus.BLOCKED, pose=self.pose, travelled_m=travelled, steps=1)
+            pos = p
+        travelled = float(np.hypot(dx_m, dy_m))
+        self.xy = goal
+        return MoveResult(status=MoveStatus.REACHED, pose=self.pose, travelled_m=travelled, steps=1)
+
+    def turn(self, angle_rad):
+        self.heading += angle_rad
+
+    def look_around(self):
+        from shared.schemas import Frame
+
+        self.looks.append(self.xy.copy())
+        return []
+
+    def recording(self, sink, rate_hz=5.0):
+        import contextlib
+
+        return contextlib.nullcontext()
+
+
+def _planned(path_xy, hub_index):
+    from services.mapper.core.tours import PlannedTour
+    from shared.schemas import Pose, Tour
+
+    path = np.array([[x, y, 0.0] for x, y in path_xy])
+    tour = Tour(region=3, start_pose=Pose(position_m=tuple(path[0]), heading_rad=0.0),
+                hubs_m=path[hub_index], path_m=path, coverage=1.0)
+    return PlannedTour(tour=tour, hub_path_index=list(hub_index), length_m=1.0, nn_length_m=1.0,
+                       order_length_m=1.0, achievable_coverage=1.0, plan_s=0.0, candidates=1)
+
+
+def test_a_tour_whose_start_is_inside_furniture_starts_at_the_next_reachable_sample():
+    """Bench.reconstructor --building: 2 of 40 regions had their first hub 0.3 m inside a piece of
+    furniture the scans missed, and were skipped whole. The tour now starts at the first path
+    sample it reaches and looks around there for the hub it could not stand at."""
+    from services.mapper.core.execute import execute_tour
+
+    path = [(1.0, 0.25 * k) for k in range(12)]  # the start (1, 0) lies inside the disc
+    robot = _BoxRobot((0.0, 0.0), blocked_xy=(1.0, -0.1), blocked_r_m=0.3)
+    rec = execute_tour(robot, _planned(path, [0, 11]), scene=None, rate_hz=1.0)
+    assert rec.hubs_visited == 2
+    first = robot.looks[0]
+    reached = [k for k, p in enumerate(path) if np.allclose(first, p)]
+    assert reached and 1 <= reached[0] <= 12  # a later sample of the path, outside the disc
+    assert np.hypot(*(first - (1.0, -0.1))) >= 0.3
+    assert robot.looks[1] == pytest.approx(path[11])
+
+
+def test_a_tour_with_no_reachable_start_is_refused_with_its_reason():
+    from services.mapper.core.errors import TourExecutionError
+    from services.mapper.core.execute import execute_tour
+
+    path = [(1.0 + 0.05 * k, 0.0) for k in range(13)]  # every sample tried (0-4, 6, 8, 12) inside the disc
+    robot = _BoxRobot((0.0, 0.0), blocked_xy=(1.3, 0.0), blocked_r_m=0.5)
+    with pytest.raises(TourExecutionError, match="could not reach the tour start nor 7 later path samples"):
+        execute_tour(robot, _planned(path, [0, 11]), scene=None, rate_hz=1.0)
+    assert not robot.looks
