@@ -471,15 +471,18 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int, nea
     present = np.flatnonzero(hist).tolist()
     order, first = vk.bucket(cls, hist)
     # The four quadrant covers, mirrored into one image so that one min filter serves them all.
+    # The min filters alternate between two buffers rather than allocate an image each.
     cov4 = np.full((*front.zmin.shape, 4), np.inf, f32)
+    spare = np.empty_like(cov4)
     border = (float("inf"),) * 4
     for i, k in enumerate(reversed(present)):
         vk.add_sources(cov4, order, first[k], first[k + 1], front.zmin)
         nxt = present[-2 - i] if i + 1 < len(present) else 0
         if k > nxt:
             m = k - nxt
-            cov4 = cv2.erode(cov4, plan.erode_kernels[m], anchor=(m, m), borderType=cv2.BORDER_CONSTANT,
-                             borderValue=border)
+            cv2.erode(cov4, plan.erode_kernels[m], dst=spare, anchor=(m, m), borderType=cv2.BORDER_CONSTANT,
+                      borderValue=border)
+            cov4, spare = spare, cov4
     reach = present[-1] if present else 0
     lab_direct = front.label is not None
     with_labels = lab_direct or nearest is not None
