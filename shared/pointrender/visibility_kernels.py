@@ -97,70 +97,74 @@ def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, wit
     h1, w1 = dims[1, 0], dims[1, 1]
     o1 = offs[1]
     inf = _INF
-    # Level 0 of the padded image: each visible surfel's mean depth (inf: none), mean colour and
-    # label; the image's own pixels go to the outputs (holes marked for the push).
-    m0 = np.empty((hp, wp), np.float32)
-    c0 = np.empty((hp, wp, 3), np.float32)
-    l0 = np.empty((hp, wp) if with_labels else (1, 1), np.int64)
-    for i in range(hp):
-        ig = i + guard
-        ii = hg - 1 - ig
-        top, bottom = ig <= reach, ig >= hg - 1 - reach
-        inside_i = i >= 1 and i <= h
-        for j in range(wp):
-            jg = j + guard
-            z = zmin[ig, jg]
-            vis = False
-            c = one
-            if z < inf:
-                # far (visibility.enclosing_depth), written out: see above.
-                jj = wg - 1 - jg
-                l0_, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
-                left, right = jg <= reach, jg >= wg - 1 - reach
-                f = ninf
-                f = max(f, ninf if (l0_ == inf and (top or left)) else l0_)
-                f = max(f, ninf if (l1 == inf and (top or right)) else l1)
-                f = max(f, ninf if (l2 == inf and (bottom or left)) else l2)
-                f = max(f, ninf if (l3 == inf and (bottom or right)) else l3)
-                if f == ninf:
-                    f = inf
-                c = cnt[ig, jg]
-                limit = f * tol_rel1 + tol_abs
-                if with_slope:
-                    limit = limit + sl[ig, jg] / c * slope_px
-                vis = z <= limit
-            inside = inside_i and j >= 1 and j <= w
-            if vis:
-                zm, r, g, b = sz[ig, jg] / c, sr[ig, jg] / c, sg[ig, jg] / c, sb[ig, jg] / c
-                m0[i, j] = zm
-                c0[i, j, 0] = r
-                c0[i, j, 1] = g
-                c0[i, j, 2] = b
-                lab = np.int64(-1)
-                if with_labels:
-                    lab = np.int64(lab_ids[ig, jg])
-                    if not lab_direct and lab >= 0:
-                        lab = np.int64(lab_table[lab])
-                    l0[i, j] = lab
-                if inside:
-                    out_z[i - 1, j - 1] = zm
-                    out_rgb[0, i - 1, j - 1] = r
-                    out_rgb[1, i - 1, j - 1] = g
-                    out_rgb[2, i - 1, j - 1] = b
-                    if with_labels:
-                        out_lab[i - 1, j - 1] = lab
-            else:
-                m0[i, j] = inf
-                c0[i, j, 0] = zero
-                c0[i, j, 1] = zero
-                c0[i, j, 2] = zero
-                if with_labels:
-                    l0[i, j] = -1
-            if inside:
-                hole[i - 1, j - 1] = not vis
-    # Level 1 from level 0, as the array code pulls it: a visible surfel weighs 1 and sums its
-    # mean (mean * 1), an invisible one or a pixel off the padded image weighs 0 and sums 0.
+    # Two rows at a time (those of a row of level-1 cells): level 0 of the padded image, each
+    # visible surfel's mean depth (inf: none), mean colour and label, in row buffers that stay
+    # in cache; the image's own pixels go to the outputs (holes marked for the push). Then
+    # level 1 from them, as the array code pulls it: a visible surfel weighs 1 and sums its mean
+    # (mean * 1), an invisible one or a pixel off the padded image weighs 0 and sums 0.
+    m0 = np.empty((2, wp), np.float32)
+    c0 = np.empty((2, wp, 3), np.float32)
+    l0 = np.empty((2, wp) if with_labels else (1, 1), np.int64)
     for I in range(h1):
+        for di in range(2):
+            i = 2 * I + di - oy
+            if i < 0 or i >= hp:
+                continue
+            ig = i + guard
+            ii = hg - 1 - ig
+            top, bottom = ig <= reach, ig >= hg - 1 - reach
+            inside_i = i >= 1 and i <= h
+            for j in range(wp):
+                jg = j + guard
+                z = zmin[ig, jg]
+                vis = False
+                c = one
+                if z < inf:
+                    # far (visibility.enclosing_depth), written out: see above.
+                    jj = wg - 1 - jg
+                    l0_, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
+                    left, right = jg <= reach, jg >= wg - 1 - reach
+                    f = ninf
+                    f = max(f, ninf if (l0_ == inf and (top or left)) else l0_)
+                    f = max(f, ninf if (l1 == inf and (top or right)) else l1)
+                    f = max(f, ninf if (l2 == inf and (bottom or left)) else l2)
+                    f = max(f, ninf if (l3 == inf and (bottom or right)) else l3)
+                    if f == ninf:
+                        f = inf
+                    c = cnt[ig, jg]
+                    limit = f * tol_rel1 + tol_abs
+                    if with_slope:
+                        limit = limit + sl[ig, jg] / c * slope_px
+                    vis = z <= limit
+                inside = inside_i and j >= 1 and j <= w
+                if vis:
+                    zm, r, g, b = sz[ig, jg] / c, sr[ig, jg] / c, sg[ig, jg] / c, sb[ig, jg] / c
+                    m0[di, j] = zm
+                    c0[di, j, 0] = r
+                    c0[di, j, 1] = g
+                    c0[di, j, 2] = b
+                    lab = np.int64(-1)
+                    if with_labels:
+                        lab = np.int64(lab_ids[ig, jg])
+                        if not lab_direct and lab >= 0:
+                            lab = np.int64(lab_table[lab])
+                        l0[di, j] = lab
+                    if inside:
+                        out_z[i - 1, j - 1] = zm
+                        out_rgb[0, i - 1, j - 1] = r
+                        out_rgb[1, i - 1, j - 1] = g
+                        out_rgb[2, i - 1, j - 1] = b
+                        if with_labels:
+                            out_lab[i - 1, j - 1] = lab
+                else:
+                    m0[di, j] = inf
+                    c0[di, j, 0] = zero
+                    c0[di, j, 1] = zero
+                    c0[di, j, 2] = zero
+                    if with_labels:
+                        l0[di, j] = -1
+                if inside:
+                    hole[i - 1, j - 1] = not vis
         for J in range(w1):
             i, j = 2 * I - oy, 2 * J - ox
             ra = i >= 0 and i < hp
@@ -168,10 +172,10 @@ def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, wit
             ca = j >= 0 and j < wp
             cb = j + 1 >= 0 and j + 1 < wp
             ina, inb, inc, ind = ra and ca, ra and cb, rc and ca, rc and cb
-            ma = m0[i, j] if ina else inf
-            mb = m0[i, j + 1] if inb else inf
-            mc = m0[i + 1, j] if inc else inf
-            md = m0[i + 1, j + 1] if ind else inf
+            ma = m0[0, j] if ina else inf
+            mb = m0[0, j + 1] if inb else inf
+            mc = m0[1, j] if inc else inf
+            md = m0[1, j + 1] if ind else inf
             va, vb, vc, vd = ma < inf, mb < inf, mc < inf, md < inf
             front = min(min(ma, mb), min(mc, md))
             thr = front * tol_rel1 + tol_abs
@@ -188,22 +192,22 @@ def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, wit
             pyr[t, 1] = ((ma if va else zero) * ka + (mb if vb else zero) * kb + (mc if vc else zero) * kc
                          + (md if vd else zero) * kd)
             for ch in range(3):
-                pyr[t, 2 + ch] = ((c0[i, j, ch] if va else zero) * ka + (c0[i, j + 1, ch] if vb else zero) * kb
-                                  + (c0[i + 1, j, ch] if vc else zero) * kc
-                                  + (c0[i + 1, j + 1, ch] if vd else zero) * kd)
+                pyr[t, 2 + ch] = ((c0[0, j, ch] if va else zero) * ka + (c0[0, j + 1, ch] if vb else zero) * kb
+                                  + (c0[1, j, ch] if vc else zero) * kc
+                                  + (c0[1, j + 1, ch] if vd else zero) * kd)
             pyr[t, 5] = min(min(ma if ka > 0 else inf, mb if kb > 0 else inf),
                             min(mc if kc > 0 else inf, md if kd > 0 else inf))
             pyr[t, 6] = max(max(ma if (ka > 0 and va) else ninf, mb if (kb > 0 and vb) else ninf),
                             max(mc if (kc > 0 and vc) else ninf, md if (kd > 0 and vd) else ninf))
             if with_labels:
                 if ka > 0 and ma == front:
-                    lab = l0[i, j] if va else np.int64(-1)
+                    lab = l0[0, j] if va else np.int64(-1)
                 elif kb > 0 and mb == front:
-                    lab = l0[i, j + 1] if vb else np.int64(-1)
+                    lab = l0[0, j + 1] if vb else np.int64(-1)
                 elif kc > 0 and mc == front:
-                    lab = l0[i + 1, j] if vc else np.int64(-1)
+                    lab = l0[1, j] if vc else np.int64(-1)
                 elif kd > 0 and md == front:
-                    lab = l0[i + 1, j + 1] if vd else np.int64(-1)
+                    lab = l0[1, j + 1] if vd else np.int64(-1)
                 else:
                     lab = np.int64(-1)
                 pyr_lab[t] = lab
