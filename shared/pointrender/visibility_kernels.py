@@ -41,7 +41,8 @@ def _classes(zmin, cnt, sp, fs_focal, rmin, rmax, lut, cls, hist):
 
 
 def _bucket(cls, hist):
-    """Pixel ids (i * wq + j) grouped by footprint class: class k is ``order[first[k]:first[k + 1]]``."""
+    """Pixels grouped by footprint class: class k is ``order[first[k]:first[k + 1]]``, each pixel as
+    ``i << 16 | j`` (shifts, not a division by the width, get its row and column back)."""
     hq, wq = cls.shape
     first = np.zeros(hist.shape[0] + 1, np.int64)
     for k in range(hist.shape[0]):
@@ -52,7 +53,7 @@ def _bucket(cls, hist):
         for j in range(wq):
             k = cls[i, j]
             if k >= 0:
-                order[fill[k]] = i * wq + j
+                order[fill[k]] = (i << 16) | j
                 fill[k] += 1
     return order, first
 
@@ -61,7 +62,8 @@ def _add_sources(cov4, order, lo, hi, zmin):
     """Sources ``order[lo:hi]`` (one footprint class) into the four mirrored quadrant covers (min)."""
     hq, wq = zmin.shape
     for s in range(lo, hi):
-        i, j = order[s] // wq, order[s] % wq
+        o = order[s]
+        i, j = o >> 16, o & 0xFFFF
         z = zmin[i, j]
         ii, jj = hq - 1 - i, wq - 1 - j
         cov4[i, j, 0] = min(cov4[i, j, 0], z)  # (-1, -1): as is
