@@ -116,17 +116,18 @@ def _front_pass(
         q = q_of[k]
         q_of[k] = q if z_of[k] <= zbuf[q] * tol_rel1 + tol_abs else npad
     # Pass 2b, sums. Depth sums are float64 in point order, exactly as ``np.bincount`` adds; the
-    # other sums are exact integers, packed so that a point touches two cache lines, not eight.
-    s_z = np.zeros(npad + 1, np.float64)
-    s_sp = np.zeros(npad + 1 if with_spacing else 1, np.float64)
-    s_g = np.zeros(npad + 1 if with_slope else 1, np.float64)
+    # other sums are exact integers, packed so that a point touches few cache lines: its pixel's
+    # float sums (depth, spacing, slope) share one row, count and colour another. Only the
+    # arrays a mode needs are per pixel (offsets: the paper's splat; ids: labels).
+    fs = np.zeros((npad + 1, 3), np.float64)  # depth, spacing, slope
     cx, cy, cz = slope_consts[0], slope_consts[1], slope_consts[2]
     ax, ay, az = slope_consts[3], slope_consts[4], slope_consts[5]
     inv_f, inv_tan = slope_consts[6], slope_consts[7]
     zero = np.float32(0.0)
     min_plane = np.float32(1e-6)
-    acc = np.zeros((npad + 1, 4), np.int64)  # count, packed rgb, packed uv, nearest id
-    acc[:, 3] = -1
+    acc = np.zeros((npad + 1, 2), np.int64)  # count, packed rgb
+    acc_uv = np.zeros(npad + 1 if with_uv else 1, np.int64)  # packed offsets
+    best = np.full(npad + 1, -1, np.int64)  # nearest id
     k = 0
     for r in range(run_counts.shape[0]):
         s = run_starts[r]
@@ -142,44 +143,40 @@ def _front_pass(
                 # is never read, so these points need no sums.
                 continue
             c = np.int64(rgb_packed[p])
-            s_z[t] += np.float64(zc)
+            fs[t, 0] += np.float64(zc)
             if with_spacing:
-                s_sp[t] += np.float64(spacing[p] * scale)
+                fs[t, 1] += np.float64(spacing[p] * scale)
             if with_slope:
                 # splat._point_slope, operation for operation.
                 d = nx[p] * (x[p] - cx) + ny[p] * (y[p] - cy) + nz[p] * (z[p] - cz)
                 cc = nx[p] * ax + ny[p] * ay + nz[p] * az
                 zs = zc * np.sqrt(max(one - cc * cc, zero))
                 den = max(max(abs(d), zs * inv_tan), min_plane)
-                s_g[t] += np.float64(zc * (zs / den) * inv_f)
+                fs[t, 2] += np.float64(zc * (zs / den) * inv_f)
             acc[t, 0] += 1
             acc[t, 1] += (c & 0xFF) | (((c >> 8) & 0xFF) << 21) | ((c >> 16) << 42)
             if with_uv:
-                acc[t, 2] += (uv & 0xFF) | ((uv >> 8) << 32)
+                acc_uv[t] += (uv & 0xFF) | ((uv >> 8) << 32)
             if with_labels:
-                acc[t, 3] = max(acc[t, 3], p if zc == zbuf[t] else -1)
+                best[t] = max(best[t], p if zc == zbuf[t] else -1)
+    # Every row written once (rows a mode does not sum are zero); the spare bin's count is 0.
     overflow = False
-    for i in range(npad):
-        overflow |= acc[i, 0] > MAX_FRONT_POINTS
-    sums = np.zeros((9, npad + 1), np.float32)
-    best = np.empty(npad + 1, np.int64)
+    sums = np.empty((9, npad + 1), np.float32)
     mask21 = (1 << 21) - 1
     mask32 = (1 << 32) - 1
     for i in range(npad + 1):
+        overflow |= acc[i, 0] > MAX_FRONT_POINTS
         sums[0, i] = acc[i, 0]
-        sums[1, i] = s_z[i]
+        sums[1, i] = fs[i, 0]
         c = acc[i, 1]
         sums[2, i] = c & mask21
         sums[3, i] = (c >> 21) & mask21
         sums[4, i] = (c >> 42) & mask21
-        uv = acc[i, 2]
+        uv = acc_uv[i] if with_uv else np.int64(0)
         sums[5, i] = uv & mask32
         sums[6, i] = (uv >> 32) & mask32
-        if with_spacing:
-            sums[7, i] = s_sp[i]
-        if with_slope:
-            sums[8, i] = s_g[i]
-        best[i] = acc[i, 3]
+        sums[7, i] = fs[i, 1]
+        sums[8, i] = fs[i, 2]
     return zbuf, sums, best, overflow
 
 

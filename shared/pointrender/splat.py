@@ -1006,14 +1006,20 @@ class SplatRenderer:
         def img(a):
             return a[:npad].reshape(hp, wp)
 
+        # The compiled path reads each visible pixel's label through its nearest point's id: a
+        # label image of every pixel of the guard-band grid costs a pass it does not need.
+        compiled = self._use_kernel
         layer = visibility.FrontLayer(
             zmin=img(front.zbuf), count=img(front.cnt), sum_z=img(front.s_z), sum_rgb=[img(c) for c in front.s_rgb],
-            sum_spacing=img(front.s_sp), label=self._labels_pad(arrays, front.best, h, w, pad) if labelled else None,
+            sum_spacing=img(front.s_sp),
+            label=self._labels_pad(arrays, front.best, h, w, pad) if labelled and not compiled else None,
             sum_slope=None if front.s_g is None else img(front.s_g),
         )
         params = self._visibility_params(cam)
-        if self._use_kernel:
-            rgb, depth, hole, labels = visibility.compose_compiled(layer, params, h, w)
+        if compiled:
+            nearest = img(front.best) if labelled else None
+            rgb, depth, hole, labels = visibility.compose_compiled(layer, params, h, w, nearest,
+                                                                   arrays.labels if labelled else None)
             return (visibility_kernels.rgb8(rgb), depth, hole,
                     None if labels is None else labels.astype(np.int32))
         rgb, depth, hole, labels = visibility.compose(ops, layer, params, h, w)

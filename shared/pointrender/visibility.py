@@ -51,6 +51,7 @@ division of two sums; the tests bound the difference.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -401,49 +402,30 @@ def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, norm
     return spacing, normals
 
 
-def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
-    """:func:`compose` on numpy arrays through the compiled loops of :mod:`visibility_kernels`
-    (bit-identical; ~10x faster at 256 x 256). Same outputs."""
-    import cv2
+@dataclass(frozen=True)
+class _Plan:
+    """What :func:`compose_compiled` needs of a view's size and parameters alone: built once per
+    (parameters, size), not per view (~0.3 ms of Python per view otherwise)."""
 
-    from shared.pointrender import visibility_kernels as vk
+    levels: int
+    oy: int
+    ox: int
+    lut: np.ndarray  # radius_lut
+    fill_hi: np.ndarray  # per-level constants of the push
+    fill_lo: np.ndarray
+    gap_rel: np.ndarray
+    gap_scale: np.ndarray
+    dims: np.ndarray  # (levels + 1, 2) cells per level
+    offs: np.ndarray  # level lev's cells start at row offs[lev] of the stored levels 1..
+    taps: np.ndarray  # FILTER_TAPS' weights
+    erode_kernels: tuple  # the min filters' windows by size - 1
 
-    levels = max(p.fill_levels, p.gap_levels)
-    hp, wp = h + 2, w + 2
-    hq, wq, oy, ox = pyramid_grid(h, w, levels)
+
+@functools.lru_cache(maxsize=64)
+def _plan(p: VisibilityParams, h: int, w: int) -> _Plan:
     f32 = np.float32
-    with_labels = front.label is not None
-    g = p.guard_px
-    # Footprint classes and covers on the padded grid with its guard band, surfels on the padded
-    # grid only: the pyramid's extra pixels hold no surfel, so no footprint reaches past the
-    # guard band (the erosion's border is the same +inf).
-    zmin = np.empty((hp, wp), f32)
-    has = np.empty((hp, wp), bool)
-    zmean = np.empty((hp, wp), f32)
-    rgb = np.empty((3, hp, wp), f32)
-    label = np.empty((hp, wp) if with_labels else (1, 1), np.int64)
-    cls = np.empty(front.zmin.shape, np.int32)
-    hist = np.zeros(p.max_radius_px + 1, np.int64)
-    lab_in = front.label if with_labels else np.full((1, 1), -1, np.int64)
-    with_slope = front.sum_slope is not None
-    slope_tol = np.empty((hp, wp) if with_slope else (1, 1), f32)
-    vk.surfels(front.zmin, front.count, front.sum_z, front.sum_rgb[0], front.sum_rgb[1], front.sum_rgb[2],
-               front.sum_spacing, lab_in, with_labels, f32(p.footprint_scale * p.focal_px),
-               f32(p.min_radius_px), f32(p.max_radius_px), radius_lut(p), zmin, has, zmean, rgb, label, cls, hist,
-               front.sum_slope if with_slope else front.zmin, with_slope, f32(p.slope_px), slope_tol, g)
-    present = [int(k) for k in np.flatnonzero(hist)]
-    order, first = vk.bucket(cls, hist)
-    # The four quadrant covers, mirrored into one image so that one min filter serves them all.
-    cov4 = np.full((*front.zmin.shape, 4), np.inf, f32)
-    border = (float("inf"),) * 4
-    for i, k in enumerate(reversed(present)):
-        vk.add_sources(cov4, order, first[k], first[k + 1], front.zmin)
-        nxt = present[-2 - i] if i + 1 < len(present) else 0
-        if k > nxt:
-            m = k - nxt
-            cov4 = cv2.erode(cov4, np.ones((m + 1, m + 1), np.uint8), anchor=(m, m),
-                             borderType=cv2.BORDER_CONSTANT, borderValue=border)
-    reach = present[-1] if present else 0
+    levels = max(p.fill_levels, p.gap_levels)
+    hq, wq, oy, ox = pyramid_grid(h, w, levels)
     # Per-level constants of the push, rounded to float32 exactly as numpy rounds a Python float
     # that meets a float32 array.
     tol_rel = p.tol_rel1 - 1.0
@@ -456,17 +438,69 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int):
         gap_rel[lev] = tol_rel + full_slope
         gap_scale[lev] = (1 << lev) / p.focal_px
     dims = np.array([(hq >> lev, wq >> lev) for lev in range(levels + 1)], np.int64)
-    offs = np.concatenate([[0], np.cumsum(dims[:, 0] * dims[:, 1])]).astype(np.int64)
-    pyr = np.empty((7, int(offs[-1])), f32)
-    pyr_lab = np.empty(int(offs[-1]) if with_labels else 1, np.int64)
+    offs = np.zeros(levels + 2, np.int64)  # level 0 is not stored: offs[0] = offs[1] = 0
+    for lev in range(1, levels + 1):
+        offs[lev + 1] = offs[lev] + dims[lev, 0] * dims[lev, 1]
+    taps = np.array([t[2] for t in FILTER_TAPS], f32)
+    kern = tuple(np.ones((m + 1, m + 1), np.uint8) for m in range(p.max_radius_px + 1))
+    for a in (p_ for p_ in (fill_hi, fill_lo, gap_rel, gap_scale, dims, offs, taps, *kern)):
+        a.setflags(write=False)  # shared by every view (and thread) of this size
+    return _Plan(levels, oy, ox, radius_lut(p), fill_hi, fill_lo, gap_rel, gap_scale, dims, offs, taps, kern)
+
+
+def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int, nearest=None, point_labels=None):
+    """:func:`compose` on numpy arrays through the compiled loops of :mod:`visibility_kernels`
+    (bit-identical; ~10x faster at 256 x 256). Same outputs. Labels come from ``front.label``, or,
+    when that is None and ``nearest`` is given, as ``point_labels[nearest]`` (``nearest``: the
+    front layer's image of each pixel's nearest point id, -1: none): only the visible pixels read
+    one, where a label image costs a pass over every pixel of the guard-band grid."""
+    import cv2
+
+    from shared.pointrender import visibility_kernels as vk
+
+    plan = _plan(p, h, w)
+    f32 = np.float32
+    g = p.guard_px
+    # Footprint classes and covers on the front layer's grid (the padded image and its guard
+    # band): the pyramid's extra pixels hold no surfel, so no footprint reaches past it (the
+    # erosion's border is the same +inf).
+    cls = np.empty(front.zmin.shape, np.int32)
+    hist = np.zeros(p.max_radius_px + 1, np.int64)
+    vk.classes(front.zmin, front.count, front.sum_spacing, f32(p.footprint_scale * p.focal_px),
+               f32(p.min_radius_px), f32(p.max_radius_px), plan.lut, cls, hist)
+    present = np.flatnonzero(hist).tolist()
+    order, first = vk.bucket(cls, hist)
+    # The four quadrant covers, mirrored into one image so that one min filter serves them all.
+    # The min filters alternate between two buffers rather than allocate an image each.
+    cov4 = np.full((*front.zmin.shape, 4), np.inf, f32)
+    spare = np.empty_like(cov4)
+    border = (float("inf"),) * 4
+    for i, k in enumerate(reversed(present)):
+        vk.add_sources(cov4, order, first[k], first[k + 1], front.zmin)
+        nxt = present[-2 - i] if i + 1 < len(present) else 0
+        if k > nxt:
+            m = k - nxt
+            cv2.erode(cov4, plan.erode_kernels[m], dst=spare, anchor=(m, m), borderType=cv2.BORDER_CONSTANT,
+                      borderValue=border)
+            cov4, spare = spare, cov4
+    reach = present[-1] if present else 0
+    lab_direct = front.label is not None
+    with_labels = lab_direct or nearest is not None
+    lab_ids = front.label if lab_direct else (nearest if with_labels else np.full((1, 1), -1, np.int64))
+    lab_table = point_labels if (with_labels and not lab_direct) else np.zeros(1, np.int64)
+    with_slope = front.sum_slope is not None
+    cells = int(plan.offs[-1])
+    pyr = np.empty((cells, 8), f32)
+    pyr_lab = np.empty(cells if with_labels else 1, np.int64)
     out_z = np.empty((h, w), f32)
     out_rgb = np.empty((3, h, w), f32)
     out_lab = np.empty((h, w) if with_labels else (1, 1), np.int64)
     hole = np.empty((h, w), bool)
-    vk.finish(cov4, g, reach, h, w, hq, wq, oy, ox, zmin, has, zmean, rgb, label, with_labels, f32(p.tol_rel1), f32(p.tol_abs_m),
-              slope_tol, with_slope,
-              levels, offs, dims, pyr, pyr_lab, p.fill_levels, p.gap_levels, fill_hi, fill_lo, gap_rel, gap_scale,
-              f32(p.gap_max_m), out_z, out_rgb, out_lab, hole)
+    vk.finish(cov4, g, reach, h, w, plan.oy, plan.ox, front.zmin, front.count, front.sum_z, front.sum_rgb[0],
+              front.sum_rgb[1], front.sum_rgb[2], front.sum_slope if with_slope else front.zmin, with_slope,
+              f32(p.slope_px), lab_ids, lab_table, with_labels, lab_direct, f32(p.tol_rel1), f32(p.tol_abs_m),
+              plan.levels, plan.offs, plan.dims, pyr, pyr_lab, p.fill_levels, p.gap_levels, plan.fill_hi,
+              plan.fill_lo, plan.gap_rel, plan.gap_scale, f32(p.gap_max_m), out_z, out_rgb, out_lab, hole)
     if p.filter_rel > 0:
-        out_rgb = vk.colour_filter(out_rgb, out_z, hole, f32(p.filter_rel), np.array([t[2] for t in FILTER_TAPS], f32))
+        out_rgb = vk.colour_filter(out_rgb, out_z, hole, f32(p.filter_rel), plan.taps)
     return out_rgb, out_z, hole, out_lab if with_labels else None

@@ -21,51 +21,28 @@ from shared.jit import AVAILABLE, numba
 _INF = np.float32(np.inf)
 
 
-def _surfels(zmin_p, cnt_p, sz_p, r_p, g_p, b_p, sp_p, lab_p, with_labels, fs_focal, rmin, rmax, lut,
-             zmin, has, zmean, rgb, label, cls, hist, sl_p, with_slope, slope_px, slope_tol, guard):
-    """Per pixel of the padded grid grown by its ``guard`` band (the inputs ``*_p`` and ``cls``):
-    the footprint class (-1: no surfel), ``hist[k]`` counting the pixels of class k; per pixel of
-    the padded grid (the outputs, ``guard`` in from the inputs' border): the surfel (zmin, has,
-    mean depth, mean colour, label, and with ``with_slope`` the slope part of its visibility
-    tolerance). (The array code pads these images further for the pyramid; the extra pixels hold
-    no surfel, and :func:`_finish` reads them as such.)"""
-    hg, wg = zmin_p.shape
-    hp, wp = zmin.shape
+def _classes(zmin, cnt, sp, fs_focal, rmin, rmax, lut, cls, hist):
+    """Per pixel of the front layer's grid (the padded image and its guard band): the footprint
+    class of its surfel (-1: none); ``hist[k]`` counts the pixels of class k."""
+    hg, wg = zmin.shape
     half = np.float32(0.5)
     one = np.float32(1.0)
     for i in range(hg):
         for j in range(wg):
-            z = zmin_p[i, j]
+            z = zmin[i, j]
             if z < _INF:
-                c = cnt_p[i, j]
-                sp = sp_p[i, j] / c
-                rad = np.ceil(sp * fs_focal / z - half)
+                rad = np.ceil(sp[i, j] / cnt[i, j] * fs_focal / z - half)
                 rad = min(max(rad, rmin), rmax)
                 k = np.int32(lut[np.int64(rad + one)])
                 cls[i, j] = k
                 hist[k] += 1
             else:
                 cls[i, j] = -1
-    for i in range(hp):
-        for j in range(wp):
-            ig, jg = i + guard, j + guard
-            z = zmin_p[ig, jg]
-            h = z < _INF
-            c = cnt_p[ig, jg] if h else one
-            zmin[i, j] = z
-            has[i, j] = h
-            zmean[i, j] = sz_p[ig, jg] / c
-            rgb[0, i, j] = r_p[ig, jg] / c
-            rgb[1, i, j] = g_p[ig, jg] / c
-            rgb[2, i, j] = b_p[ig, jg] / c
-            if with_labels:
-                label[i, j] = lab_p[ig, jg]
-            if with_slope:
-                slope_tol[i, j] = sl_p[ig, jg] / c * slope_px
 
 
 def _bucket(cls, hist):
-    """Pixel ids (i * wq + j) grouped by footprint class: class k is ``order[first[k]:first[k + 1]]``."""
+    """Pixels grouped by footprint class: class k is ``order[first[k]:first[k + 1]]``, each pixel as
+    ``i << 16 | j`` (shifts, not a division by the width, get its row and column back)."""
     hq, wq = cls.shape
     first = np.zeros(hist.shape[0] + 1, np.int64)
     for k in range(hist.shape[0]):
@@ -76,7 +53,7 @@ def _bucket(cls, hist):
         for j in range(wq):
             k = cls[i, j]
             if k >= 0:
-                order[fill[k]] = i * wq + j
+                order[fill[k]] = (i << 16) | j
                 fill[k] += 1
     return order, first
 
@@ -85,7 +62,8 @@ def _add_sources(cov4, order, lo, hi, zmin):
     """Sources ``order[lo:hi]`` (one footprint class) into the four mirrored quadrant covers (min)."""
     hq, wq = zmin.shape
     for s in range(lo, hi):
-        i, j = order[s] // wq, order[s] % wq
+        o = order[s]
+        i, j = o >> 16, o & 0xFFFF
         z = zmin[i, j]
         ii, jj = hq - 1 - i, wq - 1 - j
         cov4[i, j, 0] = min(cov4[i, j, 0], z)  # (-1, -1): as is
@@ -94,74 +72,151 @@ def _add_sources(cov4, order, lo, hi, zmin):
         cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
 
 
-def _finish(cov4, guard, reach, h, w, hq, wq, oy, ox, zmin, has, zmean, rgb, label, with_labels, tol_rel1, tol_abs, slope_tol,
-            with_slope, levels, offs, dims,
-            pyr, pyr_lab, fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max,
-            out_z, out_rgb, out_lab, hole):
-    """Enclosing depths, the visibility test, the pull pyramid and the push, as the array code.
+def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, with_slope, slope_px,
+            lab_ids, lab_table, with_labels, lab_direct, tol_rel1, tol_abs, levels, offs, dims, pyr, pyr_lab,
+            fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max, out_z, out_rgb, out_lab, hole):
+    """The visibility test, the pull pyramid and the push of :func:`visibility.compose`, from the
+    front layer's sums (``zmin, cnt, sz, sr, sg, sb, sl`` on its grid: the padded image and its
+    ``guard`` band) and the quadrant covers ``cov4`` (that grid, mirrored per quadrant).
 
-    The surfel images span the padded grid ``zmin.shape``, the covers that grid grown by its
-    ``guard`` band; the pyramid spans ``hq`` x ``wq`` (the padded grid rounded up to its coarsest
-    cell, placed at (``oy``, ``ox``) of it), whose extra pixels hold no surfel."""
-    hp, wp = zmin.shape
+    Labels: with ``lab_direct`` ``lab_ids`` is the label image (-1: none), else each pixel's
+    nearest point id (-1: none), whose label is ``lab_table[id]``: only visible pixels read one.
+
+    The pyramid's level 0 (the padded image, (h + 2) x (w + 2), rounded up to the coarsest cell
+    and placed at (``oy``, ``ox``) of that grid) is never stored: a visible surfel weighs 1, so
+    its cell is (1, mean z, mean rgb, mean z, mean z), an invisible or absent one (0, 0, 0, 0, 0,
+    inf, -inf), and level 1 reads the surfels directly; the visible ones of the image go to the
+    outputs in the same pass. ``pyr`` holds levels 1.. (level ``lev`` from row ``offs[lev]``),
+    one row of 8 per cell (weight, sum z, sum r, g, b, nearest and farthest kept depth, spare):
+    a cell's channels share a cache line. Every value is rounded as the array code rounds it
+    (``mean * 1``, ``mean * 0 = 0``, sums in the order a, b, c, d)."""
+    hp, wp = h + 2, w + 2
     hg, wg = cov4.shape[0], cov4.shape[1]
     ninf = -_INF
     zero = np.float32(0.0)
-    # far / near2 per pixel of the padded grid, and level 0 of the pyramid (the visible surfels;
-    # channels: weight, sum z, sum r, g, b, zlo, zhi), in one pass.
-    far = np.empty((hp, wp), np.float32)
-    near2 = np.empty((hp, wp), np.float32)
-    for iq in range(hq):
-        for jq in range(wq):
-            t = iq * wq + jq
-            i, j = iq - oy, jq - ox
-            if i < 0 or j < 0 or i >= hp or j >= wp:
-                for ch in range(5):
-                    pyr[ch, t] = zero
-                pyr[5, t] = _INF
-                pyr[6, t] = ninf
-                if with_labels:
-                    pyr_lab[t] = -1
-                continue
-            ig, jg = i + guard, j + guard
-            ii, jj = hg - 1 - ig, wg - 1 - jg
-            l0 = cov4[ig, jg, 0]
-            l1 = cov4[ig, jj, 1]
-            l2 = cov4[ii, jg, 2]
-            l3 = cov4[ii, jj, 3]
-            # A quadrant that reaches past the guard band and found nothing does not count.
-            top, left = ig <= reach, jg <= reach
-            bottom, right = ig >= hg - 1 - reach, jg >= wg - 1 - reach
-            f = ninf
-            f = max(f, ninf if (l0 == _INF and (top or left)) else l0)
-            f = max(f, ninf if (l1 == _INF and (top or right)) else l1)
-            f = max(f, ninf if (l2 == _INF and (bottom or left)) else l2)
-            f = max(f, ninf if (l3 == _INF and (bottom or right)) else l3)
-            if f == ninf:
-                f = _INF
-            n2 = min(max(min(l0, l1), min(l2, l3)), min(max(l0, l1), max(l2, l3)))
-            far[i, j] = f
-            near2[i, j] = min(n2, f)
-            limit = f * tol_rel1 + tol_abs
-            if with_slope:
-                limit = limit + slope_tol[i, j]
-            vis = has[i, j] and zmin[i, j] <= limit
-            wgt = np.float32(1.0) if vis else zero
-            zm = zmean[i, j]
-            pyr[0, t] = wgt
-            pyr[1, t] = zm * wgt
-            pyr[2, t] = rgb[0, i, j] * wgt
-            pyr[3, t] = rgb[1, i, j] * wgt
-            pyr[4, t] = rgb[2, i, j] * wgt
-            pyr[5, t] = zm if vis else _INF
-            pyr[6, t] = zm if vis else ninf
-            if with_labels:
-                pyr_lab[t] = label[i, j] if vis else -1
-    # Pull: each coarser cell keeps the children within the tolerance of its nearest child.
-    # The four children (a, b over c, d) are scalars, not a small array, and each channel's sum
-    # is taken in the array code's order: a, b, c, d.
     one = np.float32(1.0)
-    for lev in range(1, levels + 1):
+    # Level 1 from the surfels, and the image's visible surfels (its holes marked for the push).
+    h1, w1 = dims[1, 0], dims[1, 1]
+    o1 = offs[1]
+    inf = _INF
+    # Two rows at a time (those of a row of level-1 cells): level 0 of the padded image, each
+    # visible surfel's mean depth (inf: none), mean colour and label, in row buffers that stay
+    # in cache; the image's own pixels go to the outputs (holes marked for the push). Then
+    # level 1 from them, as the array code pulls it: a visible surfel weighs 1 and sums its mean
+    # (mean * 1), an invisible one or a pixel off the padded image weighs 0 and sums 0.
+    m0 = np.empty((2, wp), np.float32)
+    c0 = np.empty((2, wp, 3), np.float32)
+    l0 = np.empty((2, wp) if with_labels else (1, 1), np.int64)
+    for I in range(h1):
+        for di in range(2):
+            i = 2 * I + di - oy
+            if i < 0 or i >= hp:
+                continue
+            ig = i + guard
+            ii = hg - 1 - ig
+            top, bottom = ig <= reach, ig >= hg - 1 - reach
+            inside_i = i >= 1 and i <= h
+            for j in range(wp):
+                jg = j + guard
+                z = zmin[ig, jg]
+                vis = False
+                c = one
+                if z < inf:
+                    # far (visibility.enclosing_depth), written out: see above.
+                    jj = wg - 1 - jg
+                    l0_, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
+                    left, right = jg <= reach, jg >= wg - 1 - reach
+                    f = ninf
+                    f = max(f, ninf if (l0_ == inf and (top or left)) else l0_)
+                    f = max(f, ninf if (l1 == inf and (top or right)) else l1)
+                    f = max(f, ninf if (l2 == inf and (bottom or left)) else l2)
+                    f = max(f, ninf if (l3 == inf and (bottom or right)) else l3)
+                    if f == ninf:
+                        f = inf
+                    c = cnt[ig, jg]
+                    limit = f * tol_rel1 + tol_abs
+                    if with_slope:
+                        limit = limit + sl[ig, jg] / c * slope_px
+                    vis = z <= limit
+                inside = inside_i and j >= 1 and j <= w
+                if vis:
+                    zm, r, g, b = sz[ig, jg] / c, sr[ig, jg] / c, sg[ig, jg] / c, sb[ig, jg] / c
+                    m0[di, j] = zm
+                    c0[di, j, 0] = r
+                    c0[di, j, 1] = g
+                    c0[di, j, 2] = b
+                    lab = np.int64(-1)
+                    if with_labels:
+                        lab = np.int64(lab_ids[ig, jg])
+                        if not lab_direct and lab >= 0:
+                            lab = np.int64(lab_table[lab])
+                        l0[di, j] = lab
+                    if inside:
+                        out_z[i - 1, j - 1] = zm
+                        out_rgb[0, i - 1, j - 1] = r
+                        out_rgb[1, i - 1, j - 1] = g
+                        out_rgb[2, i - 1, j - 1] = b
+                        if with_labels:
+                            out_lab[i - 1, j - 1] = lab
+                else:
+                    m0[di, j] = inf
+                    c0[di, j, 0] = zero
+                    c0[di, j, 1] = zero
+                    c0[di, j, 2] = zero
+                    if with_labels:
+                        l0[di, j] = -1
+                if inside:
+                    hole[i - 1, j - 1] = not vis
+        for J in range(w1):
+            i, j = 2 * I - oy, 2 * J - ox
+            ra = i >= 0 and i < hp
+            rc = i + 1 >= 0 and i + 1 < hp
+            ca = j >= 0 and j < wp
+            cb = j + 1 >= 0 and j + 1 < wp
+            ina, inb, inc, ind = ra and ca, ra and cb, rc and ca, rc and cb
+            ma = m0[0, j] if ina else inf
+            mb = m0[0, j + 1] if inb else inf
+            mc = m0[1, j] if inc else inf
+            md = m0[1, j + 1] if ind else inf
+            va, vb, vc, vd = ma < inf, mb < inf, mc < inf, md < inf
+            front = min(min(ma, mb), min(mc, md))
+            thr = front * tol_rel1 + tol_abs
+            ka = one if ma <= thr else zero
+            kb = one if mb <= thr else zero
+            kc = one if mc <= thr else zero
+            kd = one if md <= thr else zero
+            wa = one if va else zero
+            wb = one if vb else zero
+            wc = one if vc else zero
+            wd = one if vd else zero
+            t = o1 + I * w1 + J
+            pyr[t, 0] = wa * ka + wb * kb + wc * kc + wd * kd
+            pyr[t, 1] = ((ma if va else zero) * ka + (mb if vb else zero) * kb + (mc if vc else zero) * kc
+                         + (md if vd else zero) * kd)
+            for ch in range(3):
+                pyr[t, 2 + ch] = ((c0[0, j, ch] if va else zero) * ka + (c0[0, j + 1, ch] if vb else zero) * kb
+                                  + (c0[1, j, ch] if vc else zero) * kc
+                                  + (c0[1, j + 1, ch] if vd else zero) * kd)
+            pyr[t, 5] = min(min(ma if ka > 0 else inf, mb if kb > 0 else inf),
+                            min(mc if kc > 0 else inf, md if kd > 0 else inf))
+            pyr[t, 6] = max(max(ma if (ka > 0 and va) else ninf, mb if (kb > 0 and vb) else ninf),
+                            max(mc if (kc > 0 and vc) else ninf, md if (kd > 0 and vd) else ninf))
+            if with_labels:
+                if ka > 0 and ma == front:
+                    lab = l0[0, j] if va else np.int64(-1)
+                elif kb > 0 and mb == front:
+                    lab = l0[0, j + 1] if vb else np.int64(-1)
+                elif kc > 0 and mc == front:
+                    lab = l0[1, j] if vc else np.int64(-1)
+                elif kd > 0 and md == front:
+                    lab = l0[1, j + 1] if vd else np.int64(-1)
+                else:
+                    lab = np.int64(-1)
+                pyr_lab[t] = lab
+    # Pull, the coarser levels: each cell keeps the children within the tolerance of its nearest
+    # child. The four children (a, b over c, d) are scalars, not a small array, and each
+    # channel's sum is taken in the array code's order: a, b, c, d.
+    for lev in range(2, levels + 1):
         hl, wl = dims[lev, 0], dims[lev, 1]
         wc = dims[lev - 1, 1]
         o, oc = offs[lev], offs[lev - 1]
@@ -171,11 +226,11 @@ def _finish(cov4, guard, reach, h, w, hq, wq, oy, ox, zmin, has, zmean, rgb, lab
             for j in range(wl):
                 a, b = row0 + 2 * j, row0 + 2 * j + 1
                 c, d = row1 + 2 * j, row1 + 2 * j + 1
-                wa, wb, wc_, wd = pyr[0, a], pyr[0, b], pyr[0, c], pyr[0, d]
-                ma = pyr[1, a] / wa if wa > 0 else _INF
-                mb = pyr[1, b] / wb if wb > 0 else _INF
-                mc = pyr[1, c] / wc_ if wc_ > 0 else _INF
-                md = pyr[1, d] / wd if wd > 0 else _INF
+                wa, wb, wc_, wd = pyr[a, 0], pyr[b, 0], pyr[c, 0], pyr[d, 0]
+                ma = pyr[a, 1] / wa if wa > 0 else _INF
+                mb = pyr[b, 1] / wb if wb > 0 else _INF
+                mc = pyr[c, 1] / wc_ if wc_ > 0 else _INF
+                md = pyr[d, 1] / wd if wd > 0 else _INF
                 front = min(min(ma, mb), min(mc, md))
                 thr = front * tol_rel1 + tol_abs
                 ka = one if ma <= thr else zero
@@ -184,15 +239,15 @@ def _finish(cov4, guard, reach, h, w, hq, wq, oy, ox, zmin, has, zmean, rgb, lab
                 kd = one if md <= thr else zero
                 t = o + i * wl + j
                 for ch in range(5):
-                    acc = pyr[ch, a] * ka
-                    acc = acc + pyr[ch, b] * kb
-                    acc = acc + pyr[ch, c] * kc
-                    acc = acc + pyr[ch, d] * kd
-                    pyr[ch, t] = acc
-                pyr[5, t] = min(min(pyr[5, a] if ka > 0 else _INF, pyr[5, b] if kb > 0 else _INF),
-                                min(pyr[5, c] if kc > 0 else _INF, pyr[5, d] if kd > 0 else _INF))
-                pyr[6, t] = max(max(pyr[6, a] if ka > 0 else ninf, pyr[6, b] if kb > 0 else ninf),
-                                max(pyr[6, c] if kc > 0 else ninf, pyr[6, d] if kd > 0 else ninf))
+                    acc = pyr[a, ch] * ka
+                    acc = acc + pyr[b, ch] * kb
+                    acc = acc + pyr[c, ch] * kc
+                    acc = acc + pyr[d, ch] * kd
+                    pyr[t, ch] = acc
+                pyr[t, 5] = min(min(pyr[a, 5] if ka > 0 else _INF, pyr[b, 5] if kb > 0 else _INF),
+                                min(pyr[c, 5] if kc > 0 else _INF, pyr[d, 5] if kd > 0 else _INF))
+                pyr[t, 6] = max(max(pyr[a, 6] if ka > 0 else ninf, pyr[b, 6] if kb > 0 else ninf),
+                                max(pyr[c, 6] if kc > 0 else ninf, pyr[d, 6] if kd > 0 else ninf))
                 if with_labels:
                     # The label of the nearest kept child, the first in that order on ties.
                     if ka > 0 and ma == front:
@@ -206,46 +261,50 @@ def _finish(cov4, guard, reach, h, w, hq, wq, oy, ox, zmin, has, zmean, rgb, lab
                     else:
                         lab = -1
                     pyr_lab[t] = lab
-    # Push: each crop pixel without a visible surfel takes its finest acceptable ancestor.
+    # Push: each image pixel without a visible surfel takes its finest acceptable ancestor.
     for i in range(1, h + 1):
         for j in range(1, w + 1):
-            iq, jq = i + oy, j + ox
-            t0 = iq * wq + jq
-            if pyr[0, t0] > 0:
-                out_z[i - 1, j - 1] = zmean[i, j]
-                for ch in range(3):
-                    out_rgb[ch, i - 1, j - 1] = rgb[ch, i, j]
-                if with_labels:
-                    out_lab[i - 1, j - 1] = label[i, j]
-                hole[i - 1, j - 1] = False
+            if not hole[i - 1, j - 1]:
                 continue
             out_z[i - 1, j - 1] = zero
             for ch in range(3):
                 out_rgb[ch, i - 1, j - 1] = zero
             if with_labels:
                 out_lab[i - 1, j - 1] = -1
-            hole[i - 1, j - 1] = True
-            ref, ref_lo = far[i, j], near2[i, j]
+            ig, jg = i + guard, j + guard
+            ii, jj = hg - 1 - ig, wg - 1 - jg
+            l0, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
+            top, left = ig <= reach, jg <= reach
+            bottom, right = ig >= hg - 1 - reach, jg >= wg - 1 - reach
+            ref = ninf
+            ref = max(ref, ninf if (l0 == _INF and (top or left)) else l0)
+            ref = max(ref, ninf if (l1 == _INF and (top or right)) else l1)
+            ref = max(ref, ninf if (l2 == _INF and (bottom or left)) else l2)
+            ref = max(ref, ninf if (l3 == _INF and (bottom or right)) else l3)
+            if ref == ninf:
+                ref = _INF
+            ref_lo = min(min(max(min(l0, l1), min(l2, l3)), min(max(l0, l1), max(l2, l3))), ref)
             covered = ref < _INF
+            iq, jq = i + oy, j + ox
             for lev in range(1, levels + 1):
                 if lev > fill_levels and lev > gap_levels:
                     break
                 t = offs[lev] + (iq >> lev) * dims[lev, 1] + (jq >> lev)
-                wgt = pyr[0, t]
+                wgt = pyr[t, 0]
                 safe = wgt if wgt > 0 else np.float32(1.0)
-                mz = pyr[1, t] / safe
+                mz = pyr[t, 1] / safe
                 take = False
                 if lev <= fill_levels:
                     take = covered and wgt > 0 and mz <= ref * fill_hi[lev] + tol_abs
                     take = take and mz >= ref_lo * fill_lo[lev] - tol_abs
                 if lev <= gap_levels and not take:
-                    zl, zh = pyr[5, t], pyr[6, t]
+                    zl, zh = pyr[t, 5], pyr[t, 6]
                     take = (not covered) and wgt > 0 and (zh - zl <= zl * gap_rel[lev] + tol_abs)
                     take = take and zl * gap_scale[lev] <= gap_max
                 if take:
                     out_z[i - 1, j - 1] = mz
                     for ch in range(3):
-                        out_rgb[ch, i - 1, j - 1] = pyr[2 + ch, t] / safe
+                        out_rgb[ch, i - 1, j - 1] = pyr[t, 2 + ch] / safe
                     if with_labels:
                         out_lab[i - 1, j - 1] = pyr_lab[t]
                     hole[i - 1, j - 1] = False
@@ -344,7 +403,8 @@ def _rgb8(rgb):
 
 if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
-    surfels, bucket, add_sources, finish = _jit(_surfels), _jit(_bucket), _jit(_add_sources), _jit(_finish)
+    classes, bucket, add_sources = _jit(_classes), _jit(_bucket), _jit(_add_sources)
+    finish = _jit(_finish)
     colour_filter, rgb8 = _jit(_colour_filter), _jit(_rgb8)
 else:  # pragma: no cover
-    surfels = bucket = add_sources = finish = colour_filter = rgb8 = None
+    classes = bucket = add_sources = finish = colour_filter = rgb8 = None
