@@ -72,6 +72,21 @@ def _add_sources(cov4, order, lo, hi, zmin):
         cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
 
 
+def _far(l0, l1, l2, l3, top, left, bottom, right):
+    """A pixel's enclosing depth (``far`` of :func:`visibility.enclosing_depth`) from its four
+    quadrant covers (-1,-1), (-1,+1), (+1,-1), (+1,+1) and whether its window reaches past the
+    top, left, bottom and right of the guard band: the farthest cover, where a quadrant that
+    reaches past the band and found nothing does not count; +inf when none does. Scalars only,
+    inlined into the loops (a call that passes arrays costs ~30 ns in numba)."""
+    ninf = -_INF
+    f = ninf
+    f = max(f, ninf if (l0 == _INF and (top or left)) else l0)
+    f = max(f, ninf if (l1 == _INF and (top or right)) else l1)
+    f = max(f, ninf if (l2 == _INF and (bottom or left)) else l2)
+    f = max(f, ninf if (l3 == _INF and (bottom or right)) else l3)
+    return _INF if f == ninf else f
+
+
 def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, with_slope, slope_px,
             lab_ids, lab_table, with_labels, lab_direct, tol_rel1, tol_abs, levels, offs, dims, pyr, pyr_lab,
             fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max, out_z, out_rgb, out_lab, hole):
@@ -122,17 +137,9 @@ def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, wit
                 vis = False
                 c = one
                 if z < inf:
-                    # far (visibility.enclosing_depth), written out: see above.
                     jj = wg - 1 - jg
                     l0_, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
-                    left, right = jg <= reach, jg >= wg - 1 - reach
-                    f = ninf
-                    f = max(f, ninf if (l0_ == inf and (top or left)) else l0_)
-                    f = max(f, ninf if (l1 == inf and (top or right)) else l1)
-                    f = max(f, ninf if (l2 == inf and (bottom or left)) else l2)
-                    f = max(f, ninf if (l3 == inf and (bottom or right)) else l3)
-                    if f == ninf:
-                        f = inf
+                    f = _far(l0_, l1, l2, l3, top, jg <= reach, bottom, jg >= wg - 1 - reach)
                     c = cnt[ig, jg]
                     limit = f * tol_rel1 + tol_abs
                     if with_slope:
@@ -274,15 +281,7 @@ def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, wit
             ig, jg = i + guard, j + guard
             ii, jj = hg - 1 - ig, wg - 1 - jg
             l0, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
-            top, left = ig <= reach, jg <= reach
-            bottom, right = ig >= hg - 1 - reach, jg >= wg - 1 - reach
-            ref = ninf
-            ref = max(ref, ninf if (l0 == _INF and (top or left)) else l0)
-            ref = max(ref, ninf if (l1 == _INF and (top or right)) else l1)
-            ref = max(ref, ninf if (l2 == _INF and (bottom or left)) else l2)
-            ref = max(ref, ninf if (l3 == _INF and (bottom or right)) else l3)
-            if ref == ninf:
-                ref = _INF
+            ref = _far(l0, l1, l2, l3, ig <= reach, jg <= reach, ig >= hg - 1 - reach, jg >= wg - 1 - reach)
             ref_lo = min(min(max(min(l0, l1), min(l2, l3)), min(max(l0, l1), max(l2, l3))), ref)
             covered = ref < _INF
             iq, jq = i + oy, j + ox
@@ -403,6 +402,7 @@ def _rgb8(rgb):
 
 if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+    _far = numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")(_far)
     classes, bucket, add_sources = _jit(_classes), _jit(_bucket), _jit(_add_sources)
     finish = _jit(_finish)
     colour_filter, rgb8 = _jit(_colour_filter), _jit(_rgb8)
