@@ -109,7 +109,10 @@ def build_map(spec: str, backend: str, noisy: bool = False, size_px: int = 128, 
 
     profile = "default" if is_generated_spec(spec) else "cluttered-scan"
     tag = "" if profile == "default" else f"_{profile}"
-    name = f"{spec.replace(':', '_').replace('=', '-')}_{backend}{'_noisy' if noisy else ''}{tag}_{size_px}.ply"
+    # A mesh file's map is named after its folder and file, not its absolute path (which would put
+    # the cache beside the mesh, inside the team's reference data).
+    stem = f"{Path(spec).parent.name}_{Path(spec).stem}" if not is_generated_spec(spec) else spec
+    name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{'_noisy' if noisy else ''}{tag}_{size_px}.ply"
     path = MAPS / name
     robot = ROBOTS.create("sim", robot_cfg)
     if backend == "curated":

@@ -7,20 +7,18 @@ noise and holes, at two image sizes and pixel strides; and the Replica office wh
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from shared.jit import AVAILABLE
-from shared.schemas import CameraIntrinsics, Pose
-
 from services.mapper.core.predictor import GeometricPredictor, GeometricPredictorConfig
 from services.robot_io.core.robot import ROBOTS
+from shared.jit import AVAILABLE
+from shared.schemas import CameraIntrinsics, Pose
+from tests.conftest import SHARED_DATA
 
 pytestmark = pytest.mark.skipif(not AVAILABLE, reason="numba is not installed: only the array version runs")
 
-REPLICA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "replica_office0" / "office0_mesh.ply"
+REPLICA = SHARED_DATA / "replica_office0" / "office0_mesh.ply"
 
 
 def _panoramas(robot, n: int, seed: int, stairs_first: int = 0):
