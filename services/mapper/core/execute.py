@@ -147,13 +147,16 @@ def _no_checkpoint() -> None:
 
 
 def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: SceneMap | None,
-                      check: Callable[[], None], samples: tuple[int, ...] = (0, 1, 2, 3, 4, 6, 8, 12)) -> int:
+                      check: Callable[[], None], samples: tuple[int, ...] = (0, 1, 2, 3, 4, 6, 8, 12),
+                      short_m: float = 0.75) -> int:
     """Move straight to the tour's start, or, where the simulator (or the world) has no room for
     the robot there, to the first of the later path ``samples`` it can reach, each approached over
     the exploration's walked edges from the node nearest it: the index of the sample reached. A
     tour's hubs are chosen on the scans' free-space map, which misses desk edges and clutter; a
     1,000 m2 building lost 2 of its 40 regions to a start inside a piece of furniture, the whole
-    region unrecorded for one unreachable pose."""
+    region unrecorded for one unreachable pose. When no sample can be reached (a region of one
+    hub has a path of one sample), the tour starts where the robot stopped if that is within
+    ``short_m`` of a sample: a look-around a few decimetres off the hub sees the same room."""
     tried = [k for k in samples if k < len(path)]
     travelled = 0.0
     for n, k in enumerate(tried):
@@ -169,6 +172,11 @@ def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: Sc
             if k:
                 log.info("region %d: tour start out of reach; starting at path sample %d", region, k)
             return k
+    gap = np.hypot(*(path[tried, :2] - robot.pose.xyz[:2]).T)
+    if len(gap) and gap.min() <= short_m:
+        k = tried[int(np.argmin(gap))]
+        log.info("region %d: tour start out of reach; starting %.2f m short of path sample %d", region, gap.min(), k)
+        return k
     raise TourExecutionError(
         f"region {region}: could not reach the tour start nor {len(tried) - 1} later path samples ({travelled:.2f} m)"
     )

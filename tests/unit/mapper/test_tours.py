@@ -252,8 +252,20 @@ def test_a_tour_with_no_reachable_start_is_refused_with_its_reason():
     from services.mapper.core.errors import TourExecutionError
     from services.mapper.core.execute import execute_tour
 
-    path = [(1.0 + 0.05 * k, 0.0) for k in range(13)]  # every sample tried (0-4, 6, 8, 12) inside the disc
-    robot = _BoxRobot((0.0, 0.0), blocked_xy=(1.3, 0.0), blocked_r_m=0.5)
+    # Every sample tried (0-4, 6, 8, 12) inside the disc, and the robot stops 0.9 m short of them.
+    path = [(2.0 + 0.05 * k, 0.0) for k in range(13)]
+    robot = _BoxRobot((0.0, 0.0), blocked_xy=(2.3, 0.0), blocked_r_m=1.2)
     with pytest.raises(TourExecutionError, match="could not reach the tour start nor 7 later path samples"):
         execute_tour(robot, _planned(path, [0, 11]), scene=None, rate_hz=1.0)
     assert not robot.looks
+
+
+def test_a_one_hub_tour_out_of_reach_looks_around_where_the_robot_stopped_close_to_it():
+    """A region of one hub has a path of one sample: when that hub lies 0.3 m inside furniture,
+    the robot looks around from where it stopped, 0.3 m short, rather than lose the region."""
+    from services.mapper.core.execute import execute_tour
+
+    robot = _BoxRobot((0.0, 0.0), blocked_xy=(1.3, 0.0), blocked_r_m=0.6)  # stops at x = 0.7
+    rec = execute_tour(robot, _planned([(1.0, 0.0)], [0]), scene=None, rate_hz=1.0)
+    assert rec.hubs_visited == 1
+    assert robot.looks[0] == pytest.approx((0.7, 0.0), abs=0.02)
