@@ -97,11 +97,7 @@ class GatewayClient:
         return self._call("GET", f"/missions/{mission_id}/recording.rrd", raw=True)
 
     def cancel_mission(self, mission_id: str) -> None:
-        try:
-            self._call("POST", f"/missions/{mission_id}/cancel")
-        except GatewayError as exc:
-            if exc.status != 409:  # already ended: nothing to cancel
-                raise
+        self._cancel(f"/missions/{mission_id}/cancel")
 
     def submit_exploration(self, map_id: str, **body: Any) -> str:
         return self._call("POST", "/explorations", json={"map_id": map_id, **body})["id"]
@@ -110,8 +106,11 @@ class GatewayClient:
         return self._call("GET", f"/explorations/{exploration_id}")
 
     def cancel_exploration(self, exploration_id: str) -> None:
+        self._cancel(f"/explorations/{exploration_id}/cancel")
+
+    def _cancel(self, path: str) -> None:
         try:
-            self._call("POST", f"/explorations/{exploration_id}/cancel")
+            self._call("POST", path)
         except GatewayError as exc:
             if exc.status != 409:  # already ended: nothing to cancel
                 raise

@@ -526,17 +526,22 @@ class EvalRunner:
         log.info("explored and reconstructed %s in %.0f s", map_id, time.monotonic() - t0)
 
     def _cancel_exploration(self, xid: str) -> dict[str, Any]:
-        """Cancel a running exploration and wait (``stop_wait_s``) for its end: the mapper stops it within
-        a step, or cancels the map build it waits on. Its record as it stands when it does not end."""
+        """Cancel a running exploration and wait for its end: the mapper stops it within a step, or
+        cancels the map build it waits on."""
+        return self._cancel_then_wait("exploration", xid, self.gateway.cancel_exploration, self.gateway.exploration)
+
+    def _cancel_then_wait(self, kind: str, rid: str, cancel, read) -> dict[str, Any]:
+        """``cancel(rid)``, then wait (``stop_wait_s``) for the record ``read(rid)`` to end; the record
+        as it stands when it does not end. A refused cancel is logged: the wait says the rest."""
         try:
-            self.gateway.cancel_exploration(xid)
+            cancel(rid)
         except GatewayError as exc:
-            log.warning("could not cancel exploration %s: %s", xid, exc)
+            log.warning("could not cancel %s %s: %s", kind, rid, exc)
         try:
-            return self.gateway.wait(self.gateway.exploration, xid, self.config.stop_wait_s, self.config.poll_s)
+            return self.gateway.wait(read, rid, self.config.stop_wait_s, self.config.poll_s)
         except MissionTimeout as exc:
-            log.warning("exploration %s did not end after its cancel: %s", xid, exc)
-            return self.gateway.exploration(xid)
+            log.warning("%s %s did not end after its cancel: %s", kind, rid, exc)
+            return read(rid)
 
     def _upload_curated(self, spec: str, map_id: str) -> None:
         from evaluation.clouds import sample_scene_cloud
@@ -626,17 +631,9 @@ class EvalRunner:
         return result
 
     def _cancel_and_wait(self, mid: str) -> dict[str, Any]:
-        """Cancel a running mission and wait (``stop_wait_s``) for its end: the planner ends it between
-        steps, and the step in flight is paid and recorded. Its record as it stands when it does not end."""
-        try:
-            self.gateway.cancel_mission(mid)
-        except GatewayError as exc:
-            log.warning("could not cancel %s: %s", mid, exc)
-        try:
-            return self.gateway.wait(self.gateway.mission, mid, self.config.stop_wait_s, self.config.poll_s)
-        except MissionTimeout as exc:
-            log.warning("mission %s did not end after its cancel: %s", mid, exc)
-            return self.gateway.mission(mid)
+        """Cancel a running mission and wait for its end: the planner ends it between steps, and the
+        step in flight is paid and recorded."""
+        return self._cancel_then_wait("mission", mid, self.gateway.cancel_mission, self.gateway.mission)
 
     def _keep_recording(self, e: Episode, mid: str) -> str | None:
         """Copy the mission's .rrd into ``<run>/recordings/`` (a missing one is logged, not an error)."""
