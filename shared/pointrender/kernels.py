@@ -1,8 +1,8 @@
 """Compiled per-point passes of the ``layered`` splat (numba), bit-identical to the array version.
 
 The array version in :mod:`splat` spends most of a view on work that only a loop does well: fancy
-gathers of the visible points, a scatter-min (``np.minimum.at``), seven weighted ``np.bincount``
-calls and the temporaries between them. Here the same arithmetic runs as two loops over the culled,
+gathers of the visible points, a scatter-min (``np.minimum.at``), the per-pixel sums and the
+temporaries between them. Here the same arithmetic runs as two loops over the culled,
 level-of-detail-trimmed runs of the block index (no index array is ever built):
 
 1. project every point, keep its target pixel, depth and quantised sub-pixel offset, and take the
@@ -12,9 +12,9 @@ level-of-detail-trimmed runs of the block index (no index array is ever built):
 
 Every operation reproduces the float32 / float64 rounding of the numpy expressions it replaces
 (NEP 50 promotion: float32 arrays with Python floats stay float32; ``u - iu`` is float64; the
-bincount sums are float64 in point order), so both paths give the same images bit for bit and the
-tests compare them exactly. The kernels release the GIL, so views of one step render on several
-threads at once.
+per-pixel sums are float32 sums in point order, as ``np.add.at`` adds them), so both paths give
+the same images bit for bit and the tests compare them exactly. The kernels release the GIL, so
+views of one step render on several threads at once.
 
 numba is optional: :data:`AVAILABLE` is False when it is not installed and the renderer falls back
 to the array path.
@@ -31,10 +31,10 @@ log = logging.getLogger(__name__)
 from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
 
 
-# A pixel's colour sums share one int64 (21 bits each) and its offset sums another (32 bits
-# each): exact while no pixel's front layer holds more than this many points (255 * n < 2^21);
-# past it the caller falls back to the array code.
-MAX_FRONT_POINTS = (1 << 21) // 255 - 1
+# The colour and offset sums are float32 sums of 8-bit values: exact (the integers the array code
+# sums) while no pixel's front layer holds more than this many points (255 * n < 2^24); past it
+# the caller falls back to the array code.
+MAX_FRONT_POINTS = (1 << 24) // 255 - 1
 
 
 def _project_run_py(xs, ys, zs, proj, near, far, w, h, qo, zo, uo, with_uv, pad=1):
@@ -79,14 +79,15 @@ def _front_pass(
 ):
     """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
 
-    Returns, per padded pixel plus one miss bin: the minimum depth (float32 (P,)), the front-layer
-    sums as float32 rows (8, P) (count, depth, r, g, b, u, v, and with ``with_spacing`` the sum of
-    ``spacing[p] * run_scale[r]``: what ``accumulate_front`` returns),
-    the id of the nearest point (int64 (P,), largest id among ties, -1 where none), and whether
-    some pixel's front layer exceeded :data:`MAX_FRONT_POINTS` (then the sums are invalid).
-    With ``with_slope``, row 8 sums each front point's depth slope (``splat._point_slope`` of its
-    normal ``nx, ny, nz`` and the view's ``slope_consts``). Without ``with_uv`` the offset rows
-    are zero: only the paper's 3x3 splat reads them, and the projection is cheaper without.
+    Returns, per padded pixel plus one miss bin: the minimum depth (float32 (P,)); the front
+    layer as float32 (P, 8): count, sums of depth, r, g, b, with ``with_spacing`` of
+    ``spacing[p] * run_scale[r]``, with ``with_slope`` of each front point's depth slope
+    (``splat._point_slope`` of its normal ``nx, ny, nz`` and the view's ``slope_consts``), and in
+    column 7, read as int32, the id of the nearest point (largest among ties, -1 where none):
+    what ``accumulate_front`` returns, summed alike; the offset sums u, v as float32 (2, P) (only
+    with ``with_uv``: the paper's 3x3 splat reads them, and the projection is cheaper without);
+    and whether some pixel's front layer exceeded :data:`MAX_FRONT_POINTS`. Without ``with_uv``
+    a pixel no point reached (minimum depth inf) has undefined sums.
     ``pad``: the pixels on each side of the image that points are projected into (1: the 3x3
     splat's ring; the visibility mode adds a guard band, :class:`splat.SplatConfig` ``guard_px``)."""
     wp = w + 2 * pad
@@ -115,19 +116,25 @@ def _front_pass(
     for k in range(n):
         q = q_of[k]
         q_of[k] = q if z_of[k] <= zbuf[q] * tol_rel1 + tol_abs else npad
-    # Pass 2b, sums. Depth sums are float64 in point order, exactly as ``np.bincount`` adds; the
-    # other sums are exact integers, packed so that a point touches few cache lines: its pixel's
-    # float sums (depth, spacing, slope) share one row, count and colour another. Only the
-    # arrays a mode needs are per pixel (offsets: the paper's splat; ids: labels).
-    fs = np.zeros((npad + 1, 3), np.float64)  # depth, spacing, slope
+    # Pass 2b, sums, in float32 and in point order (as ``accumulate_front`` adds them): one row
+    # of eight per pixel (count, depth, r, g, b, spacing, slope, nearest id), so that a point
+    # touches one cache line and the image passes read a pixel's surfel from one. Rows are zeroed
+    # only where a point landed: the visibility passes read nothing else (the paper's splat reads
+    # every pixel, so there the whole table starts at zero).
+    acc = np.zeros((npad + 1, 8), np.float32) if with_uv else np.empty((npad + 1, 8), np.float32)
+    ids = acc.view(np.int32)  # column 7: the nearest point's id (largest among ties), -1: none
+    for i in range(npad + 1):
+        if with_uv or zbuf[i] < np.inf:
+            for c in range(7):
+                acc[i, c] = np.float32(0.0)
+            ids[i, 7] = -1
+    uv_sum = np.zeros((2, npad + 1 if with_uv else 1), np.float32)  # offsets (the paper's splat)
     cx, cy, cz = slope_consts[0], slope_consts[1], slope_consts[2]
     ax, ay, az = slope_consts[3], slope_consts[4], slope_consts[5]
     inv_f, inv_tan = slope_consts[6], slope_consts[7]
     zero = np.float32(0.0)
     min_plane = np.float32(1e-6)
-    acc = np.zeros((npad + 1, 2), np.int64)  # count, packed rgb
-    acc_uv = np.zeros(npad + 1 if with_uv else 1, np.int64)  # packed offsets
-    best = np.full(npad + 1, -1, np.int64)  # nearest id
+    most = np.float32(0.0)
     k = 0
     for r in range(run_counts.shape[0]):
         s = run_starts[r]
@@ -135,49 +142,35 @@ def _front_pass(
         for p in range(s, s + run_counts[r]):
             t = q_of[k]
             zc = z_of[k]
-            uv = np.int64(uv_of[k]) if with_uv else np.int64(0)
+            uv = uv_of[k] if with_uv else np.int32(0)
             k += 1
             if t == npad:
-                # Off the image or behind its pixel's front layer (~80 % of the drawn points on an
+                # Off the image or behind its pixel's front layer (~75 % of the drawn points on an
                 # agent-built map: the far faces of walls, the rooms behind them): the spare bin
                 # is never read, so these points need no sums.
                 continue
-            c = np.int64(rgb_packed[p])
-            fs[t, 0] += np.float64(zc)
+            c = rgb_packed[p]
+            acc[t, 0] += one
+            acc[t, 1] += zc
+            acc[t, 2] += np.float32(c & 0xFF)
+            acc[t, 3] += np.float32((c >> 8) & 0xFF)
+            acc[t, 4] += np.float32((c >> 16) & 0xFF)
+            most = max(most, acc[t, 0])
             if with_spacing:
-                fs[t, 1] += np.float64(spacing[p] * scale)
+                acc[t, 5] += spacing[p] * scale
             if with_slope:
                 # splat._point_slope, operation for operation.
                 d = nx[p] * (x[p] - cx) + ny[p] * (y[p] - cy) + nz[p] * (z[p] - cz)
                 cc = nx[p] * ax + ny[p] * ay + nz[p] * az
                 zs = zc * np.sqrt(max(one - cc * cc, zero))
                 den = max(max(abs(d), zs * inv_tan), min_plane)
-                fs[t, 2] += np.float64(zc * (zs / den) * inv_f)
-            acc[t, 0] += 1
-            acc[t, 1] += (c & 0xFF) | (((c >> 8) & 0xFF) << 21) | ((c >> 16) << 42)
+                acc[t, 6] += zc * (zs / den) * inv_f
             if with_uv:
-                acc_uv[t] += (uv & 0xFF) | ((uv >> 8) << 32)
-            if with_labels:
-                best[t] = max(best[t], p if zc == zbuf[t] else -1)
-    # Every row written once (rows a mode does not sum are zero); the spare bin's count is 0.
-    overflow = False
-    sums = np.empty((9, npad + 1), np.float32)
-    mask21 = (1 << 21) - 1
-    mask32 = (1 << 32) - 1
-    for i in range(npad + 1):
-        overflow |= acc[i, 0] > MAX_FRONT_POINTS
-        sums[0, i] = acc[i, 0]
-        sums[1, i] = fs[i, 0]
-        c = acc[i, 1]
-        sums[2, i] = c & mask21
-        sums[3, i] = (c >> 21) & mask21
-        sums[4, i] = (c >> 42) & mask21
-        uv = acc_uv[i] if with_uv else np.int64(0)
-        sums[5, i] = uv & mask32
-        sums[6, i] = (uv >> 32) & mask32
-        sums[7, i] = fs[i, 1]
-        sums[8, i] = fs[i, 2]
-    return zbuf, sums, best, overflow
+                uv_sum[0, t] += np.float32(uv & 0xFF)
+                uv_sum[1, t] += np.float32(uv >> 8)
+            if with_labels and zc == zbuf[t]:
+                ids[t, 7] = max(ids[t, 7], np.int32(p))
+    return zbuf, acc, uv_sum, most > MAX_FRONT_POINTS
 
 
 def _compose(chans, gx, gy, zpad, lab_pad, tol_rel1, tol_abs, rgb_out, depth_out, hole_out, labels_out,

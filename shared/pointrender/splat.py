@@ -247,6 +247,14 @@ _PACK = float(2**17)
 _PACK_MAX_COUNT = 514  # 514 * 255 < 2^17: packed per-pixel sums stay exact up to this many points
 
 
+def _add_in_order(n: int, idx: np.ndarray, vals: np.ndarray) -> np.ndarray:
+    """float32 (n,): ``vals`` summed per index in float32, one by one in array order (``np.add.at``
+    is unbuffered and ordered): the sums the compiled front pass keeps, to the bit."""
+    out = np.zeros(n, np.float32)
+    np.add.at(out, idx, np.asarray(vals, np.float32))
+    return out
+
+
 class _NumpyOps:
     name = "numpy"
     concurrent_views = True
@@ -273,12 +281,15 @@ class _NumpyOps:
     def scatter_add(self, n: int, idx, cols: Sequence):
         return [np.bincount(idx, weights=c, minlength=n).astype(np.float32) for c in cols]
 
+    def sum_in_order(self, n: int, idx, vals):
+        return _add_in_order(n, idx, vals)
+
     def accumulate_front(self, n: int, q, front, z, arrays: _CloudArrays, idx, qu, qv, spacing=None):
         sel = np.flatnonzero(front)
         lq = q[sel]
-        s_sp = None if spacing is None else np.bincount(lq, weights=spacing[sel], minlength=n).astype(np.float32)
+        s_sp = None if spacing is None else _add_in_order(n, lq, spacing[sel])
         cnt = np.bincount(lq, minlength=n)
-        s_z = np.bincount(lq, weights=z[sel], minlength=n)
+        s_z = _add_in_order(n, lq, z[sel])
         if cnt[: n - 1].max(initial=0) <= _PACK_MAX_COUNT:
             # Colour and offset sums are sums of small integers: packing three (two) of them into
             # one float64 keeps them exact and saves four of the six weighted bincounts.
@@ -452,6 +463,12 @@ class _TorchOps:
         out = torch.zeros((n, src.shape[1]), dtype=torch.float32, device=self.device)
         out.index_add_(0, idx, src)
         return list(out.unbind(1))
+
+    def sum_in_order(self, n: int, idx, vals):
+        # float32 sums as the numpy backend's, but index_add_ does not promise their order: the
+        # backends agree within the tests' tolerance, not to the bit.
+        out = self.torch.zeros(n, dtype=self.torch.float32, device=self.device)
+        return out.index_add_(0, idx, vals.to(self.torch.float32))
 
     def accumulate_front(self, n: int, q, front, z, arrays: _CloudArrays, idx, qu, qv, spacing=None):
         torch = self.torch
@@ -839,7 +856,7 @@ class SplatRenderer:
         no_normal = np.zeros(1, np.float32)
         nx, ny, nz = slope.normals if slope is not None else (no_normal, no_normal, no_normal)
         consts = slope.constants if slope is not None else np.zeros(8, np.float32)
-        zbuf, sums, best, overflow = kernels.front_pass(
+        zbuf, acc, uv, overflow = kernels.front_pass(
             arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, runs.starts, runs.counts, runs.scale, proj.ravel(),
             np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, *self._front_tolerance(), labelled, with_spacing,
             nx, ny, nz, consts, slope is not None, cfg.mode == "paper", self._pad,
@@ -847,9 +864,10 @@ class SplatRenderer:
         if overflow:
             log.debug("a pixel's front layer exceeds %d points: array code for this view", kernels.MAX_FRONT_POINTS)
             return None
-        return _Front(n, zbuf, sums[0], sums[1], [sums[2], sums[3], sums[4]], sums[5], sums[6],
-                      sums[7] if with_spacing else None, best if labelled else None,
-                      sums[8] if slope is not None else None)
+        # Columns of the kernel's one row per pixel (strided views, no copies).
+        return _Front(n, zbuf, acc[:, 0], acc[:, 1], [acc[:, 2], acc[:, 3], acc[:, 4]], uv[0], uv[1],
+                      acc[:, 5] if with_spacing else None, acc.view(np.int32)[:, 7] if labelled else None,
+                      acc[:, 6] if slope is not None else None)
 
     @property
     def _pad(self) -> int:
@@ -912,7 +930,7 @@ class SplatRenderer:
             with np.errstate(invalid="ignore"):
                 g = _point_slope(ops, arrays.x[pts], arrays.y[pts], arrays.z[pts], z[front],
                                  *(c[pts] for c in slope.normals), slope.constants)
-            (s_g,) = ops.scatter_add(npad + 1, q[front], [g])
+            s_g = ops.sum_in_order(npad + 1, q[front], g)
         return _Front(n, zbuf, cnt, s_z, s_rgb, s_u, s_v, s_sp, best, s_g)
 
     def _labels_pad(self, arrays, best, h, w, pad=1):
