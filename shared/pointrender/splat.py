@@ -1054,6 +1054,7 @@ class SplatRenderer:
             tol_rel1=float(np.float32(1.0 + cfg.visibility_tolerance_rel)), tol_abs_m=cfg.visibility_tolerance_m,
             slope_per_px=math.tan(math.radians(cfg.fill_slope_deg)) / float(cam.fx),
             filter_rel=cfg.colour_filter_rel, slope_px=cfg.visibility_slope_px, guard_px=self._pad - 1,
+            depth_step_m=cfg.far_m / visibility.COVER_MAX_CODE,
         )
 
     def _surfels(self, cnt, s_z, s_rgb, s_u, s_v, h, w):

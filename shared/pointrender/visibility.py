@@ -96,6 +96,19 @@ class VisibilityParams:
     # Width of the band around the padded image (pixels) whose surfels the front layer holds as
     # footprints only (:class:`splat.SplatConfig` ``guard_px`` says why).
     guard_px: int = 0
+    # The quadrant covers hold depths as codes ceil(depth / depth_step_m) below COVER_NONE (see
+    # there): the renderer sets the step to its far clip / COVER_MAX_CODE.
+    depth_step_m: float = 20.0 / 65534
+
+
+# The quadrant covers hold each depth as a 16-bit code, ceil(depth / step), and COVER_NONE where no
+# footprint reaches: the compiled path's min filters then move half the bytes of float32 (measured
+# 1.7x faster at 290 x 290 x 4). A code stands for at most one step (0.3 mm at a 20 m far clip)
+# beyond the depth, far below the visibility test's 2 cm tolerance; every path quantises and
+# restores alike (x -> x * step is monotone, so it commutes with the min and max of the covers),
+# so they still agree to the bit.
+COVER_MAX_CODE = 65534
+COVER_NONE = 65535
 
 
 def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
@@ -258,16 +271,18 @@ def enclosing_depth(ops, zmin, radius, p: VisibilityParams, h: int, w: int):
     and holds no footprint is not counted: the surface may continue beyond the border (what the
     renderer's guard band makes rare: the image here is the view grown by it). Radii are rounded up to a few classes so that the dilation
     costs a handful of exact min filters (O(1) per pixel whatever the size); the sources of class
-    k join at the step after which k pixels of dilation remain."""
+    k join at the step after which k pixels of dilation remain. Depths enter the covers as codes
+    (:data:`COVER_NONE`), so ``far`` and ``near2`` are multiples of ``p.depth_step_m``."""
     inf = float("inf")
     hq, wq = zmin.shape
     cls = ops.lookup(radius_lut(p), radius + 1.0)
     present = sorted(int(k) for k in ops.unique_values(cls) if k >= 0)
     if not present:
         return ops.full2(hq, wq, inf), ops.full2(hq, wq, inf)
+    code = ops.where(zmin < inf, ops.clamp(ops.ceil(zmin * (1.0 / p.depth_step_m)), 0.0, float(COVER_MAX_CODE)), inf)
     covers = [ops.full2(hq, wq, inf) for _ in QUADRANTS]
     for i, k in enumerate(reversed(present)):
-        src = ops.where(cls == float(k), zmin, inf)
+        src = ops.where(cls == float(k), code, inf)
         covers = [ops.minimum(c, src) for c in covers]
         nxt = present[-2 - i] if i + 1 < len(present) else 0
         if k > nxt:
@@ -289,6 +304,7 @@ def enclosing_depth(ops, zmin, radius, p: VisibilityParams, h: int, w: int):
     # The second smallest of four: the smaller of (larger of the pair minima, smaller of the pair maxima).
     near2 = ops.minimum(ops.maximum(ops.minimum(lo[0], lo[1]), ops.minimum(lo[2], lo[3])),
                         ops.minimum(ops.maximum(lo[0], lo[1]), ops.maximum(lo[2], lo[3])))
+    far, near2 = (ops.where(c < inf, c * p.depth_step_m, inf) for c in (far, near2))  # codes -> metres
     return far, ops.minimum(near2, far)
 
 
@@ -470,13 +486,15 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int, nea
                f32(p.min_radius_px), f32(p.max_radius_px), plan.lut, cls, hist)
     present = np.flatnonzero(hist).tolist()
     order, first = vk.bucket(cls, hist)
-    # The four quadrant covers, mirrored into one image so that one min filter serves them all.
+    # The four quadrant covers (16-bit depth codes), mirrored into one image so that one min
+    # filter serves them all.
     # The min filters alternate between two buffers rather than allocate an image each.
-    cov4 = np.full((*front.zmin.shape, 4), np.inf, f32)
+    cov4 = np.full((*front.zmin.shape, 4), COVER_NONE, np.uint16)
     spare = np.empty_like(cov4)
-    border = (float("inf"),) * 4
+    border = (COVER_NONE,) * 4
+    inv_step, step = f32(1.0 / p.depth_step_m), f32(p.depth_step_m)
     for i, k in enumerate(reversed(present)):
-        vk.add_sources(cov4, order, first[k], first[k + 1], front.zmin)
+        vk.add_codes(cov4, order, first[k], first[k + 1], front.zmin, inv_step)
         nxt = present[-2 - i] if i + 1 < len(present) else 0
         if k > nxt:
             m = k - nxt
@@ -496,7 +514,7 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int, nea
     out_rgb = np.empty((3, h, w), f32)
     out_lab = np.empty((h, w) if with_labels else (1, 1), np.int64)
     hole = np.empty((h, w), bool)
-    vk.finish(cov4, g, reach, h, w, plan.oy, plan.ox, front.zmin, front.count, front.sum_z, front.sum_rgb[0],
+    vk.finish(cov4, step, g, reach, h, w, plan.oy, plan.ox, front.zmin, front.count, front.sum_z, front.sum_rgb[0],
               front.sum_rgb[1], front.sum_rgb[2], front.sum_slope if with_slope else front.zmin, with_slope,
               f32(p.slope_px), lab_ids, lab_table, with_labels, lab_direct, f32(p.tol_rel1), f32(p.tol_abs_m),
               plan.levels, plan.offs, plan.dims, pyr, pyr_lab, p.fill_levels, p.gap_levels, plan.fill_hi,

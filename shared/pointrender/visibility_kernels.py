@@ -5,8 +5,9 @@ The array version makes some 400 passes over a view's pixels (each ``where``, ``
 pyramid step is one), so a 256 x 256 view cost ~25 ms in memory traffic and temporaries alone.
 Here the same arithmetic runs as three fused loops (surfels and footprint classes; the four
 quadrant covers; visibility, pull and push) around OpenCV's min filters, which stay: they are
-exact and SIMD. The four quadrant covers are kept as one four-channel image, each channel mirrored
-so that its quadrant window lies above-left: one ``cv2.erode`` then dilates all four at once.
+exact and SIMD. The four quadrant covers are kept as one four-channel image of 16-bit depth codes
+(:data:`visibility.COVER_NONE`), each channel mirrored so that its quadrant window lies above-left:
+one ``cv2.erode`` then dilates all four at once.
 
 Every operation keeps the float32 rounding of the numpy expression it replaces (NEP 50: a Python
 float meets a float32 array as a float32), so the tests compare the two paths exactly.
@@ -19,6 +20,7 @@ import numpy as np
 from shared.jit import AVAILABLE, numba
 
 _INF = np.float32(np.inf)
+_MAX_CODE, _NONE = 65534, 65535  # visibility.COVER_MAX_CODE, COVER_NONE
 
 
 def _classes(zmin, cnt, sp, fs_focal, rmin, rmax, lut, cls, hist):
@@ -72,6 +74,26 @@ def _add_sources(cov4, order, lo, hi, zmin):
         cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
 
 
+def _add_codes(cov4, order, lo, hi, zmin, inv_step):
+    """:func:`_add_sources` into covers of 16-bit depth codes (:data:`visibility.COVER_NONE`):
+    each source's depth as ``ceil(z * inv_step)``, rounded as the array code rounds it."""
+    hq, wq = zmin.shape
+    for s in range(lo, hi):
+        o = order[s]
+        i, j = o >> 16, o & 0xFFFF
+        z = np.uint16(min(max(np.ceil(zmin[i, j] * inv_step), np.float32(0.0)), np.float32(_MAX_CODE)))
+        ii, jj = hq - 1 - i, wq - 1 - j
+        cov4[i, j, 0] = min(cov4[i, j, 0], z)
+        cov4[i, jj, 1] = min(cov4[i, jj, 1], z)
+        cov4[ii, j, 2] = min(cov4[ii, j, 2], z)
+        cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)
+
+
+def _depth(code, step):
+    """A cover's depth (m) from its code: +inf where no footprint reached."""
+    return _INF if code == _NONE else np.float32(code) * step
+
+
 def _far(l0, l1, l2, l3, top, left, bottom, right):
     """A pixel's enclosing depth (``far`` of :func:`visibility.enclosing_depth`) from its four
     quadrant covers (-1,-1), (-1,+1), (+1,-1), (+1,+1) and whether its window reaches past the
@@ -87,12 +109,13 @@ def _far(l0, l1, l2, l3, top, left, bottom, right):
     return _INF if f == ninf else f
 
 
-def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, with_slope, slope_px,
+def _finish(cov4, step, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, with_slope, slope_px,
             lab_ids, lab_table, with_labels, lab_direct, tol_rel1, tol_abs, levels, offs, dims, pyr, pyr_lab,
             fill_levels, gap_levels, fill_hi, fill_lo, gap_rel, gap_scale, gap_max, out_z, out_rgb, out_lab, hole):
     """The visibility test, the pull pyramid and the push of :func:`visibility.compose`, from the
     front layer's sums (``zmin, cnt, sz, sr, sg, sb, sl`` on its grid: the padded image and its
-    ``guard`` band) and the quadrant covers ``cov4`` (that grid, mirrored per quadrant).
+    ``guard`` band) and the quadrant covers ``cov4`` (that grid, mirrored per quadrant; 16-bit
+    depth codes of ``step`` metres).
 
     Labels: with ``lab_direct`` ``lab_ids`` is the label image (-1: none), else each pixel's
     nearest point id (-1: none), whose label is ``lab_table[id]``: only visible pixels read one.
@@ -138,7 +161,8 @@ def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, wit
                 c = one
                 if z < inf:
                     jj = wg - 1 - jg
-                    l0_, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
+                    l0_, l1 = _depth(cov4[ig, jg, 0], step), _depth(cov4[ig, jj, 1], step)
+                    l2, l3 = _depth(cov4[ii, jg, 2], step), _depth(cov4[ii, jj, 3], step)
                     f = _far(l0_, l1, l2, l3, top, jg <= reach, bottom, jg >= wg - 1 - reach)
                     c = cnt[ig, jg]
                     limit = f * tol_rel1 + tol_abs
@@ -280,7 +304,8 @@ def _finish(cov4, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, sl, wit
                 out_lab[i - 1, j - 1] = -1
             ig, jg = i + guard, j + guard
             ii, jj = hg - 1 - ig, wg - 1 - jg
-            l0, l1, l2, l3 = cov4[ig, jg, 0], cov4[ig, jj, 1], cov4[ii, jg, 2], cov4[ii, jj, 3]
+            l0, l1 = _depth(cov4[ig, jg, 0], step), _depth(cov4[ig, jj, 1], step)
+            l2, l3 = _depth(cov4[ii, jg, 2], step), _depth(cov4[ii, jj, 3], step)
             ref = _far(l0, l1, l2, l3, ig <= reach, jg <= reach, ig >= hg - 1 - reach, jg >= wg - 1 - reach)
             ref_lo = min(min(max(min(l0, l1), min(l2, l3)), min(max(l0, l1), max(l2, l3))), ref)
             covered = ref < _INF
@@ -403,8 +428,9 @@ def _rgb8(rgb):
 if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
     _far = numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")(_far)
-    classes, bucket, add_sources = _jit(_classes), _jit(_bucket), _jit(_add_sources)
+    _depth = numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")(_depth)
+    classes, bucket, add_sources, add_codes = _jit(_classes), _jit(_bucket), _jit(_add_sources), _jit(_add_codes)
     finish = _jit(_finish)
     colour_filter, rgb8 = _jit(_colour_filter), _jit(_rgb8)
 else:  # pragma: no cover
-    classes = bucket = add_sources = finish = colour_filter = rgb8 = None
+    classes = bucket = add_sources = add_codes = finish = colour_filter = rgb8 = None
