@@ -479,8 +479,8 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int, nea
     g = p.guard_px
     # Footprint classes and covers on the front layer's grid (the padded image and its guard
     # band): the pyramid's extra pixels hold no surfel, so no footprint reaches past it (the
-    # erosion's border is the same +inf).
-    cls = np.empty(front.zmin.shape, np.int32)
+    # erosion's border is the same COVER_NONE).
+    cls = np.empty(front.zmin.shape, np.int8)  # classes -1..48: a quarter of the bytes
     hist = np.zeros(p.max_radius_px + 1, np.int64)
     vk.classes(front.zmin, front.count, front.sum_spacing, f32(p.footprint_scale * p.focal_px),
                f32(p.min_radius_px), f32(p.max_radius_px), plan.lut, cls, hist)

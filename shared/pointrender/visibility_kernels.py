@@ -204,6 +204,20 @@ def _finish(cov4, step, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, s
             rc = i + 1 >= 0 and i + 1 < hp
             ca = j >= 0 and j < wp
             cb = j + 1 >= 0 and j + 1 < wp
+            t = o1 + I * w1 + J
+            if not ((ra or rc) and (ca or cb)):
+                # A cell of the grid's margin, off the padded image (a third of level 1 at 256 x
+                # 256): what the general case computes for four absent children, written directly.
+                pyr[t, 0] = zero
+                pyr[t, 1] = zero
+                pyr[t, 2] = zero
+                pyr[t, 3] = zero
+                pyr[t, 4] = zero
+                pyr[t, 5] = inf
+                pyr[t, 6] = ninf
+                if with_labels:
+                    pyr_lab[t] = -1
+                continue
             ina, inb, inc, ind = ra and ca, ra and cb, rc and ca, rc and cb
             ma = m0[0, j] if ina else inf
             mb = m0[0, j + 1] if inb else inf
@@ -220,7 +234,6 @@ def _finish(cov4, step, guard, reach, h, w, oy, ox, zmin, cnt, sz, sr, sg, sb, s
             wb = one if vb else zero
             wc = one if vc else zero
             wd = one if vd else zero
-            t = o1 + I * w1 + J
             pyr[t, 0] = wa * ka + wb * kb + wc * kc + wd * kd
             pyr[t, 1] = ((ma if va else zero) * ka + (mb if vb else zero) * kb + (mc if vc else zero) * kc
                          + (md if vd else zero) * kd)
