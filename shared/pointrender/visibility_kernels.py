@@ -363,12 +363,14 @@ def _colour_filter(rgb, depth, hole, rel, taps):
     zero = np.float32(0.0)
     dpad = np.full((h + 2, w + 2), _INF, np.float32)
     cpad = np.zeros((3, h + 2, w + 2), np.float32)
-    for i in range(h):
+    for i in range(h):  # row by row and branch-free, so that the copies vectorise
+        d_in, h_in, d_out = depth[i], hole[i], dpad[i + 1, 1 : w + 1]
         for j in range(w):
-            if not hole[i, j]:
-                dpad[i + 1, j + 1] = depth[i, j]
-            for ch in range(3):
-                cpad[ch, i + 1, j + 1] = rgb[ch, i, j]
+            d_out[j] = _INF if h_in[j] else d_in[j]
+        for ch in range(3):
+            c_in, c_out = rgb[ch, i], cpad[ch, i + 1, 1 : w + 1]
+            for j in range(w):
+                c_out[j] = c_in[j]
     out = np.empty_like(rgb)
     one = np.float32(1.0)
     k0, k1, k2, k3, k4, k5, k6, k7, k8 = taps[0], taps[1], taps[2], taps[3], taps[4], taps[5], taps[6], taps[7], taps[8]
