@@ -103,3 +103,20 @@ def test_a_far_checker_renders_its_mean_colour_and_matches_every_point():
     assert abs(ra[:, 0].mean() - ra[:, 2].mean()) < 25  # purple, not red or blue pixels
     assert np.abs(ra.mean(axis=0) - rb.mean(axis=0)).max() < 10
     assert a.visible_points[0] < b.visible_points[0] / 5
+
+
+def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
+    # The visibility mode's footprints follow each level's spacing, so it draws cells up to 2 px
+    # (LOD_CELL_PX); the paper's fixed 3x3 splat would show 2 px gaps as holes, so it keeps 1 px.
+    from shared.pointrender.splat import LOD_CELL_PX
+
+    wall = IndexedCloud(_wall(4.0, 4.0, 0.01))
+    drawn = {mode: RENDERERS.create("numpy", {"mode": mode}).render(wall, _view(), CAM).visible_points[0]
+             for mode in ("visibility", "paper")}
+    assert LOD_CELL_PX == {"visibility": 2.0, "paper": 1.0}
+    assert drawn["visibility"] < 0.5 * drawn["paper"], drawn
+    same = RENDERERS.create("numpy", {"mode": "visibility", "lod_cell_px": 1.0}).render(wall, _view(), CAM)
+    assert same.visible_points[0] == drawn["paper"]
+    # ... and the paper mode still closes its wall at 1 px cells.
+    paper = RENDERERS.create("numpy", {"mode": "paper"}).render(wall, _view(), CAM)
+    assert (~paper.hole_mask[0][56:72]).mean() > 0.99
