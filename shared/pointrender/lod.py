@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shared.jit import AVAILABLE, numba
+
 from shared.cloud import PointCloud
 from shared.pointrender.cloud import IndexedCloud
 
@@ -51,8 +53,16 @@ class VoxelLod:
                focal_px: float, cell_px: float) -> tuple[np.ndarray, np.ndarray]:
         """(starts, counts) of the runs a view draws: each block of ``mask`` (None: all) at the
         coarsest level whose cell projects to at most ``cell_px`` pixels at its nearest point."""
+        cam = np.ascontiguousarray(world_from_camera[:3, 3], np.float64)
+        if select_runs is not None:  # the same arithmetic block by block, without ~10 array temporaries
+            every = mask is None
+            mask = np.ones(1, bool) if every else mask
+            starts = np.empty(index.block_count if every else int(np.count_nonzero(mask)), np.int64)
+            counts = np.empty_like(starts)
+            select_runs(mask, every, index.block_min, index.block_max, cam, float(focal_px), float(cell_px),
+                        float(self.cell_m[1]), self.levels, self.starts, self.counts, starts, counts)
+            return starts, counts
         blocks = np.arange(index.block_count) if mask is None else np.flatnonzero(mask)
-        cam = world_from_camera[:3, 3]
         gap = np.maximum(np.maximum(index.block_min[blocks] - cam, cam - index.block_max[blocks]), 0.0)
         dist = np.linalg.norm(gap, axis=1)
         need_m = cell_px * dist / focal_px
@@ -151,3 +161,26 @@ def _principal_axis(s_nn: np.ndarray) -> np.ndarray:
         m[:, a, b] = m[:, b, a] = s_nn[:, k]
     _, vec = np.linalg.eigh(m)  # ascending eigenvalues: the last column is the principal axis
     return vec[:, :, 2].astype(np.float32)
+
+
+def _select_runs(mask, every, block_min, block_max, cam, focal_px, cell_px, cell1, levels, starts, counts,
+                 out_starts, out_counts):
+    """:meth:`VoxelLod.select` block by block (the blocks of ``mask``, or all with ``every``):
+    the same float64 operations in the same order (the gap per axis, its norm, the level)."""
+    n = 0
+    for b in range(block_min.shape[0]):
+        if not every and not mask[b]:
+            continue
+        g0 = max(max(block_min[b, 0] - cam[0], cam[0] - block_max[b, 0]), 0.0)
+        g1 = max(max(block_min[b, 1] - cam[1], cam[1] - block_max[b, 1]), 0.0)
+        g2 = max(max(block_min[b, 2] - cam[2], cam[2] - block_max[b, 2]), 0.0)
+        dist = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        need = cell_px * dist / focal_px
+        level = np.int64(np.floor(np.log2(max(need, 1e-12) / cell1))) + 1
+        level = min(max(level, 0), levels)
+        out_starts[n] = starts[level, b]
+        out_counts[n] = counts[level, b]
+        n += 1
+
+
+select_runs = numba.njit(nogil=True, cache=True)(_select_runs) if AVAILABLE else None
