@@ -163,8 +163,8 @@ class SplatConfig(BackendConfig):
     # "subsample": the first points of each (shuffled) block, lod_points_per_px per pixel it can cover.
     lod: Literal["voxel", "subsample"] | None = "voxel"
     # None: the mode's own (LOD_CELL_PX). The visibility mode sizes each footprint by its level's
-    # spacing, so cells of 2 px cost it nothing measurable (bench.anticipation, rgbd map, every
-    # band: SSIM -0.001 to -0.005, holes +0.1 to +0.2 points against 1 px) for ~40 % fewer points
+    # spacing, so cells of 2 px cost it little (bench.anticipation, rgbd map, every band against
+    # 1 px: SSIM -0.005 at most, leak and holes equal, labels -0.2 points) for ~40 % fewer points
     # and 0.86x the time per view; the paper's fixed 3x3 splat cannot close 2 px gaps, so it keeps 1 px.
     lod_cell_px: float | None = Field(None, gt=0.0, le=8.0)
     lod_cell_m: float = Field(0.04, ge=0.005, le=1.0)  # level 1; each further level doubles it
