@@ -22,9 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.jit import AVAILABLE, numba
-
 from shared.cloud import PointCloud
+from shared.jit import AVAILABLE, numba
 from shared.pointrender.cloud import IndexedCloud
 
 

@@ -19,8 +19,9 @@ import numpy as np
 
 from shared.jit import AVAILABLE, numba
 
+from shared.pointrender.visibility import COVER_MAX_CODE, COVER_NONE
+
 _INF = np.float32(np.inf)
-_MAX_CODE, _NONE = 65534, 65535  # visibility.COVER_MAX_CODE, COVER_NONE
 
 
 def _classes(zmin, cnt, sp, fs_focal, rmin, rmax, lut, cls, hist):
@@ -60,33 +61,32 @@ def _bucket(cls, hist):
     return order, first
 
 
+def _mirrored_min(cov4, i, j, z):
+    """Source ``z`` at pixel (i, j) into the four quadrant covers, each channel mirrored so that its
+    quadrant's window lies above-left (a min: sources only ever lower a cover)."""
+    ii, jj = cov4.shape[0] - 1 - i, cov4.shape[1] - 1 - j
+    cov4[i, j, 0] = min(cov4[i, j, 0], z)  # (-1, -1): as is
+    cov4[i, jj, 1] = min(cov4[i, jj, 1], z)  # (-1, +1): columns mirrored
+    cov4[ii, j, 2] = min(cov4[ii, j, 2], z)  # (+1, -1): rows mirrored
+    cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
+
+
 def _add_sources(cov4, order, lo, hi, zmin):
-    """Sources ``order[lo:hi]`` (one footprint class) into the four mirrored quadrant covers (min)."""
-    hq, wq = zmin.shape
+    """Sources ``order[lo:hi]`` (one footprint class) into float32 quadrant covers (their depths)."""
     for s in range(lo, hi):
         o = order[s]
         i, j = o >> 16, o & 0xFFFF
-        z = zmin[i, j]
-        ii, jj = hq - 1 - i, wq - 1 - j
-        cov4[i, j, 0] = min(cov4[i, j, 0], z)  # (-1, -1): as is
-        cov4[i, jj, 1] = min(cov4[i, jj, 1], z)  # (-1, +1): columns mirrored
-        cov4[ii, j, 2] = min(cov4[ii, j, 2], z)  # (+1, -1): rows mirrored
-        cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)  # (+1, +1): both
+        _mirrored_min(cov4, i, j, zmin[i, j])
 
 
 def _add_codes(cov4, order, lo, hi, zmin, inv_step):
-    """:func:`_add_sources` into covers of 16-bit depth codes (:data:`visibility.COVER_NONE`):
+    """Sources ``order[lo:hi]`` into covers of 16-bit depth codes (:data:`visibility.COVER_NONE`):
     each source's depth as ``ceil(z * inv_step)``, rounded as the array code rounds it."""
-    hq, wq = zmin.shape
     for s in range(lo, hi):
         o = order[s]
         i, j = o >> 16, o & 0xFFFF
-        z = np.uint16(min(max(np.ceil(zmin[i, j] * inv_step), np.float32(0.0)), np.float32(_MAX_CODE)))
-        ii, jj = hq - 1 - i, wq - 1 - j
-        cov4[i, j, 0] = min(cov4[i, j, 0], z)
-        cov4[i, jj, 1] = min(cov4[i, jj, 1], z)
-        cov4[ii, j, 2] = min(cov4[ii, j, 2], z)
-        cov4[ii, jj, 3] = min(cov4[ii, jj, 3], z)
+        code = np.uint16(min(max(np.ceil(zmin[i, j] * inv_step), np.float32(0.0)), np.float32(COVER_MAX_CODE)))
+        _mirrored_min(cov4, i, j, code)
 
 
 def _enclosing(q0, q1, q2, q3, step, guard, reach, far_out, near_out):
@@ -101,7 +101,7 @@ def _enclosing(q0, q1, q2, q3, step, guard, reach, far_out, near_out):
     circuits kept the loop from vectorising: 450 -> 80 us at 256 x 256)."""
     hp, wp = far_out.shape
     hg, wg = q0.shape
-    none = np.float32(_NONE)
+    none = np.float32(COVER_NONE)
     nil = np.float32(0.0)  # below every code (a depth beyond the near clip codes to >= 1): "does not count"
     for i in range(hp):
         ig = i + guard
@@ -448,6 +448,7 @@ def _rgb8(rgb):
 
 if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+    _mirrored_min = numba.njit(nogil=True, cache=True, inline="always")(_mirrored_min)
     classes, bucket, add_sources, add_codes = _jit(_classes), _jit(_bucket), _jit(_add_sources), _jit(_add_codes)
     enclosing, finish = _jit(_enclosing), _jit(_finish)
     colour_filter, rgb8 = _jit(_colour_filter), _jit(_rgb8)

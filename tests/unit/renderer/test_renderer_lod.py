@@ -120,3 +120,32 @@ def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
     # ... and the paper mode still closes its wall at 1 px cells.
     paper = RENDERERS.create("numpy", {"mode": "paper"}).render(wall, _view(), CAM)
     assert (~paper.hole_mask[0][56:72]).mean() > 0.99
+
+
+def test_compiled_level_selection_picks_the_runs_the_array_code_picks(room_index, monkeypatch):
+    import shared.pointrender.lod as lod_module
+    from shared.geometry import camera_pose
+    from shared.pointrender.cloud import Frustum
+
+    if lod_module.select_runs is None:
+        import pytest
+
+        pytest.skip("numba is not installed: only the array code runs")
+    lod = build_voxel_lod(room_index, point_spacing_of(room_index, 4), cell_m=0.04, levels=5)
+    frustum = Frustum.for_camera(CAM, 0.05, 20.0)
+    rng = np.random.default_rng(5)
+    lo, hi = room_index.cloud.xyz.min(axis=0), room_index.cloud.xyz.max(axis=0)
+    level0 = set(lod.starts[0].tolist())
+    fine = coarse = 0
+    for k in range(60):
+        pose = camera_pose(rng.uniform(lo, hi), rng.uniform(-np.pi, np.pi), 0.0, 1.25)
+        mask = None if k % 3 == 0 else room_index.visible_blocks(pose, frustum)
+        for cell_px in (1.0, 2.0, 3.0):
+            compiled = lod.select(room_index, mask, pose, CAM.fx, cell_px)
+            with monkeypatch.context() as m:
+                m.setattr(lod_module, "select_runs", None)
+                array = lod.select(room_index, mask, pose, CAM.fx, cell_px)
+            assert np.array_equal(compiled[0], array[0]) and np.array_equal(compiled[1], array[1])
+            at_level0 = np.isin(compiled[0], list(level0))
+            fine, coarse = fine + int(at_level0.sum()), coarse + int((~at_level0).sum())
+    assert fine > 0 and coarse > 0, (fine, coarse)  # both full-resolution and voxel levels were chosen
