@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from services.robot_io.core.ros2 import messages as m
-from services.robot_io.core.ros2.backend import RobotClock
+from services.robot_io.core.ros2.backend import RobotClock, _Latest
 from services.robot_io.core.ros2.occupancy import OccupancyPlanner
 
 
@@ -51,3 +51,45 @@ def test_robot_time_is_the_clock_topic_without_extrapolation_and_silence_is_meas
     assert time.monotonic() - t0 < 5
     wall = RobotClock(use_clock=False)
     assert abs(wall.now() - time.time()) < 0.1 and wall.silence_s() == 0.0 and wall.rate == 1.0
+
+
+def test_a_teleport_waits_past_odometry_of_the_old_pose_that_was_still_in_flight():
+    """The clock read after the teleport call can lag the odometry: a message of the old pose, stamped
+    after that clock value, may arrive first (a CI run saw the old heading). The reset answers with the
+    pose that shows the teleport."""
+    import threading
+
+    from services.robot_io.core.ros2.backend import Ros2Robot
+    from shared.schemas import Pose
+
+    class Teleport:
+        def call(self, req, timeout_s):
+            robot._odom.put(10.05, m.odometry(10.05, (2.0, 8.0, 0.0), 1.54, 0.0, 0.0, "odom", "base_link"))
+            threading.Timer(0.1, lambda: robot._odom.put(
+                10.10, m.odometry(10.10, (req.x, req.y, 0.0), req.theta, 0.0, 0.0, "odom", "base_link"))).start()
+            return None
+
+    robot = object.__new__(Ros2Robot)
+    robot._teleport, robot._odom, robot.clock = Teleport(), _Latest(), RobotClock(use_clock=True)
+    robot._send_zero = lambda: None
+    robot.clock.on_clock(10.0)
+    got = robot.reset(Pose(position_m=(2.0, 8.0, 0.0), heading_rad=0.0))
+    assert abs(got.heading_rad) < 1e-6 and got.position_m[:2] == (2.0, 8.0)
+
+
+def test_a_simulator_whose_odometry_frame_is_not_the_teleports_gets_its_newest_odometry():
+    from services.robot_io.core.ros2.backend import TELEPORT_SETTLE_S, Ros2Robot
+    from shared.schemas import Pose
+
+    class Teleport:
+        def call(self, req, timeout_s):  # odometry starts at zero wherever the robot is put
+            robot._odom.put(10.05, m.odometry(10.05, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0, "odom", "base_link"))
+
+    robot = object.__new__(Ros2Robot)
+    robot._teleport, robot._odom, robot.clock = Teleport(), _Latest(), RobotClock(use_clock=True)
+    robot._send_zero = lambda: None
+    robot.clock.on_clock(10.0)
+    t0 = time.monotonic()
+    got = robot.reset(Pose(position_m=(2.0, 8.0, 0.0), heading_rad=1.0))
+    assert got.position_m[:2] == (0.0, 0.0)
+    assert TELEPORT_SETTLE_S <= time.monotonic() - t0 < TELEPORT_SETTLE_S + 5.0

@@ -102,6 +102,19 @@ class Ros2Config(BackendConfig):
     bounds_max_m: tuple[float, float, float] = (50.0, 50.0, 3.0)
 
 
+# A teleport has landed when odometry is this close to the requested pose (metres, radians), and the
+# odometry of a simulator that never matches is read after this long (wall seconds).
+TELEPORT_MATCH_M = 0.05
+TELEPORT_MATCH_RAD = 0.05
+TELEPORT_SETTLE_S = 1.0
+
+
+def _same_place(a: Pose, b: Pose) -> bool:
+    """Whether two poses agree in the plane (the teleport sets x, y and heading, not z)."""
+    return (math.hypot(a.position_m[0] - b.position_m[0], a.position_m[1] - b.position_m[1]) <= TELEPORT_MATCH_M
+            and abs(float(wrap_angle(a.heading_rad - b.heading_rad))) <= TELEPORT_MATCH_RAD)
+
+
 class _Latest:
     """The newest message of a topic with its stamp (robot time) and receive time."""
 
@@ -488,13 +501,23 @@ class Ros2Robot(Robot):
                                       theta=float(pose.heading_rad)), 10.0)
         except TransportError as exc:
             raise Ros2Error(f"teleport failed: {exc}") from exc
-        # Wait for odometry that shows the new pose (stamped after the call).
+        # Wait for odometry that shows the new pose. "Stamped after the call" alone is not enough: the
+        # clock we read can lag the odometry, so a message computed just before the teleport (the old
+        # pose) may still be in flight with a newer stamp. Take the first newer odometry at the requested
+        # pose; a simulator whose odometry frame is not the teleport's never matches, so after the link
+        # has had time to drain its newest odometry is the answer.
         t0 = self.clock.now()
         end = time.monotonic() + 10.0
+        settle_end = None
         while time.monotonic() < end:
             got = self._odom.get()
             if got and got[0] > t0:
-                return self._odom_pose(got[1])
+                now = self._odom_pose(got[1])
+                if _same_place(now, pose):
+                    return now
+                settle_end = settle_end or time.monotonic() + TELEPORT_SETTLE_S
+                if time.monotonic() > settle_end:
+                    return now
             time.sleep(0.02)
         raise StaleDataError("no odometry after the teleport")
 

@@ -204,10 +204,11 @@ class StandInRobot:
         return self.sim.noise.odometry(self.true_pose)
 
     def _publish_state(self) -> None:
-        p, c, t = self.profile, self.config, self.stamp_s
+        p, c = self.profile, self.config
+        with self._lock:  # a stamp and a pose of the same instant: a teleport cannot fall between them
+            t, odo = self.stamp_s, self.odometry_pose()
         if self._pub_clock:
             self._pub_clock.publish(m.clock(t))
-        odo = self.odometry_pose()
         self._sensor(self._pub_odom, m.odometry(t, odo.position_m, odo.heading_rad, self._v, self._w, p.odom_frame, p.base_frame))
         if self._pub_tf:
             self._pub_tf.publish(m.tf_message([m.transform_stamped(t, p.odom_frame, p.base_frame, odo.position_m, odo.heading_rad)]))
