@@ -14,6 +14,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -210,6 +211,11 @@ class MissionLoop:
             if len(cands) == 1:
                 boxed_in_at = step
             movable = [c for c in cands if c.kind != CandidateKind.STOP]
+            # The spatial map is asked for first and drawn while the views render (the renderer serves
+            # the two on their own workers; two cores share them): the step waits for the longer, not both.
+            smap_job = None
+            if ablation.spatial_map and self.renderer is not None:
+                smap_job = _in_background(self.renderer.spatial_map, map_id, pose, np.asarray(trajectory), cands)
             render = None
             if anticipator is not None and movable:
                 views = [ViewPose(position_m=(pose.position_m[0] + c.dx_m, pose.position_m[1] + c.dy_m,
@@ -217,13 +223,10 @@ class MissionLoop:
                                   heading_rad=math.atan2(c.dy_m, c.dx_m)) for c in movable]
                 cam = CameraIntrinsics(hfov_deg=ablation.anticipation_hfov_deg)
                 render = anticipator.views(map_id, views, cam, opts.anticipation_splat_mode)
-            t2 = time.perf_counter()
-            timings["anticipation_s"] = t2 - t1
-            smap = None
-            if ablation.spatial_map and self.renderer is not None:
-                smap = self.renderer.spatial_map(map_id, pose, np.asarray(trajectory), cands)
-            t3 = time.perf_counter()
-            timings["spatial_map_s"] = t3 - t2
+            timings["anticipation_s"] = time.perf_counter() - t1
+            smap, timings["spatial_map_s"] = None, 0.0
+            if smap_job is not None:
+                smap, timings["spatial_map_s"] = smap_job.result()  # its own duration (it overlapped the views)
             ctx = StepContext(
                 instruction=instruction, step=step, pose=pose, candidates=build_candidate_views(cands, pano, render),
                 trajectory_m=np.asarray(trajectory), history=history.compressed(),
@@ -294,6 +297,22 @@ class MissionLoop:
             pose=pano.pose, candidates=[v.candidate for v in ctx.candidates], decision=decision,
             timings_s={k: round(v, 4) for k, v in timings.items()}, usage=self.policy.usage.model_copy(),
         ))
+
+
+def _in_background(fn: Callable[..., Any], *args) -> Future:
+    """``fn(*args)`` on a thread of its own: a future of (its result, its seconds). A thread a step (tens
+    of microseconds) rather than a pool: nothing to shut down however the mission ends."""
+    fut: Future = Future()
+
+    def job() -> None:
+        t0 = time.perf_counter()
+        try:
+            fut.set_result((fn(*args), time.perf_counter() - t0))
+        except BaseException as exc:  # handed to the step that waits for it
+            fut.set_exception(exc)
+
+    threading.Thread(target=job, name="spatial-map", daemon=True).start()
+    return fut
 
 
 def _towards(pose: Pose, target_m) -> Candidate:

@@ -197,3 +197,46 @@ def test_llm_garbage_is_reasked_once_then_falls_back_and_the_mission_completes(w
     assert reask[-2] == {"role": "assistant", "content": "I would go left, probably."}
     last = [kw for kind, _, kw in events.items if kind == JobEventKind.STEP][-1]
     assert last["data"].usage.reasks == out.steps
+
+
+# --- the spatial map is drawn while the views render ---------------------------------------------------------
+
+
+class Overlapping:
+    """The real renderer port, except that the views wait (bounded) until the spatial map has started:
+    asked one after the other, each step would wait the whole bound."""
+
+    def __init__(self, port, fail_map: bool = False):
+        import threading
+
+        self.port, self.fail_map, self.started = port, fail_map, threading.Event()
+        self.waited: list[bool] = []
+
+    def views(self, *a, **kw):
+        self.waited.append(self.started.wait(5.0))
+        self.started.clear()
+        return self.port.views(*a, **kw)
+
+    def spatial_map(self, *a, **kw):
+        self.started.set()
+        if self.fail_map:
+            raise RuntimeError("spatial map: no such floor")
+        return self.port.spatial_map(*a, **kw)
+
+
+def test_the_spatial_map_is_drawn_while_the_views_render_and_its_failure_reaches_the_step(world):
+    sim, port, names = world
+    for fail in (False, True):
+        sim.reset()
+        renderer = Overlapping(port, fail_map=fail)
+        events = Events()
+        loop = MissionLoop(robot=sim, predictor=PREDICTORS.create("geometric"), renderer=renderer, policy=Scripted(),
+                           emit=events, label_names=names)
+        if fail:
+            with pytest.raises(RuntimeError, match="no such floor"):
+                loop.run("m-map", "walk on", "local", MissionOptions(max_steps=2))
+            continue
+        out = loop.run("m-map", "walk on", "local", MissionOptions(max_steps=2))
+        assert out.steps == 2 and renderer.waited == [True, True]
+        steps = [kw["data"] for kind, _, kw in events.items if kind == JobEventKind.STEP]
+        assert all(s.timings_s["spatial_map_s"] > 0 and s.timings_s["anticipation_s"] > 0 for s in steps)
