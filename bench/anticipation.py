@@ -284,8 +284,9 @@ def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, 
 
 def speed(modes: list[str], n_points: int, reps: int) -> None:
     """Time per view of each mode against the one-pass floor, and global perception per step
-    (spatial map + 6 views), on the built flat (bench.renderer's cloud), one process."""
-    from bench.renderer import CAM, _floor_ms, _views
+    (spatial map + 6 views, as the planner asks for them), on the built flat (bench.renderer's cloud),
+    one process."""
+    from bench.renderer import CAM, _floor_ms, _views, perception_step
     from services.renderer.core import SpatialMapper
     from services.renderer.tools import scenes
     from shared.geometry import rot_z
@@ -319,8 +320,8 @@ def speed(modes: list[str], n_points: int, reps: int) -> None:
             per_view.append((time.perf_counter() - t0) / len(views))
             view_cpu.append((time.process_time() - c0) / len(views))
             t0, c0 = time.perf_counter(), time.process_time()
-            mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)
-            r.render(index, views, CAM)
+            perception_step(lambda: mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512),
+                            lambda: r.render(index, views, CAM))  # noqa: B023
             steps.append(time.perf_counter() - t0)
             step_cpu.append(time.process_time() - c0)
         v_ms, s_ms = 1e3 * float(np.median(per_view)), 1e3 * float(np.median(steps))

@@ -27,12 +27,11 @@ import subprocess
 import sys
 import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from bench.renderer import _floor_ms
+from bench.renderer import _floor_ms, perception_step
 from shared.geometry import PinholeCamera, camera_pose, rot_z
 from shared.schemas import Candidate, Pose
 
@@ -127,7 +126,6 @@ def run(name: str, cloud, steps, libs: dict, reps: int) -> None:
         sides[label] = (index, renderer, prep_s, {"view": [], "view_cpu": [], "step": [], "step_cpu": [], "serial": [],
                                                   "drawn": []})
     requests = [_map_request(s) for s in steps]
-    background = ThreadPoolExecutor(1)  # the spatial map drawn while the views render, as the planner asks
     for label, (index, renderer, _, _) in sides.items():  # first renders: per-floor grids, arrays
         for step, (pose, traj, cands) in zip(steps, requests):
             mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512)
@@ -141,9 +139,8 @@ def run(name: str, cloud, steps, libs: dict, reps: int) -> None:
                 m["view_cpu"].append(1e3 * (time.process_time() - c0) / len(step))
                 m["drawn"].extend(out.visible_points)
                 t0, c0 = time.perf_counter(), time.process_time()
-                smap = background.submit(mapper.draw, index, pose, traj, cands, agent_up=True, size_px=512)
-                renderer.render_poses(index, step, CAM)
-                smap.result()
+                perception_step(lambda: mapper.draw(index, pose, traj, cands, agent_up=True, size_px=512),  # noqa: B023
+                                lambda: renderer.render_poses(index, step, CAM))  # noqa: B023
                 m["step"].append(1e3 * (time.perf_counter() - t0))
                 m["step_cpu"].append(1e3 * (time.process_time() - c0))
                 t0 = time.perf_counter()
