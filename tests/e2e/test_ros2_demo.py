@@ -21,10 +21,9 @@ SCENE = "generated:3:area=50"
 STANDIN = '{"camera": {"width_px": 128, "height_px": 128}, "camera_rate_hz": 4, "control_rate_hz": 20}'
 
 
-# The reconstructor waits this long for a recording's missing frames (default 30 s). Through the ros2 backend
-# every recording reports two or three frames more than reach the reconstructor (e.g. "579 of 581 frames
-# arrived"; not seen with the sim backend), so each recording waited the full default: 2 x 30 s of this test.
-# The build uses the frames that did arrive either way; the services inherit the environment.
+# The reconstructor waits this long for a recording's missing frames (default 30 s). Every frame a
+# recording counts must arrive (asserted below: an earlier ros2 backend lost two or three per recording,
+# which cost 2 x 30 s here); should one go missing again, the test fails after 5 s, not 30.
 FRAMES_TIMEOUT_S = "5"
 
 
@@ -42,3 +41,6 @@ def test_the_demo_runs_through_the_ros2_stand_in(tmp_path, capsys, monkeypatch):
     # robot-io's log shows the ROS 2 session, and the stand-in really received motion commands.
     robot_log = (tmp_path / "logs" / "ros2-robot.log").read_text()
     assert "stopped after" in robot_log and " 0 commands" not in robot_log
+    # Nothing recorded is lost on the way to the reconstructor (it warns "N of M frames arrived" otherwise).
+    recon_log = (tmp_path / "logs" / "reconstructor-0.log").read_text()
+    assert "frames arrived" not in recon_log
