@@ -72,6 +72,19 @@ class VoxelLod:
         return self.starts[level, blocks], self.counts[level, blocks]
 
 
+def first_cell_m(spacing: np.ndarray, cell_m: float, min_spacings: float) -> float:
+    """Level 1's cell for a cloud of point ``spacing``: ``cell_m`` halved while it stays at least
+    ``min_spacings`` times the cloud's median spacing. A level whose cells are no wider than the
+    points' own spacing merges nothing, so a cloud's first level should be a little coarser than the
+    cloud, whatever its density: a scan at 1 cm would otherwise draw every point up to the distance
+    where ``cell_m`` reaches the pixel budget."""
+    median = float(np.median(spacing)) if len(spacing) else cell_m
+    cell = float(cell_m)
+    while cell / 2.0 >= min_spacings * median:
+        cell /= 2.0
+    return cell
+
+
 def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int,
                     normals: np.ndarray | None = None) -> VoxelLod:
     """The voxel levels of ``index`` (``spacing`` and ``normals``, optional: per point of ``index.cloud``).

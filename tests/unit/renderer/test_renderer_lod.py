@@ -149,3 +149,21 @@ def test_compiled_level_selection_picks_the_runs_the_array_code_picks(room_index
             at_level0 = np.isin(compiled[0], list(level0))
             fine, coarse = fine + int(at_level0.sum()), coarse + int((~at_level0).sum())
     assert fine > 0 and coarse > 0, (fine, coarse)  # both full-resolution and voxel levels were chosen
+
+
+def test_a_denser_cloud_gets_a_finer_first_level_and_draws_fewer_points_at_mid_range():
+    # A wall 1 m away sampled every 1 cm: at this focal length (64 px) 4 cm first-level cells reach
+    # 2 px only beyond 1.28 m, so every point would be drawn; the cloud's own first level (2 cm, 2 px
+    # from 0.64 m) merges them. A 3 cm cloud (what the reconstructor makes) keeps 4 cm.
+    from shared.pointrender.lod import first_cell_m
+
+    assert first_cell_m(np.full(10, 0.011), 0.04, 1.3) == 0.02
+    assert first_cell_m(np.full(10, 0.030), 0.04, 1.3) == 0.04
+    assert first_cell_m(np.full(10, 0.003), 0.04, 1.3) == 0.005
+    dense = IndexedCloud(_wall(1.0, 1.5, 0.01))
+    auto, fixed = RENDERERS.create("numpy"), RENDERERS.create("numpy", {"lod_cell_spacings": 8.0})
+    assert auto._voxel_lod(dense).cell_m[1] == 0.02 and fixed._voxel_lod(dense).cell_m[1] == 0.04
+    a, f = auto.render(dense, _view(), CAM), fixed.render(dense, _view(), CAM)
+    assert a.visible_points[0] < 0.6 * f.visible_points[0], (a.visible_points, f.visible_points)
+    seen = ~a.hole_mask[0]
+    assert np.array_equal(seen, ~f.hole_mask[0]) and np.allclose(a.depth_m[0][seen], f.depth_m[0][seen], atol=0.03)
