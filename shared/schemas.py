@@ -223,6 +223,10 @@ class Frame(Message):
     rgb: Array("uint8", 3, 3)
     depth_m: Array("float32", 2) | None = None
     semantic: Array("int32", 2) | None = None
+    # The depth sensor's noise as its robot declares it: sigma = depth_noise_rel * depth^2 (a stereo
+    # or structured-light camera's error grows with the square of the range). 0: exact, or not known.
+    # The reconstructor fuses a frame's depth only as far as that noise stays near a voxel.
+    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)
 
     @model_validator(mode="after")
     def _finite_values(self):

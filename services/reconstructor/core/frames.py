@@ -34,6 +34,7 @@ class PosedImage:
     heading_rad: float = 0.0  # agent heading (odometry) when the image was taken
     imu_heading_rad: float = 0.0
     pitch_rad: float = 0.0
+    depth_noise_rel: float = 0.0  # the sensor's depth sigma / depth^2 (``Frame.depth_noise_rel``)
 
     @property
     def position_m(self) -> np.ndarray:
@@ -97,6 +98,7 @@ def posed_from_frame(frame: Frame, camera_height_m: float = DEFAULT_CAMERA_HEIGH
         heading_rad=float(frame.pose.heading_rad),
         imu_heading_rad=float(frame.imu_heading_rad),
         pitch_rad=float(frame.pitch_rad),
+        depth_noise_rel=float(frame.depth_noise_rel),
     )
 
 

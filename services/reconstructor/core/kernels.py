@@ -260,8 +260,9 @@ class FrameFuser:
         self._row_ids = np.empty(0, np.int64)
 
     def add(self, depth: np.ndarray, rgb: np.ndarray, sem: np.ndarray | None, m: np.ndarray,
-            rays: np.ndarray, stride: int) -> bool:
-        """Fuse one frame; False when a point lies outside the packable range (then stop)."""
+            rays: np.ndarray, stride: int, max_depth_m: float | None = None) -> bool:
+        """Fuse one frame (depth up to ``max_depth_m`` when given, nearer than the fuser's own);
+        False when a point lies outside the packable range (then stop)."""
         h, w = depth.shape
         ws = (w + stride - 1) // stride
         room = ((h + stride - 1) // stride) * ws
@@ -271,7 +272,8 @@ class FrameFuser:
             self._row_ids = np.empty(ws, np.int64)
         sem = sem if self.labelled else self._no_sem
         self.n, self.nv, pts, status = fuse_frame(
-            depth, rgb, sem, self.labelled, stride, rays, m, self.dmin, self.dmax, self.inv_voxel,
+            depth, rgb, sem, self.labelled, stride, rays, m, self.dmin,
+            self.dmax if max_depth_m is None else np.float32(min(self.dmax, max_depth_m)), self.inv_voxel,
             self.table, self.shift, self.keys, self.rows, self.n,
             self.vtable, self.vshift, self.vkeys, self.vcnt, self.nv, self._row_keys, self._row_ids,
         )

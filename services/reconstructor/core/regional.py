@@ -95,6 +95,13 @@ class RgbdConfig(BackendConfig):
     voxel_m: float = Field(0.03, gt=0.0, le=1.0)
     min_depth_m: float = Field(0.1, ge=0.0)
     max_depth_m: float = Field(8.0, gt=0.0)
+    # A frame whose sensor declares its depth noise (``depth_noise_rel``, sigma = rel * depth^2) is
+    # fused only up to the depth where sigma reaches this: farther samples scatter a surface over
+    # several voxels in front of and behind it, and one far look smears a wall that near looks
+    # mapped cleanly. On generated:0 with the noisy robot of bench.anticipation (rel 0.01, no
+    # drift), all depth to 8 m: SSIM 0.76-0.85, labels 84-95 %; to 2 m (sigma 4 cm): SSIM 0.85-0.94,
+    # labels 96-98 % (mapped pixels), for 10-25 % fewer of the true surfaces mapped within 3 cm.
+    max_depth_noise_m: float = Field(0.04, gt=0.0, le=1.0)
     # Every n-th pixel in each direction: 2 quarters the work; the voxel grid still fills up close by.
     pixel_stride: int = Field(1, ge=1, le=16)
     min_points_per_voxel: int = Field(1, ge=1)
@@ -197,6 +204,13 @@ class RgbdReconstructor(RegionalReconstructor):
             timings_s={"fuse": t1 - t0, "voxel": t2 - t1, "outliers": t3 - t2},
         )
 
+    def max_depth_m(self, im: PosedImage) -> float:
+        """How far this frame's depth is fused: ``max_depth_m``, nearer for a noisy sensor."""
+        cfg = self.config
+        if im.depth_noise_rel <= 0:
+            return cfg.max_depth_m
+        return min(cfg.max_depth_m, math.sqrt(cfg.max_depth_noise_m / im.depth_noise_rel))
+
     def _pixel_rays(self, cam) -> tuple[np.ndarray, np.ndarray]:
         s = self.config.pixel_stride
         key = (cam.width_px, cam.height_px, cam.hfov_deg, s)
@@ -211,7 +225,7 @@ class RgbdReconstructor(RegionalReconstructor):
         for im in images:
             m = np.ascontiguousarray((local @ im.world_from_camera)[:3], np.float32)
             ok = fuser.add(np.asarray(im.depth_m, np.float32), np.asarray(im.rgb, np.uint8),
-                           im.semantic if labelled else None, m, self._pixel_rays(im.camera), s)
+                           im.semantic if labelled else None, m, self._pixel_rays(im.camera), s, self.max_depth_m(im))
             if not ok:
                 raise InputError(
                     f"frame {im.index}: points span more than +-{kernels.AXIS_HALF * cfg.voxel_m:.0f} m "
@@ -226,7 +240,7 @@ class RgbdReconstructor(RegionalReconstructor):
         for im in images:
             rays = self._pixel_rays(im.camera)
             d = np.asarray(im.depth_m, np.float32)[::s, ::s].reshape(-1)
-            ok = np.flatnonzero((d > cfg.min_depth_m) & (d < cfg.max_depth_m))  # NaN compares False
+            ok = np.flatnonzero((d > cfg.min_depth_m) & (d < np.float32(self.max_depth_m(im))))  # NaN compares False
             if len(ok) == 0:
                 continue
             m = (local @ im.world_from_camera).astype(np.float32)

@@ -334,6 +334,7 @@ class SimRobot(Robot):
             rgb=out.rgb[0],
             depth_m=self.noise.depth(out.depth_m[0]) if self.config.record_depth else None,
             semantic=out.semantic[0] if out.semantic is not None else None,
+            depth_noise_rel=self.noise.config.depth_noise_rel if self.config.record_depth else 0.0,
         )
         self._frame_index += 1
         return frame

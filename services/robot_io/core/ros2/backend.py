@@ -663,7 +663,7 @@ class Ros2Robot(Robot):
                       imu_heading_rad=float(m.yaw_from_quaternion(imu[1].orientation)) if imu else pose.heading_rad,
                       camera=cam, rgb=self._resample(self._rgb(cmsg), k, cam, nearest=False),
                       depth_m=None if dep is None else self._resample(self._depth_m(dep), k, cam, nearest=True),
-                      semantic=sem)
+                      semantic=sem, depth_noise_rel=0.0 if dep is None else self.profile.depth_noise_rel)
         return frame
 
     def _pose_at(self, t_s: float) -> Pose:
