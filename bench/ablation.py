@@ -55,8 +55,8 @@ from shared.schemas import MissionOptions
 log = logging.getLogger(__name__)
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "runs" / "ablations-local"
-MAP_KINDS = {"rgbd": ("rgbd", False), "mono-sim": ("mono-sim", False), "noisy": ("rgbd", True),
-             "curated": ("curated", False)}
+MAP_KINDS = {"rgbd": ("rgbd", None), "mono-sim": ("mono-sim", None), "noisy": ("rgbd", "noisy"),
+             "depth-noise": ("rgbd", "depth-noise"), "curated": ("curated", None)}
 # The RunConfig fields a mission's options carry (the rest - map source, timeouts, paths - are the runner's).
 OPTION_FIELDS = sorted(set(RunConfig.model_fields) & set(MissionOptions.model_fields) - {"seed", "policy"})
 
@@ -152,8 +152,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             continue
         clouds = {}
         for kind in dict.fromkeys(kinds):
-            backend, noisy = MAP_KINDS[kind]
-            map_robot, cloud = build_map(scene, backend, noisy)
+            backend, noise = MAP_KINDS[kind]
+            map_robot, cloud = build_map(scene, backend, noise)
             map_robot.close()
             clouds[kind] = (kind, cloud, ModePorts(cloud, modes))
         with closing(ROBOTS.create("sim", {"scene": scene})) as robot:

@@ -65,20 +65,23 @@ LEAK_NEAR_M = 0.05
 # from the nearest point (the 6 cm used before) lies beyond what any point of the map stands for,
 # so the old threshold counted a strip round every unseen patch as holes of the renderer.
 MAPPED_M = 0.03
-# Noise of the "noisy rgbd" map: the reality gap of the robot's sensors (depth noise and holes,
-# odometry and heading drift).
+# Sensor noise of the robot that builds a map, by name: "noisy" is the reality gap of the robot's
+# sensors (depth noise and holes, odometry and heading drift); "depth-noise" its depth camera alone
+# (poses exact), which tells what the depth costs from what the drift costs.
 NOISY = {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05, "odometry_drift_per_m": 0.01,
          "heading_drift_per_rad": 0.005}
+NOISE = {"noisy": NOISY, "depth-noise": {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05}}
 
 
-# The maps of the table: name -> (scene, reconstructor backend or "curated", sensor noise).
+# The maps of the table: name -> (scene, reconstructor backend or "curated", sensor noise or None).
 ROWS = {
-    "rgbd": ("generated:0", "rgbd", False),
-    "noisy": ("generated:0", "rgbd", True),
-    "mono-sim": ("generated:0", "mono-sim", False),
-    "curated": ("generated:0", "curated", False),
-    "floors2": ("generated:1:floors=2", "rgbd", False),
-    "replica": ("", "rgbd", False),  # Replica office0 from ../shared/data, when present
+    "rgbd": ("generated:0", "rgbd", None),
+    "noisy": ("generated:0", "rgbd", "noisy"),
+    "depth-noise": ("generated:0", "rgbd", "depth-noise"),
+    "mono-sim": ("generated:0", "mono-sim", None),
+    "curated": ("generated:0", "curated", None),
+    "floors2": ("generated:1:floors=2", "rgbd", None),
+    "replica": ("", "rgbd", None),  # Replica office0 from ../shared/data, when present
 }
 
 
@@ -93,7 +96,7 @@ class Scores:
     label: list[float] = field(default_factory=list)
 
 
-def build_map(spec: str, backend: str, noisy: bool = False, size_px: int = 128, rate_hz: float = 4.0):
+def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0):
     """(robot, cloud): the simulator of ``spec`` and the map the system builds of it (cached).
 
     ``size_px`` and ``rate_hz`` are the mapper service's defaults (tour_frame_px, tour_rate_hz)."""
@@ -101,8 +104,8 @@ def build_map(spec: str, backend: str, noisy: bool = False, size_px: int = 128, 
 
     cam = CameraIntrinsics(width_px=size_px, height_px=size_px)
     robot_cfg = {"scene": spec, "camera": cam}
-    if noisy:
-        robot_cfg["noise"] = NOISY
+    if noise:
+        robot_cfg["noise"] = NOISE[noise]
     # A scanned mesh (Replica) is explored with the profile for cluttered real scans, as a user of a scan
     # asks for it (``options.profile`` of an exploration); a generated house with the default.
     from services.robot_io.core.scene import is_generated_spec
@@ -112,7 +115,7 @@ def build_map(spec: str, backend: str, noisy: bool = False, size_px: int = 128, 
     # A mesh file's map is named after its folder and file, not its absolute path (which would put
     # the cache beside the mesh, inside the team's reference data).
     stem = f"{Path(spec).parent.name}_{Path(spec).stem}" if not is_generated_spec(spec) else spec
-    name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{'_noisy' if noisy else ''}{tag}_{size_px}.ply"
+    name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{f'_{noise}' if noise else ''}{tag}_{size_px}.ply"
     path = MAPS / name
     robot = ROBOTS.create("sim", robot_cfg)
     if backend == "curated":
@@ -261,9 +264,9 @@ def report(title: str, rows: dict[str, dict[str, Scores]]) -> None:
           " leak5: rendered > true + 5 cm (no target)")
 
 
-def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, noisy: bool = False,
+def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, noise: str | None = None,
         seed: int = 7, mapped_m: float = MAPPED_M, config: dict | None = None) -> None:
-    robot, cloud = build_map(spec, backend, noisy)
+    robot, cloud = build_map(spec, backend, noise)
     index = IndexedCloud(cloud)
     cam = PinholeCamera(256, 256, 90.0)
     sets = {"free poses": free_poses(robot, n_views, seed)}
@@ -277,7 +280,7 @@ def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, 
             renderer.warm_up()
             for region in ("all", "mapped"):
                 rows[(mode, region)] = score(renderer, index, gt, poses, cam, region == "mapped")
-        report(f"{spec}, {backend}{' + sensor noise' if noisy else ''} map ({len(cloud)} points), "
+        report(f"{spec}, {backend}{f' + sensor noise ({noise})' if noise else ''} map ({len(cloud)} points), "
                f"{len(poses)} {name}, 256x256 HFOV 90, mapped = true surface within {100 * mapped_m:.0f} cm of a map point",
                rows)
 
@@ -358,8 +361,8 @@ def main(argv: list[str] | None = None) -> None:
                 continue
             run(str(replica), "rgbd", args.modes, views, 0, mapped_m=m, config=config)
             continue
-        spec, backend, noisy = ROWS[row]
-        run(spec, backend, args.modes, views, agents, noisy=noisy, mapped_m=m, config=config)
+        spec, backend, noise = ROWS[row]
+        run(spec, backend, args.modes, views, agents, noise=noise, mapped_m=m, config=config)
     if not args.no_speed:
         speed(args.modes, 1_000_000, reps=3 if args.full else 2)
 

@@ -65,8 +65,8 @@ def _agent_map(row: str, n_agents: int, seed: int):
     from bench.anticipation import ROWS, build_map, candidate_poses
     from shared.pointrender import IndexedCloud
 
-    spec, backend, noisy = ROWS[row]
-    robot, cloud = build_map(spec, backend, noisy)
+    spec, backend, noise = ROWS[row]
+    robot, cloud = build_map(spec, backend, noise)
     poses = candidate_poses(robot, IndexedCloud(cloud), n_agents, seed)
     return spec, cloud, [poses[i : i + 6] for i in range(0, len(poses) - 5, 6)]
 
