@@ -13,7 +13,6 @@ then the reconstructor (``rgbd``, ``mono-sim``, or ``rgbd`` on a robot with sens
 ``noisy``, or its depth camera's alone, ``depth-noise``). The noisy robot's odometry has drifted by
 0.27-0.52 m and 0.4-7 degrees when its tours start (generated:0), and nothing in the system corrects
 that yet (no scan matching or loop closure), so ``noisy`` scores the drift more than the renderer; the
-
 "curated" cloud is the sampled mesh, visible surfaces only (evaluation/clouds.py). Built maps are cached under
 ``runs/anticipation/maps`` (delete to rebuild).
 
