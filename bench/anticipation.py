@@ -2,8 +2,9 @@
 simulator's ray-cast view at the same camera pose, for each renderer mode.
 
     python -m bench.anticipation            # generated:0 rgbd map: 48 free poses, the candidates of
-                                            # 6 agent poses, speed at 1e6 points (~5 min, + 1 min
-                                            # per map built the first time)
+                                            # 6 agent poses, speed at 1e6 points: a flat sampled from
+                                            # its mesh and the 2-floor house's agent-built map (~6 min,
+                                            # + 1 min per map built the first time)
     python -m bench.anticipation --full     # + noisy rgbd (and its depth noise alone), mono-sim,
                                             # curated, 2-floor house, Replica
     python -m bench.anticipation --rows rgbd curated --agents 0   # chosen maps, free poses only
@@ -291,8 +292,8 @@ def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, 
 
 def speed(modes: list[str], n_points: int, reps: int) -> None:
     """Time per view of each mode against the one-pass floor, and global perception per step
-    (spatial map + 6 views, as the planner asks for them), on the built flat (bench.renderer's cloud),
-    one process."""
+    (spatial map + 6 views, as the planner asks for them), on the built flat (bench.renderer's cloud)
+    and on an agent-built map of about as many points, one process."""
     from bench.renderer import CAM, _floor_ms, _views, perception_step
     from services.renderer.core import SpatialMapper
     from services.renderer.tools import scenes
@@ -335,6 +336,15 @@ def speed(modes: list[str], n_points: int, reps: int) -> None:
         print(f"{mode:<10} {v_ms:>8.2f} {1e3 * np.median(view_cpu):>6.1f} {v_ms / floor:>8.2f} {s_ms:>8.1f} "
               f"{1e3 * np.median(step_cpu):>6.1f}   (map preparation at load {prep_s:.2f} s, then first render "
               f"{1e3 * first_s:.0f} ms)")
+    # The same on the real data path: the two-floor house's agent-built map (~1e6 points, 3 cm apart,
+    # not the flat's uniform 1.2 cm) at the candidates the planner really renders (bench.perception).
+    import shared.pointrender as lib
+    from bench.perception import _agent_map
+    from bench.perception import run as perception_run
+
+    spec, cloud, steps = _agent_map("floors2", 16, seed=8)
+    perception_run(f"{spec} rgbd map, the planner's candidate poses", cloud, steps, {m: lib for m in modes}, reps,
+                   {m: {"mode": m} for m in modes})
 
 
 def main(argv: list[str] | None = None) -> None:
