@@ -12,8 +12,8 @@ Columns: ``view ms`` the wall time of a step's six views on the renderer's two w
 (as bench.renderer), ``view cpu`` their process CPU time / 6 (all threads: what an idle machine's
 cores spend), ``x floor`` view ms over the floor (one pass over the cloud, bench.renderer), ``step``
 the spatial map and the six views as the planner asks for them (the map drawn on a thread of its own
-while the views render), wall and CPU, ``serial`` the same one after the other (wall), ``drawn`` the points a view walks after culling
-and level of detail. Medians over steps. Agent-built maps come from bench.anticipation's cache
+while the views render), wall and CPU, ``serial`` the same one after the other (wall), ``drawn`` the
+points a view walks after culling and level of detail. Medians over steps. Agent-built maps come from bench.anticipation's cache
 (built there the first time); sampled buildings are cached under runs/perception.
 """
 
