@@ -401,8 +401,8 @@ def speed(modes: list[str], n_points: int, reps: int) -> None:
     from bench.perception import run as perception_run
 
     spec, cloud, steps = _agent_map("floors2", 16, seed=8)
-    perception_run(f"{spec} rgbd map, the planner's candidate poses", cloud, steps, {m: lib for m in modes}, reps,
-                   {m: {"mode": m} for m in modes})
+    perception_run(f"{spec} rgbd map, the planner's candidate poses", cloud, steps, {m: lib for m in modes},
+                   reps, {m: {"mode": m} for m in modes})
 
 
 def main(argv: list[str] | None = None) -> None:

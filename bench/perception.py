@@ -13,8 +13,9 @@ Columns: ``view ms`` the wall time of a step's six views on the renderer's two w
 cores spend), ``x floor`` view ms over the floor (one pass over the cloud, bench.renderer), ``step``
 the spatial map and the six views as the planner asks for them (the map drawn on a thread of its own
 while the views render), wall and CPU, ``serial`` the same one after the other (wall), ``drawn`` the
-points a view walks after culling and level of detail. Medians over steps. Agent-built maps come from bench.anticipation's cache
-(built there the first time); sampled buildings are cached under runs/perception.
+points a view walks after culling and level of detail. Medians over steps. Agent-built maps come from
+bench.anticipation's cache (built there the first time); sampled buildings are cached under
+runs/perception.
 """
 
 from __future__ import annotations
@@ -156,12 +157,13 @@ def run(name: str, cloud, steps, libs: dict, reps: int, configs: dict | None = N
     for label, (_, _, prep_s, m) in sides.items():
         med = {k: float(np.median(v)) for k, v in m.items()}
         print(f"{label:<22} {med['view']:>8.2f} {med['view_cpu']:>9.2f} {med['view'] / floor:>8.2f} "
-              f"{med['step']:>8.1f} {med['step_cpu']:>9.1f} {med['serial']:>7.1f} {int(med['drawn']):>8d} {prep_s:>9.1f}")
+              f"{med['step']:>8.1f} {med['step_cpu']:>9.1f} {med['serial']:>7.1f} {int(med['drawn']):>8d} "
+              f"{prep_s:>9.1f}")
     if len(sides) == 2:
         (ia, ra, _, ma), (ib, rb, _, mb) = sides.values()
         ratio = {k: float(np.median(mb[k]) / np.median(ma[k])) for k in ("view", "view_cpu", "step", "step_cpu")}
-        line = (f"second / first: view {ratio['view']:.2f}, view cpu {ratio['view_cpu']:.2f}, step {ratio['step']:.2f}, "
-                f"step cpu {ratio['step_cpu']:.2f}")
+        line = (f"second / first: view {ratio['view']:.2f}, view cpu {ratio['view_cpu']:.2f}, "
+                f"step {ratio['step']:.2f}, step cpu {ratio['step_cpu']:.2f}")
         if ra.config.mode == rb.config.mode:  # two revisions of one mode: did the change keep the images?
             a, b = ra.render_poses(ia, steps[0], CAM), rb.render_poses(ib, steps[0], CAM)
             same = all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("rgb", "depth_m", "hole_mask", "labels"))
