@@ -39,7 +39,7 @@ from contextlib import closing
 from pathlib import Path
 from typing import Any
 
-from bench.anticipation import build_map
+from bench.anticipation import ROWS, build_map
 from evaluation.compare import compare_runs, comparison_markdown
 from evaluation.dataset import SetSpec, generate_set, parse_floors
 from evaluation.presets import Variant, presets
@@ -55,8 +55,9 @@ from shared.schemas import MissionOptions
 log = logging.getLogger(__name__)
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "runs" / "ablations-local"
-MAP_KINDS = {"rgbd": ("rgbd", None), "mono-sim": ("mono-sim", None), "noisy": ("rgbd", "noisy"),
-             "depth-noise": ("rgbd", "depth-noise"), "curated": ("curated", None)}
+# Map kind -> (reconstructor backend or "curated", sensor noise): bench.anticipation's rows of one house,
+# built for each house of the set.
+MAP_KINDS = {kind: ROWS[kind][1:] for kind in ("rgbd", "mono-sim", "noisy", "depth-noise", "curated")}
 # The RunConfig fields a mission's options carry (the rest - map source, timeouts, paths - are the runner's).
 OPTION_FIELDS = sorted(set(RunConfig.model_fields) & set(MissionOptions.model_fields) - {"seed", "policy"})
 

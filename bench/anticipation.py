@@ -125,7 +125,7 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
     from services.reconstructor.core import ReconstructionConfig, Reconstructor
 
     t0 = time.perf_counter()
-    truth = _recording_truth(robot)
+    truth = _recording_truth(robot) if noise else {}
     d = discover(robot, discovery_config(profile))
     recs = execute_tours(robot, d.tours, d.scene, rate_hz=rate_hz)
     with Reconstructor(ReconstructionConfig(backend=backend)) as r:

@@ -111,8 +111,6 @@ class VisibilityParams:
     depth_step_m: float = 20.0 / COVER_MAX_CODE
 
 
-
-
 def compose(ops, front: FrontLayer, p: VisibilityParams, h: int, w: int):
     """The view (rgb (3, H, W) float, depth (H, W), hole (H, W) bool, labels (H, W) int64 or None)."""
     levels = max(p.fill_levels, p.gap_levels)

@@ -205,7 +205,7 @@ class RgbdReconstructor(RegionalReconstructor):
             timings_s={"fuse": t1 - t0, "voxel": t2 - t1, "outliers": t3 - t2},
         )
 
-    def max_depth_m(self, im: PosedImage) -> float:
+    def depth_limit_m(self, im: PosedImage) -> float:
         """How far this frame's depth is fused: ``max_depth_m``, nearer for a noisy sensor."""
         cfg = self.config
         if im.depth_noise_rel <= 0:
@@ -226,7 +226,7 @@ class RgbdReconstructor(RegionalReconstructor):
         for im in images:
             m = np.ascontiguousarray((local @ im.world_from_camera)[:3], np.float32)
             ok = fuser.add(np.asarray(im.depth_m, np.float32), np.asarray(im.rgb, np.uint8),
-                           im.semantic if labelled else None, m, self._pixel_rays(im.camera), s, self.max_depth_m(im))
+                           im.semantic if labelled else None, m, self._pixel_rays(im.camera), s, self.depth_limit_m(im))
             if not ok:
                 raise InputError(
                     f"frame {im.index}: points span more than +-{kernels.AXIS_HALF * cfg.voxel_m:.0f} m "
@@ -241,7 +241,7 @@ class RgbdReconstructor(RegionalReconstructor):
         for im in images:
             rays = self._pixel_rays(im.camera)
             d = np.asarray(im.depth_m, np.float32)[::s, ::s].reshape(-1)
-            ok = np.flatnonzero((d > cfg.min_depth_m) & (d < np.float32(self.max_depth_m(im))))  # NaN compares False
+            ok = np.flatnonzero((d > cfg.min_depth_m) & (d < np.float32(self.depth_limit_m(im))))  # NaN compares False
             if len(ok) == 0:
                 continue
             m = (local @ im.world_from_camera).astype(np.float32)

@@ -147,7 +147,7 @@ def test_a_frame_that_declares_depth_noise_is_fused_only_as_far_as_it_is_good(ke
     exact = rgbd.reconstruct(region)
     for im in region.images:
         im.depth_noise_rel = 0.01
-    assert rgbd.max_depth_m(region.images[0]) == pytest.approx(2.0)
+    assert rgbd.depth_limit_m(region.images[0]) == pytest.approx(2.0)
     noisy = rgbd.reconstruct(region)
     valid = [np.count_nonzero((im.depth_m > 0.1) & (im.depth_m < lim)) for im in region.images for lim in (2.0, 8.0)]
     assert noisy.points_in == sum(valid[0::2]) < exact.points_in == sum(valid[1::2])

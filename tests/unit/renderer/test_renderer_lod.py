@@ -5,11 +5,14 @@ of every point."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+import shared.pointrender.lod as lod_module
 from shared.cloud import PointCloud
-from shared.geometry import PinholeCamera
+from shared.geometry import PinholeCamera, camera_pose
 from shared.pointrender import RENDERERS, IndexedCloud
-from shared.pointrender.lod import build_voxel_lod
+from shared.pointrender.cloud import Frustum
+from shared.pointrender.lod import build_voxel_lod, first_cell_m
 from shared.pointrender.splat import point_normals_of, point_spacing_of
 from shared.schemas import ViewPose
 
@@ -123,13 +126,7 @@ def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
 
 
 def test_compiled_level_selection_picks_the_runs_the_array_code_picks(room_index, monkeypatch):
-    import shared.pointrender.lod as lod_module
-    from shared.geometry import camera_pose
-    from shared.pointrender.cloud import Frustum
-
     if lod_module.select_runs is None:
-        import pytest
-
         pytest.skip("numba is not installed: only the array code runs")
     lod = build_voxel_lod(room_index, point_spacing_of(room_index, 4), cell_m=0.04, levels=5)
     frustum = Frustum.for_camera(CAM, 0.05, 20.0)
@@ -155,8 +152,6 @@ def test_a_denser_cloud_gets_a_finer_first_level_and_draws_fewer_points_at_mid_r
     # A wall 1 m away sampled every 1 cm: at this focal length (64 px) 4 cm first-level cells reach
     # 2 px only beyond 1.28 m, so every point would be drawn; the cloud's own first level (2 cm, 2 px
     # from 0.64 m) merges them. A 3 cm cloud (what the reconstructor makes) keeps 4 cm.
-    from shared.pointrender.lod import first_cell_m
-
     assert first_cell_m(np.full(10, 0.011), 0.04, 1.3) == 0.02
     assert first_cell_m(np.full(10, 0.030), 0.04, 1.3) == 0.04
     assert first_cell_m(np.full(10, 0.003), 0.04, 1.3) == 0.005
