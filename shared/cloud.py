@@ -22,6 +22,21 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+# PointCloud.view_dirs holds unit vectors times this, as int8: 3 bytes a point in memory, in files
+# and on the bus, and the side a point was seen from needs no finer direction than 0.5 degrees.
+VIEW_DIR_SCALE = 127
+
+
+def quantise_view_dirs(mean_unit: np.ndarray) -> np.ndarray:
+    """int8 (N, 3) ``view_dirs`` of float (N, 3) means of unit vectors (each of length <= 1)."""
+    v = np.clip(np.asarray(mean_unit, np.float64), -1.0, 1.0) * VIEW_DIR_SCALE
+    return np.rint(v).astype(np.int8)
+
+
+def view_dirs_unit(view_dirs: np.ndarray) -> np.ndarray:
+    """float32 (N, 3) mean unit vectors of int8 ``view_dirs``."""
+    return np.asarray(view_dirs, np.float32) * np.float32(1.0 / VIEW_DIR_SCALE)
+
 
 class CloudError(Exception):
     """Base of every error about a point cloud or a cloud file."""
@@ -46,12 +61,20 @@ class PointCloud:
 
     ``xyz`` float32 (N, 3); ``rgb`` uint8 (N, 3); ``labels`` int32 (N,) or None (-1 = unknown);
     ``label_names`` maps label ids to class names (room floors are named like ``"kitchen floor"``).
+
+    ``view_dirs`` int8 (N, 3) or None: where each point was seen from, the mean of the unit vectors
+    from the point towards the cameras whose observations were fused into it, times
+    :data:`VIEW_DIR_SCALE` (its length, 0-127, says how much those directions agree). A surface's
+    points thus record which of its two sides the robot saw; the renderer draws a point seen from
+    one side only as unseen when a view looks at its other side (the neighbouring room's face of a
+    wall is not this room's). None: not known (a foreign cloud, an older map).
     """
 
     xyz: np.ndarray
     rgb: np.ndarray
     labels: np.ndarray | None = None
     label_names: dict[int, str] = field(default_factory=dict)
+    view_dirs: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float32)
@@ -69,6 +92,13 @@ class PointCloud:
             self.labels = np.ascontiguousarray(self.labels, dtype=np.int32)
             if self.labels.shape != (len(self.xyz),):
                 raise CloudFormatError(f"labels shape {self.labels.shape} != ({len(self.xyz)},)")
+        if self.view_dirs is not None:
+            vd = np.asarray(self.view_dirs)
+            if vd.dtype != np.int8:
+                raise CloudFormatError(f"view_dirs must be int8 (unit vectors x {VIEW_DIR_SCALE}), got {vd.dtype}")
+            self.view_dirs = np.ascontiguousarray(vd)
+            if self.view_dirs.shape != self.xyz.shape:
+                raise CloudFormatError(f"view_dirs shape {self.view_dirs.shape} != xyz shape {self.xyz.shape}")
         if not np.isfinite(self.xyz).all():
             raise CloudFormatError("xyz contains non-finite values")
 
@@ -84,16 +114,22 @@ class PointCloud:
             raise EmptyCloudError("an empty cloud has no bounds")
         return self.xyz.min(axis=0), self.xyz.max(axis=0)
 
+    @property
+    def has_view_dirs(self) -> bool:
+        return self.view_dirs is not None
+
     def subset(self, index: np.ndarray) -> PointCloud:
         labels = None if self.labels is None else self.labels[index]
-        return PointCloud(self.xyz[index], self.rgb[index], labels, dict(self.label_names))
+        views = None if self.view_dirs is None else self.view_dirs[index]
+        return PointCloud(self.xyz[index], self.rgb[index], labels, dict(self.label_names), views)
 
     @classmethod
     def concatenate(cls, clouds: Sequence[PointCloud]) -> PointCloud:
-        """Merge clouds; labels survive only if every part has them."""
+        """Merge clouds; labels and view directions survive only if every part has them."""
         if not clouds:
             raise EmptyCloudError("nothing to concatenate")
         labelled = all(c.labels is not None for c in clouds)
+        viewed = all(c.view_dirs is not None for c in clouds)
         names: dict[int, str] = {}
         for c in clouds:
             names.update(c.label_names)
@@ -102,6 +138,7 @@ class PointCloud:
             np.concatenate([c.rgb for c in clouds]),
             np.concatenate([c.labels for c in clouds]) if labelled else None,
             names,
+            np.concatenate([c.view_dirs for c in clouds]) if viewed else None,
         )
 
     @classmethod
@@ -114,11 +151,13 @@ class PointCloud:
             first = parts[0]
             raise EmptyCloudError(f"map {first.map_id!r} version {first.version} has no points")
         labelled = all(c.labels is not None for c in parts)
+        viewed = all(c.view_dirs is not None for c in parts)
         return cls(
             np.concatenate([c.xyz_m for c in parts]),
             np.concatenate([c.rgb for c in parts]),
             np.concatenate([c.labels for c in parts]) if labelled else None,
             dict(label_names or {}),
+            np.concatenate([c.view_dirs for c in parts]) if viewed else None,
         )
 
     # --- files -------------------------------------------------------------------------------
@@ -127,12 +166,14 @@ class PointCloud:
         path = Path(path)
         try:
             with open(path, "wb") as fh:
-                fh.write(header(len(self), self.labels is not None, self.label_names))
+                fh.write(header(len(self), self.labels is not None, self.label_names,
+                                with_views=self.view_dirs is not None))
                 # A slice at a time: storing a large cloud costs no second copy of it.
                 for lo in range(0, len(self), _SLICE_POINTS):
                     hi = lo + _SLICE_POINTS
                     fh.write(records(self.xyz[lo:hi], self.rgb[lo:hi],
-                                     None if self.labels is None else self.labels[lo:hi]))
+                                     None if self.labels is None else self.labels[lo:hi],
+                                     view_dirs=None if self.view_dirs is None else self.view_dirs[lo:hi]))
         except OSError as exc:
             raise CloudFormatError(f"could not write {path}: {exc}") from exc
 
@@ -193,21 +234,23 @@ def sample_mesh(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.n
 # --- the PLY layout ------------------------------------------------------------------------------
 
 _BASE = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+# PointCloud.view_dirs, after the label when there is one: char (int8) unit vectors x VIEW_DIR_SCALE.
+_VIEWS = [("view_x", "i1"), ("view_y", "i1"), ("view_z", "i1")]
 _LABEL_COMMENT = "label_names "
-_PLY_TYPES = {"f4": "float", "u1": "uchar", "i4": "int"}
+_PLY_TYPES = {"f4": "float", "u1": "uchar", "i4": "int", "i1": "char"}
 
 
-def vertex_dtype(with_labels: bool) -> np.dtype:
-    return np.dtype(_BASE + ([("label", "<i4")] if with_labels else []))
+def vertex_dtype(with_labels: bool, with_views: bool = False) -> np.dtype:
+    return np.dtype(_BASE + ([("label", "<i4")] if with_labels else []) + (_VIEWS if with_views else []))
 
 
-def _our_properties(with_labels: bool) -> list[list[str]]:
-    dt = vertex_dtype(with_labels)
+def _our_properties(with_labels: bool, with_views: bool = False) -> list[list[str]]:
+    dt = vertex_dtype(with_labels, with_views)
     return [[_PLY_TYPES[dt.fields[n][0].str[1:]], n] for n in dt.names]
 
 
 def header(point_count: int, with_labels: bool, label_names: dict[int, str] | None = None,
-           comment: str = "") -> bytes:
+           comment: str = "", with_views: bool = False) -> bytes:
     """The PLY header for ``point_count`` records (the gateway streams a map as header + records)."""
     lines = ["ply", "format binary_little_endian 1.0"]
     if comment:
@@ -215,20 +258,24 @@ def header(point_count: int, with_labels: bool, label_names: dict[int, str] | No
     if with_labels and label_names:
         names = {str(k): v for k, v in sorted(label_names.items())}
         lines.append("comment " + _LABEL_COMMENT + json.dumps(names, separators=(",", ":")))
-    lines += [f"element vertex {point_count}"] + [f"property {t} {n}" for t, n in _our_properties(with_labels)]
+    lines += [f"element vertex {point_count}"] + [f"property {t} {n}"
+                                                  for t, n in _our_properties(with_labels, with_views)]
     lines.append("end_header")
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
 def records(xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
-            with_labels: bool | None = None) -> bytes:
+            with_labels: bool | None = None, view_dirs: np.ndarray | None = None) -> bytes:
     """Packed vertex records (one vectorised copy); ``with_labels`` without labels writes -1."""
     with_labels = labels is not None if with_labels is None else with_labels
-    out = np.empty(len(xyz), vertex_dtype(with_labels))
+    out = np.empty(len(xyz), vertex_dtype(with_labels, view_dirs is not None))
     out["x"], out["y"], out["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     out["red"], out["green"], out["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     if with_labels:
         out["label"] = labels if labels is not None else -1
+    if view_dirs is not None:
+        for i, (name, _) in enumerate(_VIEWS):
+            out[name] = view_dirs[:, i]
     return out.tobytes()
 
 
@@ -236,7 +283,9 @@ def encode(cloud: PointCloud, with_labels: bool = True, comment: str = "") -> by
     """The whole cloud as a PLY file in our layout (``with_labels=False`` drops the labels)."""
     labels = cloud.labels if with_labels else None
     names = cloud.label_names if labels is not None else None
-    return header(len(cloud), labels is not None, names, comment) + records(cloud.xyz, cloud.rgb, labels)
+    views = cloud.view_dirs
+    return (header(len(cloud), labels is not None, names, comment, with_views=views is not None)
+            + records(cloud.xyz, cloud.rgb, labels, view_dirs=views))
 
 
 @dataclass(frozen=True)
@@ -247,10 +296,11 @@ class _Layout:
     with_labels: bool
     names: dict[int, str]
     body_offset: int
+    with_views: bool = False
 
     @property
     def dtype(self) -> np.dtype:
-        return vertex_dtype(self.with_labels)
+        return vertex_dtype(self.with_labels, self.with_views)
 
 
 def _our_layout(head: bytes) -> _Layout | None:
@@ -264,9 +314,11 @@ def _our_layout(head: bytes) -> _Layout | None:
     props = [ln.split()[1:] for ln in lines if ln.startswith("property ")]
     count = next((int(ln.split()[2]) for ln in lines if ln.startswith("element vertex ")), None)
     elements = [ln for ln in lines if ln.startswith("element ")]
-    with_labels = props == _our_properties(True)
-    if count is None or len(elements) != 1 or not (with_labels or props == _our_properties(False)):
+    layouts = [(lab, views) for lab in (True, False) for views in (False, True)
+               if props == _our_properties(lab, views)]
+    if count is None or len(elements) != 1 or not layouts:
         return None
+    with_labels, with_views = layouts[0]
     names: dict[int, str] = {}
     for ln in lines:
         if ln.startswith("comment " + _LABEL_COMMENT):
@@ -275,7 +327,7 @@ def _our_layout(head: bytes) -> _Layout | None:
                 names = {int(k): str(v) for k, v in raw.items()}
             except (ValueError, AttributeError) as exc:
                 raise CloudFormatError(f"unreadable label names in the PLY header: {exc}") from None
-    return _Layout(count, with_labels, names, end + len(b"end_header\n"))
+    return _Layout(count, with_labels, names, end + len(b"end_header\n"), with_views)
 
 
 def _check_body(layout: _Layout, body_bytes: int) -> None:
@@ -284,14 +336,19 @@ def _check_body(layout: _Layout, body_bytes: int) -> None:
         raise CloudFormatError(f"PLY body holds {body_bytes} bytes, {layout.count} vertices need {need}")
 
 
-def _unpack(rec: np.ndarray, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None) -> np.ndarray:
-    """Records into the columns ``xyz``/``rgb``/``labels`` (same length); returns which rows are finite."""
+def _unpack(rec: np.ndarray, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None,
+            views: np.ndarray | None = None) -> np.ndarray:
+    """Records into the columns ``xyz``/``rgb``/``labels``/``views`` (same length); returns which rows
+    are finite."""
     for i, axis in enumerate("xyz"):
         xyz[:, i] = rec[axis]
     for i, channel in enumerate(("red", "green", "blue")):
         rgb[:, i] = rec[channel]
     if labels is not None:
         labels[:] = rec["label"]
+    if views is not None:
+        for i, (name, _) in enumerate(_VIEWS):
+            views[:, i] = rec[name]
     return np.isfinite(xyz).all(axis=1)
 
 
@@ -301,13 +358,16 @@ def _assemble(layout: _Layout, fill) -> PointCloud:
     xyz = np.empty((layout.count, 3), np.float32)
     rgb = np.empty((layout.count, 3), np.uint8)
     labels = np.empty(layout.count, np.int32) if layout.with_labels else None
-    finite = fill(xyz, rgb, labels)
+    views = np.empty((layout.count, 3), np.int8) if layout.with_views else None
+    finite = fill(xyz, rgb, labels, views)
     if not finite.all():
         if not finite.any():
             raise CloudFormatError("every point is non-finite")
         log.warning("dropping %d non-finite points", int((~finite).sum()))
-        xyz, rgb, labels = xyz[finite], rgb[finite], None if labels is None else labels[finite]
-    return PointCloud(xyz, rgb, labels, layout.names)
+        xyz, rgb = xyz[finite], rgb[finite]
+        labels = None if labels is None else labels[finite]
+        views = None if views is None else views[finite]
+    return PointCloud(xyz, rgb, labels, layout.names, views)
 
 
 def decode(data: bytes) -> PointCloud | None:
@@ -320,7 +380,7 @@ def decode(data: bytes) -> PointCloud | None:
     body = memoryview(data)[layout.body_offset:]
     _check_body(layout, len(body))
     rec = np.frombuffer(body, layout.dtype, layout.count)
-    return _assemble(layout, lambda xyz, rgb, labels: _unpack(rec, xyz, rgb, labels))
+    return _assemble(layout, lambda xyz, rgb, labels, views: _unpack(rec, xyz, rgb, labels, views))
 
 
 _HEAD_BYTES = 1 << 20  # a header longer than this (label names of a huge label set?) is read by open3d
@@ -336,7 +396,7 @@ def _read_ours(path: Path) -> PointCloud | None:
             return None
         _check_body(layout, path.stat().st_size - layout.body_offset)
 
-        def fill(xyz, rgb, labels):
+        def fill(xyz, rgb, labels, views):
             fh.seek(layout.body_offset)
             finite = np.empty(layout.count, bool)
             for lo in range(0, layout.count, _SLICE_POINTS):
@@ -344,7 +404,8 @@ def _read_ours(path: Path) -> PointCloud | None:
                 rec = np.fromfile(fh, layout.dtype, hi - lo)
                 if len(rec) != hi - lo:
                     raise CloudFormatError(f"PLY body ends after {lo + len(rec)} of {layout.count} vertices")
-                finite[lo:hi] = _unpack(rec, xyz[lo:hi], rgb[lo:hi], None if labels is None else labels[lo:hi])
+                finite[lo:hi] = _unpack(rec, xyz[lo:hi], rgb[lo:hi], None if labels is None else labels[lo:hi],
+                                        None if views is None else views[lo:hi])
             return finite
 
         return _assemble(layout, fill)

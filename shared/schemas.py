@@ -494,10 +494,16 @@ class MapChunk(Message):
     xyz_m: Array("float32", 2, 3)
     rgb: Array("uint8", 2, 3)
     labels: Array("int32", 1) | None = None
+    # shared.cloud.PointCloud.view_dirs: where each point was seen from (int8 unit vectors x 127).
+    view_dirs: Array("int8", 2, 3) | None = None
 
     @model_validator(mode="after")
     def _finite_points(self):
         _finite_array(self.xyz_m, "xyz_m")
+        n = len(self.xyz_m)
+        for name, arr in (("rgb", self.rgb), ("labels", self.labels), ("view_dirs", self.view_dirs)):
+            if arr is not None and len(arr) != n:
+                raise ValueError(f"{name} has {len(arr)} rows, xyz_m {n}")
         return self
 
 

@@ -212,6 +212,7 @@ class MapStore:
         return MapChunk(
             map_id=map_id, version=m.info.version, index=index, count=count,
             xyz_m=c.xyz[sl], rgb=c.rgb[sl], labels=None if c.labels is None else c.labels[sl],
+            view_dirs=None if c.view_dirs is None else c.view_dirs[sl],
         )
 
     def chunks(self, map_id: str, version: int | None = None, max_points: int = 1_000_000) -> Iterator[MapChunk]:
