@@ -40,9 +40,13 @@ class VoxelLod:
     counts: np.ndarray  # int64 (L + 1, B)
     cell_m: tuple[float, ...]  # cell of each level (level 0: 0.0)
     spacing: np.ndarray  # float32 (len(cloud),)
-    # Unoriented unit normal of every point of ``cloud`` (None: not built); level L: the principal
-    # axis of its members' normals (the mean of n n^T, which does not depend on their signs).
+    # Unit normal of every point of ``cloud`` (None: not built); level L: the principal axis of its
+    # members' normals (the mean of n n^T, which does not depend on their signs).
     normals: np.ndarray | None = None  # float32 (len(cloud), 3)
+    # Whether a point's normal points towards the side the robot saw (None: no side is known).
+    # Level L: where the mean of its members' sided normals (0 for the others) lies at least
+    # SIDE_AGREEMENT along its axis, which is then turned that way: most members agree.
+    sided: np.ndarray | None = None  # uint8 (len(cloud),)
 
     @property
     def levels(self) -> int:
@@ -85,9 +89,13 @@ def first_cell_m(spacing: np.ndarray, cell_m: float, min_spacings: float) -> flo
     return cell
 
 
+SIDE_AGREEMENT = 0.5
+
+
 def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int,
-                    normals: np.ndarray | None = None) -> VoxelLod:
-    """The voxel levels of ``index`` (``spacing`` and ``normals``, optional: per point of ``index.cloud``).
+                    normals: np.ndarray | None = None, sided: np.ndarray | None = None) -> VoxelLod:
+    """The voxel levels of ``index`` (``spacing``, and optional ``normals`` with ``sided``: per point
+    of ``index.cloud``, as :func:`visibility.orient_normals` gives them).
 
     Each level is built from the one below (a cell of level L is exactly the union of 2x2x2 cells
     of level L - 1 on the same grid), carrying sums and counts, so its means are exact and the
@@ -103,11 +111,13 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
     s_xyz, s_rgb, s_sp = xyz, cloud.rgb.astype(np.float64), spacing.astype(np.float64)
     rep_xyz, rep_lab = xyz, cloud.labels
     # Sums of n n^T (xx, yy, zz, xy, xz, yz): a level's normal is their principal axis.
-    s_nn = None
+    s_nn = s_side = None
     if normals is not None:
         n64 = normals.astype(np.float64)
         s_nn = np.stack([n64[:, a] * n64[:, b] for a, b in _NN], 1)
-    parts_n = []
+        if sided is not None:
+            s_side = n64 * (sided != 0)[:, None]  # sums of the sided members' oriented normals
+    parts_n, parts_sided = [], []
     cell_xyz = np.floor((xyz - lo) / cell_m).astype(np.int64)  # level-1 cells of the points
     parts_xyz, parts_rgb, parts_lab, parts_sp = [], [], [], []
     starts = [index.starts.astype(np.int64)]
@@ -131,8 +141,14 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
         t_rgb = np.stack([total(s_rgb[:, k]) for k in range(3)], 1)
         t_sp = total(s_sp)
         t_nn = None if s_nn is None else np.stack([total(s_nn[:, k]) for k in range(6)], 1)
+        t_side = None if s_side is None else np.stack([total(s_side[:, k]) for k in range(3)], 1)
         if t_nn is not None:
-            parts_n.append(_principal_axis(t_nn))
+            axis = _principal_axis(t_nn)
+            if t_side is not None:
+                agree = np.einsum("ij,ij->i", axis.astype(np.float64), t_side) / n
+                axis = np.where((agree < 0)[:, None], -axis, axis)
+                parts_sided.append((np.abs(agree) >= SIDE_AGREEMENT).astype(np.uint8))
+            parts_n.append(axis)
         mean = t_xyz / n[:, None]
         if rep_lab is not None:
             # The label of the member nearest the voxel's mean: a voxel on the edge between two
@@ -154,13 +170,14 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
         offset += m
         # The next level groups these voxels: their cells, decoded from their keys.
         cell_xyz = np.stack([(uniq // (dims[1] * dims[2])) % dims[0], (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
-        cnt, s_xyz, s_rgb, s_sp, s_nn = n, t_xyz, t_rgb, t_sp, t_nn
+        cnt, s_xyz, s_rgb, s_sp, s_nn, s_side = n, t_xyz, t_rgb, t_sp, t_nn, t_side
     labels = None if cloud.labels is None else np.concatenate([cloud.labels.astype(np.int32), *parts_lab])
     full = PointCloud(np.concatenate([cloud.xyz.astype(np.float32), *parts_xyz]),
                       np.concatenate([cloud.rgb, *parts_rgb]), labels, cloud.label_names)
     all_normals = None if normals is None else np.concatenate([normals.astype(np.float32), *parts_n])
+    all_sided = None if s_side is None else np.concatenate([sided.astype(np.uint8), *parts_sided])
     return VoxelLod(full, np.stack(starts), np.stack(counts), tuple(cells),
-                    np.concatenate([spacing.astype(np.float32), *parts_sp]), all_normals)
+                    np.concatenate([spacing.astype(np.float32), *parts_sp]), all_normals, all_sided)
 
 
 _NN = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))

@@ -145,6 +145,17 @@ class SplatConfig(BackendConfig):
     visibility_max_incidence_deg: float = Field(80.0, gt=0.0, lt=90.0)
     # Normal of a point: least-variance axis of it and this many nearest neighbours (once per map).
     normal_neighbours: int = Field(10, ge=3, le=64)
+    # visibility mode, maps that record where each point was seen from (PointCloud.view_dirs): a
+    # point seen from one side of its surface only is drawn without colour (black, as holes are;
+    # its depth and label stay, it still occludes) where a view looks at its other side, by more
+    # than unseen_side_cos between its normal and the ray to the camera. A wall between two rooms
+    # whose near face the robot never mapped then shows as unknown, not in the neighbouring room's
+    # paint 10 cm behind. A point's side is known where its normal and its mean view direction
+    # agree by at least side_min_agreement (a thin object seen from both sides has none). The
+    # margins allow for a normal's error: a face seen at a grazing angle is not taken for its back.
+    unseen_side: bool = True
+    side_min_agreement: float = Field(0.2, ge=0.0, le=1.0)
+    unseen_side_cos: float = Field(0.15, ge=0.0, le=1.0)
     # visibility mode: the points a pixel's surfel averages lie this close behind its nearest one
     # (tighter still: a far wall's two faces, 0.1 m apart, must not average their colours).
     front_tolerance_m: float = Field(0.02, ge=0.0)
@@ -255,6 +266,18 @@ def point_normals_of(index: IndexedCloud, neighbours: int, spacing_neighbours: i
     return index.cache[key]
 
 
+def point_sides_of(index: IndexedCloud, neighbours: int, spacing_neighbours: int | None,
+                   min_agreement: float) -> tuple[np.ndarray, np.ndarray]:
+    """(normals float32 (N, 3), sided uint8 (N,)) of the index's points, cached: the normals of
+    :func:`point_normals_of`, turned towards the side each point was seen from where the map
+    records it (:func:`visibility.orient_normals`); ``sided`` 0 where that side is not known."""
+    key = ("point-sides", neighbours, min_agreement)
+    if key not in index.cache:
+        normals = point_normals_of(index, neighbours, spacing_neighbours)
+        index.cache[key] = visibility.orient_normals(normals, index.cloud.view_dirs, min_agreement)
+    return index.cache[key]
+
+
 def _index_grid(h: int, w: int, axis: int) -> np.ndarray:
     """(h, w) int32 row (axis 0) or column (axis 1) index of every pixel."""
     line = np.arange(h if axis == 0 else w, dtype=np.int32)
@@ -302,7 +325,10 @@ class _NumpyOps:
     def sum_in_order(self, n: int, idx, vals):
         return _add_in_order(n, idx, vals)
 
-    def accumulate_front(self, n: int, q, front, z, arrays: _CloudArrays, idx, qu, qv, spacing=None):
+    def accumulate_front(self, n: int, q, front, z, arrays: _CloudArrays, idx, qu, qv, spacing=None,
+                         unseen=None):
+        """Per-pixel sums of the front layer; points of ``unseen`` (bool, per point of ``idx``) add
+        no colour (:func:`_unseen_side`)."""
         sel = np.flatnonzero(front)
         lq = q[sel]
         s_sp = None if spacing is None else _add_in_order(n, lq, spacing[sel])
@@ -311,7 +337,10 @@ class _NumpyOps:
         if cnt[: n - 1].max(initial=0) <= _PACK_MAX_COUNT:
             # Colour and offset sums are sums of small integers: packing three (two) of them into
             # one float64 keeps them exact and saves four of the six weighted bincounts.
-            rgb = np.bincount(lq, weights=arrays.rgb_packed[idx[sel]], minlength=n)
+            packed = arrays.rgb_packed[idx[sel]]
+            if unseen is not None:
+                packed = np.where(unseen[sel], 0.0, packed)
+            rgb = np.bincount(lq, weights=packed, minlength=n)
             uv = np.bincount(lq, weights=qu[sel] + qv[sel] * _PACK, minlength=n)
             b = np.floor(rgb / _PACK**2)
             rgb = rgb - b * _PACK**2
@@ -321,6 +350,8 @@ class _NumpyOps:
             s_u = uv - s_v * _PACK
         else:
             c = arrays.rgb[idx[sel]]
+            if unseen is not None:
+                c = np.where(unseen[sel, None], np.float32(0.0), c)
             s_rgb = [np.bincount(lq, weights=c[:, k], minlength=n) for k in range(3)]
             s_u = np.bincount(lq, weights=qu[sel], minlength=n)
             s_v = np.bincount(lq, weights=qv[sel], minlength=n)
@@ -488,11 +519,15 @@ class _TorchOps:
         out = self.torch.zeros(n, dtype=self.torch.float32, device=self.device)
         return out.index_add_(0, idx, vals.to(self.torch.float32))
 
-    def accumulate_front(self, n: int, q, front, z, arrays: _CloudArrays, idx, qu, qv, spacing=None):
+    def accumulate_front(self, n: int, q, front, z, arrays: _CloudArrays, idx, qu, qv, spacing=None,
+                         unseen=None):
         torch = self.torch
         lq = q[front]
         pts = idx[front]
-        cols = [z[front, None], arrays.rgb[pts], qu[front, None], qv[front, None]]
+        rgb = arrays.rgb[pts]
+        if unseen is not None:
+            rgb = torch.where(unseen[front, None], torch.zeros((), dtype=rgb.dtype, device=self.device), rgb)
+        cols = [z[front, None], rgb, qu[front, None], qv[front, None]]
         if spacing is not None:
             cols.append(spacing[front, None])
         src = torch.cat(cols, dim=1)
@@ -678,45 +713,65 @@ class SplatRenderer:
 
     @property
     def _with_slope(self) -> bool:
-        """Whether views need the map's normals (the slope-scaled visibility tolerance)."""
+        """Whether views use the slope-scaled visibility tolerance (the map's normals)."""
         return self.config.mode == "visibility" and self.config.visibility_slope_px > 0
+
+    def _with_sides(self, index: IndexedCloud) -> bool:
+        """Whether views draw the side of a surface the robot never saw as unseen (the map records
+        where its points were seen from)."""
+        cfg = self.config
+        return cfg.mode == "visibility" and cfg.unseen_side and index.cloud.view_dirs is not None
+
+    def _normals_of(self, index: IndexedCloud) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """(normals, sided or None) of the index's points as views need them, or None."""
+        cfg = self.config
+        if self._with_sides(index):
+            return point_sides_of(index, cfg.normal_neighbours, cfg.spacing_neighbours, cfg.side_min_agreement)
+        if self._with_slope:
+            return point_normals_of(index, cfg.normal_neighbours, cfg.spacing_neighbours), None
+        return None
 
     def _voxel_lod(self, index: IndexedCloud) -> VoxelLod | None:
         cfg = self.config
         if cfg.lod != "voxel" or cfg.lod_points_per_px is None:
             return None
-        nn = cfg.normal_neighbours if self._with_slope else None
+        normals = self._normals_of(index)
+        nn = None if normals is None else (cfg.normal_neighbours,
+                                           cfg.side_min_agreement if normals[1] is not None else None)
         key = ("voxel-lod", cfg.lod_cell_m, cfg.lod_cell_spacings, cfg.lod_levels, cfg.spacing_neighbours, nn)
         if key not in index.cache:
-            normals = None if nn is None else point_normals_of(index, nn, cfg.spacing_neighbours)
             spacing = point_spacing_of(index, cfg.spacing_neighbours)
             cell_m = first_cell_m(spacing, cfg.lod_cell_m, cfg.lod_cell_spacings)
-            index.cache[key] = build_voxel_lod(index, spacing, cell_m, cfg.lod_levels, normals)
+            index.cache[key] = build_voxel_lod(index, spacing, cell_m, cfg.lod_levels,
+                                               *(normals if normals is not None else (None, None)))
         return index.cache[key]
 
     def _drawn(self, index: IndexedCloud):
-        """(backend arrays, per-point spacing or None, per-point normals as three contiguous
-        float32 columns or None, voxel LOD or None) of the cloud this renderer draws: the index's
-        points, followed by their voxel levels with ``lod="voxel"``."""
+        """(backend arrays, per-point spacing or None, :class:`_Normals` or None, voxel LOD or None)
+        of the cloud this renderer draws: the index's points, followed by their voxel levels with
+        ``lod="voxel"``."""
         cfg = self.config
         lod = self._voxel_lod(index)
         with_spacing = cfg.mode == "visibility" or lod is not None
         if lod is None:
             arrays = self._ops.cloud_arrays(index)
-            normals = point_normals_of(index, cfg.normal_neighbours, cfg.spacing_neighbours) if self._with_slope else None
+            normals, sided = self._normals_of(index) or (None, None)
             spacing = point_spacing_of(index, cfg.spacing_neighbours) if with_spacing else None
-            tag = ("points", cfg.normal_neighbours)
+            tag = ("points",)
         else:
             arrays = self._ops.cloud_arrays(index, lod.cloud, ("voxel-lod", lod.cell_m))
             spacing = lod.spacing
-            normals = lod.normals
-            tag = ("voxel-lod", lod.cell_m, cfg.normal_neighbours)
+            normals, sided = lod.normals, lod.sided
+            tag = ("voxel-lod", lod.cell_m)
+        drawn_normals = None
         if normals is not None:
-            key = ("normal-columns", self._ops.name, self.device, *tag)
+            key = ("normal-columns", self._ops.name, self.device, *tag, cfg.normal_neighbours,
+                   None if sided is None else cfg.side_min_agreement)
             if key not in index.cache:
-                index.cache[key] = tuple(self._ops.asarray(np.ascontiguousarray(normals[:, k])) for k in range(3))
-            normals = index.cache[key]
-        return arrays, spacing, normals, lod
+                cols = tuple(self._ops.asarray(np.ascontiguousarray(normals[:, k])) for k in range(3))
+                index.cache[key] = _Normals(cols, None if sided is None else self._ops.asarray(sided))
+            drawn_normals = index.cache[key]
+        return arrays, spacing, drawn_normals, lod
 
     def _runs(self, index: IndexedCloud, lod: VoxelLod | None, wfc: np.ndarray, cam: PinholeCamera,
               frustum: Frustum) -> _Runs:
@@ -857,7 +912,8 @@ class SplatRenderer:
         proj = (cam.matrix() @ np.linalg.inv(wfc)[:3]).astype(np.float32)
         if cfg.mode == "paper" and cfg.algorithm == "exact":
             return self._paper_exact(arrays, runs, proj, h, w, labelled)
-        slope = None if normals is None else _SlopeView(normals, self._slope_constants(wfc, cam))
+        slope = None if normals is None else _SlopeView(normals.columns, self._slope_constants(wfc, cam),
+                                                        normals.sided)
         front = self._front_kernel(arrays, spacing, slope, runs, proj, h, w, labelled) if self._use_kernel else None
         if front is None:
             front = self._front_arrays(arrays, spacing, slope, runs, proj, h, w, labelled)
@@ -893,10 +949,13 @@ class SplatRenderer:
         no_normal = np.zeros(1, np.float32)
         nx, ny, nz = slope.normals if slope is not None else (no_normal, no_normal, no_normal)
         consts = slope.constants if slope is not None else np.zeros(8, np.float32)
+        with_slope = slope is not None and self._with_slope
+        with_sides = slope is not None and slope.sided is not None
         zbuf, acc, uv, overflow = kernels.front_pass(
             arrays.x, arrays.y, arrays.z, arrays.rgb_u32, spacing, runs.starts, runs.counts, runs.scale, proj.ravel(),
             np.float32(cfg.near_m), np.float32(cfg.far_m), w, h, *self._front_tolerance(), labelled, with_spacing,
-            nx, ny, nz, consts, slope is not None, cfg.mode == "paper", self._pad,
+            nx, ny, nz, consts, with_slope, cfg.mode == "paper", self._pad,
+            slope.sided if with_sides else np.zeros(1, np.uint8), np.float32(cfg.unseen_side_cos), with_sides,
         )
         if overflow:
             log.debug("a pixel's front layer exceeds %d points: array code for this view", kernels.MAX_FRONT_POINTS)
@@ -904,7 +963,7 @@ class SplatRenderer:
         # Columns of the kernel's one row per pixel (strided views, no copies).
         return _Front(n, zbuf, acc[:, 0], acc[:, 1], [acc[:, 2], acc[:, 3], acc[:, 4]], uv[0], uv[1],
                       acc[:, 5] if with_spacing else None, acc.view(np.int32)[:, 7] if labelled else None,
-                      acc[:, 6] if slope is not None else None)
+                      acc[:, 6] if with_slope else None)
 
     @property
     def _pad(self) -> int:
@@ -954,14 +1013,19 @@ class SplatRenderer:
         # The front layer of each pixel: its points within epsilon of the pixel's own nearest.
         rel1, tol = self._front_tolerance()
         front = z <= zbuf[q] * float(rel1) + float(tol)
-        cnt, s_z, s_rgb, s_u, s_v, s_sp = ops.accumulate_front(npad + 1, q, front, z, arrays, idx, qu, qv, sp)
+        unseen = None
+        if slope is not None and slope.sided is not None:
+            unseen = _unseen_side(ops, arrays.x[idx], arrays.y[idx], arrays.z[idx], *(c[idx] for c in slope.normals),
+                                  slope.sided[idx], slope.constants, self.config.unseen_side_cos)
+        cnt, s_z, s_rgb, s_u, s_v, s_sp = ops.accumulate_front(npad + 1, q, front, z, arrays, idx, qu, qv, sp,
+                                                               unseen)
         best = None
         if labelled:
             # Nearest point per source pixel (largest point id among exact ties, so every path agrees).
             nearest = z == zbuf[q]
             best = ops.scatter_max_int(npad + 1, q[nearest], idx[nearest])
         s_g = None
-        if slope is not None:
+        if slope is not None and self._with_slope:
             pts = idx[front]
             # Points off the image are "front" in the miss bin (depth inf): nan there, never read.
             with np.errstate(invalid="ignore"):
@@ -1170,12 +1234,34 @@ class _Runs:
 
 
 @dataclass(frozen=True)
+class _Normals:
+    """The drawn cloud's normals as three contiguous float32 columns (backend arrays), and which
+    points' normals point towards the side the robot saw them from (uint8 / bool, or None: the
+    map does not say)."""
+
+    columns: tuple
+    sided: object | None = None
+
+
+@dataclass(frozen=True)
 class _SlopeView:
-    """What the slope-scaled tolerance needs of a view: the drawn cloud's normals (three float32
-    columns, backend arrays) and the view's constants (:meth:`SplatRenderer._slope_constants`)."""
+    """What the slope-scaled tolerance and the side test need of a view: the drawn cloud's normals
+    and sides (:class:`_Normals`) and the view's constants (:meth:`SplatRenderer._slope_constants`)."""
 
     normals: tuple
     constants: np.ndarray  # float32 (8,)
+    sided: object | None = None
+
+
+def _unseen_side(ops, x, y, zw, nx, ny, nz, sided, consts, unseen_cos):
+    """Per point, whether the view sees the side of its surface the robot never saw: its side is
+    known and the camera lies behind its oriented normal by more than ``unseen_cos`` (cosine
+    between the normal and the ray towards the camera). The compiled front pass repeats it
+    operation for operation in float32."""
+    cx, cy, cz = (float(v) for v in consts[:3])
+    dx, dy, dz = x - cx, y - cy, zw - cz
+    d = nx * dx + ny * dy + nz * dz
+    return (sided != 0) & (d > 0) & (d > float(np.float32(unseen_cos)) * ops.sqrt(dx * dx + dy * dy + dz * dz))
 
 
 def _point_slope(ops, x, y, zw, zc, nx, ny, nz, consts):

@@ -382,11 +382,31 @@ def point_normals(xyz: np.ndarray, neighbours: int = 10) -> np.ndarray:
     variance of the point and its ``neighbours`` nearest points (principal component analysis,
     Hoppe et al. 1992, "Surface reconstruction from unorganized points").
 
-    Unoriented on purpose: the visibility test needs only how steeply a surface is seen (its
-    slope), which does not depend on the normal's sign, and a map carries no record of the side
-    it was seen from. The neighbourhood (~4 cm at the maps' 2.6 cm spacing) stays on one face of
-    a 10 cm wall."""
+    Unoriented: the visibility test needs only how steeply a surface is seen (its slope), which
+    does not depend on the normal's sign; :func:`orient_normals` turns them towards the side the
+    robot saw where the map records it. The neighbourhood (~4 cm at the maps' 2.6 cm spacing)
+    stays on one face of a 10 cm wall."""
     return point_spacing_and_normals(xyz, 1, neighbours)[1]
+
+
+def orient_normals(normals: np.ndarray, view_dirs: np.ndarray | None,
+                   min_agreement: float) -> tuple[np.ndarray, np.ndarray]:
+    """(normals float32 (N, 3), sided uint8 (N,)): unoriented ``normals`` turned towards the side
+    each point was seen from, its mean direction towards the cameras that saw it
+    (``PointCloud.view_dirs``, int8). As in normal orientation towards the scanner's viewpoint
+    (Hoppe et al. 1992 orient by propagation where no viewpoint is known; a range scan's points
+    know theirs), but with the mean of all the viewpoints a fused point had. A point's side is
+    known (``sided`` 1) where that mean direction lies at least ``min_agreement`` (a cosine times
+    its length) off the surface's plane: a thin object seen from both sides, or a point whose
+    viewpoints scatter along its plane, has none. Without ``view_dirs`` no side is known."""
+    normals = np.asarray(normals, np.float32)
+    if view_dirs is None:
+        return normals, np.zeros(len(normals), np.uint8)
+    from shared.cloud import view_dirs_unit
+
+    agree = np.einsum("ij,ij->i", normals, view_dirs_unit(view_dirs))
+    oriented = np.where((agree < 0)[:, None], -normals, normals).astype(np.float32)
+    return oriented, (np.abs(agree) >= min_agreement).astype(np.uint8)
 
 
 def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, normal_neighbours: int = 10,

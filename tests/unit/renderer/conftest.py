@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from services.renderer.tools import scenes
+from shared.cloud import PointCloud, quantise_view_dirs
 from shared.pointrender import IndexedCloud
 
 
@@ -21,6 +23,17 @@ def room_cloud(room_mesh):
 @pytest.fixture(scope="session")
 def room_index(room_cloud) -> IndexedCloud:
     return IndexedCloud(room_cloud)
+
+
+@pytest.fixture(scope="session")
+def room_index_sided(room_cloud) -> IndexedCloud:
+    """The flat's cloud as if every point had been seen from one spot in it (its view_dirs point
+    there): faces turned away from that spot are seen from behind by some views, so the side test
+    of the visibility mode has work in both rooms."""
+    to_spot = np.array([2.0, 1.0, 1.25]) - room_cloud.xyz
+    unit = to_spot / np.linalg.norm(to_spot, axis=1, keepdims=True)
+    c = room_cloud
+    return IndexedCloud(PointCloud(c.xyz, c.rgb, c.labels, c.label_names, quantise_view_dirs(unit)))
 
 
 @pytest.fixture(scope="session")

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 import shared.pointrender.lod as lod_module
-from shared.cloud import PointCloud
+from shared.cloud import PointCloud, quantise_view_dirs, view_dirs_unit
 from shared.geometry import PinholeCamera, camera_pose
 from shared.pointrender import RENDERERS, IndexedCloud
 from shared.pointrender.cloud import Frustum
 from shared.pointrender.lod import build_voxel_lod, first_cell_m
-from shared.pointrender.splat import point_normals_of, point_spacing_of
+from shared.pointrender.splat import point_normals_of, point_sides_of, point_spacing_of
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(128, 128, 90.0)
@@ -162,3 +162,31 @@ def test_a_denser_cloud_gets_a_finer_first_level_and_draws_fewer_points_at_mid_r
     assert a.visible_points[0] < 0.6 * f.visible_points[0], (a.visible_points, f.visible_points)
     seen = ~a.hole_mask[0]
     assert np.array_equal(seen, ~f.hole_mask[0]) and np.allclose(a.depth_m[0][seen], f.depth_m[0][seen], atol=0.03)
+
+
+def test_level_normals_turn_towards_the_side_their_members_were_seen_from():
+    # A wall at x = 1 seen from x < 1, and a floor seen from above: every level keeps the side
+    # (normal towards the cameras, known), and a level whose members disagree knows none.
+    wall = _wall(1.0, 0.5, 0.01)
+    floor = PointCloud(wall.xyz[:, [2, 1, 0]] * [1.0, 1.0, 0.0] + [1.2, 0.0, 0.0], wall.rgb, wall.labels, wall.label_names)
+    view = np.concatenate([np.tile([-1.0, 0.0, 0.0], (len(wall), 1)), np.tile([0.0, 0.0, 1.0], (len(floor), 1))])
+    both = PointCloud.concatenate([wall, floor])
+    index = IndexedCloud(PointCloud(both.xyz, both.rgb, both.labels, both.label_names, quantise_view_dirs(view)))
+    normals, sided = point_sides_of(index, 10, None, 0.2)
+    lod = build_voxel_lod(index, point_spacing_of(index, 4), cell_m=0.04, levels=3, normals=normals, sided=sided)
+    xyz = lod.cloud.xyz
+    on_wall = (np.abs(xyz[:, 0] - 1.0) < 0.02) & (xyz[:, 2] > 0.2)
+    on_floor = (np.abs(xyz[:, 2]) < 0.02) & (xyz[:, 0] > 1.3)
+    for sel, axis, sign in ((on_wall, 0, -1.0), (on_floor, 2, 1.0)):
+        assert sel[len(index):].sum() > 50
+        assert (lod.sided[sel] == 1).mean() > 0.99
+        assert np.quantile(sign * lod.normals[sel, axis], 0.01) > 0.95
+    # Every other point seen from the other side: its levels' sides cancel (a voxel of a few
+    # members, cut by a block's edge, may still hold a 3:1 majority).
+    flip = np.where(np.arange(len(index)) % 2 == 0, 1.0, -1.0)[:, None]
+    index2 = IndexedCloud(PointCloud(index.cloud.xyz, index.cloud.rgb, index.cloud.labels, index.cloud.label_names,
+                                     quantise_view_dirs(view_dirs_unit(index.cloud.view_dirs) * flip)))
+    normals2, sided2 = point_sides_of(index2, 10, None, 0.2)
+    lod2 = build_voxel_lod(index2, point_spacing_of(index2, 4), 0.04, 3, normals2, sided2)
+    levels = np.arange(len(lod2.cloud)) >= len(index2)
+    assert lod2.sided[levels].mean() < 0.1 and (lod.sided[levels] == 1).mean() > 0.9

@@ -219,9 +219,9 @@ needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not instal
 
 
 @needs_numba
-@pytest.mark.parametrize("mode", [*MODES, "visibility-flat"])
+@pytest.mark.parametrize("mode", [*MODES, "visibility-flat", "visibility-sides"])
 @pytest.mark.parametrize("hfov_deg", [60.0, 120.0])
-def test_compiled_kernel_is_bit_identical_to_array_code(room_index, hfov_deg, mode):
+def test_compiled_kernel_is_bit_identical_to_array_code(room_index, room_index_sided, hfov_deg, mode):
     cam = PinholeCamera(200, 150, hfov_deg)  # not square: rows and columns must not be swapped
     poses = [camera_pose(pos, h, p) for pos, h, p in scenes.room_view_poses(4, seed=13)]
     # Standing in a wall: points behind the camera, inside the near plane and at grazing angles.
@@ -230,12 +230,17 @@ def test_compiled_kernel_is_bit_identical_to_array_code(room_index, hfov_deg, mo
     # (the flat's dense cloud leaves none inside).
     poses.append(camera_pose((-2.0, -2.0, 0.0), math.pi / 4, 0.0))
     # "visibility-flat": the visibility mode without the slope-scaled tolerance (no normals).
+    # "visibility-sides": a map that records where its points were seen from (the side test).
     cfg = {"mode": "visibility", "visibility_slope_px": 0.0} if mode == "visibility-flat" else {"mode": mode}
+    if mode == "visibility-sides":
+        cfg, room_index = {"mode": "visibility"}, room_index_sided
     compiled = RENDERERS.create("numpy", {"kernel": "numba", **cfg})
     array = RENDERERS.create("numpy", {"kernel": "numpy", **cfg})
     assert compiled.kernel == "numba" and array.kernel == "array"
     a = compiled.render_poses(room_index, poses, cam)
     b = array.render_poses(room_index, poses, cam)
+    if mode == "visibility-sides":  # the test has unseen sides to draw: black pixels with depth
+        assert ((a.rgb.max(axis=-1) == 0) & ~a.hole_mask).mean() > 0.01
     assert np.array_equal(a.rgb, b.rgb)
     assert np.array_equal(a.depth_m, b.depth_m)
     assert np.array_equal(a.hole_mask, b.hole_mask)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from services.renderer.tools import scenes
-from shared.cloud import PointCloud
+from shared.cloud import PointCloud, quantise_view_dirs
 from shared.geometry import PinholeCamera
 from shared.pointrender import RENDERERS, IndexedCloud, visibility
 from shared.schemas import ViewPose
@@ -136,14 +136,14 @@ def test_a_near_object_does_not_spread_over_the_background():
     assert (np.abs(depth[ring] - 3.0) < 0.3).mean() > 0.99 and (labels[ring] == 1).mean() > 0.99
 
 
-@pytest.mark.parametrize("scene", ["room", "wall"])
-def test_numpy_and_torch_agree_in_visibility_mode(room_index, scene):
+@pytest.mark.parametrize("scene", ["room", "wall", "sided room"])
+def test_numpy_and_torch_agree_in_visibility_mode(room_index, room_index_sided, scene):
     """Tolerance: the front-layer sums are float64 in numpy and float32 in torch, so mean depths
     differ in the last bits and a footprint radius or a depth test right at its threshold can
     flip: at most 0.2 % of the pixels may differ in hole, label or colour (> 2 levels), and depth
     agrees within 1 mm elsewhere."""
-    if scene == "room":
-        index = room_index
+    if scene != "wall":
+        index = room_index if scene == "room" else room_index_sided
         views = [ViewPose(position_m=pos, heading_rad=h, pitch_rad=p) for pos, h, p in scenes.room_view_poses(3, seed=5)]
     else:
         index = _wall_and_room(0.5)
@@ -320,3 +320,53 @@ def test_a_grazing_wall_keeps_every_surfel_with_the_slope_scaled_tolerance(compi
     from dataclasses import replace
 
     assert kept(replace(params, slope_px=0.0)) < 0.95
+
+
+def _seen_from(cloud: PointCloud, direction) -> PointCloud:
+    """``cloud`` as the reconstructor leaves it when every point was seen from ``direction``."""
+    unit = np.tile(np.asarray(direction, float) / np.linalg.norm(direction), (len(cloud), 1))
+    return PointCloud(cloud.xyz, cloud.rgb, cloud.labels, cloud.label_names, quantise_view_dirs(unit))
+
+
+def _wall_between_rooms(near_face: bool) -> IndexedCloud:
+    """A wall between this room (x < 2) and the next (x > 2.1), seen as the robot mapped it: the
+    next room's face (blue, label 1) from the next room, its far wall (green) from inside it, and
+    this room's face (red, label 0) only with ``near_face``."""
+    parts = [_seen_from(_lattice(2.1, (-4.0, 4.0), (0.0, 2.6), 0.026, (30, 30, 200), 1, seed=1), (1, 0, 0)),
+             _seen_from(_lattice(5.0, (-4.0, 4.0), (0.0, 2.6), 0.026, (30, 200, 30), 1, seed=2), (-1, 0, 0))]
+    if near_face:
+        parts.append(_seen_from(_lattice(2.0, (-4.0, 4.0), (0.0, 2.6), 0.026, (200, 30, 30), 0), (-1, 0, 0)))
+    return IndexedCloud(PointCloud.concatenate(parts))
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_a_wall_face_never_mapped_shows_as_unseen_not_in_the_next_rooms_paint(backend):
+    # The weakness the issue-20 screenshots showed: where this room's face of a wall was never
+    # mapped, the view showed its other face, the neighbouring room's paint 10 cm behind. A map
+    # that records where its points were seen from draws that face black (unknown), at the wall's
+    # depth (it still hides the room behind), with its label.
+    index = _wall_between_rooms(near_face=False)
+    out = _render("visibility", index, backend)
+    seen = ~out.hole_mask[0]
+    assert seen.mean() > 0.5
+    assert (out.rgb[0][seen].max(axis=-1) == 0).mean() >= 0.99
+    assert (np.abs(out.depth_m[0][seen] - 2.1) < 0.05).mean() >= 0.99
+    assert (out.labels[0][seen] == 1).mean() >= 0.99
+    # Without the record (or with the test off) the next room's blue shows: what this test guards.
+    plain = _render("visibility", index, backend, unseen_side=False)
+    assert (plain.rgb[0][~plain.hole_mask[0]][:, 2] == 200).mean() > 0.9
+
+
+def test_a_mapped_near_face_and_a_surface_seen_from_both_sides_keep_their_colour():
+    out = _render("visibility", _wall_between_rooms(near_face=True))
+    seen = ~out.hole_mask[0]
+    assert seen.mean() > 0.5 and (out.rgb[0][seen][:, 0] == 200).mean() >= 0.99
+    # A thin panel seen from both sides as often: fusion averaged its cameras' directions to a
+    # short vector, nearly in its plane (here 0.05 across it, 0.5 along it): no side is known.
+    panel = _lattice(1.5, (-1.0, 1.0), (0.5, 2.0), 0.02, (200, 30, 30), 0)
+    across = np.where(np.arange(len(panel)) % 2 == 0, 0.05, -0.05)
+    mean_dirs = np.column_stack([across, np.zeros(len(panel)), np.full(len(panel), 0.5)])
+    both = PointCloud(panel.xyz, panel.rgb, panel.labels, panel.label_names, quantise_view_dirs(mean_dirs))
+    out = _render("visibility", IndexedCloud(both))
+    seen = ~out.hole_mask[0]
+    assert seen.mean() > 0.2 and (out.rgb[0][seen][:, 0] == 200).mean() >= 0.99
