@@ -31,6 +31,11 @@ central 9x9 pixels):
   surface shows through);
 * leak 5 cm: rendered depth > true depth + 5 cm: also the far face of a wall (10 cm behind the
   near one between rooms) blended into the near face's pixels, which the 0.25 m leak cannot see;
+* shown 5 cm: the pixels of leak 5 cm that show a colour, i.e. a surface behind the true one drawn
+  as if it were the one in view (a wall's far face in the neighbouring room's paint where its near
+  face was never mapped); the rest are drawn black as a side the robot never saw;
+* unseen: pixels drawn black at a depth (a surface's unseen side), over the pixels scored: on
+  mapped pixels this is the side test's false alarms (a surface the map holds, drawn unknown);
 * holes: rendered hole where the ray cast hits a surface;
 * SSIM and PSNR of the RGB images (holes black, as the policy sees them);
 * label accuracy: rendered label == true label over pixels valid in both (labelled clouds only).
@@ -100,6 +105,8 @@ class Scores:
     ssim: list[float] = field(default_factory=list)
     psnr: list[float] = field(default_factory=list)
     label: list[float] = field(default_factory=list)
+    shown_near: list[float] = field(default_factory=list)
+    unseen: list[float] = field(default_factory=list)
 
 
 def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0):
@@ -120,7 +127,11 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
 
         return robot, sample_scene_cloud(robot.scene)
     if path.exists():
-        return robot, PointCloud.load(path)
+        cached = PointCloud.load(path)
+        if cached.view_dirs is not None:
+            return robot, cached
+        # Built before maps recorded where their points were seen from: what the renderer now reads.
+        print(f"   {name} has no view directions: rebuilding it")
     from services.mapper.core import discover, discovery_config, execute_tours
     from services.reconstructor.core import ReconstructionConfig, Reconstructor
 
@@ -277,6 +288,9 @@ def score(renderer, index: IndexedCloud, gt: GroundTruth, poses, cam: PinholeCam
             continue
         r_valid = ~out.hole_mask[i]
         both = region & r_valid
+        # Drawn black with a depth: the side of a surface the robot never saw (a hole has no depth).
+        unseen = r_valid & (out.rgb[i].max(axis=-1) == 0)
+        s.unseen.append(float((region & unseen).sum()) / int(region.sum()))
         s.holes.append(float((region & ~r_valid).sum()) / int(region.sum()))
         r_rgb = out.rgb[i]
         if mapped_only:
@@ -291,7 +305,9 @@ def score(renderer, index: IndexedCloud, gt: GroundTruth, poses, cam: PinholeCam
         s.psnr.append(float(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-10))))
         if both.any():  # leak and labels are over pixels valid in both: none, no score (it was 0 %)
             s.leak.append(float((out.depth_m[i][both] > g_d[both] + LEAK_M).sum()) / int(both.sum()))
-            s.leak_near.append(float((out.depth_m[i][both] > g_d[both] + LEAK_NEAR_M).sum()) / int(both.sum()))
+            behind = out.depth_m[i][both] > g_d[both] + LEAK_NEAR_M
+            s.leak_near.append(float(behind.sum()) / int(both.sum()))
+            s.shown_near.append(float((behind & ~unseen[both]).sum()) / int(both.sum()))
             if out.labels is not None and gt.out.semantic is not None:
                 s.label.append(float((out.labels[i][both] == gt.out.semantic[i][both]).mean()))
     return bands
@@ -307,7 +323,7 @@ def _fmt(v: list[float], pct: bool) -> str:
 def report(title: str, rows: dict[str, dict[str, Scores]]) -> None:
     print(f"\n== {title} ==")
     print(f"{'mode':<10} {'pixels':<7} {'band':<6} {'views':>5} {'mapped%':>7} {'leak %':>7} {'p90':>6} "
-          f"{'leak5 %':>7} {'holes %':>7} {'SSIM':>6} {'PSNR':>6} {'label %':>7}  targets")
+          f"{'leak5 %':>7} {'shown5%':>7} {'unseen%':>7} {'holes %':>7} {'SSIM':>6} {'PSNR':>6} {'label %':>7}  targets")
     for (mode, region), bands in rows.items():
         for (band, s), (_, lo, _) in zip(bands.items(), BANDS):
             if not s.holes:
@@ -318,11 +334,13 @@ def report(title: str, rows: dict[str, dict[str, Scores]]) -> None:
                    not s.label or np.mean(s.label) >= 0.95)
             flags = "".join("+" if m else "-" for m in met)
             print(f"{mode:<10} {region:<7} {band:<6} {len(s.holes):>5} {_fmt(s.coverage, True):>7} "
-                  f"{_fmt(s.leak, True):>7} {p90:6.1f} {_fmt(s.leak_near, True):>7} {_fmt(s.holes, True):>7} "
+                  f"{_fmt(s.leak, True):>7} {p90:6.1f} {_fmt(s.leak_near, True):>7} {_fmt(s.shown_near, True):>7} "
+                  f"{_fmt(s.unseen, True):>7} {_fmt(s.holes, True):>7} "
                   f"{_fmt(s.ssim, False):>6} "
                   f"{np.mean(s.psnr) if s.psnr else float('nan'):6.2f} {_fmt(s.label, True):>7}  {flags}")
     print("targets: leak <= 1 %, holes <= 2 %, SSIM >= 0.80 (< 1 m) / 0.85, label >= 95 % ('+' met, '-' missed);"
-          " leak5: rendered > true + 5 cm (no target)")
+          " leak5: rendered > true + 5 cm, shown5: those drawn in colour, unseen: drawn black at a depth"
+          " (an unseen side; no targets)")
 
 
 def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, noise: str | None = None,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from evaluation.errors import ConfigError
-from shared.cloud import PointCloud, sample_mesh
+from shared.cloud import PointCloud, quantise_view_dirs, sample_mesh
 
 
 def sample_scene_cloud(scene, *, density_per_m2: float = 300.0, max_points: int = 1_000_000,
@@ -29,7 +29,9 @@ def sample_scene_cloud(scene, *, density_per_m2: float = 300.0, max_points: int 
 
     With ``visible_only`` (default) a sample is kept only when one of its ``nearest_viewpoints``
     nearest viewpoints sees it: ``viewpoints_m`` (M, 3), or walkable floor points of the scene's
-    navigation grid thinned to one per ``viewpoint_grid_m`` cell, raised by each of ``eye_heights_m``."""
+    navigation grid thinned to one per ``viewpoint_grid_m`` cell, raised by each of ``eye_heights_m``;
+    its ``view_dirs`` are then the mean direction towards the viewpoints that see it (as a built
+    map's are towards its cameras), so the renderer knows which side of a wall was in view."""
     if density_per_m2 <= 0 or max_points < 1:
         raise ConfigError("density_per_m2 and max_points must be positive")
     corners = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles, np.int64)]
@@ -46,7 +48,9 @@ def sample_scene_cloud(scene, *, density_per_m2: float = 300.0, max_points: int 
                         label_names=scene.label_names)
     if viewpoints_m is None:
         viewpoints_m = walkable_viewpoints(scene, eye_heights_m, viewpoint_grid_m)
-    keep = np.flatnonzero(visible_from(scene, cloud.xyz, viewpoints_m, nearest_viewpoints))
+    seen, towards = visible_from(scene, cloud.xyz, viewpoints_m, nearest_viewpoints, with_dirs=True)
+    cloud.view_dirs = quantise_view_dirs(towards)
+    keep = np.flatnonzero(seen)
     if len(keep) > max_points:
         keep = np.sort(np.random.default_rng(seed).choice(keep, max_points, replace=False))
     return cloud.subset(keep)
@@ -67,10 +71,11 @@ def walkable_viewpoints(scene, eye_heights_m=(0.6, 1.25), grid_m: float = 0.5) -
 
 
 def visible_from(scene, xyz: np.ndarray, viewpoints_m: np.ndarray, nearest: int = 12,
-                 clearance_m: float = 0.02, chunk: int = 200_000) -> np.ndarray:
+                 clearance_m: float = 0.02, chunk: int = 200_000, with_dirs: bool = False):
     """Boolean mask of the points (on the scene's surfaces) that one of their ``nearest``
     viewpoints sees: the segment from the viewpoint stops ``clearance_m`` short of the point
-    without hitting the mesh."""
+    without hitting the mesh. ``with_dirs``: also the mean of the unit vectors from each point
+    towards the viewpoints that see it (float (N, 3); zero where none does)."""
     import open3d as o3d
     from scipy.spatial import cKDTree
 
@@ -81,6 +86,7 @@ def visible_from(scene, xyz: np.ndarray, viewpoints_m: np.ndarray, nearest: int 
     k = min(nearest, len(vp))
     tree = cKDTree(vp)
     seen = np.zeros(len(xyz), bool)
+    towards = np.zeros((len(xyz), 3)) if with_dirs else None
     for a in range(0, len(xyz), chunk):
         pts = np.asarray(xyz[a : a + chunk], np.float64)
         _, nn = tree.query(pts, k=k, workers=-1)
@@ -91,5 +97,9 @@ def visible_from(scene, xyz: np.ndarray, viewpoints_m: np.ndarray, nearest: int 
         rays = np.concatenate([origin, d], axis=-1).reshape(-1, 6).astype(np.float32)
         t = rc.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(len(pts), k)
         # t is in units of the segment: the point itself is at t = 1.
-        seen[a : a + chunk] = (t * dist >= dist - clearance_m).any(axis=1)
-    return seen
+        sees = t * dist >= dist - clearance_m
+        seen[a : a + chunk] = sees.any(axis=1)
+        if with_dirs:
+            unit = -d / np.maximum(dist, 1e-9)[..., None]
+            towards[a : a + chunk] = (unit * sees[..., None]).sum(axis=1) / np.maximum(sees.sum(axis=1), 1)[:, None]
+    return (seen, towards) if with_dirs else seen

@@ -10,7 +10,7 @@ import pytest
 
 from tests.unit.evaluation.conftest import box_scene
 from evaluation.clouds import sample_scene_cloud
-from shared.cloud import encode
+from shared.cloud import encode, view_dirs_unit
 from evaluation.dataset import SetSpec, generate_set, gt_path_for, parse_floors, write_set
 from evaluation.errors import ConfigError
 from services.robot_io.core import read_episodes, read_ground_truth
@@ -51,8 +51,10 @@ def test_ply_reads_back_with_open3d_and_keeps_labels(tmp_path):
     head, _, body = data.partition(b"end_header\n")
     names = next(ln for ln in head.decode().splitlines() if ln.startswith("comment label_names "))
     assert json.loads(names.split(" ", 2)[2]) == {"0": "wall", "1": "floor"}
-    rec = np.frombuffer(body, np.dtype([("p", "<f4", 3), ("c", "u1", 3), ("label", "<i4")]))
+    # A curated cloud records where its points were seen from: char view_x/y/z after the label.
+    rec = np.frombuffer(body, np.dtype([("p", "<f4", 3), ("c", "u1", 3), ("label", "<i4"), ("view", "i1", 3)]))
     assert np.array_equal(rec["label"], cloud.labels)
+    assert np.array_equal(rec["view"], cloud.view_dirs)
 
 
 def test_set_spec_houses_cycle_floors_and_validate():
@@ -121,5 +123,11 @@ def test_curated_cloud_keeps_only_surfaces_seen_from_walkable_space():
     assert crate_top.sum() == pytest.approx(400.0, rel=0.15)  # seen from 1.25 m: kept at the density
     walls = (lab == 0)  # the room's four walls and its ceiling face all face the inside
     assert walls.sum() == pytest.approx(400.0 * (2 * (4 + 3) * 2.5 + 12), rel=0.05)
+    # Each point records the side it was seen from: the crate's top upwards, the walls inwards.
+    towards = view_dirs_unit(cloud.view_dirs)
+    top_inside = crate_top & (np.abs(xyz[:, 0] - 2.0) < 0.45) & (np.abs(xyz[:, 1] - 1.5) < 0.45)  # not its sides
+    assert (towards[top_inside, 2] > 0.05).all()  # from eyes 0.25 m above it, 1.5-2 m away
+    west_wall = (lab == 0) & (xyz[:, 0] < 0.01)
+    assert west_wall.sum() > 100 and (towards[west_wall, 0] > 0.2).all()
     everything = sample_scene_cloud(scene, density_per_m2=400.0, seed=2, visible_only=False)
     assert len(cloud) < 0.85 * len(everything)  # 16.8 of 91.8 m2 are hidden
