@@ -360,6 +360,7 @@ class ScriptedReconstructor:
 
     def __init__(self, bus: TypedBus):
         self.maps: dict[str, tuple[MapInfo, np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        self.view_dirs: dict[str, np.ndarray | None] = {}  # PointCloud.view_dirs per map
         self._lock = threading.Lock()
         self._entities = [
             bus.serve(keys.MAP_LIST.format(), Ping, self._list),
@@ -369,7 +370,7 @@ class ScriptedReconstructor:
         ]
 
     def add(self, map_id: str, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
-            source: str = "scripted") -> MapInfo:
+            source: str = "scripted", view_dirs: np.ndarray | None = None) -> MapInfo:
         with self._lock:
             version = self.maps[map_id][0].version + 1 if map_id in self.maps else 1
             info = MapInfo(map_id=map_id, version=version, point_count=len(xyz),
@@ -378,6 +379,7 @@ class ScriptedReconstructor:
                            source=source, has_labels=labels is not None,
                            label_names={0: "floor", 1: "wall"} if labels is not None else {})
             self.maps[map_id] = (info, xyz.astype(np.float32), rgb.astype(np.uint8), labels)
+            self.view_dirs[map_id] = view_dirs
         return info
 
     def add_random(self, map_id: str, n: int, seed: int = 0, labels: bool = False) -> MapInfo:
@@ -404,8 +406,10 @@ class ScriptedReconstructor:
         if req.index >= count:
             raise ValueError(f"chunk {req.index} >= count {count}")
         sl = slice(req.index * req.max_points, (req.index + 1) * req.max_points)
+        views = self.view_dirs.get(req.map_id)
         return MapChunk(map_id=req.map_id, version=info.version, index=req.index, count=count, xyz_m=xyz[sl],
-                        rgb=rgb[sl], labels=None if labels is None else labels[sl])
+                        rgb=rgb[sl], labels=None if labels is None else labels[sl],
+                        view_dirs=None if views is None else views[sl])
 
     def _import(self, req: MapImportRequest) -> MapInfo:
         import tempfile

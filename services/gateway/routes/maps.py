@@ -7,6 +7,7 @@ import tempfile
 from collections.abc import Iterator
 from typing import Annotated
 
+import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
@@ -38,8 +39,9 @@ def get_map(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version 
             responses={200: {"content": {"application/octet-stream": {}}, "description": "binary PLY"},
                        404: {}, 503: {}})
 def download_cloud(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version = None) -> StreamingResponse:
-    """The map's points as a binary little-endian PLY (x y z float, red green blue uchar[, label int]),
-    streamed chunk by chunk so a large cloud never sits whole in the gateway's memory."""
+    """The map's points as a binary little-endian PLY (x y z float, red green blue uchar[, label int]
+    [, view_x view_y view_z char: where each point was seen from]), streamed chunk by chunk so a large
+    cloud never sits whole in the gateway's memory. Uploaded again, it renders as the original does."""
     info = get_map(map_id, bus, settings, version)
     # The first chunk before the response starts: an error is still a clean status code, and it
     # tells whether the cloud has labels; the client pins later chunks to its version.
@@ -47,16 +49,24 @@ def download_cloud(map_id: MapId, bus: BusDep, settings: SettingsDep, version: V
                                                                           settings.map_chunk_points)
     first = ask(f"map {map_id!r}", lambda: next(chunks))
     with_labels = first.labels is not None
-    header = ply.header(info.point_count, with_labels, info.label_names, f"SpatialAnt map {map_id} version {first.version}")
-    size = len(header) + info.point_count * ply.vertex_dtype(with_labels).itemsize
+    with_views = first.view_dirs is not None
+    header = ply.header(info.point_count, with_labels, info.label_names, f"SpatialAnt map {map_id} version {first.version}",
+                        with_views=with_views)
+    size = len(header) + info.point_count * ply.vertex_dtype(with_labels, with_views).itemsize
+
+    def records(c) -> bytes:
+        # Every chunk of one version comes from one stored cloud; zeros (no side known) would keep
+        # the layout should one chunk lack the views the first had.
+        views = (c.view_dirs if c.view_dirs is not None else np.zeros((len(c.xyz_m), 3), np.int8)) if with_views else None
+        return ply.records(c.xyz_m, c.rgb, c.labels, with_labels, view_dirs=views)
 
     def body() -> Iterator[bytes]:
         yield header
         sent = len(first.xyz_m)
-        yield ply.records(first.xyz_m, first.rgb, first.labels, with_labels)
+        yield records(first)
         for c in chunks:  # an error here ends the stream short of Content-Length
             sent += len(c.xyz_m)
-            yield ply.records(c.xyz_m, c.rgb, c.labels, with_labels)
+            yield records(c)
         if sent != info.point_count:
             log.error("map %s v%d: chunks held %d points, info said %d", map_id, first.version, sent,
                       info.point_count)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from shared.cloud import decode
 from tests.doubles.scripted_services import ply_bytes
 from tests.waiting import wait_until
 
@@ -36,6 +37,21 @@ def test_cloud_ply_streams_every_chunk_and_open3d_reads_it(world, gateway, tmp_p
     np.testing.assert_allclose(np.asarray(pcd.points), xyz, atol=1e-6)
     np.testing.assert_allclose(np.asarray(pcd.colors) * 255, rgb, atol=0.5)
     assert b"property int label" in labelled[:400]
+
+
+def test_cloud_ply_keeps_where_the_points_were_seen_from(world, gateway):
+    # A built map records each point's view direction (the renderer's side test reads it): the
+    # download carries it, so the file uploaded again renders as the original.
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-3, 3, (2500, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, (2500, 3)).astype(np.uint8)
+    views = rng.integers(-127, 128, (2500, 3)).astype(np.int8)
+    world.reconstructor.add("seen", xyz, rgb, view_dirs=views)
+    with gateway(map_chunk_points=1000) as client:
+        r = client.get("/maps/seen/cloud.ply")
+    assert r.status_code == 200 and int(r.headers["content-length"]) == len(r.content)
+    cloud = decode(r.content)
+    assert np.array_equal(cloud.view_dirs, views) and np.array_equal(cloud.xyz, xyz)
 
 
 def test_upload_a_ply_then_use_it_for_a_mission(world, gateway):
