@@ -4,11 +4,14 @@ Two kernels, each the compiled twin of an array path that stays the reference (a
 when numba is missing):
 
 * :class:`FrameFuser` back-projects every valid depth pixel of a batch of frames, computes its
-  voxel key and adds it to per-voxel sums in one pass per frame. Voxels live in an open-addressing
-  hash table keyed by the packed voxel key, so nothing is sized by the batch's bounding box and no
-  point array is ever built. The float32 back-projection, the float32 voxel binning and the float64
-  sums in point order reproduce ``RgbdReconstructor``'s array back-projection followed by
-  ``voxel._reduce_dense`` bit for bit (the tests compare them exactly).
+  voxel key and adds it to per-voxel sums in one pass per frame: position, colour, count, label
+  votes and the unit vector from the point back to the camera (the pixel's viewing ray, reversed
+  and rotated into the target frame; the voxel's mean of them is where it was seen from). Voxels
+  live in an open-addressing hash table keyed by the packed voxel key, so nothing is sized by the
+  batch's bounding box and no point array is ever built. The float32 back-projection and view
+  vectors, the float32 voxel binning and the float64 sums in point order reproduce
+  ``RgbdReconstructor``'s array back-projection followed by ``voxel._reduce_dense`` bit for bit
+  (the tests compare them exactly).
 * :func:`knn_mean_distances` gives, per point, the mean distance to its ``k`` nearest points
   (itself included, as open3d counts it) by searching growing shells of a dense cell grid, which
   beats a k-d tree several times on voxel-downsampled clouds where a point's neighbours sit a few
@@ -71,21 +74,26 @@ def _rehash(keys, n, table, shift):
         table[s, 1] = i
 
 
-# Columns of an entry row (one cache line): position sums, colour sums, count, and the voxel's
-# first label with its votes, packed as (label + 1) * 2^32 + votes (exact in a float64).
-_ROW = 8
+# Columns of an entry row: position sums, colour sums, count, the voxel's first label with its
+# votes, packed as (label + 1) * 2^32 + votes (exact in a float64), and the sums of the unit
+# vectors towards the camera.
+_ROW = 11
+_VOTE = 7
+_VIEW = 8
 _VOTE_UNIT = 4294967296.0  # 2^32
 
 
 def _fuse_frame(
-    depth, rgb, sem, labelled, stride, rays, m, dmin, dmax, inv_voxel,
+    depth, rgb, sem, labelled, stride, rays, backs, m, dmin, dmax, inv_voxel,
     table, shift, keys, rows, n, vtable, vshift, vkeys, vcnt, nv, row_keys, row_ids,
 ):
     """Add one frame's valid pixels to the voxel table; returns (entries, votes, points, status).
 
     status is 0, or 1 when a point falls outside the packable range (nothing more is added then).
-    The caller guarantees room for one new entry and one new overflow vote per pixel; ``row_keys``
-    and ``row_ids`` are scratch of at least the strided width."""
+    ``backs`` are the pixels' unit vectors towards the camera in camera axes; ``m``'s rotation turns
+    them into the target frame (the same float32 expression as the array code). The caller
+    guarantees room for one new entry and one new overflow vote per pixel; ``row_keys`` and
+    ``row_ids`` are scratch of at least the strided width."""
     h = depth.shape[0]
     w = depth.shape[1]
     hs = (h + stride - 1) // stride
@@ -136,16 +144,22 @@ def _fuse_frame(
             rows[e, 4] += np.float64(rgb[r, c, 1])
             rows[e, 5] += np.float64(rgb[r, c, 2])
             rows[e, 6] += 1.0
+            bx = backs[q, 0]
+            by = backs[q, 1]
+            bz = backs[q, 2]
+            rows[e, _VIEW] += np.float64(m00 * bx + m01 * by + m02 * bz)
+            rows[e, _VIEW + 1] += np.float64(m10 * bx + m11 * by + m12 * bz)
+            rows[e, _VIEW + 2] += np.float64(m20 * bx + m21 * by + m22 * bz)
             points += 1
             if labelled:
                 lab = np.int64(sem[r, c])
                 if lab >= 0 and lab <= LABEL_MAX:
-                    slot = rows[e, 7]
+                    slot = rows[e, _VOTE]
                     tag = np.float64(lab + 1) * _VOTE_UNIT
                     if slot == 0.0:
-                        rows[e, 7] = tag + 1.0
+                        rows[e, _VOTE] = tag + 1.0
                     elif slot - tag >= 0.0 and slot - tag < _VOTE_UNIT:
-                        rows[e, 7] = slot + 1.0
+                        rows[e, _VOTE] = slot + 1.0
                     else:  # a second label in this voxel: counted in the overflow table
                         vkey = (key << LABEL_BITS) | (lab + 1)
                         v, nv = _find_or_add(vtable, vshift, vkey, nv, vkeys)
@@ -232,9 +246,11 @@ class FrameFuser:
     """Per-voxel sums of a batch of frames, fed one frame at a time (compiled; needs numba).
 
     ``add`` takes a depth image (float32, 0 or NaN = no measurement), its colours, optional
-    semantic labels, the float32 (3, 4) transform from camera to the target frame and the float32
-    (H' * W', 3) unit-depth rays of the (strided) pixel grid; ``result`` gives what
-    ``voxel._reduce_dense`` gives for the same points: sorted keys, sums, counts and label votes.
+    semantic labels, the float32 (3, 4) transform from camera to the target frame, the float32
+    (H' * W', 3) unit-depth rays of the (strided) pixel grid and the float32 (H' * W', 3) unit
+    vectors back along them (towards the camera, camera axes); ``result`` gives what
+    ``voxel._reduce_dense`` gives for the same points: sorted keys, sums, counts, view-vector sums
+    and label votes.
     """
 
     def __init__(self, voxel_m: float, min_depth_m: float, max_depth_m: float, labelled: bool,
@@ -260,7 +276,7 @@ class FrameFuser:
         self._row_ids = np.empty(0, np.int64)
 
     def add(self, depth: np.ndarray, rgb: np.ndarray, sem: np.ndarray | None, m: np.ndarray,
-            rays: np.ndarray, stride: int, max_depth_m: float | None = None) -> bool:
+            rays: np.ndarray, backs: np.ndarray, stride: int, max_depth_m: float | None = None) -> bool:
         """Fuse one frame (depth up to ``max_depth_m`` when given, nearer than the fuser's own);
         False when a point lies outside the packable range (then stop)."""
         h, w = depth.shape
@@ -272,7 +288,7 @@ class FrameFuser:
             self._row_ids = np.empty(ws, np.int64)
         sem = sem if self.labelled else self._no_sem
         self.n, self.nv, pts, status = fuse_frame(
-            depth, rgb, sem, self.labelled, stride, rays, m, self.dmin,
+            depth, rgb, sem, self.labelled, stride, rays, backs, m, self.dmin,
             self.dmax if max_depth_m is None else np.float32(min(self.dmax, max_depth_m)), self.inv_voxel,
             self.table, self.shift, self.keys, self.rows, self.n,
             self.vtable, self.vshift, self.vkeys, self.vcnt, self.nv, self._row_keys, self._row_ids,
@@ -281,15 +297,16 @@ class FrameFuser:
         return status == 0
 
     def result(self):
-        """``((keys, sxyz, srgb, cnt), (vote_keys, vote_counts) or None)``, keys ascending, float64 sums."""
+        """``((keys, sxyz, srgb, cnt, sview), (vote_keys, vote_counts) or None)``, keys ascending,
+        float64 sums."""
         n, nv = self.n, self.nv
         keys = self.keys[:n]
         order = np.argsort(keys)
         rows = self.rows[:n][order]
-        part = (keys[order], rows[:, 0:3], rows[:, 3:6], rows[:, 6].copy())
+        part = (keys[order], rows[:, 0:3], rows[:, 3:6], rows[:, 6].copy(), rows[:, _VIEW:_VIEW + 3])
         votes = None
         if self.labelled:
-            slot = self.rows[:n, 7]
+            slot = self.rows[:n, _VOTE]
             has = slot > 0
             lab1 = np.floor(slot[has] / _VOTE_UNIT)
             pk = np.concatenate([(keys[has] << LABEL_BITS) | lab1.astype(np.int64), self.vkeys[:nv]])
@@ -385,7 +402,7 @@ def warm_up() -> float:
     f = FrameFuser(0.1, 0.1, 8.0, True, 16)
     rays = np.ones((4, 3), np.float32)
     f.add(np.ones((2, 2), np.float32), np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.int32),
-          np.eye(4, dtype=np.float32)[:3], rays, 1)
+          np.eye(4, dtype=np.float32)[:3], rays, -rays, 1)
     f.result()
     knn_mean_distances(np.random.default_rng(0).uniform(0, 1, (64, 3)), 4, 0.2)
     dt = time.perf_counter() - t0

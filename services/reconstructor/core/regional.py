@@ -3,9 +3,10 @@
 Backends (``RECONSTRUCTORS``):
 
 * ``rgbd`` (default where depth exists): back-projects every frame's metric depth with its pose,
-  fuses the points in voxels (centroid, mean colour, majority semantic label) and removes
-  statistical outliers. Metric. The cloud is in the frame of the region's start pose (floor point,
-  heading), so the paper's ``W = R_z(theta0 + theta_t) W_metric + p0`` gives world coordinates.
+  fuses the points in voxels (centroid, mean colour, majority semantic label, mean unit vector
+  towards the cameras that saw it: the cloud's ``view_dirs``) and removes statistical outliers.
+  Metric. The cloud is in the frame of the region's start pose (floor point, heading), so the
+  paper's ``W = R_z(theta0 + theta_t) W_metric + p0`` gives world coordinates.
 * ``mono-sim``: the emulation of a monocular neural SLAM (SLAM3R) for simulation. It runs the RGB-D
   fusion, then does what a scale-ambiguous monocular reconstruction does to the result: the cloud is
   expressed in the camera frame of a reference frame chosen among the first level frames at the
@@ -136,7 +137,7 @@ class RgbdReconstructor(RegionalReconstructor):
 
     def __init__(self, config: RgbdConfig | None = None):
         self.config = config or RgbdConfig()
-        self._rays: dict[tuple, np.ndarray] = {}
+        self._rays: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         if self.config.kernel == "numba" and not kernels.AVAILABLE:
             raise BackendUnavailableError("kernel 'numba' requested but numba is not installed")
         self._use_kernel = self.config.kernel != "numpy" and kernels.AVAILABLE
@@ -179,8 +180,7 @@ class RgbdReconstructor(RegionalReconstructor):
                     acc.add_reduced(*self._fuse_compiled(b, local, labelled))
         else:
             for b in batches:
-                xyz, rgb, lab = self._backproject(b, local, labelled)
-                acc.add(xyz, rgb, lab)
+                acc.add(*self._backproject(b, local, labelled))
         t1 = time.perf_counter()
         cloud = acc.cloud(label_names)
         if len(cloud) == 0:
@@ -213,10 +213,14 @@ class RgbdReconstructor(RegionalReconstructor):
         return min(cfg.max_depth_m, math.sqrt(cfg.max_depth_noise_m / im.depth_noise_rel))
 
     def _pixel_rays(self, cam) -> tuple[np.ndarray, np.ndarray]:
+        """float32 (H' * W', 3) unit-depth rays of the strided pixel grid and the unit vectors back
+        along them (towards the camera), camera axes: a pixel's view vector needs no depth."""
         s = self.config.pixel_stride
         key = (cam.width_px, cam.height_px, cam.hfov_deg, s)
         if key not in self._rays:
-            self._rays[key] = np.ascontiguousarray(cam.pixel_rays()[::s, ::s].reshape(-1, 3), dtype=np.float32)
+            rays = cam.pixel_rays()[::s, ::s].reshape(-1, 3)
+            backs = -rays / np.linalg.norm(rays, axis=1, keepdims=True)
+            self._rays[key] = (np.ascontiguousarray(rays, dtype=np.float32), np.ascontiguousarray(backs, np.float32))
         return self._rays[key]
 
     def _fuse_compiled(self, images: list[PosedImage], local: np.ndarray, labelled: bool):
@@ -225,8 +229,9 @@ class RgbdReconstructor(RegionalReconstructor):
         fuser = kernels.FrameFuser(cfg.voxel_m, cfg.min_depth_m, cfg.max_depth_m, labelled)
         for im in images:
             m = np.ascontiguousarray((local @ im.world_from_camera)[:3], np.float32)
+            rays, backs = self._pixel_rays(im.camera)
             ok = fuser.add(np.asarray(im.depth_m, np.float32), np.asarray(im.rgb, np.uint8),
-                           im.semantic if labelled else None, m, self._pixel_rays(im.camera), s, self.depth_limit_m(im))
+                           im.semantic if labelled else None, m, rays, backs, s, self.depth_limit_m(im))
             if not ok:
                 raise InputError(
                     f"frame {im.index}: points span more than +-{kernels.AXIS_HALF * cfg.voxel_m:.0f} m "
@@ -236,10 +241,11 @@ class RgbdReconstructor(RegionalReconstructor):
         return part, votes, fuser.points
 
     def _backproject(self, images: list[PosedImage], local: np.ndarray, labelled: bool):
+        """The batch's points, colours, labels (or None) and unit vectors towards the camera."""
         cfg, s = self.config, self.config.pixel_stride
-        xyz_parts, rgb_parts, lab_parts = [], [], []
+        xyz_parts, rgb_parts, lab_parts, view_parts = [], [], [], []
         for im in images:
-            rays = self._pixel_rays(im.camera)
+            rays, backs = self._pixel_rays(im.camera)
             d = np.asarray(im.depth_m, np.float32)[::s, ::s].reshape(-1)
             ok = np.flatnonzero((d > cfg.min_depth_m) & (d < np.float32(self.depth_limit_m(im))))  # NaN compares False
             if len(ok) == 0:
@@ -251,18 +257,23 @@ class RgbdReconstructor(RegionalReconstructor):
             # Elementwise rather than an (N, 3) @ (3, 3) matmul: numpy has no fast path for such
             # tall, thin products and this is the hot loop of the fusion.
             pts = np.empty((len(ok), 3), np.float32)
+            bx, by, bz = backs[ok, 0], backs[ok, 1], backs[ok, 2]
+            views = np.empty((len(ok), 3), np.float32)
             for j in range(3):
                 pts[:, j] = m[j, 0] * xc + m[j, 1] * yc + m[j, 2] * dk + m[j, 3]
+                views[:, j] = m[j, 0] * bx + m[j, 1] * by + m[j, 2] * bz
             xyz_parts.append(pts)
+            view_parts.append(views)
             rgb_parts.append(im.rgb[::s, ::s].reshape(-1, 3)[ok])
             if labelled:
                 lab_parts.append(im.semantic[::s, ::s].reshape(-1)[ok])
         if not xyz_parts:
-            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), None
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), None, np.zeros((0, 3), np.float32)
         return (
             np.concatenate(xyz_parts),
             np.concatenate(rgb_parts),
             np.concatenate(lab_parts) if labelled else None,
+            np.concatenate(view_parts),
         )
 
 

@@ -1,15 +1,18 @@
-"""Voxel fusion of coloured, labelled points: centroid position, mean colour, majority label.
+"""Voxel fusion of coloured, labelled points: centroid position, mean colour, majority label and
+mean view direction.
 
 Used both for streaming RGB-D fusion (points arrive frame batch by frame batch) and for the final
 merge of regional clouds. Everything is a sort or a bincount over integer voxel keys, so the cost is
-a few passes over the points whatever their density.
+a few passes over the points whatever their density. A point's view direction is the unit vector
+from it towards the camera that saw it; a voxel keeps the mean of its points' (``view_dirs``), so a
+surface seen from one side only points to that side and a thin one seen from both ends up short.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from shared.cloud import PointCloud
+from shared.cloud import PointCloud, quantise_view_dirs, view_dirs_unit
 
 from .errors import InputError
 from .kernels import AXIS_BITS as _AXIS_BITS
@@ -37,10 +40,11 @@ def voxel_keys(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
 
 
 class VoxelAccumulator:
-    """Sums of positions and colours, counts and label votes per voxel, fed in batches.
+    """Sums of positions, colours and view vectors, counts and label votes per voxel, fed in batches.
 
     ``add`` reduces each batch to its voxels at once (so memory follows the number of voxels, not of
-    points); ``cloud`` merges the batches into one :class:`PointCloud`.
+    points); ``cloud`` merges the batches into one :class:`PointCloud`. Labels and view directions
+    come out only when every batch had them: a mix would bias the vote or the mean silently.
     """
 
     def __init__(self, voxel_m: float, min_points: int = 1):
@@ -51,20 +55,20 @@ class VoxelAccumulator:
         self._parts: list[tuple[np.ndarray, ...]] = []
         self._votes: list[tuple[np.ndarray, np.ndarray]] = []
         self._labelled: bool | None = None
+        self._viewed: bool | None = None
         self.points_in = 0
 
-    def add(self, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None) -> None:
-        """Add (N, 3) points with (N, 3) uint8 colours and optional (N,) int labels (-1 = unknown)."""
+    def add(self, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
+            view_units: np.ndarray | None = None) -> None:
+        """Add (N, 3) points with (N, 3) uint8 colours, optional (N,) int labels (-1 = unknown) and
+        optional (N, 3) float view vectors: the unit vector from each point towards the camera that saw
+        it (or, for a cloud being merged, the mean of such vectors that its point already holds)."""
         if len(xyz) == 0:
             return
         labelled = labels is not None
-        if self._labelled is None:
-            self._labelled = labelled
-        elif self._labelled != labelled:
-            # Mixing labelled and unlabelled batches would bias the majority vote silently.
-            self._labelled = False
+        self._note(labelled, view_units is not None)
         self.points_in += len(xyz)
-        dense = _reduce_dense(xyz, rgb, labels if labelled else None, self.voxel_m)
+        dense = _reduce_dense(xyz, rgb, labels if labelled else None, self.voxel_m, view_units)
         if dense is not None:
             part, votes = dense
             self._parts.append(part)
@@ -72,31 +76,35 @@ class VoxelAccumulator:
                 self._votes.append(votes)
         else:
             keys = voxel_keys(xyz, self.voxel_m)
-            self._parts.append(_reduce(keys, np.asarray(xyz, np.float64), np.asarray(rgb, np.float64)))
+            self._parts.append(_reduce(keys, np.asarray(xyz, np.float64), np.asarray(rgb, np.float64), view_units))
             if labelled:
                 self._votes.append(_votes(keys, np.asarray(labels)))
         if len(self._parts) >= 16:
             self._compact()
 
-    def add_reduced(self, part: tuple[np.ndarray, ...], votes: tuple[np.ndarray, np.ndarray] | None,
+    def add_reduced(self, part: tuple[np.ndarray | None, ...], votes: tuple[np.ndarray, np.ndarray] | None,
                     points: int) -> None:
         """Add a batch already reduced to its voxels (what ``kernels.FrameFuser.result`` gives).
 
-        ``part`` is (keys ascending, position sums (K, 3), colour sums (K, 3), counts (K,)) and
-        ``votes`` (packed voxel-label keys ascending, counts), or None for an unlabelled batch."""
+        ``part`` is (keys ascending, position sums (K, 3), colour sums (K, 3), counts (K,), view-vector
+        sums (K, 3) or None) and ``votes`` (packed voxel-label keys ascending, counts), or None for an
+        unlabelled batch."""
         if points == 0:
             return
         labelled = votes is not None
-        if self._labelled is None:
-            self._labelled = labelled
-        elif self._labelled != labelled:
-            self._labelled = False
+        self._note(labelled, part[4] is not None)
         self.points_in += int(points)
         self._parts.append(part)
         if labelled:
             self._votes.append(votes)
         if len(self._parts) >= 16:
             self._compact()
+
+    def _note(self, labelled: bool, viewed: bool) -> None:
+        """Remember whether every batch so far had labels and view vectors."""
+        # Mixing batches with and without would bias the majority vote or the mean direction silently.
+        self._labelled = labelled if self._labelled is None else self._labelled and labelled
+        self._viewed = viewed if self._viewed is None else self._viewed and viewed
 
     def _compact(self) -> None:
         if len(self._parts) == 1 and len(self._votes) <= 1:
@@ -105,6 +113,8 @@ class VoxelAccumulator:
         sxyz = np.concatenate([p[1] for p in self._parts])
         srgb = np.concatenate([p[2] for p in self._parts])
         cnt = np.concatenate([p[3] for p in self._parts])
+        # Once a batch came without view vectors the cloud has none: their sums need not be kept.
+        sview = np.concatenate([p[4] for p in self._parts]) if self._viewed else None
         uk, inv = np.unique(keys, return_inverse=True)
         n = len(uk)
         self._parts = [(
@@ -112,6 +122,7 @@ class VoxelAccumulator:
             np.stack([np.bincount(inv, sxyz[:, k], n) for k in range(3)], axis=1),
             np.stack([np.bincount(inv, srgb[:, k], n) for k in range(3)], axis=1),
             np.bincount(inv, cnt, n),
+            None if sview is None else np.stack([np.bincount(inv, sview[:, k], n) for k in range(3)], axis=1),
         )]
         if self._votes:
             pk = np.concatenate([v[0] for v in self._votes])
@@ -131,7 +142,7 @@ class VoxelAccumulator:
         if not self._parts:
             return PointCloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), None, dict(label_names or {}))
         self._compact()
-        keys, sxyz, srgb, cnt = self._parts[0]
+        keys, sxyz, srgb, cnt, sview = self._parts[0]
         keep = cnt >= self.min_points
         c = cnt[keep][:, None]
         xyz = sxyz[keep] / c
@@ -139,14 +150,16 @@ class VoxelAccumulator:
         labels = None
         if self._labelled:
             labels = _majority(keys, self._votes[0] if self._votes else None)[keep]
-        return PointCloud(xyz, rgb, labels, dict(label_names or {}))
+        views = quantise_view_dirs(sview[keep] / c) if self._viewed else None
+        return PointCloud(xyz, rgb, labels, dict(label_names or {}), views)
 
 
 _DENSE_MAX_CELLS = 48_000_000
 _DENSE_MAX_VOTES = 64_000_000
 
 
-def _reduce_dense(xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None, voxel_m: float):
+def _reduce_dense(xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None, voxel_m: float,
+                  view_units: np.ndarray | None = None):
     """Sort-free reduction over the batch's bounding box of voxels (bincounts only).
 
     A batch of frames covers a few metres, so its voxel box is small enough for dense counters;
@@ -172,7 +185,8 @@ def _reduce_dense(xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None, v
     keys = (c[:, 0] << (2 * _AXIS_BITS)) | (c[:, 1] << _AXIS_BITS) | c[:, 2]
     sxyz = np.stack([np.bincount(inv, xyz[:, j], k) for j in range(3)], axis=1)
     srgb = np.stack([np.bincount(inv, rgb[:, j], k) for j in range(3)], axis=1)
-    part = (keys, sxyz, srgb, cnt[occ].astype(np.float64))
+    sview = None if view_units is None else np.stack([np.bincount(inv, view_units[:, j], k) for j in range(3)], axis=1)
+    part = (keys, sxyz, srgb, cnt[occ].astype(np.float64), sview)
     if labels is None:
         return part, None
     lab = np.asarray(labels).astype(np.int64)
@@ -192,7 +206,7 @@ def _reduce_dense(xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None, v
     return part, (pk, votes[nz].astype(np.float64))
 
 
-def _reduce(keys: np.ndarray, xyz: np.ndarray, rgb: np.ndarray):
+def _reduce(keys: np.ndarray, xyz: np.ndarray, rgb: np.ndarray, view_units: np.ndarray | None = None):
     uk, inv = np.unique(keys, return_inverse=True)
     n = len(uk)
     return (
@@ -200,6 +214,7 @@ def _reduce(keys: np.ndarray, xyz: np.ndarray, rgb: np.ndarray):
         np.stack([np.bincount(inv, xyz[:, k], n) for k in range(3)], axis=1),
         np.stack([np.bincount(inv, rgb[:, k], n) for k in range(3)], axis=1),
         np.bincount(inv, minlength=n).astype(np.float64),
+        None if view_units is None else np.stack([np.bincount(inv, view_units[:, k], n) for k in range(3)], axis=1),
     )
 
 
@@ -229,9 +244,12 @@ def _majority(voxel_keys_sorted: np.ndarray, votes) -> np.ndarray:
 
 
 def voxel_downsample(cloud: PointCloud, voxel_m: float, min_points: int = 1) -> PointCloud:
-    """One point per occupied voxel (centroid, mean colour, majority label)."""
+    """One point per occupied voxel (centroid, mean colour, majority label, mean view direction)."""
     acc = VoxelAccumulator(voxel_m, min_points)
-    acc.add(cloud.xyz, cloud.rgb, cloud.labels)
+    # The points' view directions are already means of unit vectors: their mean is kept unnormalised,
+    # so a voxel merging points seen from opposite sides ends short, as fusion would make it.
+    views = None if cloud.view_dirs is None else view_dirs_unit(cloud.view_dirs)
+    acc.add(cloud.xyz, cloud.rgb, cloud.labels, views)
     out = acc.cloud(cloud.label_names)
     if cloud.labels is None:
         out.labels = None

@@ -9,6 +9,7 @@ import pytest
 from services.reconstructor.core import RECONSTRUCTORS, BackendUnavailableError, InputError, RegionInput, kernels
 from services.reconstructor.core.frames import PosedImage
 from services.reconstructor.core.regional import statistical_inliers
+from services.reconstructor.core.voxel import _reduce_dense
 from shared.geometry import PinholeCamera, camera_pose
 from shared.schemas import Pose
 
@@ -52,6 +53,28 @@ def test_compiled_fusion_equals_array_fusion_bit_for_bit(stride, batch, voxel):
     assert np.array_equal(a.cloud.rgb, b.cloud.rgb)
     assert np.array_equal(a.cloud.labels, b.cloud.labels)
     assert (a.cloud.labels >= 0).any()
+    assert a.cloud.view_dirs is not None and np.array_equal(a.cloud.view_dirs, b.cloud.view_dirs)
+
+
+@needs_numba
+@pytest.mark.parametrize("stride,voxel", [(1, 0.1), (2, 0.05), (1, 0.5)])
+def test_compiled_and_array_voxel_sums_are_bit_identical(stride, voxel):
+    # The sums themselves, view vectors included, not the int8 directions they end as (those would hide
+    # a last-bit difference).
+    region = _region(5, seed=4)
+    local = region.local_from_world()
+    backend = RECONSTRUCTORS.create("rgbd", {"pixel_stride": stride, "voxel_m": voxel, "kernel": "numba"})
+    fused, _, _ = backend._fuse_compiled(region.images, local, True)
+    xyz, rgb, lab, views = backend._backproject(region.images, local, True)
+    reduced, _ = _reduce_dense(xyz, rgb, lab, voxel, views)
+    assert len(fused[0]) == len(reduced[0]) > 100
+    for got, want in zip(fused, reduced, strict=True):
+        assert np.array_equal(got, want)
+    # Unit vectors: a voxel's sum is at most its count long, and exactly 1 for a single point.
+    length = np.linalg.norm(fused[4], axis=1)
+    assert (length <= fused[3] * (1 + 1e-6)).all()
+    single = fused[3] == 1
+    assert single.any() and np.allclose(length[single], 1.0, atol=1e-6)
 
 
 @needs_numba
@@ -60,6 +83,7 @@ def test_compiled_fusion_result_does_not_depend_on_threads():
     one = RECONSTRUCTORS.create("rgbd", {"threads": 1, "batch_frames": 2}).reconstruct(region).cloud
     two = RECONSTRUCTORS.create("rgbd", {"threads": 2, "batch_frames": 2}).reconstruct(region).cloud
     assert np.array_equal(one.xyz, two.xyz) and np.array_equal(one.labels, two.labels)
+    assert np.array_equal(one.view_dirs, two.view_dirs)
 
 
 @needs_numba
@@ -67,12 +91,12 @@ def test_frame_fuser_grows_its_tables_and_counts_every_point():
     # A tiny initial capacity forces the tables to grow within one batch; coarse voxels mix labels.
     region = _region(4, seed=5, w=64, h=48)
     local = region.local_from_world()
-    rays = RECONSTRUCTORS.create("rgbd", {})._pixel_rays(region.images[0].camera)
+    rays, backs = RECONSTRUCTORS.create("rgbd", {})._pixel_rays(region.images[0].camera)
     f = kernels.FrameFuser(0.2, 0.1, 8.0, True, capacity=16)
     for im in region.images:
         assert f.add(im.depth_m, im.rgb, im.semantic, np.ascontiguousarray((local @ im.world_from_camera)[:3],
-                     np.float32), rays, 1)
-    (keys, sxyz, srgb, cnt), (vk, vc) = f.result()
+                     np.float32), rays, backs, 1)
+    (keys, sxyz, srgb, cnt, _), (vk, vc) = f.result()
     valid = sum(int(((im.depth_m > np.float32(0.1)) & (im.depth_m < np.float32(8.0))).sum()) for im in region.images)
     assert f.points == valid == int(cnt.sum())
     assert np.all(np.diff(keys) > 0) and np.all(np.diff(vk) > 0)
