@@ -36,7 +36,7 @@ from shared.registry import BackendConfig
 from .depth import MetricDepth
 from .errors import AlignmentError
 from .frames import PosedImage, RegionInput
-from .regional import RegionalCloud
+from .regional import RegionalCloud, rotate_view_dirs
 
 log = logging.getLogger(__name__)
 
@@ -246,11 +246,13 @@ def to_world(
 
     ``c`` is the forward camera's position in the regional frame: subtracting it and adding the
     metric camera height puts the floor point of the start pose at the origin, whatever the frame
-    the backend used.
+    the backend used. View directions turn with ``R_z`` alone (a shift or a positive scale leaves
+    them as they are).
     """
     c = regional.camera_origin_m
     h = np.array([0.0, 0.0, region.camera_height_m])
     metric = (regional.cloud.xyz.astype(np.float64) - c) * report.delta_applied + h
     r = rot_z(region.start_pose.heading_rad + report.theta_applied_rad)
     xyz = metric @ r.T + region.start_pose.xyz
-    return PointCloud(xyz, regional.cloud.rgb, regional.cloud.labels, dict(regional.cloud.label_names))
+    cloud = regional.cloud
+    return PointCloud(xyz, cloud.rgb, cloud.labels, dict(cloud.label_names), rotate_view_dirs(cloud.view_dirs, r))

@@ -11,9 +11,11 @@ Backends (``RECONSTRUCTORS``):
   fusion, then does what a scale-ambiguous monocular reconstruction does to the result: the cloud is
   expressed in the camera frame of a reference frame chosen among the first level frames at the
   start (SLAM3R's initial window picks one), scaled by an unknown per-region factor, holed by
-  dropped patches and perturbed by depth-proportional noise, all seeded. Reported non-metric, so
-  the metric alignment has to recover the scale; the true factor is kept only for benchmarks.
-* ``mono``: the SLAM3R adapter (``services.reconstructor.core.slam3r``), an optional GPU extra.
+  dropped patches and perturbed by depth-proportional noise, all seeded; the view directions turn
+  with the points. Reported non-metric, so the metric alignment has to recover the scale; the true
+  factor is kept only for benchmarks.
+* ``mono``: the SLAM3R adapter (``services.reconstructor.core.slam3r``), an optional GPU extra; its
+  cloud has no view directions (SLAM3R gives no camera poses in its frame).
 
 A backend returns a :class:`RegionalCloud`; ``camera_origin_m`` says where the camera that looks
 along local +x sits in the cloud's own (possibly scaled) frame: ``(0, 0, h)`` for the floor-point
@@ -33,7 +35,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from shared.cloud import PointCloud
+from shared.cloud import PointCloud, quantise_view_dirs, view_dirs_unit
 from shared.geometry import camera_rotation, rot_z
 from shared.registry import BackendConfig, Registry
 
@@ -361,7 +363,9 @@ class MonoSimReconstructor(RegionalReconstructor):
         lo, hi = cfg.scale_range
         scale = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
         cloud = base.cloud.subset(keep)
-        cloud = PointCloud(xyz * scale, cloud.rgb, cloud.labels, cloud.label_names)
+        # Directions turn with the points (rows: R^T v); shift, scale and noise leave them as they are.
+        views = rotate_view_dirs(cloud.view_dirs, rot_z(yaw).T)
+        cloud = PointCloud(xyz * scale, cloud.rgb, cloud.labels, cloud.label_names, views)
         if len(cloud) == 0:
             raise EmptyRecordingError(f"region {region.region}: the emulation dropped every point")
         return RegionalCloud(
@@ -410,6 +414,13 @@ def _drop_patches(xyz: np.ndarray, fraction: float, radius_m: float, rng: np.ran
         for idx in tree.query_ball_point(centres, radius_m):
             keep[idx] = False
     return keep
+
+
+def rotate_view_dirs(view_dirs: np.ndarray | None, rotation: np.ndarray) -> np.ndarray | None:
+    """A cloud's int8 ``view_dirs`` turned by the (3, 3) ``rotation`` (requantised); None stays None."""
+    if view_dirs is None:
+        return None
+    return quantise_view_dirs(view_dirs_unit(view_dirs).astype(np.float64) @ np.asarray(rotation, np.float64).T)
 
 
 def level_camera_to_local(points_cam: np.ndarray, pitch_rad: float = 0.0) -> np.ndarray:

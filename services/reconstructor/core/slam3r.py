@@ -17,7 +17,9 @@ its initial reference view) reconstructs them, and its points (OpenCV axes of th
 unknown scale) are rotated into z-up axes with the camera at the origin looking along +x. The cloud
 is reported non-metric; metric alignment then recovers the scale and, from the matched frame, the
 heading of the reference view (``theta_t``). The rotation assumes a level reference camera (the
-recordings start with level frames at the tour start).
+recordings start with level frames at the tour start). The cloud has no view directions: SLAM3R
+writes points without the camera poses of its frame, and the recording's poses are in another
+frame at another scale, so where each point was seen from is not known.
 """
 
 from __future__ import annotations
@@ -139,7 +141,7 @@ class Slam3rReconstructor(RegionalReconstructor):
                 raise EmptyRecordingError(f"region {region.region}: SLAM3R wrote no cloud")
             raw = PointCloud.load(plys[-1])
         xyz = level_camera_to_local(raw.xyz)
-        cloud = PointCloud(xyz, raw.rgb, None, dict(label_names or {}))
+        cloud = PointCloud(xyz, raw.rgb, None, dict(label_names or {}))  # no view_dirs: see the module docstring
         return RegionalCloud(
             region=region.region, cloud=cloud, metric=False, camera_origin_m=np.zeros(3),
             backend=self.name, frames_used=len(images), points_in=len(raw),

@@ -1,4 +1,4 @@
-"""View directions of built clouds: where each point was seen from, through fusion and voxel merges.
+"""View directions of built clouds: where each point was seen from, through fusion, emulation and alignment.
 
 Scenes here are analytic (a box room, a bare plane) ray-cast exactly, so the true direction from every
 point to the camera centre is known.
@@ -6,19 +6,24 @@ point to the camera centre is known.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from services.reconstructor.core import (
     RECONSTRUCTORS,
+    AlignmentReport,
+    RegionalCloud,
     RegionInput,
     VoxelAccumulator,
     kernels,
+    to_world,
     voxel_downsample,
 )
 from services.reconstructor.core.frames import PosedImage
 from shared.cloud import PointCloud, quantise_view_dirs, view_dirs_unit
-from shared.geometry import PinholeCamera, camera_pose
+from shared.geometry import PinholeCamera, camera_pose, rot_z
 from shared.schemas import Pose
 
 needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
@@ -104,6 +109,35 @@ def test_a_thin_surface_seen_from_both_sides_has_a_short_view_vector(kernel):
     length_both = np.linalg.norm(v_both, axis=1)
     near_axis = np.linalg.norm(both.xyz[:, 1:] - [0.0, 1.25], axis=1) < 0.3
     assert near_axis.sum() > 10 and length_both[near_axis].max() < 0.2
+
+
+def test_mono_sim_view_directions_turn_with_its_reference_camera():
+    # The emulated monocular cloud sits in its reference camera's level frame, camera at the origin:
+    # the view directions must point there, whichever of the turning frames was the reference.
+    region = _turning_region(np.linspace(0, 2 * np.pi, 8, endpoint=False))
+    regional = RECONSTRUCTORS.create("mono-sim", {"seed": 1, "noise_rel": 0.0}).reconstruct(region)
+    assert abs(math.remainder(regional.true_yaw_rad, 2 * math.pi)) > 0.5  # forgetting the turn would fail
+    dots = _dots(regional.cloud, np.zeros(3))
+    assert np.median(dots) > 0.99 and (dots > 0.9).mean() > 0.99
+
+
+def test_alignment_turns_view_directions_with_the_cloud():
+    rng = np.random.default_rng(5)
+    units = rng.normal(size=(200, 3))
+    units /= np.linalg.norm(units, axis=1, keepdims=True)
+    views = quantise_view_dirs(units)
+    theta0, theta_t, delta = 0.9, 0.8, 2.0
+    cloud = PointCloud(rng.normal(size=(200, 3)), np.zeros((200, 3), np.uint8), view_dirs=views)
+    regional = RegionalCloud(0, cloud, False, np.zeros(3), "x", 1)
+    report = AlignmentReport(0, 0, 1.0, theta_t, theta_t, delta, delta, delta, 1.0, 1, "sensor", 0, 0, 0)
+    region = RegionInput(0, Pose(position_m=(3.0, -1.0, 0.0), heading_rad=theta0), [])
+    out = to_world(regional, report, region)
+    want = view_dirs_unit(views) @ rot_z(theta0 + theta_t).T
+    # One requantisation: within half a step per component (and far from the unturned vectors).
+    assert np.abs(view_dirs_unit(out.view_dirs) - want).max() <= 0.5 / 127 + 1e-6
+    assert np.abs(view_dirs_unit(out.view_dirs) - view_dirs_unit(views)).max() > 0.5
+    regional.cloud = PointCloud(cloud.xyz, cloud.rgb)
+    assert to_world(regional, report, region).view_dirs is None
 
 
 def test_voxel_merge_averages_view_directions_and_never_invents_them():
