@@ -1,5 +1,6 @@
 """Physically grounded reconstruction end to end: regional clouds -> metric alignment -> global
-integration -> one merged, voxel-downsampled map (paper Section 4.2)."""
+integration -> one merged, voxel-downsampled map (paper Section 4.2). The map keeps labels and view
+directions (where each point was seen from) when every region's cloud has them."""
 
 from __future__ import annotations
 

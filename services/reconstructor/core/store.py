@@ -2,7 +2,8 @@
 
 Layout under ``root``::
 
-    <map_id>/v000001/cloud.ply          points, colours, labels and label names (:mod:`shared.cloud`'s PLY)
+    <map_id>/v000001/cloud.ply          points, colours, labels, label names and view directions
+                                        (:mod:`shared.cloud`'s PLY)
     <map_id>/v000001/meta.json          MapInfo + details (source, regions, scale factors, timings)
     <map_id>/.lock                      serialises version allocation between processes
 

@@ -34,6 +34,11 @@ class HouseRun:
         """Exact distance of each point to the scene mesh."""
         return self._rc.compute_distance(o3d.core.Tensor(np.asarray(xyz, np.float32))).numpy()
 
+    def free_path_m(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """How far a ray from each origin along its unit direction runs before it meets the mesh (inf: never)."""
+        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
+        return self._rc.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+
 
 @pytest.fixture(scope="session")
 def house() -> HouseRun:

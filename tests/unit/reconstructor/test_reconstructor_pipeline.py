@@ -14,6 +14,7 @@ from services.reconstructor.core import (
     Reconstructor,
     region_from_recording,
 )
+from shared.cloud import PointCloud, view_dirs_unit
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +67,25 @@ def test_rgbd_keeps_semantic_labels(house, rgbd_build):
     assert on_floor.any() and np.abs(c.xyz[on_floor, 2] - np.median(c.xyz[on_floor, 2])).max() < 0.3
 
 
+def _view_units(cloud) -> np.ndarray:
+    v = view_dirs_unit(cloud.view_dirs).astype(np.float64)
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+
+
+def test_rgbd_map_knows_which_side_of_each_surface_was_seen(house, rgbd_build):
+    c = rgbd_build.cloud
+    assert c.view_dirs is not None
+    u = _view_units(c)
+    # A ray along a point's view direction runs back through the free space the camera looked
+    # across; the opposite ray enters the wall (10 cm thick between rooms) or the floor and stops.
+    forward = house.free_path_m(c.xyz + 0.03 * u, u)
+    backward = house.free_path_m(c.xyz - 0.03 * u, -u)
+    assert (forward > 0.2).mean() > 0.995
+    assert (backward > 0.2).mean() < 0.2
+    floor_ids = [k for k, v in house.label_names.items() if v.endswith("floor")]
+    assert (u[np.isin(c.labels, floor_ids), 2] > 0).all()  # floors are seen from above
+
+
 def test_mono_sim_is_grounded_to_metric_scale(house, mono_build):
     errors = [rep.scale_error for rep in mono_build.regions]
     scales = [rep.true_scale for rep in mono_build.regions]
@@ -76,6 +96,18 @@ def test_mono_sim_is_grounded_to_metric_scale(house, mono_build):
     assert np.median(errors) <= 0.02 and max(errors) <= 0.05
     dist = house.mesh_distance(mono_build.cloud.xyz)
     assert dist.mean() < 0.05 and np.percentile(dist, 95) < 0.15
+
+
+def test_mono_sim_view_directions_are_grounded_with_the_points(mono_build, rgbd_build):
+    # The emulation turns the cloud into its reference camera's frame and alignment turns it back:
+    # the directions must follow both turns, and agree with the rgbd map's at the nearest point.
+    from scipy.spatial import cKDTree
+
+    mono, rgbd = mono_build.cloud, rgbd_build.cloud
+    assert mono.view_dirs is not None
+    _, nearest = cKDTree(rgbd.xyz).query(mono.xyz)
+    dots = (_view_units(mono) * _view_units(rgbd)[nearest]).sum(axis=1)
+    assert np.median(dots) > 0.98
 
 
 def test_mono_sim_heading_comes_from_the_matched_frame(house):
@@ -121,6 +153,9 @@ def test_build_is_stored_and_reloads_identically(tmp_path, rgbd_build):
     assert np.array_equal(m.cloud.xyz, b.cloud.xyz)
     assert np.array_equal(m.cloud.rgb, b.cloud.rgb)
     assert np.array_equal(m.cloud.labels, b.cloud.labels)
+    assert b.cloud.view_dirs is not None and np.array_equal(m.cloud.view_dirs, b.cloud.view_dirs)
+    served = PointCloud.from_chunks(store.chunks("house", max_points=len(b.cloud) // 3 + 1))
+    assert np.array_equal(served.view_dirs, b.cloud.view_dirs)
     assert m.cloud.label_names == b.cloud.label_names
     assert m.info.scale_factors == pytest.approx(b.scale_factors)
     assert [r["region"] for r in m.details["regions"]] == [r.region for r in b.regions]
