@@ -31,11 +31,12 @@ central 9x9 pixels):
   surface shows through);
 * leak 5 cm: rendered depth > true depth + 5 cm: also the far face of a wall (10 cm behind the
   near one between rooms) blended into the near face's pixels, which the 0.25 m leak cannot see;
-* shown 5 cm: the pixels of leak 5 cm that show a colour, i.e. a surface behind the true one drawn
-  as if it were the one in view (a wall's far face in the neighbouring room's paint where its near
-  face was never mapped); the rest are drawn black as a side the robot never saw;
-* unseen: pixels drawn black at a depth (a surface's unseen side), over the pixels scored: on
-  mapped pixels this is the side test's false alarms (a surface the map holds, drawn unknown);
+* shown 5 cm: the pixels of leak 5 cm drawn in a surface's own colour, i.e. a surface behind the
+  true one drawn as if it were the one in view (a wall's far face in the neighbouring room's paint
+  where its near face was never mapped); the rest are drawn as a side the robot never saw;
+* unseen: pixels drawn in the renderer's unknown-surface grey (``SplatConfig.unseen_side_rgb``: a
+  surface's unseen side), over the pixels scored: on mapped pixels mostly the side test's false
+  alarms (a surface the map holds, drawn unknown);
 * holes: rendered hole where the ray cast hits a surface;
 * SSIM and PSNR of the RGB images (holes black, as the policy sees them);
 * label accuracy: rendered label == true label over pixels valid in both (labelled clouds only).
@@ -59,9 +60,11 @@ from skimage.metrics import structural_similarity
 
 from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera, camera_pose
-from shared.pointrender import RENDERERS, IndexedCloud
+from shared.pointrender import RENDERERS, IndexedCloud, SplatConfig
 from shared.schemas import CameraIntrinsics
 
+# The colour the renderer draws a surface's unseen side in (SplatConfig.unseen_side_rgb's default).
+UNSEEN_RGB = np.array(SplatConfig.model_fields["unseen_side_rgb"].default, np.int16)
 ROOT = Path(__file__).resolve().parents[1]
 MAPS = ROOT / "runs" / "anticipation" / "maps"
 DATA = ROOT.parent / "shared" / "data"
@@ -288,8 +291,8 @@ def score(renderer, index: IndexedCloud, gt: GroundTruth, poses, cam: PinholeCam
             continue
         r_valid = ~out.hole_mask[i]
         both = region & r_valid
-        # Drawn black with a depth: the side of a surface the robot never saw (a hole has no depth).
-        unseen = r_valid & (out.rgb[i].max(axis=-1) == 0)
+        # Drawn in the unknown grey (within the colour filter's blending): a side the robot never saw.
+        unseen = r_valid & (np.abs(out.rgb[i].astype(np.int16) - UNSEEN_RGB).max(axis=-1) <= 2)
         s.unseen.append(float((region & unseen).sum()) / int(region.sum()))
         s.holes.append(float((region & ~r_valid).sum()) / int(region.sum()))
         r_rgb = out.rgb[i]
@@ -339,8 +342,8 @@ def report(title: str, rows: dict[str, dict[str, Scores]]) -> None:
                   f"{_fmt(s.ssim, False):>6} "
                   f"{np.mean(s.psnr) if s.psnr else float('nan'):6.2f} {_fmt(s.label, True):>7}  {flags}")
     print("targets: leak <= 1 %, holes <= 2 %, SSIM >= 0.80 (< 1 m) / 0.85, label >= 95 % ('+' met, '-' missed);"
-          " leak5: rendered > true + 5 cm, shown5: those drawn in colour, unseen: drawn black at a depth"
-          " (an unseen side; no targets)")
+          " leak5: rendered > true + 5 cm, shown5: those drawn in their own colour, unseen: drawn in the"
+          " unknown grey (an unseen side; no targets)")
 
 
 def run(spec: str, backend: str, modes: list[str], n_views: int, n_agents: int, noise: str | None = None,

@@ -76,7 +76,7 @@ _project_run = numba.njit(nogil=True, cache=True, error_model="numpy")(_project_
 def _front_pass(
     x, y, z, rgb_packed, spacing, run_starts, run_counts, run_scale, proj, near, far, w, h, tol_rel1, tol_abs,
     with_labels, with_spacing, nx, ny, nz, slope_consts, with_slope, with_uv, pad=1,
-    sided=None, unseen_cos=0.0, with_sides=False,
+    sided=None, unseen_cos=0.0, with_sides=False, unseen_rgb=0,
 ):
     """Both passes for one view over the points ``run_starts[r] : run_starts[r] + run_counts[r]``.
 
@@ -92,8 +92,9 @@ def _front_pass(
     ``pad``: the pixels on each side of the image that points are projected into (1: the 3x3
     splat's ring; the visibility mode adds a guard band, :class:`splat.SplatConfig` ``guard_px``).
     ``with_sides``: a point whose side is known (``sided[p]``, its normal oriented towards the side
-    the robot saw) adds no colour where this view sees its other side (``splat._unseen_side``),
-    so it stays an occluder with its label but is drawn black, as the unknown it is."""
+    the robot saw) adds the colour ``unseen_rgb`` (packed as ``rgb_packed``) instead of its own
+    where this view sees its other side (``splat._unseen_side``): it stays an occluder with its
+    label, drawn in the colour of an unknown surface."""
     wp = w + 2 * pad
     npad = (h + 2 * pad) * wp
     n = 0
@@ -161,7 +162,7 @@ def _front_pass(
                 if with_sides and sided[p] != 0 and d > zero:
                     dx, dy, dz = x[p] - cx, y[p] - cy, z[p] - cz
                     if d > unseen_cos * np.sqrt(dx * dx + dy * dy + dz * dz):
-                        c = np.int32(0)
+                        c = unseen_rgb
             acc[t, 0] += one
             acc[t, 1] += zc
             acc[t, 2] += np.float32(c & 0xFF)
@@ -317,7 +318,7 @@ def warm_up() -> float:
             np.ones(1, np.int64), np.ones(1, np.float32), np.zeros(12, np.float32), np.float32(0.05),
             np.float32(20.0), 4, 4, np.float32(1.05), np.float32(0.1), True, with_spacing,
             xyz[:, 0], xyz[:, 1], xyz[:, 2], np.zeros(8, np.float32), with_spacing, not with_spacing,
-            1, np.zeros(1, np.uint8), np.float32(0.15), with_spacing,
+            1, np.zeros(1, np.uint8), np.float32(0.15), with_spacing, np.int32(0),
         )
     f32 = np.ones((3, 6, 6), np.float32)
     compose(
