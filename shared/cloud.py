@@ -4,7 +4,8 @@ Every service that holds a map speaks :class:`PointCloud`: the reconstructor bui
 renderer draws it, the gateway streams it, the evaluation uploads curated ones. Files use ONE layout
 (:func:`encode` / :func:`decode`): binary little-endian ``x y z`` float32, ``red green blue`` uchar and,
 when labelled, ``label`` int32, with the label names in a ``comment label_names {json}`` header line, so
-labels and their names travel inside the file (no side files). Foreign clouds (ASCII or double PLY,
+labels and their names travel inside the file (no side files); then, when the cloud records where its
+points were seen from, ``view_x view_y view_z`` char (:attr:`PointCloud.view_dirs`). Foreign clouds (ASCII or double PLY,
 PCD) are read through open3d by :func:`read_cloud`, which checks a PLY's body against its header first
 (open3d reads what it can of a truncated file, warns and returns garbage) and drops non-finite points.
 """

@@ -9,6 +9,12 @@ with the torch backend within the tolerance stated in tests/unit/renderer/test_r
 (<= 0.2 % of the pixels differ; the compiled and array numpy paths are bit-identical). Its
 image-space passes run compiled too (:mod:`visibility_kernels`), bit-identical to the array code.
 
+Where the map records the side each point was seen from (``PointCloud.view_dirs``, the mean
+direction towards the cameras that saw it), normals are oriented towards that side (as a range
+scan's normals are towards its scanner) and a point seen from its other side is drawn in a neutral
+"unknown" grey, at its depth and with its label: the face of a wall the robot never mapped shows as
+a wall of unknown colour, not in the paint of the room behind it (``SplatConfig.unseen_side``).
+
 What a view draws is bounded by its pixels, not by the map: blocks outside the frustum are
 culled, and each remaining block is drawn from precomputed voxel-averaged levels of detail
 (:mod:`lod`: Potree-style layered LOD, per-block selection as in sequential point trees) at the
