@@ -116,7 +116,8 @@ def _complete_maps(http: httpx.Client) -> dict[str, int]:
         head, _, body = r.content.partition(b"end_header\n")
         n = int(head.split(b"element vertex ")[1].split(b"\n")[0])
         assert n == info["point_count"] > 0
-        assert len(body) % n == 0 and len(body) // n in (15, 19)
+        # x y z r g b [label] [view_x view_y view_z]: every record size our layout has.
+        assert len(body) % n == 0 and len(body) // n in (15, 18, 19, 22)
         out[info["map_id"]] = info["version"]
     return out
 
