@@ -46,6 +46,13 @@ class Frustum:
         return cls(normals, offsets)
 
 
+# Side of a block. Level of detail is chosen per block by its nearest point (:mod:`lod`), so a
+# smaller block draws more of itself at the level its distance allows: at 0.5 m (against 1 m) a view
+# of the 1e6-point flat draws 66 k points instead of 111 k for 0.85x the CPU (SSIM against the ray
+# cast 0.862 -> 0.858 over 40 views), and of generated:0's rgbd map 85 k instead of 102 k for 0.98x
+# (bench.anticipation's every figure within 0.002). Smaller still: more blocks to cull, no faster.
+BLOCK_M = 0.5
+
 _CORNERS = np.array(
     [[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64
 )
@@ -60,7 +67,7 @@ class IndexedCloud:
     derived data (device tensors, top-down grids) so that it lives and dies with the map.
     """
 
-    def __init__(self, cloud: PointCloud, block_m: float = 1.0, area_cell_m: float = 0.05, seed: int = 0):
+    def __init__(self, cloud: PointCloud, block_m: float = BLOCK_M, area_cell_m: float = 0.05, seed: int = 0):
         if len(cloud) == 0:
             raise EmptyCloudError("cannot index an empty cloud")
         if not block_m > 0:
