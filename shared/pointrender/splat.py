@@ -63,11 +63,11 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field
 
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
 from shared.pointrender import kernels, occlusion, visibility, visibility_kernels
@@ -85,6 +85,9 @@ _OFFSETS = [(oy, ox) for oy in (-1, 0, 1) for ox in (-1, 0, 1)]
 # Voxel level of detail per mode when SplatConfig.lod_cell_px is None: the largest cell (px) a
 # block may be drawn at (see there).
 LOD_CELL_PX = {"visibility": 2.0, "paper": 1.0}
+
+
+_Channel8 = Annotated[int, Field(ge=0, le=255)]
 
 
 class SplatConfig(BackendConfig):
@@ -169,14 +172,7 @@ class SplatConfig(BackendConfig):
     unseen_side: bool = True
     side_min_agreement: float = Field(0.2, ge=0.0, le=1.0)
     unseen_side_cos: float = Field(0.15, ge=0.0, le=1.0)
-    unseen_side_rgb: tuple[int, int, int] = (128, 128, 128)
-
-    @field_validator("unseen_side_rgb")
-    @classmethod
-    def _rgb8(cls, v: tuple[int, int, int]) -> tuple[int, int, int]:
-        if not all(0 <= c <= 255 for c in v):
-            raise ValueError(f"unseen_side_rgb must be three values 0-255, got {v}")
-        return v
+    unseen_side_rgb: tuple[_Channel8, _Channel8, _Channel8] = (128, 128, 128)
     # visibility mode: the points a pixel's surfel averages lie this close behind its nearest one
     # (tighter still: a far wall's two faces, 0.1 m apart, must not average their colours).
     front_tolerance_m: float = Field(0.02, ge=0.0)
