@@ -39,6 +39,14 @@ def view_dirs_unit(view_dirs: np.ndarray) -> np.ndarray:
     return np.asarray(view_dirs, np.float32) * np.float32(1.0 / VIEW_DIR_SCALE)
 
 
+def rotate_view_dirs(view_dirs: np.ndarray | None, rotation: np.ndarray) -> np.ndarray | None:
+    """int8 ``view_dirs`` turned by the (3, 3) ``rotation`` (requantised) as the cloud's points turn;
+    a shift or a positive scale leaves them as they are. None stays None."""
+    if view_dirs is None:
+        return None
+    return quantise_view_dirs(view_dirs_unit(view_dirs).astype(np.float64) @ np.asarray(rotation, np.float64).T)
+
+
 class CloudError(Exception):
     """Base of every error about a point cloud or a cloud file."""
 

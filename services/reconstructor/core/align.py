@@ -28,7 +28,7 @@ import numpy as np
 from pydantic import Field
 from skimage.metrics import structural_similarity
 
-from shared.cloud import PointCloud
+from shared.cloud import PointCloud, rotate_view_dirs
 from shared.geometry import camera_rotation, rot_z, wrap_angle
 from shared.pointrender import RENDERERS, IndexedCloud  # the renderer service's splatting, in-process
 from shared.registry import BackendConfig
@@ -36,7 +36,7 @@ from shared.registry import BackendConfig
 from .depth import MetricDepth
 from .errors import AlignmentError
 from .frames import PosedImage, RegionInput
-from .regional import RegionalCloud, rotate_view_dirs
+from .regional import RegionalCloud
 
 log = logging.getLogger(__name__)
 

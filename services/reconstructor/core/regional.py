@@ -35,7 +35,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from shared.cloud import PointCloud, quantise_view_dirs, view_dirs_unit
+from shared.cloud import PointCloud, rotate_view_dirs
 from shared.geometry import camera_rotation, rot_z
 from shared.registry import BackendConfig, Registry
 
@@ -414,13 +414,6 @@ def _drop_patches(xyz: np.ndarray, fraction: float, radius_m: float, rng: np.ran
         for idx in tree.query_ball_point(centres, radius_m):
             keep[idx] = False
     return keep
-
-
-def rotate_view_dirs(view_dirs: np.ndarray | None, rotation: np.ndarray) -> np.ndarray | None:
-    """A cloud's int8 ``view_dirs`` turned by the (3, 3) ``rotation`` (requantised); None stays None."""
-    if view_dirs is None:
-        return None
-    return quantise_view_dirs(view_dirs_unit(view_dirs).astype(np.float64) @ np.asarray(rotation, np.float64).T)
 
 
 def level_camera_to_local(points_cam: np.ndarray, pitch_rad: float = 0.0) -> np.ndarray:
