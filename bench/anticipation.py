@@ -149,7 +149,10 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
     if noise:
         _drift_path(path).write_text(json.dumps(_tour_start_drift(recs, truth)))
     print(f"   built {name}: {len(cloud)} points in {time.perf_counter() - t0:.0f} s")
-    return robot, cloud
+    # A fresh simulator for what is scored: a noisy robot's depth draws continue its generator, so
+    # the candidates proposed from the built-with robot differed from a cached map's run.
+    robot.close()
+    return ROBOTS.create("sim", robot_cfg), cloud
 
 
 def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128) -> tuple[Path, str]:
