@@ -21,7 +21,8 @@ import pytest
 from deploy.launcher import free_port
 from services.robot_io.core.ros2 import messages as msgs
 from services.robot_io.core.ros2.backend import (
-    DeadlineExceededError, ResetUnsupportedError, Ros2Config, Ros2Error, Ros2Robot, RunStoppedError, StaleDataError,
+    DeadlineExceededError, ResetUnsupportedError, Ros2Config, Ros2Error, Ros2Robot, RobotUnavailableError,
+    RunStoppedError, StaleDataError,
 )
 from services.robot_io.core.ros2.keys import key_style
 from services.robot_io.core.ros2.node import Ros2Node
@@ -203,6 +204,61 @@ def test_geodesic_from_the_map_topic_matches_the_simulator_within_a_few_cells(st
         d_map = robot.geodesic_distance(a, b)
         d_sim = nav.geodesic_distance(a, b)
         assert math.isfinite(d_map) and abs(d_map - d_sim) < 0.15 * d_sim + 0.5
+
+
+def _planar_error(a: Pose, b: Pose) -> tuple[float, float]:
+    """(metres, degrees) between two poses in the plane."""
+    d = float(np.hypot(a.position_m[0] - b.position_m[0], a.position_m[1] - b.position_m[1]))
+    return d, abs(math.degrees(math.remainder(a.heading_rad - b.heading_rad, 2 * math.pi)))
+
+
+def test_with_localisation_poses_stay_in_the_map_frame_while_odometry_drifts():
+    """A drifting base (0.3 m per sqrt(m), 0.1 rad per sqrt(rad) turned) with a localiser publishing
+    map -> odom: the backend's poses, frames and moves follow the true pose, its odometry does not."""
+    over = {**SIM_OVERRIDES, "map_frame": "map"}
+    s = StandIn(overrides=over, noise={"seed": 5, "odometry_drift_per_m": 0.3, "heading_drift_per_rad": 0.1})
+    try:
+        with s.backend(overrides=over) as robot:
+            nav = s.robot.sim.nav
+            robot.turn(math.pi)
+            robot.turn(-math.pi)
+            here = s.robot.true_pose
+            for ang in np.linspace(0, 2 * math.pi, 16, endpoint=False):
+                goal = np.array(here.position_m) + [0.6 * math.cos(ang), 0.6 * math.sin(ang), 0]
+                _, ok = nav.walk(np.array(here.position_m), goal)
+                if ok:
+                    break
+            res = robot.move_to(0.6 * math.cos(ang), 0.6 * math.sin(ang))
+            assert res.status == MoveStatus.REACHED, res
+            # Compare at rest: the base coasts until the zero Twist lands, and the backend's newest
+            # odometry must be from after that (a moving base differs by a tick's travel).
+            wait_until(lambda: s.robot.stats.last_cmd == (0.0, 0.0) and s.robot._v == 0.0 and s.robot._w == 0.0,
+                       what="the base at rest")
+            t_rest = s.robot.stamp_s
+            wait_until(lambda: robot._odom.get()[0] > t_rest and robot._map_odom.get()[0] > t_rest,
+                       what="odometry and localisation from after the stop")
+            true = s.robot.true_pose
+            # The move ends where it was sent in the map frame, drift or not.
+            assert np.hypot(*(np.array(true.position_m[:2]) - goal[:2])) <= 0.12
+            odo = robot._odom_pose(robot._odom.get()[1])
+            drift_m, drift_deg = _planar_error(odo, true)
+            assert drift_m > 0.02 or drift_deg > 2.0, "the base did not drift: the test proves nothing"
+            pose_m, pose_deg = _planar_error(robot.pose, true)
+            assert pose_m < 0.03 and pose_deg < 1.5, (pose_m, pose_deg, drift_m, drift_deg)
+            frame = robot._frame()
+            frame_m, frame_deg = _planar_error(frame.pose, s.robot.true_pose)
+            assert frame_m < 0.05 and frame_deg < 2.0
+    finally:
+        s.close()
+
+
+def test_a_localisation_frame_that_never_arrives_is_refused_at_connect_with_its_name():
+    s = StandIn()  # publishes odom -> base only
+    try:
+        with pytest.raises(RobotUnavailableError, match="map -> odom transform on /tf"):
+            s.backend(overrides={**SIM_OVERRIDES, "map_frame": "map"}, connect_timeout_s=2.0)
+    finally:
+        s.close()
 
 
 def test_the_stand_in_killed_mid_move_gives_a_typed_error_and_a_zero_twist():

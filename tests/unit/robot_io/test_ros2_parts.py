@@ -6,10 +6,12 @@ import math
 import time
 
 import numpy as np
+import pytest
 
 from services.robot_io.core.ros2 import messages as m
 from services.robot_io.core.ros2.backend import RobotClock, _Latest
 from services.robot_io.core.ros2.occupancy import OccupancyPlanner
+from services.robot_io.core.ros2.profiles import profile
 
 
 def _map_with_a_door():
@@ -71,6 +73,7 @@ def test_a_teleport_waits_past_odometry_of_the_old_pose_that_was_still_in_flight
 
     robot = object.__new__(Ros2Robot)
     robot._teleport, robot._odom, robot.clock = Teleport(), _Latest(), RobotClock(use_clock=True)
+    robot.profile = profile("generic")  # odometry is the world frame (no map_frame)
     robot._send_zero = lambda: None
     robot.clock.on_clock(10.0)
     got = robot.reset(Pose(position_m=(2.0, 8.0, 0.0), heading_rad=0.0))
@@ -87,9 +90,35 @@ def test_a_simulator_whose_odometry_frame_is_not_the_teleports_gets_its_newest_o
 
     robot = object.__new__(Ros2Robot)
     robot._teleport, robot._odom, robot.clock = Teleport(), _Latest(), RobotClock(use_clock=True)
+    robot.profile = profile("generic")  # odometry is the world frame (no map_frame)
     robot._send_zero = lambda: None
     robot.clock.on_clock(10.0)
     t0 = time.monotonic()
     got = robot.reset(Pose(position_m=(2.0, 8.0, 0.0), heading_rad=1.0))
     assert got.position_m[:2] == (0.0, 0.0)
     assert TELEPORT_SETTLE_S <= time.monotonic() - t0 < TELEPORT_SETTLE_S + 5.0
+
+
+def test_the_localised_pose_composes_map_to_odom_with_odometry_and_ignores_the_rest_of_the_tree():
+    from services.robot_io.core.ros2.backend import Ros2Robot, StaleDataError
+    from shared.schemas import Pose
+
+    robot = object.__new__(Ros2Robot)
+    robot.profile = profile("generic", {"map_frame": "map"})
+    robot._map_odom = _Latest()
+    odo = Pose(position_m=(1.0, 0.0, 0.0), heading_rad=0.0)
+    with pytest.raises(StaleDataError, match="map -> odom"):
+        robot._world(odo)
+    tf = lambda t, parent, child, xyz, yaw: m.transform_stamped(t, parent, child, xyz, yaw)  # noqa: E731
+    # Only map -> odom is read (a leading slash is the same frame); a NaN transform is dropped.
+    robot._on_tf(m.tf_message([tf(1.0, "odom", "base_link", (5.0, 5.0, 0.0), 1.0),
+                               tf(1.0, "/map", "odom", (2.0, 3.0, 0.0), math.pi / 2)]), None)
+    robot._on_tf(m.tf_message([tf(2.0, "map", "odom", (float("nan"), 0.0, 0.0), 0.0)]), None)
+    robot._on_tf(m.tf_message([tf(3.0, "map", "camera_link", (9.0, 9.0, 0.0), 0.0)]), None)
+    got = robot._world(odo)
+    # Odometry (1, 0) heading 0, turned a quarter and shifted by (2, 3): (2, 4) heading 90 deg.
+    assert np.allclose(got.position_m, (2.0, 4.0, 0.0), atol=1e-9)
+    assert abs(got.heading_rad - math.pi / 2) < 1e-9
+    # Without a localisation frame, odometry is the pose.
+    robot.profile = profile("generic")
+    assert robot._world(odo) == odo

@@ -11,6 +11,10 @@
   moving. Odometry or camera data older than ``max_data_age_s`` is :class:`StaleDataError`.
 * ``reset`` needs the profile's teleport service; else :class:`ResetUnsupportedError`.
 * Geodesic queries come from the map topic when it is published, else NotImplementedError.
+* Poses: odometry, or with the profile's ``map_frame`` the robot's localisation: odometry composed
+  with the newest ``map -> odom`` transform on ``tf`` (nav2's AMCL, slam_toolbox). The controllers
+  steer on that pose each tick, as nav2's controllers re-transform their goal into odometry: a
+  localisation update moves the goal, not the base's own odometry.
 
 Robot time is the clock topic when the profile has one (simulators, ``use_sim_time``), else wall
 time (a robot whose clock is synchronised with ours, as ROS 2 requires anyway).
@@ -199,6 +203,7 @@ class Ros2Robot(Robot):
         self._odom, self._info, self._scan, self._imu = _Latest(), _Latest(), _Latest(), _Latest()
         self._color, self._depth, self._sem = _Latest(keep=8), _Latest(keep=8), _Latest(keep=8)
         self._map = _Latest()
+        self._map_odom = _Latest()  # (x, y, z), yaw: the localisation's map -> odom transform
         self._run_stopped = False
         self._safety_stopped = threading.Event()
         self._closed = False
@@ -226,6 +231,8 @@ class Ros2Robot(Robot):
             n.subscribe(p.map, m.MESSAGES["occupancy_grid"], self._stamped(self._map))
         if p.run_stop:
             n.subscribe(p.run_stop, m.MESSAGES["bool"], self._on_run_stop)
+        if p.map_frame:
+            n.subscribe(p.tf, m.MESSAGES["tf"], self._on_tf, max_queue=64)
         self._teleport = n.client(p.teleport_service, "turtlesim/srv/TeleportAbsolute") if p.teleport_service else None
         self._sinks: list[tuple[FrameSink, float]] = []
         self._frame_index = 0
@@ -256,13 +263,31 @@ class Ros2Robot(Robot):
         if self._run_stopped:
             self._send_zero()
 
+    def _on_tf(self, msg, _info) -> None:
+        """Keep the newest map -> odom transform (the robot's localisation); the rest of the tree
+        (odom -> base, the camera's links) is not read: odometry and camera_info carry it."""
+        p = self.profile
+        parent, child = p.map_frame.strip("/"), p.odom_frame.strip("/")
+        for tr in msg.transforms:
+            if tr.header.frame_id.strip("/") != parent or tr.child_frame_id.strip("/") != child:
+                continue
+            t = tr.transform.translation
+            xyz = (float(t.x), float(t.y), float(t.z))
+            yaw = float(m.yaw_from_quaternion(tr.transform.rotation))
+            if all(map(math.isfinite, (*xyz, yaw))):  # a broken localiser's NaN must not become the pose
+                self._map_odom.put(m.stamp_s(tr.header.stamp), (xyz, yaw))
+
     def _wait_ready(self) -> None:
         end = time.monotonic() + self.config.connect_timeout_s
+        needs = [(self.profile.odom, self._odom), (self.profile.camera_info, self._info)]
+        if self.profile.map_frame:
+            needs.append((f"{self.profile.map_frame} -> {self.profile.odom_frame} transform on {self.profile.tf} "
+                          "(is the robot's localisation running? without one, set map_frame to null)", self._map_odom))
         while time.monotonic() < end:
-            if self._odom.get() and self._info.get() and (not self.clock.use_clock or not math.isnan(self.clock.now())):
+            if all(l.get() for _, l in needs) and (not self.clock.use_clock or not math.isnan(self.clock.now())):
                 return
             time.sleep(0.05)
-        missing = [t for t, l in ((self.profile.odom, self._odom), (self.profile.camera_info, self._info)) if not l.get()]
+        missing = [t for t, l in needs if not l.get()]
         raise RobotUnavailableError(
             f"no {' or '.join(missing) or self.profile.clock} from the robot within {self.config.connect_timeout_s:.0f} s "
             f"(keys {self.config.keys}, domain {self.config.domain_id}, namespace {self.config.namespace!r})")
@@ -344,12 +369,27 @@ class Ros2Robot(Robot):
         return Pose(position_m=(float(pp.position.x), float(pp.position.y), float(pp.position.z)),
                     heading_rad=float(wrap_angle(m.yaw_from_quaternion(pp.orientation))))
 
+    def _world(self, odo: Pose) -> Pose:
+        """An odometry pose in the reported frame: composed with the newest map -> odom transform
+        when the profile has a localisation frame, however old (localisation corrects slowly and
+        odometry carries the motion in between; AMCL and slam_toolbox republish it steadily)."""
+        if not self.profile.map_frame:
+            return odo
+        got = self._map_odom.get()
+        if got is None:
+            raise StaleDataError(f"no {self.profile.map_frame} -> {self.profile.odom_frame} transform yet")
+        (tx, ty, tz), yaw = got[1]
+        c, s = math.cos(yaw), math.sin(yaw)
+        x, y, z = odo.position_m
+        return Pose(position_m=(tx + c * x - s * y, ty + s * x + c * y, tz + z),
+                    heading_rad=float(wrap_angle(odo.heading_rad + yaw)))
+
     @property
     def pose(self) -> Pose:
         got = self._odom.get()
         if got is None:
             raise StaleDataError(f"no {self.profile.odom} yet")
-        return self._odom_pose(got[1])
+        return self._world(self._odom_pose(got[1]))
 
     @property
     def camera(self) -> CameraIntrinsics:
@@ -380,7 +420,8 @@ class Ros2Robot(Robot):
         return (distance_m / p.max_linear_mps + math.degrees(abs(angle_rad)) / p.max_angular_dps) * 2.0 + c.settle_s + c.deadline_margin_s
 
     def _rotate_to(self, heading_rad: float, end_s: float) -> None:
-        """Closed-loop turn on odometry yaw under the angular velocity and acceleration limits."""
+        """Closed-loop turn to a reported-frame heading (odometry yaw, localised with ``map_frame``)
+        under the angular velocity and acceleration limits."""
         c, p = self.config, self.profile
         w_max, a_max = math.radians(p.max_angular_dps), math.radians(p.angular_accel_dps2)
         dt = 1.0 / c.control_rate_hz
@@ -388,7 +429,7 @@ class Ros2Robot(Robot):
         w = 0.0
         while True:
             _, odo = self._fresh(self._odom, p.odom)
-            err = float(wrap_angle(heading_rad - self._odom_pose(odo).heading_rad))
+            err = float(wrap_angle(heading_rad - self._world(self._odom_pose(odo)).heading_rad))
             if abs(err) <= tol:
                 break
             # Speed that still stops in time (v^2 = 2 a d), P-control near the goal, then rate limits.
@@ -446,16 +487,17 @@ class Ros2Robot(Robot):
             self._rotate_to(math.atan2(dy_m, dx_m), end)
             dt = 1.0 / c.control_rate_hz
             v = 0.0
-            travelled = 0.0
-            last_xy = np.array(self.pose.position_m[:2])
+            travelled = 0.0  # on odometry: what the base drove, not the localisation's corrections
+            last_xy = np.array(self._odom_pose(self._fresh(self._odom, p.odom)[1]).position_m[:2])
             best_rem, best_t = math.inf, self.clock.now()
             status = MoveStatus.BLOCKED
             while True:
                 _, odo = self._fresh(self._odom, p.odom)
-                pose = self._odom_pose(odo)
+                odo_xy = np.array(self._odom_pose(odo).position_m[:2])
+                travelled += float(np.linalg.norm(odo_xy - last_xy))
+                last_xy = odo_xy
+                pose = self._world(self._odom_pose(odo))
                 xy = np.array(pose.position_m[:2])
-                travelled += float(np.linalg.norm(xy - last_xy))
-                last_xy = xy
                 rem_vec = target - xy
                 rem = float(np.linalg.norm(rem_vec))
                 if rem <= c.goal_tolerance_m:
@@ -512,7 +554,7 @@ class Ros2Robot(Robot):
         while time.monotonic() < end:
             got = self._odom.get()
             if got and got[0] > t0:
-                now = self._odom_pose(got[1])
+                now = self._world(self._odom_pose(got[1]))
                 if _same_place(now, pose):
                     return now
                 settle_end = settle_end or time.monotonic() + TELEPORT_SETTLE_S
@@ -667,7 +709,7 @@ class Ros2Robot(Robot):
         return frame
 
     def _pose_at(self, t_s: float) -> Pose:
-        return self.pose  # the newest odometry; at 20+ Hz odometry it is within one period of the image
+        return self.pose  # the newest (localised) odometry; at 20+ Hz it is within one period of the image
 
     def look_around(self) -> list[Frame]:
         """Yaw sweep 0 -> +60 -> -60 -> 0 with the base (the head's tilt is not driven): a frame per step."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 from enum import StrEnum
 from typing import Any
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from shared.registry import BackendConfig
 
@@ -53,6 +53,12 @@ class Ros2Profile(BackendConfig):
     teleport_service: str | None = None  # turtlesim/TeleportAbsolute (simulators only)
     odom_frame: str = "odom"
     base_frame: str = "base_link"
+    # The frame of the robot's localisation (nav2's AMCL or slam_toolbox publish ``map_frame ->
+    # odom_frame`` on ``tf``). With it, every pose the backend reports (frames, panoramas, moves) is
+    # the odometry composed with the newest map -> odom transform: a map built over a long
+    # exploration does not carry the odometry's drift, and poses agree with the map topic's grid,
+    # which is in this frame. None: odometry is the world frame (a robot without localisation).
+    map_frame: str | None = None
     camera_frame: str = "camera_color_optical_frame"
     # The camera's mounting roll, in quarter turns counter-clockwise of the image as it arrives
     # relative to upright (Stretch's head D435i is mounted on its side: its images arrive rotated).
@@ -77,6 +83,15 @@ class Ros2Profile(BackendConfig):
             raise ValueError("this topic is required")
         return v
 
+    @model_validator(mode="after")
+    def _localisation(self) -> Ros2Profile:
+        if self.map_frame is not None:
+            if not self.map_frame.strip("/") or self.map_frame.strip("/") == self.odom_frame.strip("/"):
+                raise ValueError(f"map_frame must name a frame other than odom_frame {self.odom_frame!r}")
+            if not self.tf:
+                raise ValueError("map_frame needs the tf topic: the map -> odom transform arrives on it")
+        return self
+
 
 PROFILES: dict[str, Ros2Profile] = {
     "stretch": Ros2Profile(
@@ -91,6 +106,7 @@ PROFILES: dict[str, Ros2Profile] = {
         imu="/imu_mobile_base",
         map="/map",
         run_stop="/is_runstopped",
+        map_frame="map",  # /map comes with localisation (nav2 AMCL or slam_toolbox) publishing map -> odom
         nav_mode_service="/switch_to_navigation_mode",
         camera_rotation_quarters=1,
         camera_height_m=1.29,

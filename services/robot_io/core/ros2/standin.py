@@ -8,7 +8,9 @@ against the robot, because the backend sees nothing but the ROS 2 messages.
 
 Time: simulated time advances one control period per tick; ``time_scale`` ticks that many times
 faster than real time (tests); stamps are ``epoch + simulated time`` and the clock topic carries them.
-Faults for tests: odometry drift (the simulator's noise model), latency, dropped messages.
+Faults for tests: odometry drift (the simulator's noise model), latency, dropped messages. With the
+profile's ``map_frame`` it localises as well: a perfect ``map -> odom`` transform on ``tf`` beside
+``odom -> base``, the one that takes the drifting odometry to the true pose.
 """
 
 from __future__ import annotations
@@ -203,15 +205,27 @@ class StandInRobot:
     def odometry_pose(self) -> Pose:
         return self.sim.noise.odometry(self.true_pose)
 
+    def _map_from_odom(self, t: float, true: Pose, odo: Pose):
+        """A perfect localiser's map -> odom transform: the one that takes the (drifting) odometry
+        pose to the true pose, as AMCL or slam_toolbox estimate it on a robot."""
+        yaw = float(wrap_angle(true.heading_rad - odo.heading_rad))
+        c, s = math.cos(yaw), math.sin(yaw)
+        (ox, oy, oz), (tx, ty, tz) = odo.position_m, true.position_m
+        xyz = (tx - (c * ox - s * oy), ty - (s * ox + c * oy), tz - oz)
+        return m.transform_stamped(t, self.profile.map_frame, self.profile.odom_frame, xyz, yaw)
+
     def _publish_state(self) -> None:
         p, c = self.profile, self.config
         with self._lock:  # a stamp and a pose of the same instant: a teleport cannot fall between them
-            t, odo = self.stamp_s, self.odometry_pose()
+            t, odo, true = self.stamp_s, self.odometry_pose(), self.true_pose
         if self._pub_clock:
             self._pub_clock.publish(m.clock(t))
         self._sensor(self._pub_odom, m.odometry(t, odo.position_m, odo.heading_rad, self._v, self._w, p.odom_frame, p.base_frame))
         if self._pub_tf:
-            self._pub_tf.publish(m.tf_message([m.transform_stamped(t, p.odom_frame, p.base_frame, odo.position_m, odo.heading_rad)]))
+            tfs = [m.transform_stamped(t, p.odom_frame, p.base_frame, odo.position_m, odo.heading_rad)]
+            if p.map_frame:
+                tfs.append(self._map_from_odom(t, true, odo))
+            self._pub_tf.publish(m.tf_message(tfs))
         if self._pub_imu:
             self._sensor(self._pub_imu, m.imu(t, "imu", self.sim.noise.imu_heading(self._heading), self._w))
         if self._pub_scan and self.t_s >= self._next_scan:
@@ -224,7 +238,7 @@ class StandInRobot:
         if self._pub_map and self.t_s >= self._next_map:
             self._next_map = self.t_s + c.map_period_s
             grid, res, origin = self._grid
-            self._pub_map.publish(m.occupancy_grid(t, "map", grid, res, origin))
+            self._pub_map.publish(m.occupancy_grid(t, p.map_frame or "map", grid, res, origin))
         if self._pub_runstop and self.t_s >= self._next_runstop:
             self._next_runstop = self.t_s + 1.0
             self._pub_runstop.publish(m.boolean(self.run_stopped))
