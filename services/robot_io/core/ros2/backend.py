@@ -493,10 +493,11 @@ class Ros2Robot(Robot):
             status = MoveStatus.BLOCKED
             while True:
                 _, odo = self._fresh(self._odom, p.odom)
-                odo_xy = np.array(self._odom_pose(odo).position_m[:2])
+                odo_pose = self._odom_pose(odo)
+                odo_xy = np.array(odo_pose.position_m[:2])
                 travelled += float(np.linalg.norm(odo_xy - last_xy))
                 last_xy = odo_xy
-                pose = self._world(self._odom_pose(odo))
+                pose = self._world(odo_pose)
                 xy = np.array(pose.position_m[:2])
                 rem_vec = target - xy
                 rem = float(np.linalg.norm(rem_vec))
