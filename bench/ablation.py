@@ -125,13 +125,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--max-steps", type=int, default=40)
     ap.add_argument("--limit", type=int, default=None, help="only the first N episodes of the set")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--variants", nargs="+", default=None, metavar="LABEL",
+                    help="only these of the preset's variants (labels, e.g. 'hfov 120'): a confirmation on "
+                         "another set needs only the variants in question")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
 
     preset = presets()[args.preset]
+    chosen = preset.variants
+    if args.variants:
+        labels = [v.label for v in preset.variants]
+        if unknown := [x for x in args.variants if x not in labels]:
+            ap.error(f"preset {preset.name} has no variant {', '.join(map(repr, unknown))}; it has {labels}")
+        chosen = tuple(v for v in preset.variants if v.label in args.variants)
     base = RunConfig(policy="heuristic", policy_config=json.loads(args.policy_config), max_steps=args.max_steps,
                      spatial_map=False)  # the heuristic never reads the spatial map (results unchanged)
-    variants, configs, kinds = expand_map_kinds(preset.variants, base, args.map)
+    variants, configs, kinds = expand_map_kinds(chosen, base, args.map)
     modes = {c.anticipation_splat_mode or "visibility" for c in configs}
     # A policy config is part of the experiment (RunConfig.experiment_key): its own folder, never mixed.
     tag = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in json.dumps(base.policy_config,
@@ -190,6 +199,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     (root / "table.md").write_text(f"# {preset.title} ({maps} maps, in-process)\n\n{preset.paper}\n{md}",
                                    encoding="utf-8")
     print(md)
+    if len(runs) == 1:  # nothing to pair here: its folder pairs with other runs' (evaluation.compare)
+        label, d = runs[0]
+        ok = [r for r in d.values() if r.status == "done" and r.metrics is not None]
+        sr = 100.0 * sum(bool(r.metrics.get("success")) for r in ok) / max(len(ok), 1)
+        print(f"ablation {preset.name} ({maps}, n={len(ok)}): {label} SR {sr:.1f} (one variant: "
+              f"python -m evaluation.compare <base folder> {root / variants[0].slug})")
+        return {"n": len(ok), "sr": sr}
     first, last = runs[0], runs[-1]
     sr = next(p for p in compare_runs(first[1], last[1]) if p.metric == "SR")
     print(f"ablation {preset.name} ({maps}, n={sr.n}): {last[0]} SR {sr.diff:+.1f} [{sr.lo:+.1f}, {sr.hi:+.1f}] "

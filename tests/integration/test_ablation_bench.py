@@ -48,3 +48,9 @@ def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
     ablation.main(argv)  # resumes: nothing left to run, nothing appended
     for name, rows in runs.items():
         assert len((root / name / "results.jsonl").read_text().splitlines()) == len(rows)
+    # One variant of the preset (a confirmation on another set): its own folder, paired elsewhere.
+    one = ablation.main(argv + ["--variants", "true-scene views"])
+    assert one["n"] == 2 and 0.0 <= one["sr"] <= 100.0
+    assert len((root / "true-scene_views" / "results.jsonl").read_text().splitlines()) == 2
+    with pytest.raises(SystemExit):
+        ablation.main(argv + ["--variants", "hfov 45"])
