@@ -171,6 +171,23 @@ def rot_z(theta_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def planar_apply(t_xyz, yaw_rad: float, xyz, heading_rad: float) -> tuple[tuple[float, float, float], float]:
+    """A pose ``(xyz, heading)`` moved by the planar rigid transform ``(t_xyz, yaw)``: turned by
+    ``yaw`` about +z, then shifted by ``t_xyz`` (ROS's ``parent -> child`` transform applied to a pose
+    in the child frame, e.g. ``map -> odom`` to an odometry pose)."""
+    p = rot_z(yaw_rad) @ np.asarray(xyz, np.float64) + np.asarray(t_xyz, np.float64)
+    return (float(p[0]), float(p[1]), float(p[2])), float(wrap_angle(heading_rad + yaw_rad))
+
+
+def planar_between(from_xyz, from_heading_rad: float, to_xyz, to_heading_rad: float
+                   ) -> tuple[tuple[float, float, float], float]:
+    """The planar rigid transform ``(t_xyz, yaw)`` that :func:`planar_apply` turns the first pose into
+    the second with (a localiser's ``map -> odom`` from an odometry pose and the true one)."""
+    yaw = float(wrap_angle(to_heading_rad - from_heading_rad))
+    t = np.asarray(to_xyz, np.float64) - rot_z(yaw) @ np.asarray(from_xyz, np.float64)
+    return (float(t[0]), float(t[1]), float(t[2])), yaw
+
+
 # --- Habitat (y up) <-> world (z up) -------------------------------------------------------------
 # Habitat: x right, y up, z backwards. World: x, y horizontal, z up.
 # world = (x_h, -z_h, y_h); this is a proper rotation (det = +1), so handedness is preserved.

@@ -109,7 +109,7 @@ def test_the_localised_pose_composes_map_to_odom_with_odometry_and_ignores_the_r
     odo = Pose(position_m=(1.0, 0.0, 0.0), heading_rad=0.0)
     with pytest.raises(StaleDataError, match="map -> odom"):
         robot._world(odo)
-    tf = lambda t, parent, child, xyz, yaw: m.transform_stamped(t, parent, child, xyz, yaw)  # noqa: E731
+    tf = m.transform_stamped
     # Only map -> odom is read (a leading slash is the same frame); a NaN transform is dropped.
     robot._on_tf(m.tf_message([tf(1.0, "odom", "base_link", (5.0, 5.0, 0.0), 1.0),
                                tf(1.0, "/map", "odom", (2.0, 3.0, 0.0), math.pi / 2)]), None)

@@ -77,3 +77,16 @@ def test_camera_poses_are_the_stacked_camera_pose_bit_for_bit():
     pitches = rng.uniform(-1, 1, 5)
     ref = np.stack([camera_pose(pos, 0.3, p, 0.9) for p in pitches])
     assert camera_poses(pos, np.full(5, 0.3), pitches, 0.9).tobytes() == ref.tobytes()
+
+
+def test_planar_between_gives_the_transform_planar_apply_undoes_drift_with():
+    from shared.geometry import planar_apply, planar_between
+
+    odo, true = ((1.0, 0.0, 0.2), 0.3), ((2.0, 4.0, 0.2), 0.3 + math.pi / 2)
+    t, yaw = planar_between(*odo, *true)
+    assert abs(yaw - math.pi / 2) < 1e-12
+    xyz, heading = planar_apply(t, yaw, *odo)
+    assert np.allclose(xyz, true[0], atol=1e-12) and abs(heading - true[1]) < 1e-12
+    # A quarter turn about +z then a shift: (1, 0) -> (0, 1) -> (2, 4).
+    xyz, heading = planar_apply((2.0, 3.0, 0.0), math.pi / 2, (1.0, 0.0, 0.0), 3.0)
+    assert np.allclose(xyz, (2.0, 4.0, 0.0), atol=1e-12) and abs(heading - (3.0 + math.pi / 2 - 2 * math.pi)) < 1e-12

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from shared.geometry import panorama_headings, wrap_angle
+from shared.geometry import panorama_headings, planar_apply, wrap_angle
 from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
@@ -378,11 +378,8 @@ class Ros2Robot(Robot):
         got = self._map_odom.get()
         if got is None:
             raise StaleDataError(f"no {self.profile.map_frame} -> {self.profile.odom_frame} transform yet")
-        (tx, ty, tz), yaw = got[1]
-        c, s = math.cos(yaw), math.sin(yaw)
-        x, y, z = odo.position_m
-        return Pose(position_m=(tx + c * x - s * y, ty + s * x + c * y, tz + z),
-                    heading_rad=float(wrap_angle(odo.heading_rad + yaw)))
+        xyz, heading = planar_apply(*got[1], odo.position_m, odo.heading_rad)
+        return Pose(position_m=xyz, heading_rad=heading)
 
     @property
     def pose(self) -> Pose:

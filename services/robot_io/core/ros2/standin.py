@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import Field
 
-from shared.geometry import wrap_angle
+from shared.geometry import planar_between, wrap_angle
 from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Pose
 
@@ -208,10 +208,7 @@ class StandInRobot:
     def _map_from_odom(self, t: float, true: Pose, odo: Pose):
         """A perfect localiser's map -> odom transform: the one that takes the (drifting) odometry
         pose to the true pose, as AMCL or slam_toolbox estimate it on a robot."""
-        yaw = float(wrap_angle(true.heading_rad - odo.heading_rad))
-        c, s = math.cos(yaw), math.sin(yaw)
-        (ox, oy, oz), (tx, ty, tz) = odo.position_m, true.position_m
-        xyz = (tx - (c * ox - s * oy), ty - (s * ox + c * oy), tz - oz)
+        xyz, yaw = planar_between(odo.position_m, odo.heading_rad, true.position_m, true.heading_rad)
         return m.transform_stamped(t, self.profile.map_frame, self.profile.odom_frame, xyz, yaw)
 
     def _publish_state(self) -> None:
