@@ -87,8 +87,8 @@ def _front_pass(
     column 7, read as int32, the id of the nearest point (largest among ties, -1 where none):
     what ``accumulate_front`` returns, summed alike; the offset sums u, v as float32 (2, P) (only
     with ``with_uv``: the paper's 3x3 splat reads them, and the projection is cheaper without);
-    and whether some pixel's front layer exceeded :data:`MAX_FRONT_POINTS`. Without ``with_uv``
-    a pixel no point reached (minimum depth inf) has undefined sums.
+    and whether some pixel's front layer exceeded :data:`MAX_FRONT_POINTS`. A pixel no point
+    reached (minimum depth inf) has zero sums and id -1.
     ``pad``: the pixels on each side of the image that points are projected into (1: the 3x3
     splat's ring; the visibility mode adds a guard band, :class:`splat.SplatConfig` ``guard_px``).
     ``with_sides``: a point whose side is known (``sided[p]``, its normal oriented towards the side
@@ -123,16 +123,13 @@ def _front_pass(
         q_of[k] = q if z_of[k] <= zbuf[q] * tol_rel1 + tol_abs else npad
     # Pass 2b, sums, in float32 and in point order (as ``accumulate_front`` adds them): one row
     # of eight per pixel (count, depth, r, g, b, spacing, slope, nearest id), so that a point
-    # touches one cache line and the image passes read a pixel's surfel from one. Rows are zeroed
-    # only where a point landed: the visibility passes read nothing else (the paper's splat reads
-    # every pixel, so there the whole table starts at zero).
-    acc = np.zeros((npad + 1, 8), np.float32) if with_uv else np.empty((npad + 1, 8), np.float32)
+    # touches one cache line and the image passes read a pixel's surfel from one. Every row is
+    # zeroed, in two strided fills: zeroing only the rows a point reached branched on a pattern
+    # as random as the map's sampling and cost 3.8x as much (0.30 ms of a 1.1 ms front pass).
+    acc = np.empty((npad + 1, 8), np.float32)
     ids = acc.view(np.int32)  # column 7: the nearest point's id (largest among ties), -1: none
-    for i in range(npad + 1):
-        if with_uv or zbuf[i] < np.inf:
-            for c in range(7):
-                acc[i, c] = np.float32(0.0)
-            ids[i, 7] = -1
+    acc[:, :7] = np.float32(0.0)
+    ids[:, 7] = -1
     uv_sum = np.zeros((2, npad + 1 if with_uv else 1), np.float32)  # offsets (the paper's splat)
     cx, cy, cz = slope_consts[0], slope_consts[1], slope_consts[2]
     ax, ay, az = slope_consts[3], slope_consts[4], slope_consts[5]
