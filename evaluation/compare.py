@@ -7,6 +7,10 @@ both. Only episodes ``done`` in both runs count (an error or a skip in either le
 
     python -m evaluation.compare runs/ablations/anticipation/with_anticipation \\
         runs/ablations/anticipation/without_anticipation [--resamples 10000] [--out table]
+
+A run may be several folders joined by commas, one per episode set (``A0,A1,A2 B0,B1,B2``): the
+sets' pairs are pooled (set k of one run pairs with set k of the other; episode ids only need to be
+unique within a set), so independent sets that each give a wide interval give one narrower one.
 """
 
 from __future__ import annotations
@@ -108,9 +112,22 @@ def comparison_markdown(runs: Sequence[tuple[str, dict[str, EpisodeResult]]], *,
     return "\n".join(lines) + "\n"
 
 
+def pooled_run(folders: Sequence[Path]) -> tuple[str, dict[str, EpisodeResult]]:
+    """(label, results) of one run over one or more episode sets: with several sets each episode id
+    is prefixed by its set's position (``"1:17"``), since ids repeat from set to set."""
+    pooled: dict[str, EpisodeResult] = {}
+    for k, folder in enumerate(folders):
+        res = ResultsLog(folder / RESULTS_FILE).load()
+        if not res:
+            raise ConfigError(f"{folder}: no {RESULTS_FILE}")
+        pooled.update(res if len(folders) == 1 else {f"{k}:{eid}": r for eid, r in res.items()})
+    label = folders[0].name if len(folders) == 1 else f"{folders[0].name} ({len(folders)} sets)"
+    return label, pooled
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="paired bootstrap comparison of run folders (the first is the base)")
-    ap.add_argument("dirs", nargs="+", type=Path)
+    ap.add_argument("dirs", nargs="+", help="run folders; a run over several episode sets: folders joined by commas")
     ap.add_argument("--resamples", type=int, default=10_000)
     ap.add_argument("--level", type=float, default=0.95)
     ap.add_argument("--seed", type=int, default=0)
@@ -118,12 +135,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if len(a.dirs) < 2:
         ap.error("give at least two run folders")
+    specs = [[Path(p) for p in str(d).split(",") if p] for d in a.dirs]
+    if len({len(s) for s in specs}) != 1:
+        ap.error("every run needs as many folders (episode sets) as the first: "
+                 + " vs ".join(str(len(s)) for s in specs))
     runs = []
-    for d in a.dirs:
-        res = ResultsLog(d / RESULTS_FILE).load()
-        if not res:
-            ap.error(f"{d}: no {RESULTS_FILE}")
-        runs.append((d.name, res))
+    for folders in specs:
+        try:
+            runs.append(pooled_run(folders))
+        except ConfigError as exc:
+            ap.error(str(exc))
     md = comparison_markdown(runs, resamples=a.resamples, level=a.level, seed=a.seed)
     print(md)
     if a.out:

@@ -57,6 +57,22 @@ def test_cli_compares_run_folders(tmp_path, capsys):
     assert "+33.3" in (tmp_path / "t.md").read_text()
 
 
+def test_cli_pools_episode_sets_whose_ids_repeat(tmp_path, capsys):
+    # Two sets of three episodes with the same ids: pooled, six pairs (not three overwritten ones).
+    wins = {("a", 0): [True, False, False], ("b", 0): [True, True, False],
+            ("a", 1): [False, False, True], ("b", 1): [True, False, True]}
+    for (name, k), ws in wins.items():
+        log = ResultsLog(tmp_path / f"{name}{k}" / "results.jsonl")
+        log.path.parent.mkdir()
+        for i, w in enumerate(ws):
+            log.append(_res(str(i), w, float(w), 0.5))
+    runs = [f"{tmp_path / (name + '0')},{tmp_path / (name + '1')}" for name in "ab"]
+    assert main([*runs, "--resamples", "200"]) == 0
+    assert "| b0 (2 sets) | SR | 6 | 33.3 | 66.7 | +33.3 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):  # a run over one set cannot pair with a run over two
+        main([runs[0], str(tmp_path / "b0")])
+
+
 def test_a_chunked_preset_interleaves_its_variants_and_compares_them(world, gateway, episodes, tmp_path):
     from evaluation.presets import run_preset
     from evaluation.runner import RunConfig, SceneMapIndex
