@@ -107,3 +107,32 @@ def test_map_store_import_keeps_labels(tmp_path):
     assert info.has_labels and info.label_names == {3: "bed"}
     loaded = store.load("curated").cloud
     assert np.array_equal(np.sort(loaded.labels), np.sort(c.labels))
+
+
+def test_stratified_mesh_samples_leave_no_gap_that_random_ones_leave():
+    # A 1 m square wall of two triangles, 1000 samples: random samples clump and leave holes; the
+    # stratified ones keep every probe of the wall within ~1.4 mean spacings of a sample.
+    from scipy.spatial import cKDTree
+
+    from shared.cloud import sample_mesh
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    t = np.array([[0, 1, 2], [0, 2, 3]])
+    grid = np.stack(np.meshgrid(np.linspace(0, 1, 300), np.linspace(0, 1, 300)), -1).reshape(-1, 2)
+    probes = np.c_[grid, np.zeros(len(grid))]
+    gaps = {}
+    for stratified in (False, True):
+        largest = []
+        for seed in range(3):
+            pc = sample_mesh(v, t, np.full((4, 3), 0.5), n_points=1000, seed=seed, stratified=stratified)
+            assert len(pc) == 1000 and np.abs(pc.xyz[:, 2]).max() == 0.0
+            assert 0.0 <= pc.xyz[:, :2].min() and pc.xyz[:, :2].max() <= 1.0
+            largest.append(cKDTree(pc.xyz).query(probes)[0].max())
+        gaps[stratified] = max(largest)
+    spacing = 1.0 / np.sqrt(1000)  # 3.2 cm
+    assert gaps[True] < 1.4 * spacing < gaps[False]
+    # Area-uniform still: each triangle of a 3:1 split mesh gets its share, to the sample.
+    v2 = np.array([[0, 0, 0], [3, 0, 0], [3, 1, 0], [0, 1, 0], [4, 0, 0], [4, 1, 0]], float)
+    t2 = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]])
+    pc = sample_mesh(v2, t2, np.full((6, 3), 0.5), n_points=800, stratified=True)
+    assert (pc.xyz[:, 0] < 3).sum() == 600
