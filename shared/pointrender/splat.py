@@ -84,7 +84,7 @@ _OFFSETS = [(oy, ox) for oy in (-1, 0, 1) for ox in (-1, 0, 1)]
 
 # Voxel level of detail per mode when SplatConfig.lod_cell_px is None: the largest cell (px) a
 # block may be drawn at (see there).
-LOD_CELL_PX = {"visibility": 2.0, "paper": 1.0}
+LOD_CELL_PX = {"visibility": 2.5, "paper": 1.0}
 
 
 _Channel8 = Annotated[int, Field(ge=0, le=255)]
@@ -192,9 +192,15 @@ class SplatConfig(BackendConfig):
     # "subsample": the first points of each (shuffled) block, lod_points_per_px per pixel it can cover.
     lod: Literal["voxel", "subsample"] | None = "voxel"
     # None: the mode's own (LOD_CELL_PX). The visibility mode sizes each footprint by its level's
-    # spacing, so cells of 2 px cost it little (bench.anticipation, rgbd map, every band against
-    # 1 px: SSIM -0.005 at most, leak and holes equal, labels -0.2 points) for ~40 % fewer points
-    # and 0.86x the time per view; the paper's fixed 3x3 splat cannot close 2 px gaps, so it keeps 1 px.
+    # spacing, so coarse cells cost it little: 2 px against 1 px (bench.anticipation, rgbd map,
+    # every band): SSIM -0.005 at most, leak and holes equal, labels -0.2 points, for ~40 % fewer
+    # points and 0.86x the time per view. 2.5 px against 2 (--full, rgbd maps of generated:0, the
+    # 2-floor house and Replica, free poses and candidates): SSIM -0.011 at most, leak and holes
+    # equal, labels -0.7 at most (generated:0 free poses > 2 m: 96.0 -> 95.3 %, the closest any
+    # band comes to its target), for 0.70x the points and 0.91x the time per view on the 1e6 flat
+    # (paired, one process), which brings that view within the speed target (3x one pass over
+    # the cloud); 3 px: 0.88x, but SSIM -0.01 and labels -0.5 on the quick run already. The
+    # paper's fixed 3x3 splat cannot close 2 px gaps, so it keeps 1 px.
     lod_cell_px: float | None = Field(None, gt=0.0, le=8.0)
     # Level 1's cell, each further level doubling it; halved for a cloud denser than this many
     # times its median point spacing (:func:`lod.first_cell_m`). Agent-built maps (~3 cm apart) keep

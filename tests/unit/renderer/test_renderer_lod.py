@@ -109,14 +109,14 @@ def test_a_far_checker_renders_its_mean_colour_and_matches_every_point():
 
 
 def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
-    # The visibility mode's footprints follow each level's spacing, so it draws cells up to 2 px
+    # The visibility mode's footprints follow each level's spacing, so it draws cells up to 2.5 px
     # (LOD_CELL_PX); the paper's fixed 3x3 splat would show 2 px gaps as holes, so it keeps 1 px.
     from shared.pointrender.splat import LOD_CELL_PX
 
     wall = IndexedCloud(_wall(4.0, 4.0, 0.01))
     drawn = {mode: RENDERERS.create("numpy", {"mode": mode}).render(wall, _view(), CAM).visible_points[0]
              for mode in ("visibility", "paper")}
-    assert LOD_CELL_PX == {"visibility": 2.0, "paper": 1.0}
+    assert LOD_CELL_PX == {"visibility": 2.5, "paper": 1.0}
     assert drawn["visibility"] < 0.5 * drawn["paper"], drawn
     same = RENDERERS.create("numpy", {"mode": "visibility", "lod_cell_px": 1.0}).render(wall, _view(), CAM)
     assert same.visible_points[0] == drawn["paper"]
