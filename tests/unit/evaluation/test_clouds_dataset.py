@@ -37,7 +37,16 @@ def test_cloud_is_area_uniform_on_the_surface_with_labels_and_colours():
     assert np.bincount(q, minlength=4) / len(f) == pytest.approx([0.25] * 4, abs=0.03)
     assert (cloud.rgb == [204, 51, 26]).all()
     assert np.array_equal(sample_scene_cloud(scene, density_per_m2=400.0, seed=3).xyz, cloud.xyz)
-    assert len(sample_scene_cloud(scene, density_per_m2=400.0, max_points=1000)) == 1000
+    capped = sample_scene_cloud(scene, density_per_m2=400.0, max_points=1000)
+    assert len(capped) == 1000
+    # ... and still evenly spread (sampled again at the capped density, not thinned at random, which
+    # left floor gaps of 1.4-2.4 spacings): no point of the floor farther than 1.3 spacings from one.
+    from scipy.spatial import cKDTree
+
+    floor_xyz = capped.xyz[np.isclose(capped.xyz[:, 2], 0, atol=1e-5)].astype(np.float64)
+    probes = np.stack(np.meshgrid(np.linspace(0, 4, 200), np.linspace(0, 3, 150)), -1).reshape(-1, 2)
+    gap = cKDTree(floor_xyz).query(np.c_[probes, np.zeros(len(probes))])[0].max()
+    assert gap < 1.3 * np.sqrt(12.0 / len(floor_xyz)), gap
 
 
 def test_ply_reads_back_with_open3d_and_keeps_labels(tmp_path):
