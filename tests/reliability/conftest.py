@@ -121,7 +121,24 @@ def live_gateway(live, tmp_path):
 
     @contextmanager
     def make(**overrides):
+        from shared import keys
+        from shared.bus.typed import RemoteError
+        from shared.schemas import MapInfo, MapRequest
+        from tests.reliability.live import LIVE_MAP
+
         with TestClient(create_app(gateway_settings(live, tmp_path, **overrides))) as client:
+            # A zenoh session just opened may answer a query "nobody serves it" at once, before the
+            # router has told it of the queryables: wait until the gateway's own session reaches the
+            # map store, as the process system's fixture waits for GET /maps.
+            def reaches_map() -> bool:
+                try:
+                    client.app.state.bus.request(keys.MAP_INFO.format(map=LIVE_MAP), MapRequest(map_id=LIVE_MAP),
+                                                 MapInfo, timeout_s=2.0)
+                    return True
+                except RemoteError:
+                    return False
+
+            wait_until(reaches_map, 20, "the gateway's session reaches the map store")
             yield client
 
     return make
