@@ -26,6 +26,7 @@ COPY requirements.lock pyproject.toml ./
 RUN pip install --extra-index-url "${TORCH_INDEX_URL}" -r requirements.lock
 
 COPY shared ./shared
+COPY libs ./libs
 COPY services ./services
 COPY deploy ./deploy
 COPY evaluation ./evaluation

@@ -39,7 +39,7 @@ from contextlib import closing
 from pathlib import Path
 from typing import Any
 
-from bench.anticipation import ROWS, build_map
+from bench.agent_maps import ROWS, build_map
 from evaluation.compare import compare_runs, comparison_markdown
 from evaluation.dataset import SetSpec, generate_set, parse_floors
 from evaluation.presets import Variant, presets
@@ -49,7 +49,7 @@ from services.mapper.core import PREDICTORS
 from services.planner.core.local import LocalStack, episode_options
 from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import MissionOptions
 
 log = logging.getLogger(__name__)

@@ -60,17 +60,18 @@ from skimage.metrics import structural_similarity
 
 from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera, camera_pose
-from shared.pointrender import RENDERERS, IndexedCloud, SplatConfig
+from libs.pointrender import RENDERERS, IndexedCloud, SplatConfig
 from shared.schemas import CameraIntrinsics
+
+from bench.agent_maps import MAPS, NOISE, NOISY, ROWS, build_map, candidate_poses, drift_line, free_poses  # noqa: F401
 
 # The colour the renderer draws a surface's unseen side in (SplatConfig.unseen_side_rgb's default).
 UNSEEN_RGB = np.array(SplatConfig.model_fields["unseen_side_rgb"].default, np.int16)
 ROOT = Path(__file__).resolve().parents[1]
-MAPS = ROOT / "runs" / "anticipation" / "maps"
 DATA = ROOT.parent / "shared" / "data"
 BANDS = (("< 1 m", 0.0, 1.0), ("1-2 m", 1.0, 2.0), ("> 2 m", 2.0, math.inf))
 LEAK_M = 0.25
-# The far face of a wall between rooms lies 10 cm behind its near face (services/robot_io/core/house.py
+# The far face of a wall between rooms lies 10 cm behind its near face (libs/world/house.py
 # WALL_T, 5 cm per room): half of that, well above the maps' depth noise (~1 cm).
 LEAK_NEAR_M = 0.05
 # A ray-cast pixel is "mapped" when its surface point has a map point this close: the rest of the
@@ -79,24 +80,6 @@ LEAK_NEAR_M = 0.05
 # from the nearest point (the 6 cm used before) lies beyond what any point of the map stands for,
 # so the old threshold counted a strip round every unseen patch as holes of the renderer.
 MAPPED_M = 0.03
-# Sensor noise of the robot that builds a map, by name: "noisy" is the reality gap of the robot's
-# sensors (depth noise and holes, odometry and heading drift); "depth-noise" its depth camera alone
-# (poses exact), which tells what the depth costs from what the drift costs.
-NOISY = {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05, "odometry_drift_per_m": 0.01,
-         "heading_drift_per_rad": 0.005}
-NOISE = {"noisy": NOISY, "depth-noise": {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05}}
-
-
-# The maps of the table: name -> (scene, reconstructor backend or "curated", sensor noise or None).
-ROWS = {
-    "rgbd": ("generated:0", "rgbd", None),
-    "noisy": ("generated:0", "rgbd", "noisy"),
-    "depth-noise": ("generated:0", "rgbd", "depth-noise"),
-    "mono-sim": ("generated:0", "mono-sim", None),
-    "curated": ("generated:0", "curated", None),
-    "floors2": ("generated:1:floors=2", "rgbd", None),
-    "replica": ("", "rgbd", None),  # Replica office0 from ../shared/data, when present
-}
 
 
 @dataclass
@@ -110,140 +93,6 @@ class Scores:
     label: list[float] = field(default_factory=list)
     shown_near: list[float] = field(default_factory=list)
     unseen: list[float] = field(default_factory=list)
-
-
-def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0):
-    """(robot, cloud): the simulator of ``spec`` and the map the system builds of it (cached).
-
-    ``size_px`` and ``rate_hz`` are the mapper service's defaults (tour_frame_px, tour_rate_hz)."""
-    from services.robot_io.core.robot import ROBOTS
-
-    cam = CameraIntrinsics(width_px=size_px, height_px=size_px)
-    robot_cfg = {"scene": spec, "camera": cam}
-    if noise:
-        robot_cfg["noise"] = NOISE[noise]
-    path, profile = _map_path(spec, backend, noise, size_px)
-    name = path.name
-    robot = ROBOTS.create("sim", robot_cfg)
-    if backend == "curated":
-        from evaluation.clouds import sample_scene_cloud
-
-        return robot, sample_scene_cloud(robot.scene)
-    if path.exists():
-        cached = PointCloud.load(path)
-        if cached.view_dirs is not None:
-            return robot, cached
-        # Built before maps recorded where their points were seen from: what the renderer now reads.
-        print(f"   {name} has no view directions: rebuilding it")
-    from services.mapper.core import discover, discovery_config, execute_tours
-    from services.reconstructor.core import ReconstructionConfig, Reconstructor
-
-    t0 = time.perf_counter()
-    truth = _recording_truth(robot) if noise else {}
-    d = discover(robot, discovery_config(profile))
-    recs = execute_tours(robot, d.tours, d.scene, rate_hz=rate_hz)
-    with Reconstructor(ReconstructionConfig(backend=backend)) as r:
-        cloud = r.build_from_recordings(recs, robot.scene.label_names).cloud
-    MAPS.mkdir(parents=True, exist_ok=True)
-    cloud.save(path)
-    if noise:
-        _drift_path(path).write_text(json.dumps(_tour_start_drift(recs, truth)))
-    print(f"   built {name}: {len(cloud)} points in {time.perf_counter() - t0:.0f} s")
-    # A fresh simulator for what is scored: a noisy robot's depth draws continue its generator, so
-    # the candidates proposed from the built-with robot differed from a cached map's run.
-    robot.close()
-    return ROBOTS.create("sim", robot_cfg), cloud
-
-
-def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128) -> tuple[Path, str]:
-    """(the cached map's path, the exploration profile it is built with)."""
-    from services.robot_io.core.scene import is_generated_spec
-
-    # A scanned mesh (Replica) is explored with the profile for cluttered real scans, as a user of a scan
-    # asks for it (``options.profile`` of an exploration); a generated house with the default.
-    profile = "default" if is_generated_spec(spec) else "cluttered-scan"
-    tag = "" if profile == "default" else f"_{profile}"
-    # A mesh file's map is named after its folder and file, not its absolute path (which would put
-    # the cache beside the mesh, inside the team's reference data).
-    stem = f"{Path(spec).parent.name}_{Path(spec).stem}" if not is_generated_spec(spec) else spec
-    name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{f'_{noise}' if noise else ''}{tag}_{size_px}.ply"
-    return MAPS / name, profile
-
-
-def _recording_truth(robot) -> dict[int, tuple]:
-    """Frame index -> (true pose, the pose the frame reports), filled as the simulator renders frames."""
-    truth: dict[int, tuple] = {}
-    render = robot.render_frame
-
-    def recorded(*a, **kw):
-        frame = render(*a, **kw)
-        truth[frame.index] = (robot.true_pose, frame.pose)
-        return frame
-
-    robot.render_frame = recorded
-    return truth
-
-
-def _tour_start_drift(recs, truth: dict[int, tuple]) -> dict[str, list[float]]:
-    """How far each tour's first frame's odometry is from the truth: the error the exploration left
-    (a tour adds only centimetres), which no renderer can undo."""
-    pos, head = [], []
-    for rec in recs:
-        if rec.frames and rec.frames[0].index in truth:
-            true, odo = truth[rec.frames[0].index]
-            pos.append(float(np.hypot(*np.subtract(true.position_m[:2], odo.position_m[:2]))))
-            head.append(abs(math.degrees(math.remainder(true.heading_rad - odo.heading_rad, 2 * math.pi))))
-    return {"position_m": pos, "heading_deg": head}
-
-
-def _drift_path(map_path: Path) -> Path:
-    return map_path.with_suffix(".drift.json")
-
-
-def drift_line(spec: str, backend: str, noise: str | None) -> str | None:
-    """The noisy robot's odometry error at its tours' start, as measured when its map was built."""
-    path = _drift_path(_map_path(spec, backend, noise)[0])
-    if not noise or not path.exists():
-        return None
-    d = json.loads(path.read_text())
-    pos, head = d["position_m"], d["heading_deg"]
-    if not pos:
-        return None
-    if max(pos) < 1e-6 and max(head) < 1e-6:
-        return f"odometry exact at the {len(pos)} tours' start"
-    return (f"odometry error at the {len(pos)} tours' start (true pose vs the frames' pose): position "
-            f"{min(pos):.2f}-{max(pos):.2f} m, heading {min(head):.1f}-{max(head):.1f} deg; the map carries it, "
-            "and no renderer can undo it")
-
-
-def free_poses(robot, n: int, seed: int) -> list[np.ndarray]:
-    """Camera poses at random navigable floor points, random headings, level."""
-    rng = np.random.default_rng(seed)
-    pts = robot.nav.sample_navigable(rng, n)
-    heads = rng.uniform(-math.pi, math.pi, len(pts))
-    return [camera_pose(p, float(h), 0.0, robot.config.camera_height_m) for p, h in zip(pts, heads)]
-
-
-def candidate_poses(robot, index: IndexedCloud, n_agents: int, seed: int) -> list[np.ndarray]:
-    """Camera poses at the candidates the waypoint predictor really proposes from random agent
-    poses, facing away from the agent, at the candidate's own floor (as the renderer places it)."""
-    from services.mapper.core import DEFAULT_PREDICTOR, PREDICTORS
-    from services.renderer.core import MapRenderer, SpatialMapper
-    from shared.schemas import Pose, ViewPose
-
-    predictor = PREDICTORS.create(DEFAULT_PREDICTOR)
-    port = MapRenderer(index, None, SpatialMapper())
-    rng = np.random.default_rng(seed)
-    poses = []
-    for p in robot.nav.sample_navigable(rng, n_agents):
-        robot.reset(Pose(position_m=tuple(float(v) for v in p), heading_rad=float(rng.uniform(-math.pi, math.pi))))
-        pano = robot.observe(CameraIntrinsics(width_px=96, height_px=96), with_semantic=False)
-        a = pano.pose.position_m
-        views = [ViewPose(position_m=(a[0] + c.dx_m, a[1] + c.dy_m, a[2]), heading_rad=math.atan2(c.dy_m, c.dx_m))
-                 for c in predictor.predict(pano)]
-        for v in port.on_floor(views, 1.5):
-            poses.append(camera_pose(v.position_m, v.heading_rad, 0.0, robot.config.camera_height_m))
-    return poses
 
 
 def depth_ahead(depth: np.ndarray) -> float:
@@ -422,11 +271,11 @@ def speed(modes: list[str], n_points: int, reps: int) -> None:
               f"render {1e3 * first_s:.0f} ms)")
     # The same on the real data path: the two-floor house's agent-built map (~1e6 points, 3 cm apart,
     # not the flat's uniform 1.2 cm) at the candidates the planner really renders (bench.perception).
-    import shared.pointrender as lib
-    from bench.perception import _agent_map
+    import libs.pointrender as lib
+    from bench.agent_maps import agent_map
     from bench.perception import run as perception_run
 
-    spec, cloud, steps = _agent_map("floors2", 16, seed=8)
+    spec, cloud, steps = agent_map("floors2", 16, seed=8)
     perception_run(f"{spec} rgbd map, the planner's candidate poses", cloud, steps, {m: lib for m in modes},
                    reps, {m: {"mode": m} for m in modes})
 

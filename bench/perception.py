@@ -1,7 +1,7 @@
 """Global perception per step (issues 20 and 21): the spatial map plus six anticipated views
 (256x256, HFOV 90, visibility mode), on agent-built maps at the planner's real candidate poses and
 on mesh-sampled buildings at room centres; wall and CPU time, points drawn, the one-pass floor,
-and optionally the same steps rendered by another git revision of shared/pointrender in the same
+and optionally the same steps rendered by another git revision of libs/pointrender in the same
 process (same machine load for both: compare their ratio, not either figure alone).
 
     python -m bench.perception                                  # generated:0 rgbd map (~1 min)
@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.agent_maps import agent_map
 from bench.renderer import _floor_ms, perception_step
 from shared.geometry import PinholeCamera, camera_pose, rot_z
 from shared.schemas import Candidate, Pose
@@ -43,16 +44,16 @@ CAMERA_HEIGHT_M = 1.25
 
 
 def pointrender_at(rev: str):
-    """shared.pointrender as it was at git revision ``rev``, imported under another name so that
+    """libs.pointrender as it was at git revision ``rev``, imported under another name so that
     both versions live in one process (its own absolute imports renamed to match)."""
     sha = subprocess.check_output(["git", "rev-parse", "--short", rev], cwd=ROOT, text=True).strip()
     name = f"pointrender_{sha}"
     base = Path(tempfile.gettempdir()) / "bench-perception"
     if not (base / name).exists():
         tmp = Path(tempfile.mkdtemp(dir=base.parent))
-        subprocess.run(f"git archive {sha} shared/pointrender | tar -x -C {tmp}", shell=True, check=True, cwd=ROOT)
+        subprocess.run(f"git archive {sha} libs/pointrender | tar -x -C {tmp}", shell=True, check=True, cwd=ROOT)
         for f in (tmp / "shared" / "pointrender").glob("*.py"):
-            f.write_text(f.read_text().replace("shared.pointrender", name))
+            f.write_text(f.read_text().replace("libs.pointrender", name))
         base.mkdir(exist_ok=True)
         shutil.move(str(tmp / "shared" / "pointrender"), str(base / name))
         shutil.rmtree(tmp)
@@ -61,22 +62,11 @@ def pointrender_at(rev: str):
     return importlib.import_module(name)
 
 
-def _agent_map(row: str, n_agents: int, seed: int):
-    """(scene, cloud, steps) of an agent-built map of bench.anticipation: steps of six candidate poses."""
-    from bench.anticipation import ROWS, build_map, candidate_poses
-    from shared.pointrender import IndexedCloud
-
-    spec, backend, noise = ROWS[row]
-    robot, cloud = build_map(spec, backend, noise)
-    poses = candidate_poses(robot, IndexedCloud(cloud), n_agents, seed)
-    return spec, cloud, [poses[i : i + 6] for i in range(0, len(poses) - 5, 6)]
-
-
 def _sampled_building(spec: str, points_per_m2: float):
     """(cloud, steps) of a building's mesh sampled at ``points_per_m2``: six views 1 m from the
     centre of each of up to eight rooms (spread over the floors), facing outwards (as bench.renderer --scale)."""
     from services.renderer.tools import scenes
-    from services.robot_io.core.scene import load_scene
+    from libs.world.scene import load_scene
     from shared.cloud import PointCloud
 
     sc = load_scene(spec)
@@ -112,7 +102,7 @@ def _map_request(step: list[np.ndarray]):
 
 
 def run(name: str, cloud, steps, libs: dict, reps: int, configs: dict | None = None) -> None:
-    """Time the steps with each renderer of ``libs`` (label -> a shared.pointrender module), each
+    """Time the steps with each renderer of ``libs`` (label -> a libs.pointrender module), each
     configured by ``configs[label]`` (default: the visibility mode), interleaved step by step."""
     from services.renderer.core import SpatialMapper
 
@@ -178,15 +168,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--points-per-m2", type=float, default=400.0, help="--scenes: sampling density")
     ap.add_argument("--agents", type=int, default=16, help="agent poses whose candidates make the steps of a map")
     ap.add_argument("--reps", type=int, default=3)
-    ap.add_argument("--against", default=None, metavar="REV", help="also time shared/pointrender at this git revision")
+    ap.add_argument("--against", default=None, metavar="REV", help="also time libs/pointrender at this git revision")
     args = ap.parse_args(argv)
-    import shared.pointrender as current
+    import libs.pointrender as current
 
     libs = {"working tree": current}
     if args.against:
         libs = {f"at {args.against}": pointrender_at(args.against), **libs}
     for row in args.maps:
-        spec, cloud, steps = _agent_map(row, args.agents, seed=8)
+        spec, cloud, steps = agent_map(row, args.agents, seed=8)
         run(f"{spec} {row} map, candidate poses", cloud, steps, libs, args.reps)
     for spec in args.scenes:
         cloud, steps = _sampled_building(spec, args.points_per_m2)

@@ -17,8 +17,9 @@ from evaluation.clouds import sample_scene_cloud
 from services.mapper.core import PREDICTORS
 from services.planner.core.local import LocalStack, episode_options
 from services.renderer.core import MapRenderer, SpatialMapper
-from services.robot_io.core import ROBOTS, generate_episodes
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.world import generate_episodes
+from services.robot_io.core import ROBOTS
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.vln_metrics import summarize
 
 

@@ -143,7 +143,7 @@ def replica(size_px: int, frames: int, region_frames: int, seeds: list[int]) -> 
     if not root.is_dir():
         return None
     from services.robot_io.core.render import SceneRenderer
-    from services.robot_io.core.scene import load_scene
+    from libs.world.scene import load_scene
 
     scene = load_scene(str(root / "office0_mesh.ply"))
     renderer = SceneRenderer(scene)

@@ -31,7 +31,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from services.renderer.core import SpatialMapper
 from services.renderer.tools import scenes
 from shared.geometry import PinholeCamera, camera_pose, rot_z
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import Candidate, Pose, ViewPose
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -213,7 +213,7 @@ def _scale_row(name: str, cloud, rooms, renderer, reps: int) -> dict:
 
 
 def scale(backend: str, specs: list[str], points_per_m2: float, clouds: list[str], reps: int) -> list[dict]:
-    from services.robot_io.core.scene import load_scene
+    from libs.world.scene import load_scene
     from shared.cloud import PointCloud
 
     renderer = RENDERERS.create(backend)

@@ -20,7 +20,7 @@ import numpy as np
 import open3d as o3d
 
 from bench.common import table
-from services.robot_io.core.scene import load_scene
+from libs.world.scene import load_scene
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ASSETS = ["habitat_test_assets/simple_room.glb", "habitat_test_assets/stage_floor1.glb", "habitat_test_assets/chair.glb",

@@ -35,7 +35,8 @@ def say(msg: str) -> None:
 
 def make_episode(scene: str, seed: int):
     """A generated R2R-style episode in the scene robot-io simulates (same generator, same seed)."""
-    from services.robot_io.core import ROBOTS, generate_episodes
+    from libs.world import generate_episodes
+    from services.robot_io.core import ROBOTS
 
     with ROBOTS.create("sim", {"scene": scene}) as robot:
         return generate_episodes(robot.scene, robot.nav, 1, seed=seed).episodes[0]

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from deploy.credentials import ensure_credentials
 from deploy.zenoh.acl import Ros2Side
-from services.robot_io.core.ros2.profiles import STANDIN_OVERRIDES
+from libs.ros2.profiles import STANDIN_OVERRIDES
 from shared import keys
 from shared.bus.config import ZenohSettings
 from shared.bus.zenoh_bus import ZenohBus

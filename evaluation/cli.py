@@ -173,7 +173,7 @@ def _run_config(a: argparse.Namespace) -> RunConfig:
 
 def load_episodes(a: argparse.Namespace):
     from evaluation.dataset import gt_path_for
-    from services.robot_io.core import read_episodes, read_ground_truth
+    from libs.world import read_episodes, read_ground_truth
 
     ds = read_episodes(a.episodes)
     if getattr(a, "subset", None):
@@ -319,7 +319,7 @@ def cmd_subset(a: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from evaluation.dataset import SUBSET_PRESETS, SubsetRule, episode_language, make_subset
-    from services.robot_io.core import read_episodes
+    from libs.world import read_episodes
 
     if a.preset and a.preset not in SUBSET_PRESETS:
         raise ConfigError(f"unknown subset preset {a.preset!r}; known: {', '.join(SUBSET_PRESETS)}")

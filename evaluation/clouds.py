@@ -83,7 +83,7 @@ def sample_scene_cloud(scene, *, density_per_m2: float = CURATED_DENSITY_PER_M2,
 def walkable_viewpoints(scene, eye_heights_m=(0.6, 1.25), grid_m: float = 0.5) -> np.ndarray:
     """(M, 3) eye positions over the scene's walkable floor: one node per ``grid_m`` cell and floor
     level (the navigation grid's nodes), raised by each eye height."""
-    from services.robot_io.core.navgrid import NavGrid
+    from libs.world.navgrid import NavGrid
 
     nodes = np.asarray(NavGrid(scene).nodes_m, np.float64)
     if len(nodes) == 0:

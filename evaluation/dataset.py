@@ -20,12 +20,10 @@ from pathlib import Path
 from typing import Any
 
 from evaluation.errors import ConfigError
-from services.robot_io.core import (
-    EpisodeDataset, GroundTruth, SimConfig, SimRobot, generate_episodes, ground_truth_for, write_episodes,
-    write_ground_truth,
-)
-from services.robot_io.core.episodes import build_vocab, tokens_for
-from services.robot_io.core.house import HouseSpec
+from libs.world import EpisodeDataset, GroundTruth, generate_episodes, ground_truth_for, write_episodes, write_ground_truth
+from services.robot_io.core import SimConfig, SimRobot
+from libs.world.episodes import build_vocab, tokens_for
+from libs.world.house import HouseSpec
 
 log = logging.getLogger(__name__)
 
@@ -352,7 +350,7 @@ class Subset:
 
 def make_subset(path: Path | str, rule: SubsetRule, name: str | None = None) -> Subset:
     """Draw a subset from an episode file (R2R-CE / RxR-CE ``.json.gz``)."""
-    from services.robot_io.core import read_episodes
+    from libs.world import read_episodes
 
     path = Path(path)
     eps = read_episodes(path).episodes

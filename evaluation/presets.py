@@ -24,7 +24,7 @@ from evaluation.errors import ConfigError
 from evaluation.gateway_client import GatewayClient
 from evaluation.results import COLUMNS, write_tables
 from evaluation.runner import EvalRunner, Lane, SceneMapIndex, RunConfig, RunReport, SceneLoader
-from services.robot_io.core import Episode, GroundTruth
+from libs.world import Episode, GroundTruth
 
 log = logging.getLogger(__name__)
 

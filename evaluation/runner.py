@@ -44,8 +44,8 @@ from evaluation.gateway_client import TERMINAL_STATES, GatewayClient
 from evaluation.ledger import Budget, Spent, ledger_markdown, stage_totals, step_ledger
 from shared.vln_metrics import MetricsError
 from evaluation.results import EpisodeResult, ResultsLog, metrics_from_dict, skipped_report, summary_row, write_tables
-from services.robot_io.core import Episode, GroundTruth, SceneNotFoundError
-from services.robot_io.core.scene import is_generated_spec
+from libs.world import Episode, GroundTruth, SceneNotFoundError
+from libs.world.scene import is_generated_spec
 from shared.schemas import MissionFinished, MissionOptions, SceneSummary, UsageData
 
 log = logging.getLogger(__name__)
@@ -551,7 +551,7 @@ class EvalRunner:
         cfg = self.config
         builder = self.scene_builder
         if builder is None:
-            from services.robot_io.core import load_scene as builder
+            from libs.world import load_scene as builder
         try:
             scene = builder(spec, cfg.scenes_dir)
         except Exception as exc:  # noqa: BLE001

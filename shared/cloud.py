@@ -211,7 +211,7 @@ def sample_mesh(vertices: np.ndarray, triangles: np.ndarray, vertex_colors: np.n
     Args:
         vertices: (V, 3) positions; triangles: (T, 3) vertex indices; vertex_colors: (V, 3) in [0, 1].
         triangle_labels: (T,) label per triangle (-1: unknown); None: the cloud has no labels.
-        texture: optional ``services.robot_io.core.scene.Texture`` (per-triangle material and UVs).
+        texture: optional ``libs.world.scene.Texture`` (per-triangle material and UVs).
     """
     v = np.asarray(vertices, np.float64)
     t = np.asarray(triangles, np.int64)

@@ -20,7 +20,7 @@ import numpy as np
 from services.reconstructor.core import MapStore, ReconstructionConfig, Reconstructor
 from services.renderer.core import SpatialMapper
 from shared.geometry import PinholeCamera
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CameraIntrinsics, Pose
 
 

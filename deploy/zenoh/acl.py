@@ -33,8 +33,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from services.robot_io.core.ros2.keys import LIVELINESS_PREFIX, BridgeKeys, KeyStyleName, fully_qualified
-from services.robot_io.core.ros2.profiles import PROFILES, STANDIN_OVERRIDES, Ros2Profile, profile
+from libs.ros2.keys import LIVELINESS_PREFIX, BridgeKeys, KeyStyleName, fully_qualified
+from libs.ros2.profiles import PROFILES, STANDIN_OVERRIDES, Ros2Profile, profile
 from shared import keys
 
 SERVICES = ("robot_io", "mapper", "reconstructor", "renderer", "planner", "gateway")

@@ -22,7 +22,7 @@ from shared import keys
 from shared.bus.typed import NotFound, RemoteError
 from shared.clients import MapClient
 from shared.cloud import PointCloud
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
     ErrorCode,

@@ -14,7 +14,7 @@ import zenoh
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from services.robot_io.core.ros2.transport import (
+from libs.ros2.transport import (
     TRANSPORTS, QueryHandler, Ros2Transport, SampleHandler, TransportConfig, TransportError,
 )
 from shared.bus.base import Dispatcher, Overloaded

@@ -19,8 +19,9 @@ import numpy as np
 from pydantic import Field
 
 from services.robot_io import ros2_zenoh  # noqa: F401  (registers the zenoh transport of the ros2 backend)
-from services.robot_io.core import ROBOTS, Robot, RobotIOError, SceneError, SceneNotFoundError
-from services.robot_io.core.scene import is_generated_spec
+from libs.world import SceneError, SceneNotFoundError
+from services.robot_io.core import REFUSALS, ROBOTS, Robot
+from libs.world.scene import is_generated_spec
 from shared.bus.typed import NotFound
 from shared import keys
 from shared.runner import Node, Service, ServiceSettings
@@ -130,7 +131,7 @@ class RobotIoService(Service[RobotIoSettings]):
         with self._lock:
             try:
                 return self.robot.scene_views(req.views, req.camera, with_semantic=req.with_semantic)
-            except RobotIOError as exc:  # a real robot: a refused request, the service keeps serving
+            except REFUSALS as exc:  # a real robot: a refused request, the service keeps serving
                 raise ValueError(str(exc)) from None
 
     def move_to(self, req: MoveRequest) -> MoveResult:

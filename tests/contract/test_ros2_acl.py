@@ -12,8 +12,8 @@ import threading
 import pytest
 
 from deploy.zenoh import acl
-from services.robot_io.core.ros2 import messages as m
-from services.robot_io.core.ros2.keys import EntityKind, Qos, RmwZenohKeys
+from libs.ros2 import messages as m
+from libs.ros2.keys import EntityKind, Qos, RmwZenohKeys
 from shared import keys
 from shared.bus.zenoh_bus import ZenohBus
 from tests.contract.conftest import authenticated_router, wait_until

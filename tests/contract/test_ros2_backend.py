@@ -19,14 +19,14 @@ import numpy as np
 import pytest
 
 from deploy.launcher import free_port
-from services.robot_io.core.ros2 import messages as msgs
+from libs.ros2 import messages as msgs
 from services.robot_io.core.ros2.backend import (
     DeadlineExceededError, ResetUnsupportedError, Ros2Config, Ros2Error, Ros2Robot, RobotUnavailableError,
     RunStoppedError, StaleDataError,
 )
-from services.robot_io.core.ros2.keys import key_style
-from services.robot_io.core.ros2.node import Ros2Node
-from services.robot_io.core.ros2.profiles import profile
+from libs.ros2.keys import key_style
+from libs.ros2.node import Ros2Node
+from libs.ros2.profiles import profile
 from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot
 from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig
 from shared.bus.config import ZenohSettings

@@ -13,7 +13,7 @@ import threading
 
 import pytest
 
-from services.robot_io.core.ros2.profiles import profile
+from libs.ros2.profiles import profile
 from shared.bus.config import ZenohSettings
 from shared.bus.typed import TypedBus
 from shared.bus.zenoh_bus import ZenohBus

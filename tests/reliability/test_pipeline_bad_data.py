@@ -82,7 +82,7 @@ def test_empty_tiny_or_broken_cloud_import_is_refused_and_stores_nothing(tmp_pat
 
 def _quads_scene(name: str, quads: list, consistent_winding: bool = False):
     """A scene of flat quads (4 corners each, wound as given)."""
-    from services.robot_io.core import Scene
+    from libs.world import Scene
 
     v = np.asarray(quads, np.float64).reshape(-1, 3)
     t = np.array([[b, b + 1, b + 2] for b in range(0, len(v), 4)] + [[b, b + 2, b + 3] for b in range(0, len(v), 4)],
@@ -110,7 +110,8 @@ NO_WALKABLE = {
 
 @pytest.mark.parametrize("make", NO_WALKABLE.values(), ids=NO_WALKABLE)
 def test_scene_without_walkable_area_is_refused_with_a_typed_error(make):
-    from services.robot_io.core import NavigationError, SceneError, SimConfig, SimRobot
+    from libs.world import NavigationError, SceneError
+    from services.robot_io.core import SimConfig, SimRobot
 
     with pytest.raises(SceneError) as info:
         SimRobot(SimConfig(camera=_SMALL_CAM), scene=make())
@@ -181,7 +182,7 @@ def _tiny_cloud(n: int, z_m: float = 3.0):
 def test_tiny_cloud_renders_holes_and_an_unknown_map(backend, n):
     from services.renderer.core import MapRenderer, SpatialMapper
     from services.renderer.core.spatial_map import _COLOURS, UNKNOWN
-    from shared.pointrender import RENDERERS, IndexedCloud
+    from libs.pointrender import RENDERERS, IndexedCloud
     from shared.schemas import CameraIntrinsics, Candidate, CandidateKind, ViewPose
 
     index = IndexedCloud(_tiny_cloud(n))
@@ -205,7 +206,7 @@ def test_tiny_cloud_renders_holes_and_an_unknown_map(backend, n):
 
 def test_empty_cloud_is_a_typed_error_that_is_also_a_value_error():
     from shared.cloud import EmptyCloudError, PointCloud
-    from shared.pointrender import IndexedCloud
+    from libs.pointrender import IndexedCloud
     from shared.schemas import MapChunk
 
     with pytest.raises(EmptyCloudError):

@@ -2,7 +2,11 @@
 
 - a service never imports another service: what crosses a boundary lives in ``shared/``;
 - ``shared/`` never imports a service (it is the library every service stands on);
-- core logic never imports zenoh: only a service's bus adapter and ``shared/bus`` / the runner do.
+- core logic never imports zenoh: only a service's bus adapter and ``shared/bus`` / the runner do;
+- ``libs/`` (pure libraries) import nothing of ours but ``shared/`` (and each other's own package);
+- a service never imports ``bench``, ``evaluation``, ``deploy`` or ``tools`` (they stand on services, not
+  the other way round);
+- no import cycle anywhere in the tree (module to module, through any package).
 """
 
 from __future__ import annotations
@@ -62,7 +66,7 @@ def test_shared_never_imports_a_service():
 
 
 def test_core_logic_never_imports_zenoh():
-    cores = [p for s in SERVICES for p in _py(f"services/{s}/core")] + _py("shared/pointrender")
+    cores = [p for s in SERVICES for p in _py(f"services/{s}/core")] + _py("libs/pointrender")
     assert cores
     found = [f"{p.relative_to(ROOT)}:{line} imports {name}" for p in cores
              for line, name in _imports(p) if name == "zenoh" or name.startswith("zenoh.")]
@@ -73,4 +77,132 @@ def test_the_check_reads_relative_and_absolute_imports():
     """The reader resolves relative and absolute imports (a wall check that sees nothing is no check)."""
     probe = ROOT / "services" / "renderer" / "core" / "port.py"
     names = {n for _, n in _imports(probe)}
-    assert "shared.pointrender.splat" in names and "services.renderer.core.errors" in names
+    assert "libs.pointrender.splat" in names and "services.renderer.core.errors" in names
+
+
+OURS = ("shared", "libs", "services", "bench", "evaluation", "deploy", "tools", "tests")
+LIBS = sorted(p.name for p in (ROOT / "libs").iterdir() if (p / "__init__.py").exists())
+
+
+def test_the_walk_sees_every_library():
+    assert {"pointrender", "world", "ros2"} <= set(LIBS)
+
+
+@pytest.mark.parametrize("lib", LIBS)
+def test_a_library_imports_only_shared_and_itself(lib):
+    found = [f"{p.relative_to(ROOT)}:{line} imports {name}" for p in _py(f"libs/{lib}")
+             for line, name in _imports(p)
+             if name.split(".")[0] in OURS and not (name == "shared" or name.startswith("shared.")
+                                                     or name == f"libs.{lib}" or name.startswith(f"libs.{lib}."))]
+    assert not found, "a library stands on shared/ alone:\n" + "\n".join(found)
+
+
+def test_shared_never_imports_a_library_or_a_tool():
+    found = [f"{p.relative_to(ROOT)}:{line} imports {name}" for p in _py("shared")
+             for line, name in _imports(p) if name.split(".")[0] in ("libs", "bench", "evaluation", "deploy", "tools")]
+    assert not found, "\n".join(found)
+
+
+@pytest.mark.parametrize("service", SERVICES)
+def test_a_service_never_imports_bench_evaluation_deploy_or_tools(service):
+    found = [f"{p.relative_to(ROOT)}:{line} imports {name}" for p in _py(f"services/{service}")
+             for line, name in _imports(p) if name.split(".")[0] in ("bench", "evaluation", "deploy", "tools")]
+    assert not found, "services stand below the tools that drive them:\n" + "\n".join(found)
+
+
+def _module_of(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph(tops: tuple[str, ...] = OURS) -> dict[str, set[str]]:
+    """Module -> the modules of ours it imports, at any depth of the file (a deferred import inside a
+    function still ties the two). ``from pkg import name`` points at ``pkg.name`` where that is a
+    module, else at ``pkg`` (its ``__init__``)."""
+    files = [p for top in tops if (ROOT / top).is_dir() for p in _py(top)]
+    modules = {_module_of(p): p for p in files}
+    graph: dict[str, set[str]] = {}
+    for mod, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+        out: set[str] = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                out.update(a.name for a in node.names if a.name in modules)
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    parts = package.split(".")
+                    base = parts[: len(parts) - node.level + 1]
+                    name = ".".join((*base, node.module) if node.module else base)
+                else:
+                    name = node.module or ""
+                for a in node.names:
+                    if f"{name}.{a.name}" in modules:
+                        out.add(f"{name}.{a.name}")
+                    elif name in modules:
+                        out.add(name)
+        out.discard(mod)
+        graph[mod] = out
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+    counter = 0
+    for root in sorted(graph):
+        if root in index:
+            continue
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on.add(root)
+        work = [(root, iter(sorted(graph[root])))]
+        while work:
+            node, children = work[-1]
+            advanced = False
+            for child in children:
+                if child not in graph:
+                    continue
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                    advanced = True
+                    break
+                if child in on:
+                    low[node] = min(low[node], index[child])
+            if advanced:
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                comp = []
+                while True:
+                    top = stack.pop()
+                    on.discard(top)
+                    comp.append(top)
+                    if top == node:
+                        break
+                if len(comp) > 1:
+                    found.append(sorted(comp))
+    return found
+
+
+def test_no_import_cycle_anywhere():
+    cycles = _cycles(_import_graph())
+    assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_the_cycle_check_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+    probe = _import_graph(("bench",))
+    assert "bench.anticipation" in probe and probe["bench.anticipation"], "the graph must see bench's imports"

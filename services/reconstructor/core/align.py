@@ -30,7 +30,7 @@ from skimage.metrics import structural_similarity
 
 from shared.cloud import PointCloud, rotate_view_dirs
 from shared.geometry import camera_rotation, rot_z, wrap_angle
-from shared.pointrender import RENDERERS, IndexedCloud  # the renderer service's splatting, in-process
+from libs.pointrender import RENDERERS, IndexedCloud  # the renderer service's splatting, in-process
 from shared.registry import BackendConfig
 
 from .depth import MetricDepth

@@ -1,6 +1,6 @@
 """Renderer core: anticipated views and the spatial map of a stored map (no bus here).
 
-The point splatting itself is the shared library :mod:`shared.pointrender` (the reconstructor's
+The point splatting itself is the shared library :mod:`libs.pointrender` (the reconstructor's
 metric alignment renders with it too); this core binds it to one map (:class:`MapRenderer`), splits
 a map into floors and draws the top-down spatial map.
 """
@@ -17,7 +17,7 @@ from services.renderer.core.spatial_map import (
     SpatialMapImage,
     SpatialMapper,
 )
-from shared.pointrender import (
+from libs.pointrender import (
     RENDERERS,
     IndexedCloud,
     RenderedViews,

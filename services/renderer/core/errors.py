@@ -1,8 +1,8 @@
-"""Typed errors of the renderer service's core (the point renderer's own are in :mod:`shared.pointrender`)."""
+"""Typed errors of the renderer service's core (the point renderer's own are in :mod:`libs.pointrender`)."""
 
 from __future__ import annotations
 
-from shared.pointrender.errors import BackendUnavailableError, RendererError
+from libs.pointrender.errors import BackendUnavailableError, RendererError
 
 __all__ = ["BackendUnavailableError", "MapMismatchError", "RendererError"]
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.pointrender.cloud import IndexedCloud
+from libs.pointrender.cloud import IndexedCloud
 
 
 class FloorHeights:

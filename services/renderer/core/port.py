@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
-from shared.pointrender.cloud import IndexedCloud
-from shared.pointrender.splat import SplatRenderer
+from libs.pointrender.cloud import IndexedCloud
+from libs.pointrender.splat import SplatRenderer
 from shared.schemas import CameraIntrinsics, Candidate, Pose, RenderResult, SpatialMapResult, ViewPose
 
 from .errors import MapMismatchError

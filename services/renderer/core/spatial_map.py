@@ -24,7 +24,7 @@ from services.renderer.core.errors import RendererError
 from shared.cloud import EmptyCloudError
 from shared.export import nav2
 from shared.export.nav2 import OccupancyConfig, occupancy_from_cloud
-from shared.pointrender.cloud import IndexedCloud
+from libs.pointrender.cloud import IndexedCloud
 from shared.registry import BackendConfig
 from shared.schemas import Candidate, CandidateKind, Pose
 

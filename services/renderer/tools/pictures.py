@@ -20,7 +20,7 @@ from services.renderer.core import OccupancyGrid, SpatialMapper
 from services.renderer.core.spatial_map import FREE
 from services.renderer.tools import scenes
 from shared.geometry import PinholeCamera, camera_pose
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import Candidate, Pose, ViewPose
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"

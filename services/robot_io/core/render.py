@@ -34,7 +34,7 @@ import open3d as o3d
 from shared.geometry import PinholeCamera, camera_poses
 
 from .raster import RasterScene
-from .scene import Scene
+from libs.world.scene import Scene
 from .shading import AVAILABLE, ShadingTables, numba, shade
 
 log = logging.getLogger(__name__)

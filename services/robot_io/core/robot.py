@@ -43,11 +43,13 @@ from shared.schemas import (
     CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, RenderResult, SceneSummary, ViewPose,
 )
 
-from .errors import NoWalkableAreaError, PoseOffGroundError, RobotIOError
-from .info import describe_scene
-from .navgrid import AgentShape, NavGrid
+from libs.world.errors import NoWalkableAreaError, PoseOffGroundError
+from libs.world.info import describe_scene
+from libs.world.navgrid import AgentShape, NavGrid
+from libs.world.scene import Scene, load_scene
+
+from .errors import RobotIOError
 from .render import SceneRenderer
-from .scene import Scene, load_scene
 from .sensors import SensorNoise, SensorNoiseConfig
 
 log = logging.getLogger(__name__)

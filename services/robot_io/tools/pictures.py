@@ -25,10 +25,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from services.robot_io.core.errors import NoWalkableAreaError  # noqa: E402
+from libs.world.errors import NoWalkableAreaError  # noqa: E402
 from services.robot_io.core.render import RenderOutput, SceneRenderer  # noqa: E402
 from services.robot_io.core.robot import SimConfig, SimRobot  # noqa: E402
-from services.robot_io.core.scene import Scene, load_scene  # noqa: E402
+from libs.world.scene import Scene, load_scene  # noqa: E402
 from shared.geometry import panorama_headings  # noqa: E402
 
 log = logging.getLogger(__name__)

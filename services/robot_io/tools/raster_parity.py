@@ -19,7 +19,7 @@ import open3d as o3d
 
 from services.robot_io.core.raster import MISS_ID, RasterScene
 from services.robot_io.core.render import Intrinsics, _homogeneous_rays, ray_matrices, write_rays
-from services.robot_io.core.scene import Scene
+from libs.world.scene import Scene
 
 EDGE_BARY = 1e-3  # a ray this close (in barycentric terms) to an edge of a triangle passes "on the edge"
 DEPTH_RTOL = 1e-5

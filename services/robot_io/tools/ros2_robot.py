@@ -21,8 +21,8 @@ import signal
 import sys
 import threading
 
-from services.robot_io.core.ros2.keys import key_style
-from services.robot_io.core.ros2.profiles import PROFILES, profile
+from libs.ros2.keys import key_style
+from libs.ros2.profiles import PROFILES, profile
 from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot
 from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig, env_zenoh_settings
 from shared.bus.config import ZenohSettings

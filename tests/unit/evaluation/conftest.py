@@ -13,7 +13,7 @@ from tests.doubles.scripted_eval import ScriptedNavPlanner, ScriptedRobotIo
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
 from tests.doubles.scripted_services import ScriptedMapper, ScriptedReconstructor
-from services.robot_io.core import Episode, Scene
+from libs.world import Episode, Scene
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.typed import TypedBus
 from shared.clients import RobotClient

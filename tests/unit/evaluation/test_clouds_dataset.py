@@ -13,7 +13,7 @@ from evaluation.clouds import sample_scene_cloud
 from shared.cloud import encode, view_dirs_unit
 from evaluation.dataset import SetSpec, generate_set, gt_path_for, parse_floors, write_set
 from evaluation.errors import ConfigError
-from services.robot_io.core import read_episodes, read_ground_truth
+from libs.world import read_episodes, read_ground_truth
 
 
 def test_cloud_is_area_uniform_on_the_surface_with_labels_and_colours():

@@ -142,7 +142,7 @@ def test_price_tables_from_files(tmp_path):
 
 
 def test_cli_estimate_calls_nothing(tmp_path, capsys):
-    from services.robot_io.core.episodes import EpisodeDataset, write_episodes
+    from libs.world.episodes import EpisodeDataset, write_episodes
 
     path = write_episodes(EpisodeDataset(episodes=_eps(4)), tmp_path / "eps.json.gz")
     (tmp_path / "prices.json").write_text(json.dumps({"gpt-4o": {"input_per_1m_usd": 2.5, "output_per_1m_usd": 10}}))

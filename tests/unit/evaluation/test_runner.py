@@ -13,7 +13,7 @@ from evaluation.errors import ConfigError, SceneSwitchError
 from shared.vln_metrics import episode_metrics, euclidean_geodesic
 from evaluation.results import ResultsLog
 from evaluation.runner import EvalRunner, SceneMapIndex, MapSource, RunConfig, episode_seed, group_by_scene, map_id_for
-from services.robot_io.core import GroundTruth
+from libs.world import GroundTruth
 
 FAST = {"poll_s": 0.01}
 
@@ -185,7 +185,7 @@ def test_several_scenes_need_a_scene_switcher(gateway, episodes, tmp_path):
 
 
 def test_missing_scenes_of_real_r2r_ce_are_skipped_without_calls(shared_data, tmp_path):
-    from services.robot_io.core import read_episodes
+    from libs.world import read_episodes
 
     ds = read_episodes(shared_data / "r2r_ce" / "R2R_VLNCE_v1-3_preprocessed_val_unseen.json.gz")
 

@@ -15,7 +15,7 @@ from evaluation.dataset import (
     make_subset, select_subset,
 )
 from evaluation.errors import ConfigError
-from services.robot_io.core import read_episodes
+from libs.world import read_episodes
 
 R2R = "r2r_ce/R2R_VLNCE_v1-3_preprocessed_val_unseen.json.gz"
 LANGS = ("en-IN", "en-US", "hi-IN", "te-IN")

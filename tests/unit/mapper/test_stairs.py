@@ -31,7 +31,7 @@ from shared.schemas import CameraIntrinsics
 
 from services.mapper.core import DiscoveryConfig, ExplorationConfig, Explorer, NodeStatus, PREDICTORS
 from services.mapper.core.discovery import WIDE_EXPLORATION
-from services.robot_io.core.house import STOREY_H
+from libs.world.house import STOREY_H
 from services.robot_io.core.robot import ROBOTS
 
 CAM = CameraIntrinsics(width_px=64, height_px=64, hfov_deg=90.0)

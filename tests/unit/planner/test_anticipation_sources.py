@@ -15,7 +15,7 @@ from services.planner.core.mission import AnticipationError, MissionLoop, TrueSc
 from services.planner.core.policy import Policy
 from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CameraIntrinsics, MissionOptions, RenderRequest, SceneViewsRequest, ViewPose
 
 pytestmark = pytest.mark.timeout(120)

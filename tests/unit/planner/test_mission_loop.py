@@ -14,7 +14,7 @@ from services.planner.core.mission import MissionLoop, MissionOutcome
 from services.planner.core.policy import Policy
 from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CandidateKind, JobEventKind, JobState, MissionEnd, MissionOptions, MoveResult, MoveStatus
 from tests.unit.planner.test_planner_openai import FakeChatServer
 

@@ -7,7 +7,7 @@ import pytest
 
 from services.renderer.tools import scenes
 from shared.cloud import PointCloud, quantise_view_dirs
-from shared.pointrender import IndexedCloud
+from libs.pointrender import IndexedCloud
 
 
 @pytest.fixture(scope="session")

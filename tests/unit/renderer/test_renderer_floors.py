@@ -9,7 +9,7 @@ from services.renderer.core import MapRenderer, SpatialMapper
 from services.renderer.core.errors import MapMismatchError
 from services.renderer.core.floors import FloorHeights
 from shared.cloud import PointCloud
-from shared.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CameraIntrinsics, ViewPose
 
 RISE_M, RUN_M, STEPS = 0.17, 0.28, 10  # a staircase from x = 2 m up to 1.7 m, then a landing

@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import shared.pointrender.lod as lod_module
+import libs.pointrender.lod as lod_module
 from shared.cloud import PointCloud, quantise_view_dirs, view_dirs_unit
 from shared.geometry import PinholeCamera, camera_pose
-from shared.pointrender import RENDERERS, IndexedCloud
-from shared.pointrender.cloud import Frustum
-from shared.pointrender.lod import build_voxel_lod, first_cell_m
-from shared.pointrender.splat import point_normals_of, point_sides_of, point_spacing_of
+from libs.pointrender import RENDERERS, IndexedCloud
+from libs.pointrender.cloud import Frustum
+from libs.pointrender.lod import build_voxel_lod, first_cell_m
+from libs.pointrender.splat import point_normals_of, point_sides_of, point_spacing_of
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(128, 128, 90.0)
@@ -111,7 +111,7 @@ def test_a_far_checker_renders_its_mean_colour_and_matches_every_point():
 def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
     # The visibility mode's footprints follow each level's spacing, so it draws cells up to 2.5 px
     # (LOD_CELL_PX); the paper's fixed 3x3 splat would show 2 px gaps as holes, so it keeps 1 px.
-    from shared.pointrender.splat import LOD_CELL_PX
+    from libs.pointrender.splat import LOD_CELL_PX
 
     wall = IndexedCloud(_wall(4.0, 4.0, 0.01))
     drawn = {mode: RENDERERS.create("numpy", {"mode": mode}).render(wall, _view(), CAM).visible_points[0]

@@ -1,4 +1,4 @@
-"""Occlusion culling (:mod:`shared.pointrender.occlusion`) skips blocks wholly behind the near
+"""Occlusion culling (:mod:`libs.pointrender.occlusion`) skips blocks wholly behind the near
 surfaces and leaves every pixel as drawing them does."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 from services.renderer.tools import scenes
 from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera, camera_pose
-from shared.pointrender import RENDERERS, IndexedCloud, kernels
+from libs.pointrender import RENDERERS, IndexedCloud, kernels
 
 from .test_renderer_visibility import _lattice
 

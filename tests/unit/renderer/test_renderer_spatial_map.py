@@ -9,7 +9,7 @@ import numpy as np
 from services.renderer.core import SpatialMapper
 from services.renderer.core.spatial_map import FREE, OBSTACLE, UNKNOWN
 from shared.cloud import PointCloud
-from shared.pointrender import IndexedCloud
+from libs.pointrender import IndexedCloud
 from shared.schemas import Candidate, CandidateKind, Pose
 
 
@@ -155,7 +155,7 @@ def test_a_thumbnail_map_is_drawn_without_a_legend_that_would_hide_it():
     from services.renderer.core import SpatialMapper
     from services.renderer.core.spatial_map import _LEGEND_MAX_AREA
     from shared.cloud import PointCloud
-    from shared.pointrender import IndexedCloud
+    from libs.pointrender import IndexedCloud
     from shared.schemas import Pose
 
     xyz = np.stack(np.meshgrid(np.arange(-2, 2, 0.05), np.arange(-2, 2, 0.05), [0.0]), -1).reshape(-1, 3)

@@ -14,9 +14,9 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from services.renderer.tools import scenes
 from shared.cloud import EmptyCloudError, PointCloud
 from shared.geometry import PinholeCamera, camera_pose
-from shared.pointrender import RENDERERS, IndexedCloud, kernels
-from shared.pointrender.cloud import Frustum
-from shared.pointrender.errors import BackendUnavailableError
+from libs.pointrender import RENDERERS, IndexedCloud, kernels
+from libs.pointrender.cloud import Frustum
+from libs.pointrender.errors import BackendUnavailableError
 from shared.schemas import CameraIntrinsics, ViewPose
 
 CAM = PinholeCamera(256, 256, 90.0)

@@ -9,7 +9,7 @@ import pytest
 from services.renderer.tools import scenes
 from shared.cloud import PointCloud, quantise_view_dirs
 from shared.geometry import PinholeCamera
-from shared.pointrender import RENDERERS, IndexedCloud, visibility
+from libs.pointrender import RENDERERS, IndexedCloud, visibility
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(256, 256, 90.0)
@@ -231,7 +231,7 @@ def test_colour_filter_removes_sampling_noise_but_not_edges():
 
 def _two_faced_wall(near_x_m: float, length_m: float = 8.0, along: bool = False) -> IndexedCloud:
     """A wall between two rooms as the agent-built maps hold it: two faces 10 cm apart
-    (services/robot_io/core/house.py, 5 cm per room), each sampled like the rgbd map (2.6 cm),
+    (libs/world/house.py, 5 cm per room), each sampled like the rgbd map (2.6 cm),
     the near one red (label 0), the far one blue (label 1). ``along``: the wall runs along the
     view direction at ``near_x_m`` to the left (a corridor), else it faces the camera."""
     span = (0.3, 0.3 + length_m) if along else (-length_m / 2, length_m / 2)
@@ -297,7 +297,7 @@ def _grazing_plane(h: int, w: int, focal_px: float, seed: int = 0):
 
 @pytest.mark.parametrize("compiled", [False, True])
 def test_a_grazing_wall_keeps_every_surfel_with_the_slope_scaled_tolerance(compiled):
-    from shared.pointrender.splat import _NumpyOps
+    from libs.pointrender.splat import _NumpyOps
 
     h = w = 128
     front, on, colour = _grazing_plane(h, w, 64.0)

@@ -12,7 +12,7 @@ from services.robot_io.core import render, shading
 from services.robot_io.core.raster import MISS_ID, NEAR_M, RasterScene
 from services.robot_io.core.render import Intrinsics, SceneRenderer
 from services.robot_io.core.robot import SimConfig, SimRobot
-from services.robot_io.core.scene import Scene, load_scene
+from libs.world.scene import Scene, load_scene
 from services.robot_io.core.shading import shade
 from services.robot_io.tools.raster_parity import (
     DEPTH_RTOL,

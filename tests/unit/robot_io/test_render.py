@@ -7,7 +7,7 @@ import pytest
 
 from services.robot_io.core import shading
 from services.robot_io.core.render import Intrinsics, SceneRenderer
-from services.robot_io.core.scene import Scene, Texture
+from libs.world.scene import Scene, Texture
 from shared.geometry import PinholeCamera, camera_pose, panorama_headings
 
 RED, GREEN, BLUE, WHITE = (230, 20, 20), (20, 200, 30), (25, 40, 220), (250, 250, 250)

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from services.robot_io.core.navgrid import NavGrid
+from libs.world.navgrid import NavGrid
 from services.robot_io.core.render import Intrinsics, SceneRenderer
-from services.robot_io.core.scene import load_scene
+from libs.world.scene import load_scene
 
 
 @pytest.fixture(scope="module")

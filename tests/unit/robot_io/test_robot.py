@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from services.robot_io.core.errors import SceneNotFoundError
+from libs.world.errors import SceneNotFoundError
 from services.robot_io.core.robot import ROBOTS, SimConfig, SimRobot
 from shared.geometry import panorama_headings, wrap_angle
 from shared.schemas import CameraIntrinsics, MoveStatus, Pose

@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from services.robot_io.core.ros2 import messages as m
+from libs.ros2 import messages as m
 from services.robot_io.core.ros2.backend import RobotClock, _Latest
-from services.robot_io.core.ros2.occupancy import OccupancyPlanner
-from services.robot_io.core.ros2.profiles import profile
+from libs.ros2.occupancy import OccupancyPlanner
+from libs.ros2.profiles import profile
 
 
 def _map_with_a_door():

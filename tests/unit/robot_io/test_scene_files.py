@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from services.robot_io.core.errors import SceneFormatError
+from libs.world.errors import SceneFormatError
 from services.robot_io.core.render import SceneRenderer
 from services.robot_io.core.robot import SimConfig, SimRobot
-from services.robot_io.core.scene import load_scene
-from services.robot_io.core.scene_files import (
+from libs.world.scene import load_scene
+from libs.world.scene_files import (
     FRAME_RULES,
     GLTF_Y_UP,
     Z_UP,
@@ -252,7 +252,7 @@ def test_explicit_stage_config_is_honoured(tmp_path):
 
 
 def test_semantic_ply_reader_quads_ascii_and_errors(tmp_path):
-    from services.robot_io.core.scene_semantics import read_ply_faces
+    from libs.world.scene_semantics import read_ply_faces
 
     quad = tmp_path / "q.ply"
     quad.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"

@@ -10,10 +10,10 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from services.robot_io.core.episodes import Episode, EpisodeDataset, read_episodes, write_episodes
+from libs.world.episodes import Episode, EpisodeDataset, read_episodes, write_episodes
 from services.robot_io.core.render import SceneRenderer
 from services.robot_io.core.robot import SimConfig, SimRobot
-from services.robot_io.core.scene import load_scene
+from libs.world.scene import load_scene
 from shared.geometry import PinholeCamera, camera_pose, habitat_to_world
 
 ASSETS = "habitat_test_assets"
@@ -172,7 +172,7 @@ def test_pictures_of_a_real_asset(assets, tmp_path):
 @pytest.mark.parametrize("name", ["simple_room.glb", "stage_floor1.glb", "chair.glb", "fridge_body.glb"])
 def test_own_gltf_reader_agrees_with_open3d(assets, name):
     """Our numpy glTF reader (fast on big scans) sees the same surface as open3d's assimp reader."""
-    from services.robot_io.core.scene_files import read_mesh_file
+    from libs.world.scene_files import read_mesh_file
 
     ours = read_mesh_file(assets / name)
     model = o3d.io.read_triangle_model(str(assets / name))

@@ -39,13 +39,14 @@ from shared.geometry import panorama_headings, planar_apply, wrap_angle
 from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
+from libs.ros2 import messages as m
+from libs.ros2.keys import key_style
+from libs.ros2.node import Received, Ros2Node
+from libs.ros2.profiles import Ros2Profile, profile
+from libs.ros2.transport import TRANSPORTS, Ros2Transport, TransportError
+
 from ..errors import RobotIOError
 from ..robot import ROBOTS, FrameSink, Robot
-from . import messages as m
-from .keys import key_style
-from .node import Received, Ros2Node
-from .profiles import Ros2Profile, profile
-from .transport import TRANSPORTS, Ros2Transport, TransportError
 
 log = logging.getLogger(__name__)
 

@@ -29,13 +29,14 @@ from shared.geometry import planar_between, wrap_angle
 from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Pose
 
+from libs.ros2 import messages as m
+from libs.ros2.keys import KeyStyle, Qos
+from libs.ros2.node import Ros2Node
+from libs.ros2.profiles import ColorEncoding, DepthEncoding, Ros2Profile
+from libs.ros2.transport import Ros2Transport
+
 from ..robot import SimConfig, SimRobot
 from ..sensors import SensorNoiseConfig
-from . import messages as m
-from .keys import KeyStyle, Qos
-from .node import Ros2Node
-from .profiles import ColorEncoding, DepthEncoding, Ros2Profile
-from .transport import Ros2Transport
 
 log = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ import struct
 import numpy as np
 import pytest
 
-from services.robot_io.core.ros2 import messages as m
+from libs.ros2 import messages as m
 
 DESIGN_MD_HASHES = {  # ros2/rmw_zenoh docs/design.md, "Topic and Service name mapping"
     "std_msgs/msg/String": "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",

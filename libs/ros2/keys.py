@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass
 from enum import StrEnum
 
-from ..errors import RobotIOError
+from .errors import Ros2ProtocolError
 from .messages import RosType
 
 LIVELINESS_PREFIX = "@ros2_lv"
@@ -31,7 +31,7 @@ GID_SIZE = 16
 _NAME_RE = re.compile(r"^/?[A-Za-z_~][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
-class RosNameError(RobotIOError, ValueError):
+class RosNameError(Ros2ProtocolError, ValueError):
     """Not a valid ROS 2 topic/service/node name."""
 
 

@@ -70,10 +70,10 @@ import numpy as np
 from pydantic import Field
 
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
-from shared.pointrender import kernels, occlusion, visibility, visibility_kernels
-from shared.pointrender.cloud import Frustum, IndexedCloud
-from shared.pointrender.errors import BackendUnavailableError
-from shared.pointrender.lod import VoxelLod, build_voxel_lod, first_cell_m
+from libs.pointrender import kernels, occlusion, visibility, visibility_kernels
+from libs.pointrender.cloud import Frustum, IndexedCloud
+from libs.pointrender.errors import BackendUnavailableError
+from libs.pointrender.lod import VoxelLod, build_voxel_lod, first_cell_m
 from shared.registry import BackendConfig, Registry
 from shared.schemas import CameraIntrinsics, ViewPose
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from shared.cloud import PointCloud
 from shared.jit import AVAILABLE, numba
-from shared.pointrender.cloud import IndexedCloud
+from libs.pointrender.cloud import IndexedCloud
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from shared.jit import AVAILABLE, numba
-from shared.pointrender.visibility import COVER_MAX_CODE, COVER_NONE
+from libs.pointrender.cover_codes import COVER_MAX_CODE, COVER_NONE
 
 _INF = np.float32(np.inf)
 

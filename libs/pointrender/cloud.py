@@ -119,7 +119,7 @@ class IndexedCloud:
         2,700 blocks of a 1,000 m2 three-storey building); they may round differently from the
         array code only for a box that touches a plane to the last bit, which the frustum's
         two-pixel margin keeps off the image."""
-        from shared.pointrender import kernels
+        from libs.pointrender import kernels
 
         if compiled and kernels.AVAILABLE:
             mask = np.empty(len(self.starts), bool)

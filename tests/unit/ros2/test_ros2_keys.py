@@ -7,11 +7,11 @@ import struct
 
 import pytest
 
-from services.robot_io.core.ros2.keys import (
+from libs.ros2.keys import (
     ATTACHMENT_SIZE, Attachment, BridgeKeys, EntityKind, Qos, RmwZenohKeys, RosNameError, key_style, mangle,
 )
-from services.robot_io.core.ros2.messages import RosType
-from services.robot_io.core.ros2.profiles import PROFILES, Ros2Profile, UnknownProfileError, profile
+from libs.ros2.messages import RosType
+from libs.ros2.profiles import PROFILES, Ros2Profile, UnknownProfileError, profile
 
 STRING = RosType("std_msgs/msg/String")
 HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"

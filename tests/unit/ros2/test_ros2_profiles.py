@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from services.robot_io.core.ros2.profiles import PROFILES, profile
+from libs.ros2.profiles import PROFILES, profile
 
 
 def test_a_localisation_frame_needs_the_tf_topic_and_a_frame_of_its_own():

@@ -56,15 +56,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-# The quadrant covers hold each depth as a 16-bit code, ceil(depth / step), and COVER_NONE where no
-# footprint reaches: the compiled path's min filters then move half the bytes of float32 (measured
-# 1.7x faster at 290 x 290 x 4). A code stands for at most one step (0.3 mm at a 20 m far clip)
-# beyond the depth, far below the visibility test's 2 cm tolerance; every path quantises and
-# restores alike (x -> x * step is monotone, so it commutes with the min and max of the covers),
-# so they still agree to the bit.
-COVER_MAX_CODE = 65534
-COVER_NONE = 65535
+# The quadrant covers' depth codes live with the compiled loops' shared constants (no import circle).
+from .cover_codes import COVER_MAX_CODE, COVER_NONE
 
 
 @dataclass
@@ -492,7 +485,7 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int, nea
     one, where a label image costs a pass over every pixel of the guard-band grid."""
     import cv2
 
-    from shared.pointrender import visibility_kernels as vk
+    from libs.pointrender import visibility_kernels as vk
 
     plan = _plan(p, h, w)
     f32 = np.float32

@@ -1,4 +1,5 @@
-"""Fixtures for the robot-io core: scenes and simulators are built once per test session."""
+"""Simulators of the generated houses, built once per test session (the world library's, robot-io's and
+the services' unit tests share them)."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 from rosbags.typesys.store import Nodetype, Typestore
 
-from ..errors import RobotIOError
+from .errors import Ros2ProtocolError
 
 MESSAGES = {
     "image": "sensor_msgs/msg/Image",
@@ -42,7 +42,7 @@ SERVICES = {
 }
 
 
-class CdrError(RobotIOError, ValueError):
+class CdrError(Ros2ProtocolError, ValueError):
     """A payload is not valid CDR for the type it arrived on (or a message cannot be encoded)."""
 
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from services.robot_io.core.episodes import (
+from libs.world.episodes import (
     Episode,
     generate_episodes,
     ground_truth_for,
@@ -17,7 +17,7 @@ from services.robot_io.core.episodes import (
     write_episodes,
     write_ground_truth,
 )
-from services.robot_io.core.errors import SceneNotFoundError
+from libs.world.errors import SceneNotFoundError
 from shared.schemas import Pose
 
 R2R = "r2r_ce/R2R_VLNCE_v1-3_preprocessed_val_unseen.json.gz"

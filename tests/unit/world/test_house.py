@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.robot_io.core.errors import SceneFormatError
-from services.robot_io.core.house import HouseSpec, generate_house
+from libs.world.errors import SceneFormatError
+from libs.world.house import HouseSpec, generate_house
 
 ROOM_TYPES = {"bedroom", "kitchen", "bathroom", "living room", "hallway", "office", "dining room"}
 
@@ -130,8 +130,8 @@ def test_furniture_tops_are_not_walkable(fixture, request):
 
 @pytest.mark.parametrize("spec", ["generated:0:floors=3", "generated:2:area=100:floors=3"])
 def test_three_floors_joined_by_one_flight_per_pair_of_floors(spec):
-    from services.robot_io.core.navgrid import NavGrid
-    from services.robot_io.core.house import STOREY_H
+    from libs.world.navgrid import NavGrid
+    from libs.world.house import STOREY_H
 
     scene = generate_house(spec)
     assert scene.floors == 3
@@ -161,7 +161,7 @@ def test_large_house_areas_up_to_1200_m2():
 
 
 def test_furniture_catalogue_builds_every_kind_a_room_asks_for():
-    from services.robot_io.core.furniture import FURNITURE, ROOM_FURNITURE, furniture_item
+    from libs.world.furniture import FURNITURE, ROOM_FURNITURE, furniture_item
 
     for kinds in ROOM_FURNITURE.values():
         assert set(kinds) <= set(FURNITURE)

@@ -1,6 +1,6 @@
 """Figures of the ros2 backend against the ROS 2 stand-in (both key styles), printed as tables.
 
-    python -m services.robot_io.tools.ros2_bench [--what panorama,control,images,sr] [--episodes 4]
+    python -m bench.ros2 [--what panorama,control,images,sr] [--episodes 4]
 
 * panorama: time of one 12-view ``observe`` (turn, settle, capture x 12), simulated and wall, at the
   stand-in's time scale;
@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from deploy.launcher import Launcher, StandIn, free_port
-from services.robot_io.core.ros2 import messages as msgs
+from libs.ros2 import messages as msgs
 from services.robot_io.core.ros2.backend import Ros2Config, Ros2Robot
-from services.robot_io.core.ros2.keys import key_style
-from services.robot_io.core.ros2.node import Ros2Node
-from services.robot_io.core.ros2.profiles import profile
+from libs.ros2.keys import key_style
+from libs.ros2.node import Ros2Node
+from libs.ros2.profiles import profile
 from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot
 from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig
 from shared.bus.config import ZenohSettings
@@ -132,7 +132,8 @@ def bench_sr(scene: str, episodes: int, keys: str, time_scale: float, policy: st
              backends: tuple[str, ...] = ("sim", "ros2")) -> list[dict]:
     from evaluation.gateway_client import GatewayClient
     from evaluation.runner import EvalRunner, MapSource, RunConfig
-    from services.robot_io.core import ROBOTS, generate_episodes
+    from libs.world import generate_episodes
+    from services.robot_io.core import ROBOTS
 
     with ROBOTS.create("sim", {"scene": scene}) as sim:
         eps = generate_episodes(sim.scene, sim.nav, episodes, seed=7).episodes

@@ -46,8 +46,8 @@ import cv2
 import numpy as np
 
 from shared.jit import AVAILABLE, numba
-from shared.pointrender import visibility
-from shared.pointrender.kernels import _project_run
+from libs.pointrender import visibility
+from libs.pointrender.kernels import _project_run
 
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
 # Occluder covers and the rectangle test run on tiles of this many pixels a side: the maximum
@@ -188,7 +188,7 @@ def occluder_tiles(zbuf, spmin, z_safe: float, h: int, w: int, lut: np.ndarray, 
     present = [int(k) for k in np.flatnonzero(hist)]
     if not present:
         return None, -1
-    from shared.pointrender import visibility_kernels as vk
+    from libs.pointrender import visibility_kernels as vk
 
     order, first = vk.bucket(cls, hist)
     cov4 = np.full((hp, wp, 4), np.inf, f32)

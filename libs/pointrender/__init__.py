@@ -11,10 +11,10 @@ stay one algorithm. Pure numpy/numba/torch; no bus here.
 * :mod:`.kernels` - the compiled front pass and the paper's 3x3 compose.
 """
 
-from shared.pointrender import visibility
-from shared.pointrender.cloud import Frustum, IndexedCloud
-from shared.pointrender.errors import BackendUnavailableError, RendererError
-from shared.pointrender.splat import (
+from libs.pointrender import visibility
+from libs.pointrender.cloud import Frustum, IndexedCloud
+from libs.pointrender.errors import BackendUnavailableError, RendererError
+from libs.pointrender.splat import (
     RENDERERS,
     RenderedViews,
     SplatConfig,

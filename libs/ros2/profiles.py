@@ -14,7 +14,7 @@ from pydantic import Field, field_validator, model_validator
 
 from shared.registry import BackendConfig
 
-from ..errors import RobotIOError
+from .errors import Ros2ProtocolError
 
 
 class ColorEncoding(StrEnum):
@@ -129,7 +129,7 @@ STANDIN_OVERRIDES: dict[str, Any] = {"clock": "/clock", "teleport_service": "/te
                                      "angular_accel_dps2": 360.0, "base_radius_m": 0.1, "safety_distance_m": 0.05}
 
 
-class UnknownProfileError(RobotIOError, ValueError):
+class UnknownProfileError(Ros2ProtocolError, ValueError):
     pass
 
 
