@@ -1,0 +1,160 @@
+"""Maps: listing, chunks, builds and imports."""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated, Any, ClassVar
+
+from pydantic import Field, model_validator
+
+from shared.arrays import Array
+
+from .base import (
+    _finite_array,
+    _ID_PATTERN,
+    BudgetExceeded,
+    BUILD_MAX_FRAMES,
+    BUILD_MAX_RECORDINGS,
+    IMPORT_MAX_BYTES,
+    IMPORT_PART_MAX_BYTES,
+    LabelId,
+    MAP_CHUNK_MAX_POINTS,
+    Message,
+    Seconds,
+    SEQ_LIMIT,
+    TIME_LIMIT_S,
+    Xyz_m,
+)
+from .navigation import TourRecording
+
+
+# --- maps ------------------------------------------------------------------------------------------
+
+
+class MapInfo(Message):
+    map_id: str
+    version: int = Field(ge=1, le=SEQ_LIMIT)
+    point_count: int = Field(ge=0, le=SEQ_LIMIT)
+    bounds_min_m: Xyz_m
+    bounds_max_m: Xyz_m
+    source: str = ""
+    has_labels: bool = False
+    label_names: dict[LabelId, str] = Field(default_factory=dict)
+    regions: int = Field(0, ge=0, le=100_000)
+    scale_factors: list[Annotated[float, Field(gt=0.0, le=1e6)]] = Field(default_factory=list)
+    timings_s: dict[str, Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]] = Field(default_factory=dict)
+    created_s: Seconds = Field(default_factory=time.time)
+
+
+class MapListReply(Message):
+    maps: list[MapInfo]
+
+
+class MapRequest(Message):
+    map_id: str
+    version: int | None = Field(None, ge=1, le=2**31 - 1)  # None: latest
+
+
+class MapChunkRequest(Message):
+    map_id: str
+    version: int | None = Field(None, ge=1, le=2**31 - 1)
+    index: int = Field(0, ge=0, le=SEQ_LIMIT)
+    max_points: int = Field(1_000_000, ge=1, le=10_000_000)
+
+    def check_budget(self) -> None:
+        if self.max_points > MAP_CHUNK_MAX_POINTS:
+            raise BudgetExceeded("map chunk points", self.max_points, MAP_CHUNK_MAX_POINTS, "points")
+
+
+class MapChunk(Message):
+    """One slice of a map's points; ``count`` chunks together make the whole cloud."""
+
+    map_id: str
+    version: int
+    index: int
+    count: int
+    xyz_m: Array("float32", 2, 3)
+    rgb: Array("uint8", 2, 3)
+    labels: Array("int32", 1) | None = None
+    # shared.cloud.PointCloud.view_dirs: where each point was seen from (int8 unit vectors x 127).
+    view_dirs: Array("int8", 2, 3) | None = None
+
+    @model_validator(mode="after")
+    def _finite_points(self):
+        _finite_array(self.xyz_m, "xyz_m")
+        n = len(self.xyz_m)
+        for name, arr in (("rgb", self.rgb), ("labels", self.labels), ("view_dirs", self.view_dirs)):
+            if arr is not None and len(arr) != n:
+                raise ValueError(f"{name} has {len(arr)} rows, xyz_m {n}")
+        return self
+
+
+class BuildCancelRequest(Message):
+    """Stop a map build (``MAP_BUILD_CANCEL``): the map is the key's, the build this says. A cancelled
+    build stores nothing: the map store keeps only the versions it had."""
+
+    build_id: str = Field(pattern=_ID_PATTERN)
+
+
+class BuildMapRequest(Message):
+    """Mapper -> reconstructor: the recorded tours of an exploration are complete; build the map.
+
+    A build is a job: the reply is a :class:`JobAccepted`, its events follow on ``MAP_BUILD_EVENTS``
+    under ``build_id``."""
+
+    build_id: str
+    exploration_id: str
+    map_id: str
+    recordings: list[TourRecording] = Field(max_length=BUILD_MAX_RECORDINGS)
+    reconstruction: str = "rgbd"
+    label_names: dict[LabelId, str] = Field(default_factory=dict, description="semantic ids of the frames")
+    source: str = ""
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    FREE_FORM: ClassVar[tuple[str, ...]] = ("options",)
+
+    def check_budget(self) -> None:
+        frames = sum(r.frame_count for r in self.recordings)
+        if frames > BUILD_MAX_FRAMES:
+            raise BudgetExceeded("frames of the recordings", frames, BUILD_MAX_FRAMES, "frames")
+
+
+class MapImportRequest(Message):
+    """Store a user's own cloud (PLY or PCD bytes) as a map: whole in one request, or in parts.
+
+    In parts (``upload_id`` set), so that no side ever holds the file whole: each part carries the
+    bytes at ``offset`` (the parts in order, no gaps); the receiver appends them to a file on disk and
+    answers :class:`MapImportProgress`, and the ``last`` part's answer is the stored map's
+    :class:`MapInfo`. An ``abort`` part (no data) drops what was received. Any failure drops the
+    whole upload: a failed upload leaves neither a map nor a partial file."""
+
+    map_id: str
+    filename: str = Field(pattern=r"^[^/\\\x00-\x1f]{1,200}\.(ply|pcd)$")
+    data: bytes = b""
+    upload_id: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    offset: int = Field(0, ge=0, le=IMPORT_MAX_BYTES, description="bytes of the upload before this part")
+    last: bool = True
+    abort: bool = False
+
+    @model_validator(mode="after")
+    def _parts_agree(self):
+        if self.upload_id is None and (self.offset or self.abort or not self.last):
+            raise ValueError("offset, abort and last=False belong to an upload in parts (set upload_id)")
+        if self.abort and self.data:
+            raise ValueError("an abort part carries no data")
+        if not self.abort and not self.data:
+            raise ValueError("data: an import needs at least one byte")
+        return self
+
+    def check_budget(self) -> None:
+        if self.offset + len(self.data) > IMPORT_MAX_BYTES:
+            raise BudgetExceeded("imported cloud bytes", self.offset + len(self.data), IMPORT_MAX_BYTES, "bytes")
+        if self.upload_id is not None and len(self.data) > IMPORT_PART_MAX_BYTES:
+            raise BudgetExceeded("bytes of one upload part", len(self.data), IMPORT_PART_MAX_BYTES, "bytes")
+
+
+class MapImportProgress(Message):
+    """The answer to a part of an upload that is not the last (or to an abort)."""
+
+    upload_id: str
+    received_bytes: int = Field(ge=0, le=IMPORT_MAX_BYTES)

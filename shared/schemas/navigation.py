@@ -1,0 +1,76 @@
+"""Candidates, navigation graphs and tours."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from pydantic import Field
+
+from shared.arrays import Array
+
+from .base import BUILD_MAX_FRAMES, Distance_m, Message, Metres, Radians
+from .geometry import Pose
+
+
+# --- candidates, graphs, tours -------------------------------------------------------------------
+
+
+class CandidateKind(StrEnum):
+    WAYPOINT = "waypoint"
+    BACKTRACK = "backtrack"
+    STOP = "stop"
+
+
+class Candidate(Message):
+    """A possible action: a waypoint (dx, dy) in world axes, a backtrack, or stop."""
+
+    index: int = Field(ge=0, le=10_000)
+    kind: CandidateKind = CandidateKind.WAYPOINT
+    dx_m: Metres = 0.0
+    dy_m: Metres = 0.0
+    angle_rad: Radians = 0.0  # relative to the agent heading, positive = left
+    distance_m: Distance_m = 0.0
+    score: float = Field(0.0, ge=-1e9, le=1e9)
+
+
+class CandidateSet(Message):
+    pose: Pose
+    candidates: list[Candidate]
+
+
+class NavNode(Message):
+    node_id: str
+    position_m: tuple[float, float, float]
+    visited: bool
+    region: int | None = None
+    floor: int = 0
+
+
+class NavEdge(Message):
+    a: str
+    b: str
+    length_m: float
+
+
+class NavGraph(Message):
+    nodes: list[NavNode]
+    edges: list[NavEdge]
+    stairs: list[str] = Field(default_factory=list)
+
+
+class Tour(Message):
+    region: int
+    start_pose: Pose
+    hubs_m: Array("float64", 2)  # (K, 3) hub positions in visiting order
+    path_m: Array("float64", 2)  # (P, 3) dense refined path
+    coverage: float
+
+
+class TourRecording(Message):
+    """A finished recorded tour; its frames were published on ``IO_FRAMES`` under ``recording``."""
+
+    exploration_id: str
+    recording: str
+    region: int = Field(ge=-1, le=100_000)
+    start_pose: Pose
+    frame_count: int = Field(ge=0, le=BUILD_MAX_FRAMES)
