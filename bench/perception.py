@@ -51,11 +51,15 @@ def pointrender_at(rev: str):
     base = Path(tempfile.gettempdir()) / "bench-perception"
     if not (base / name).exists():
         tmp = Path(tempfile.mkdtemp(dir=base.parent))
-        subprocess.run(f"git archive {sha} libs/pointrender | tar -x -C {tmp}", shell=True, check=True, cwd=ROOT)
-        for f in (tmp / "shared" / "pointrender").glob("*.py"):
-            f.write_text(f.read_text().replace("libs.pointrender", name))
+        # The library lived in shared/pointrender before it moved to libs/pointrender (issue 31).
+        where = next(d for d in ("libs/pointrender", "shared/pointrender")
+                     if subprocess.run(["git", "cat-file", "-e", f"{sha}:{d}"], cwd=ROOT,
+                                     stderr=subprocess.DEVNULL).returncode == 0)
+        subprocess.run(f"git archive {sha} {where} | tar -x -C {tmp}", shell=True, check=True, cwd=ROOT)
+        for f in (tmp / where).glob("*.py"):
+            f.write_text(f.read_text().replace(where.replace("/", "."), name))
         base.mkdir(exist_ok=True)
-        shutil.move(str(tmp / "shared" / "pointrender"), str(base / name))
+        shutil.move(str(tmp / where), str(base / name))
         shutil.rmtree(tmp)
     if str(base) not in sys.path:
         sys.path.insert(0, str(base))

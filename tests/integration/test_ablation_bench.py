@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from bench import ablation, anticipation
+from bench import ablation, agent_maps
 from evaluation.presets import Variant
 from evaluation.runner import RunConfig
 
@@ -28,7 +28,7 @@ def test_map_kinds_are_checked():
 
 
 def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
-    monkeypatch.setattr(anticipation, "MAPS", tmp_path / "maps")
+    monkeypatch.setattr(agent_maps, "MAPS", tmp_path / "maps")
     argv = ["--preset", "views", "--houses", "1", "--per-house", "2", "--area-m2", "40", "--max-steps", "4",
             "--out", str(tmp_path / "out")]
     first = ablation.main(argv)
