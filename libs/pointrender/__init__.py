@@ -4,7 +4,9 @@ A library, not a service: the renderer service draws a stored map with it, and t
 renders a regional cloud with the same splatting for its metric alignment (paper 4.2), so the two
 stay one algorithm. Pure numpy/numba/torch; no bus here.
 
-* :mod:`.splat` - the renderers (``RENDERERS``: ``numpy``, ``torch``), modes ``visibility`` and ``paper``;
+* :mod:`.splat` - the algorithm (modes ``visibility`` and ``paper``) and the renderer's public names, from
+  :mod:`.config` (settings), :mod:`.ops_numpy` / :mod:`.ops_torch` (array backends) and :mod:`.renderer`
+  (``SplatRenderer``, ``RENDERERS``: ``numpy``, ``torch``);
 * :mod:`.cloud` - :class:`IndexedCloud`, a cloud cut into spatial blocks for culling;
 * :mod:`.lod` - voxel levels of detail per block;
 * :mod:`.visibility` (+ :mod:`.visibility_kernels`) - the image-space visibility and hole-filling passes;

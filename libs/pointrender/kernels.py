@@ -83,7 +83,7 @@ def _front_pass(
     Returns, per padded pixel plus one miss bin: the minimum depth (float32 (P,)); the front
     layer as float32 (P, 8): count, sums of depth, r, g, b, with ``with_spacing`` of
     ``spacing[p] * run_scale[r]``, with ``with_slope`` of each front point's depth slope
-    (``splat._point_slope`` of its normal ``nx, ny, nz`` and the view's ``slope_consts``), and in
+    (``renderer._point_slope`` of its normal ``nx, ny, nz`` and the view's ``slope_consts``), and in
     column 7, read as int32, the id of the nearest point (largest among ties, -1 where none):
     what ``accumulate_front`` returns, summed alike; the offset sums u, v as float32 (2, P) (only
     with ``with_uv``: the paper's 3x3 splat reads them, and the projection is cheaper without);
@@ -93,7 +93,7 @@ def _front_pass(
     splat's ring; the visibility mode adds a guard band, :class:`splat.SplatConfig` ``guard_px``).
     ``with_sides``: a point whose side is known (``sided[p]``, its normal oriented towards the side
     the robot saw) adds the colour ``unseen_rgb`` (packed as ``rgb_packed``) instead of its own
-    where this view sees its other side (``splat._unseen_side``): it stays an occluder with its
+    where this view sees its other side (``renderer._unseen_side``): it stays an occluder with its
     label, drawn in the colour of an unknown surface."""
     wp = w + 2 * pad
     npad = (h + 2 * pad) * wp
@@ -155,7 +155,7 @@ def _front_pass(
             c = rgb_packed[p]
             d = zero
             if with_slope or with_sides:
-                # n . (P - C): both the slope and the side test need it (splat._point_slope).
+                # n . (P - C): both the slope and the side test need it (renderer._point_slope).
                 d = nx[p] * (x[p] - cx) + ny[p] * (y[p] - cy) + nz[p] * (z[p] - cz)
                 if with_sides and sided[p] != 0 and d > zero:
                     dx, dy, dz = x[p] - cx, y[p] - cy, z[p] - cz
@@ -170,7 +170,7 @@ def _front_pass(
             if with_spacing:
                 acc[t, 5] += spacing[p] * scale
             if with_slope:
-                # splat._point_slope, operation for operation (d above).
+                # renderer._point_slope, operation for operation (d above).
                 cc = nx[p] * ax + ny[p] * ay + nz[p] * az
                 zs = zc * np.sqrt(max(one - cc * cc, zero))
                 den = max(max(abs(d), zs * inv_tan), min_plane)

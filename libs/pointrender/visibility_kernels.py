@@ -435,7 +435,7 @@ def _colour_filter(rgb, depth, hole, rel, taps):
 
 def _rgb8(rgb):
     """(3, H, W) float32 -> (H, W, 3) uint8, rounded half to even and clipped: what
-    ``splat._images`` does with numpy, in one pass instead of four."""
+    ``renderer._images`` does with numpy, in one pass instead of four."""
     _, h, w = rgb.shape
     out = np.empty((h, w, 3), np.uint8)
     for i in range(h):

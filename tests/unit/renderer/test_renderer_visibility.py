@@ -297,7 +297,7 @@ def _grazing_plane(h: int, w: int, focal_px: float, seed: int = 0):
 
 @pytest.mark.parametrize("compiled", [False, True])
 def test_a_grazing_wall_keeps_every_surfel_with_the_slope_scaled_tolerance(compiled):
-    from libs.pointrender.splat import _NumpyOps
+    from libs.pointrender.ops_numpy import _NumpyOps
 
     h = w = 128
     front, on, colour = _grazing_plane(h, w, 64.0)
