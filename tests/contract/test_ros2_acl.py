@@ -21,7 +21,7 @@ from tests.contract.conftest import authenticated_router, wait_until
 pytestmark = pytest.mark.contract
 
 ROS2 = acl.Ros2Side()
-USERS = ("robot_io", "gateway", ROS2.user)
+USERS = ("robot_io", "gateway", "reconstructor", ROS2.user)
 PASSWORDS = {u: f"pw-{u}" for u in (*acl.SERVICES, ROS2.user)}
 RMW = RmwZenohKeys(domain_id=0)
 ODOM_TYPE = m.RosType(m.MESSAGES["odometry"])
@@ -80,14 +80,15 @@ def test_robot_io_calls_a_ros2_service_and_sees_the_graph_tokens(net):
 
 
 def test_the_ros2_side_cannot_touch_the_services_keys(net):
-    robot, gw, ros = net["robot_io"], net["gateway"], net[ROS2.user]
-    pose = keys.IO_POSE.format(robot="robot0")
+    robot, gw, rec, ros = net["robot_io"], net["gateway"], net["reconstructor"], net[ROS2.user]
+    # robot-io's frames, watched where the ACL lets them be read: by their consumer, the reconstructor.
+    pose = keys.IO_FRAMES.format(robot="robot0", recording="t1")
     at_gw, at_ros = Inbox(), Inbox()
-    sub_gw = gw.subscribe("ant/**", at_gw)
+    sub_gw = rec.subscribe(keys.IO_FRAMES.pattern(), at_gw)
     sub_ros = ros.subscribe("ant/**", at_ros)
     hijack = ros.serve([keys.INFO.format(service="robot_io", instance="fake")], lambda k, p: b"hijacked")
     fake = ros.liveliness_token(keys.ALIVE.format(service="robot_io", instance="impostor"))
-    wait_until(lambda: robot.publish(pose, b"ready") or at_gw.has(pose, b"ready"), what="pose routed to the gateway")
+    wait_until(lambda: robot.publish(pose, b"ready") or at_gw.has(pose, b"ready"), what="frames routed to the reconstructor")
     # The forged sample first, then a genuine one: once the genuine one arrived the forged one would have too.
     ros.publish(pose, b"forged")
     ros.publish("odom", b"marker")  # same session, same router, in order
