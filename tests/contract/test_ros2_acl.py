@@ -168,3 +168,14 @@ def test_the_launcher_keeps_auth_on_with_the_stand_in_and_gives_both_sides_their
     transport = json.loads(robot_io_env["ANT_ROBOT_CONFIG"])["transport_config"]["zenoh"]
     assert transport["username"] == "robot_io" and transport["mode"] == "client"
     assert transport["password_file"] == str(tmp_path / "zenoh" / "robot_io.password")
+
+
+def test_a_system_with_the_stand_in_refuses_to_run_its_bus_open(tmp_path, monkeypatch):
+    from deploy.launcher import Launcher, StandIn
+
+    monkeypatch.setenv("ANT_BUS_AUTH", "0")
+    with pytest.raises(ValueError, match="never runs its bus open"):
+        Launcher(tmp_path, standin=StandIn(keys="bridge"))
+    with pytest.raises(ValueError, match="never runs its bus open"):
+        Launcher(tmp_path, standin=StandIn(keys="bridge"), auth=False)
+    assert not Launcher(tmp_path).auth  # without a robot's ROS 2 side the opt-out still stands
