@@ -129,3 +129,31 @@ def test_segment_ids_are_refused_on_decode():
     for bad in ("", "a/b", "*", "**", "$x", "a" * 65, "-a"):
         with pytest.raises(ValidationError):
             MapRequest(map_id=bad)
+
+
+def test_the_gateway_records_a_job_under_its_key_only(tmp_path):
+    """The recording writer queues a finished job named by the key it came on; an event whose job id
+    disagrees with its key is ignored (it would write another job's recording)."""
+    from services.gateway.routes.downloads import RecordingWriter
+    from services.gateway.settings import GatewaySettings
+    from shared.bus import FakeBus, FakeNetwork
+    from shared.schemas import JobEvent, JobEventKind, JobState
+
+    bus = FakeBus(FakeNetwork())
+    writer = RecordingWriter(TypedBus(bus, "rec-test"), None, GatewaySettings(db_path=tmp_path / "gw.sqlite3"))
+    try:
+        def ended(job):
+            return JobEvent(job_id=job, seq=3, kind=JobEventKind.FINISHED, state=JobState.SUCCEEDED)
+
+        key = keys.MISSION_EVENTS.format(robot="robot0", mission="m1")
+        writer._on_event(key, ended("m2"), keys.MISSION_EVENTS, "mission")
+        assert writer._queue.empty()
+        writer._on_event(key, ended("m1"), keys.MISSION_EVENTS, "mission")
+        assert writer._queue.get_nowait() == ("m1", 3)
+    finally:
+        writer._stopping.set()
+        for s in writer._subs:
+            s.close()
+        writer._queue.put(None)
+        writer._worker.join(10.0)
+        bus.close()
