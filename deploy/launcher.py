@@ -7,7 +7,8 @@ SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C
 The bus is authenticated by default, as in production (it costs nothing on loopback): credentials
 are generated in ``<run_dir>/zenoh`` at first start (:mod:`deploy.credentials`), the router applies
 the generated ACL, and every service connects in client mode as its own user (the ROS 2 stand-in as
-``ros2_robot``, allowed its ROS 2 keys only), so a stranger on the port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``.
+``ros2_robot``, allowed its ROS 2 keys only), so a stranger on the port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``
+(refused with the ROS 2 stand-in: a system with a robot never runs its bus open).
 """
 
 from __future__ import annotations
@@ -144,6 +145,11 @@ class Launcher:
         self._monitor: threading.Thread | None = None
         self.bus: ZenohBus | None = None
         self.auth = os.environ.get("ANT_BUS_AUTH", "1").lower() not in ("0", "false", "no") if auth is None else auth
+        if standin is not None and not self.auth:
+            # A robot's ROS 2 side moves a body: its keys (cmd_vel, teleport) are never left to anyone on
+            # the port, so a system with the stand-in (or a real robot) refuses to run its bus open.
+            raise ValueError("a system with a robot's ROS 2 side never runs its bus open: auth stays on "
+                             "(unset ANT_BUS_AUTH=0 / auth=False)")
         self.users: dict[str, str] = {}
 
     @property

@@ -143,9 +143,9 @@ class ServicesClient:
         pattern = keys.ALIVE.pattern(service=service) if service else keys.ALIVE.pattern()
         out = []
         for token in self.bus.raw.alive(pattern, timeout_s=self.timeout_s):
-            parts = token.split("/")
-            if len(parts) == 4:
-                out.append((parts[2], parts[3]))
+            parts = keys.ALIVE.parse(token)
+            if parts is not None:
+                out.append((parts["service"], parts["instance"]))
         return out
 
     def infos(self, service: str | None = None) -> list[ServiceInfo]:

@@ -455,6 +455,62 @@ def _read_ours(path: Path) -> PointCloud | None:
         return _assemble(layout, fill)
 
 
+@dataclass(frozen=True)
+class CopiedCloud:
+    """What :func:`copy_ours` wrote: the finite points' count and bounds, and the file's labels."""
+
+    count: int
+    bounds_min: tuple[float, float, float]
+    bounds_max: tuple[float, float, float]
+    with_labels: bool
+    label_names: dict[int, str]
+
+
+def copy_ours(src: str | Path, dst: str | Path) -> CopiedCloud | None:
+    """Copy a PLY of our layout from ``src`` to ``dst`` a slice of records at a time, dropping
+    non-finite points: what an upload of any size costs in memory is one slice (~16 MB), not the cloud.
+    None when ``src`` is not in our layout (the caller parses it whole); :class:`CloudFormatError` when
+    it is ours but cut short, or holds no finite point.
+
+    Two passes (count and bounds first, since the header states the count; then the records), both
+    read sequentially from a file the page cache holds."""
+    src = Path(src)
+    with open(src, "rb") as fh:
+        layout = _our_layout(fh.read(_HEAD_BYTES))
+        if layout is None:
+            return None
+        _check_body(layout, src.stat().st_size - layout.body_offset)
+
+        def slices():
+            fh.seek(layout.body_offset)
+            for lo in range(0, layout.count, _SLICE_POINTS):
+                want = min(_SLICE_POINTS, layout.count - lo)
+                rec = np.fromfile(fh, layout.dtype, want)
+                if len(rec) != want:
+                    raise CloudFormatError(f"PLY body ends after {lo + len(rec)} of {layout.count} vertices")
+                xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+                finite = np.isfinite(xyz).all(axis=1)
+                yield rec, xyz, finite
+
+        count, lo_b, hi_b = 0, np.full(3, np.inf), np.full(3, -np.inf)
+        for _rec, xyz, finite in slices():
+            n = int(finite.sum())
+            if n:
+                count += n
+                lo_b = np.minimum(lo_b, xyz[finite].min(axis=0))
+                hi_b = np.maximum(hi_b, xyz[finite].max(axis=0))
+        if not count:
+            raise CloudFormatError("every point is non-finite" if layout.count else "no points")
+        if count < layout.count:
+            log.warning("dropping %d non-finite points", layout.count - count)
+        with open(dst, "wb") as out:
+            out.write(header(count, layout.with_labels, layout.names, with_views=layout.with_views))
+            for rec, _xyz, finite in slices():
+                out.write((rec if finite.all() else rec[finite]).tobytes())
+    return CopiedCloud(count, tuple(float(v) for v in lo_b), tuple(float(v) for v in hi_b),
+                       layout.with_labels, dict(layout.names))
+
+
 def read_cloud(path: str | Path) -> PointCloud:
     """A cloud file as a :class:`PointCloud`: our layout (labels kept), or any PLY/PCD open3d reads.
 

@@ -19,11 +19,18 @@ from enum import StrEnum
 
 ROOT = "ant"
 # One key segment: what zenoh would otherwise read as a wildcard, separator or verbatim chunk is refused.
-_SEGMENT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+# Written once: the schemas' ``SegmentId`` and the gateway's path parameters use this same pattern.
+SEGMENT_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+_SEGMENT = re.compile(SEGMENT_PATTERN)
 
 
 class KeyExprError(ValueError):
     """A key part is not a valid single segment."""
+
+
+class KeyMismatch(KeyExprError):
+    """A payload names another id than the key it came on (a forged or confused request): refused,
+    because the key is what the ACL and the caller's route vouch for, the payload is not."""
 
 
 def validate_segment(value: str, what: str = "key part") -> str:
@@ -53,18 +60,40 @@ def robot_routes(key: "Key", robots: "tuple[str, ...] | list[str]" = (), **parts
     return [key.format(robot=r, **parts) for r in dict.fromkeys(robots)]
 
 
-def robot_of(key: "Key", asked: str) -> str:
-    """The robot id in the concrete key a request came on (an instance route's ``/@x`` ignored).
-
-    Identity comes from the key, never from a payload: a request on robotX's key can only act on robotX.
+def ids_of(key: "Key", asked: str) -> dict[str, str]:
+    """The named segments (``{"map": ..., "build": ...}``) of the concrete key a request or sample came
+    on, an instance route's ``/@x`` ignored. Identity comes from the key, never from a payload.
     Raises :class:`KeyExprError` for a key that is not one of ``key``'s (e.g. a wildcard asked)."""
     segs = asked.split("/")
     if segs and segs[-1].startswith("@"):
         segs = segs[:-1]
     found = key.parse("/".join(segs))
-    if found is None or "robot" not in found:
+    if found is None:
         raise KeyExprError(f"{asked!r} is not a concrete key of {key.template}")
+    return found
+
+
+def robot_of(key: "Key", asked: str) -> str:
+    """The robot id in the concrete key a request came on: a request on robotX's key can only act on
+    robotX. Raises :class:`KeyExprError` for a key that is not one of ``key``'s."""
+    found = ids_of(key, asked)
+    if "robot" not in found:
+        raise KeyExprError(f"{key.template} has no robot segment")
     return found["robot"]
+
+
+def agree(key: "Key", asked: str, payload: object, **fields: str) -> dict[str, str]:
+    """The key's ids, after checking that each payload attribute named in ``fields`` (``map="map_id"``:
+    key part -> payload attribute) equals the key's segment. Raises :class:`KeyMismatch` (a bad
+    request) when one differs: a request on map A's key can never act on map B."""
+    found = ids_of(key, asked)
+    for part, attr in fields.items():
+        if part not in found:
+            raise KeyExprError(f"{key.template} has no {{{part}}} segment")
+        claimed = getattr(payload, attr)
+        if claimed != found[part]:
+            raise KeyMismatch(f"{attr} {claimed!r} disagrees with the key's {part} {found[part]!r} ({asked})")
+    return found
 
 
 class Usage(StrEnum):

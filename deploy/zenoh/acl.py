@@ -6,9 +6,12 @@ Each service authenticates to the router with its own user name (zenoh ``usrpwd`
 * put / delete / declare queryables / reply / declare liveliness tokens **only on the key
   expressions it owns** (``Key.owner``), plus its own ``ant/alive/<service>/*`` token and its
   ``ant/svc/<service>/*/{info,metrics}`` queryables;
-* subscribe and query anything under ``ant/**`` (every service reads others' topics);
+* subscribe, query and ask liveliness **only on the key expressions it consumes** (``Key.consumers``)
+  or owns (least privilege: the renderer cannot subscribe to the robot's frames, the gateway cannot
+  query the robot's motion keys);
 
-and the router delivers every sample, reply and declaration under ``ant/**`` to everyone.
+and the router delivers samples, replies and declarations under ``ant/**`` (egress): a client only
+receives what it declared interest in, and it can only declare interest where its ingress rules let it.
 
 The robot's ROS 2 side (the stand-in, or a real robot's zenoh-bridge-ros2dds / rmw_zenoh router) joins
 as its own user (:class:`Ros2Side`, ``ros2_robot``): it and the services that talk ROS 2 (robot-io) may
@@ -43,7 +46,7 @@ REPLICATED = {"renderer": ("renderer-0", "renderer-1")}
 
 # What an owner may originate on its own keys (router ingress from that client).
 OWN_MESSAGES = ["put", "delete", "declare_queryable", "reply", "liveliness_token"]
-# What everyone may originate anywhere under the root (reading is not restricted).
+# What a service may originate on the keys it consumes (and its own): ask, subscribe, watch tokens.
 READ_MESSAGES = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
 # What the router may hand to any client: samples, replies and declarations (already checked on ingress).
 DELIVER_MESSAGES = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
@@ -121,6 +124,22 @@ def owned_key_exprs(service: str, instances: Sequence[str] = ()) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+def consumed_key_exprs(service: str, instances: Mapping[str, Sequence[str]] | None = None) -> list[str]:
+    """Every key expression ``service`` may subscribe to, query or watch tokens on: the keys whose
+    ``Key.consumers`` name it, their advanced-publisher caches (``@adv``, history and late joiners)
+    and, for a replicated owner, its instance routes (a balancing client addresses one replica)."""
+    if service not in SERVICES:
+        raise AclError(f"unknown service {service!r}; known: {', '.join(SERVICES)}")
+    instances = REPLICATED if instances is None else instances
+    consumed = [k for k in keys.CATALOGUE if service in k.consumers]
+    out = [_expr(k) for k in consumed]
+    out += [f"{_expr(k)}/@adv/**" for k in consumed if k.usage == keys.Usage.PUBLICATION]
+    for k in consumed:
+        if k.usage == keys.Usage.QUERYABLE:
+            out += [keys.routed(_expr(k), inst) for inst in instances.get(k.owner, ())]
+    return list(dict.fromkeys(out))
+
+
 def routed_key_exprs(instances: Mapping[str, Sequence[str]]) -> list[str]:
     """Every instance route of every replicated service (verbatim chunks need explicit listing)."""
     return [e for svc, names in instances.items() for e in owned_key_exprs(svc, names)
@@ -165,20 +184,27 @@ def acl_config(services: Iterable[str] = SERVICES,
     # "@adv": advanced subscribers' tokens and history queries (a verbatim chunk no wildcard matches).
     everywhere = [f"{keys.ROOT}/**", f"{keys.ROOT}/**/@adv/**", *routed_key_exprs(instances)]
     rules: list[dict[str, Any]] = [
-        {"id": "read", "permission": "allow", "flows": ["ingress", "egress"], "messages": READ_MESSAGES,
-         "key_exprs": everywhere},
-        {"id": "deliver", "permission": "allow", "flows": ["egress"], "messages": DELIVER_MESSAGES,
-         "key_exprs": everywhere},
+        # What the router hands a client: it only reaches a client that declared a subscriber, a
+        # queryable or a token watch there, which that client's own ingress rules limited.
+        {"id": "deliver", "permission": "allow", "flows": ["egress"],
+         "messages": list(dict.fromkeys([*DELIVER_MESSAGES, *READ_MESSAGES])), "key_exprs": everywhere},
     ]
     subjects: list[dict[str, Any]] = []
-    policies: list[dict[str, Any]] = [{"id": "everyone", "rules": ["read", "deliver"],
-                                       "subjects": [*services, *readers]}]
-    subjects += [{"id": r, "usernames": [r]} for r in readers]
+    policies: list[dict[str, Any]] = [{"id": "everyone", "rules": ["deliver"], "subjects": [*services, *readers]}]
+    if readers:  # tools and tests: read and query everything, originate nothing
+        rules.append({"id": "read-all", "permission": "allow", "flows": ["ingress"], "messages": READ_MESSAGES,
+                      "key_exprs": everywhere})
+        subjects += [{"id": r, "usernames": [r]} for r in readers]
+        policies.append({"id": "readers", "rules": ["read-all"], "subjects": list(readers)})
     for svc in services:
+        owned = owned_key_exprs(svc, instances.get(svc, ()))
         rules.append({"id": f"own-{svc}", "permission": "allow", "flows": ["ingress"], "messages": OWN_MESSAGES,
-                      "key_exprs": owned_key_exprs(svc, instances.get(svc, ()))})
+                      "key_exprs": owned})
+        # A service reads what it consumes, and its own keys (an owner may look at what it serves).
+        rules.append({"id": f"read-{svc}", "permission": "allow", "flows": ["ingress"], "messages": READ_MESSAGES,
+                      "key_exprs": list(dict.fromkeys([*consumed_key_exprs(svc, instances), *owned]))})
         subjects.append({"id": svc, "usernames": [svc]})
-        policies.append({"id": f"{svc}-owns", "rules": [f"own-{svc}"], "subjects": [svc]})
+        policies.append({"id": f"{svc}-owns", "rules": [f"own-{svc}", f"read-{svc}"], "subjects": [svc]})
     if ros2 is not None:
         peers = [p for p in ros2.peers if p in services]
         rules.append({"id": "ros2", "permission": "allow", "flows": ["ingress", "egress"], "messages": ROS2_MESSAGES,
@@ -236,7 +262,8 @@ HEADER = """\
 Generated by `python -m deploy.zenoh.acl` from shared/keys.py - do not edit by hand
 (tests/unit/deploy/test_acl_config.py fails when it is stale).
 A zenoh router with user/password authentication (one user per service, see users.example.txt) and
-access control: each service may publish, serve and declare liveliness only on its own key expressions.
+access control: each service may publish, serve and declare liveliness only on its own key expressions,
+and subscribe, query and watch liveliness only on the keys it consumes (Key.consumers) or owns.
 Services connect in client mode with deploy/zenoh/client-acl.example.json5 (their user name = service name)."""
 
 

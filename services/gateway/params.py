@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import Header, Path, Query
 
-SEGMENT = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"  # one key segment (shared.keys.validate_segment)
+from shared.keys import SEGMENT_PATTERN as SEGMENT  # one key segment, the pattern written once
 SEQ_MAX = 2**31 - 1
 
 MissionId = Annotated[str, Path(pattern=SEGMENT, description="mission id")]

@@ -23,10 +23,8 @@ class GatewaySettings(ServiceSettings):
                           description="SQLite file (WAL) holding missions, explorations, events, images")
     request_timeout_s: float = Field(5.0, gt=0, le=120, description="bus requests made for one HTTP call")
     max_body_bytes: int = Field(1 << 20, ge=1024, description="largest JSON request body")
-    # The reconstructor's own budget for one import: a larger body would be spooled and sent, then refused.
+    # The reconstructor's own budget for one import: a larger body would be streamed, then refused.
     max_upload_bytes: int = Field(IMPORT_MAX_BYTES, ge=1024, description="largest uploaded cloud (POST /maps)")
-    upload_spool_dir: Path | None = Field(None, description="where an upload is spooled on its way to the "
-                                                            "reconstructor (None: the system's temp dir)")
     max_instruction_chars: int = Field(4000, ge=1, le=4000)
     validate_map: bool = Field(True, description="ask the reconstructor that a mission's map exists")
     pose_tolerance_m: float = Field(1.0, gt=0, le=100,

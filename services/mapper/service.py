@@ -84,8 +84,6 @@ class MapperService(Service[MapperSettings]):
         node = self._node
         assert node is not None
         robot_id = keys.robot_of(keys.MAPPER_EXPLORE, key)
-        keys.validate_segment(req.exploration_id, "exploration id")
-        keys.validate_segment(req.map_id, "map id")
         try:  # refused before it is accepted: a bad profile or knob never becomes a failed job
             request_discovery_config(req)
         except (KeyError, ValueError) as exc:  # pydantic's ValidationError is a ValueError

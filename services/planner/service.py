@@ -82,8 +82,6 @@ class PlannerService(Service[PlannerSettings]):
     # --- queryables ------------------------------------------------------------------------------------
     def submit(self, key: str, req: MissionRequest) -> JobAccepted:
         robot = keys.robot_of(keys.MISSION_SUBMIT, key)
-        keys.validate_segment(req.mission_id, "mission id")
-        keys.validate_segment(req.map_id, "map id")
         if req.options.policy not in POLICIES.names():
             raise ValueError(f"unknown policy {req.options.policy!r}; known: {', '.join(POLICIES.names())}")
         jobs = self._runner(robot)

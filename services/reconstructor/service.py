@@ -117,13 +117,15 @@ class ReconstructorService(Service[ReconstructorSettings]):
         warm_up()
         node.own(node.bus.subscribe(keys.IO_FRAMES.pattern(), Frame, self._on_frame))
         node.serve(keys.MAP_LIST.format(), Ping, self.list_maps)
-        node.serve(keys.MAP_INFO.pattern(), MapRequest, self.info)
-        node.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self.chunk)
-        node.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self.import_map, workers=1)
+        # Every handler on a map's key takes the map from the key (keyed=True); a payload map_id that
+        # disagrees is refused (shared.keys.agree), so a request on map A's key never touches map B.
+        node.serve(keys.MAP_INFO.pattern(), MapRequest, self.info, keyed=True)
+        node.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self.chunk, keyed=True)
+        node.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self.import_map, workers=1, keyed=True)
         # One build at a time: reconstruction holds every frame of an exploration in memory.
         self._builds = JobRunner(node.bus, name="map build", workers=1,
                                  max_queued=self.settings.max_queued_builds)
-        node.serve(keys.MAP_BUILD.pattern(), BuildMapRequest, self.build, workers=1)
+        node.serve(keys.MAP_BUILD.pattern(), BuildMapRequest, self.build, workers=1, keyed=True)
         node.serve(keys.MAP_BUILD_CANCEL.pattern(), BuildCancelRequest, self.cancel_build, workers=1, keyed=True)
 
     def stop(self) -> None:
@@ -131,26 +133,38 @@ class ReconstructorService(Service[ReconstructorSettings]):
             self._builds.close()
 
     def _on_frame(self, key: str, frame: Frame) -> None:
-        self.frames.add(key.rsplit("/", 1)[-1], frame)
+        try:
+            recording = keys.ids_of(keys.IO_FRAMES, key)["recording"]
+        except keys.KeyExprError:
+            log.warning("frame on %r dropped: not a concrete %s key", key, keys.IO_FRAMES.template)
+            return
+        self.frames.add(recording, frame)
 
     # --- the store -----------------------------------------------------------------------------------
     def list_maps(self, _: Ping) -> MapListReply:
         return MapListReply(maps=self.store.list())
 
-    def info(self, req: MapRequest) -> MapInfo:
+    def info(self, key: str, req: MapRequest) -> MapInfo:
+        keys.agree(keys.MAP_INFO, key, req, map="map_id")
         try:
             return self.store.info(req.map_id, req.version)
         except MapNotFoundError as exc:
             raise NotFound(str(exc)) from None
 
-    def chunk(self, req: MapChunkRequest) -> MapChunk:
+    def chunk(self, key: str, req: MapChunkRequest) -> MapChunk:
+        keys.agree(keys.MAP_CHUNK, key, req, map="map_id")
         try:
             return self.store.chunk(req.map_id, req.version, req.index, req.max_points)
         except MapNotFoundError as exc:
             raise NotFound(str(exc)) from None
 
-    def import_map(self, req: MapImportRequest) -> MapInfo | MapImportProgress:
-        keys.validate_segment(req.map_id, "map id")
+    def import_map(self, key: str, req: MapImportRequest) -> MapInfo | MapImportProgress:
+        try:
+            keys.agree(keys.MAP_IMPORT, key, req, map="map_id")
+        except keys.KeyExprError:
+            if req.upload_id is not None:  # any failure drops the whole upload (MapImportRequest)
+                self.uploads.drop(req.upload_id, req.filename)
+            raise
         if req.upload_id is None:  # whole in one request
             return self._import(req, req.data)
         if req.abort:
@@ -177,9 +191,8 @@ class ReconstructorService(Service[ReconstructorSettings]):
         self._node.bus.publish(keys.MAP_UPDATED.format(map=info.map_id), info)
 
     # --- building ------------------------------------------------------------------------------------
-    def build(self, req: BuildMapRequest) -> JobAccepted:
-        keys.validate_segment(req.map_id, "map id")
-        keys.validate_segment(req.build_id, "build id")
+    def build(self, key: str, req: BuildMapRequest) -> JobAccepted:
+        keys.agree(keys.MAP_BUILD, key, req, map="map_id")
         if not req.recordings:
             raise ValueError("a build needs at least one recording")
         s = self.settings
@@ -199,9 +212,7 @@ class ReconstructorService(Service[ReconstructorSettings]):
     def cancel_build(self, key: str, req: BuildCancelRequest) -> JobAccepted:
         """Cancel a queued or running build of the key's map: a request on map X's key cannot stop
         another map's build."""
-        found = keys.MAP_BUILD_CANCEL.parse(key)
-        if found is None:
-            raise ValueError(f"{key!r} is not a concrete key of {keys.MAP_BUILD_CANCEL.template}")
+        found = keys.ids_of(keys.MAP_BUILD_CANCEL, key)
         assert self._builds is not None
         with self._build_lock:
             mine = self._build_maps.get(req.build_id) == found["map"]

@@ -140,10 +140,17 @@ class RendererService(Service[RendererSettings]):
         log.info("renderer kernels ready in %.2f s", self.renderer.warm_up())
         self.cache = MapCache(MapClient(node.bus), self.settings.cache_maps, prepare=self.renderer.prepare)
         # Only the map id of the key is used: what the announcement claims is checked with the store.
-        node.own(node.bus.subscribe(keys.MAP_UPDATED.pattern(), MapInfo,
-                                    lambda k, _info: self.cache.forget_latest(k.split("/")[-2])))
+        node.own(node.bus.subscribe(keys.MAP_UPDATED.pattern(), MapInfo, self._on_map_updated))
         node.serve(keys.RENDER_VIEWS.format(), RenderRequest, self.views, replicated=True)
         node.serve(keys.RENDER_MAP.format(), SpatialMapRequest, self.spatial_map, replicated=True)
+
+    def _on_map_updated(self, key: str, _info: MapInfo) -> None:
+        try:
+            map_id = keys.ids_of(keys.MAP_UPDATED, key)["map"]
+        except keys.KeyExprError:
+            log.warning("map announcement on %r ignored: not a concrete %s key", key, keys.MAP_UPDATED.template)
+            return
+        self.cache.forget_latest(map_id)
 
     def _renderer(self, mode: str | None):
         if mode is None:

@@ -159,7 +159,6 @@ class RobotIoService(Service[RobotIoSettings]):
         return PoseReply(pose=pose)
 
     def record(self, req: RecordRequest) -> RecordReply:
-        keys.validate_segment(req.recording, "recording")
         with self._lock:
             if req.start:
                 if req.recording in self._recordings:

@@ -28,6 +28,7 @@ from .base import (  # noqa: F401
     Count,
     Cost_usd,
     _ID_PATTERN,
+    SegmentId,
     Duration_s,
     BudgetExceeded,
     RENDER_MAX_PIXELS,

@@ -8,6 +8,8 @@ from typing import Annotated, Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from shared.keys import SEGMENT_PATTERN
+
 
 # --- limits -----------------------------------------------------------------------------------------
 # Every number a request carries is finite (``allow_inf_nan=False`` on every model) and inside a stated
@@ -31,7 +33,10 @@ Xyz_m = tuple[Metres, Metres, Metres]
 LabelId = Annotated[int, Field(ge=-1, le=LABEL_LIMIT)]
 Count = Annotated[int, Field(ge=0, le=SEQ_LIMIT)]
 Cost_usd = Annotated[float, Field(ge=0.0, le=1e6)]
-_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"  # a job id is one key segment (shared.keys.validate_segment)
+_ID_PATTERN = SEGMENT_PATTERN  # kept for older imports: use SegmentId
+# An id that names a key segment (map, mission, exploration, build, upload, job): refused on decode
+# unless it is one valid segment, so no handler validates ids by hand.
+SegmentId = Annotated[str, Field(pattern=SEGMENT_PATTERN)]
 Duration_s = Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]
 
 
@@ -52,7 +57,7 @@ VIEW_MAX_PIXELS = 512 * 512  # one view of an observed panorama (the robot's own
 MAP_CHUNK_MAX_POINTS = 2_000_000  # points of one MapChunk (~30 MB)
 BUILD_MAX_RECORDINGS = 256
 BUILD_MAX_FRAMES = 500_000  # frames of every recording of one BuildMapRequest together
-IMPORT_MAX_BYTES = 256 << 20  # an imported cloud file
+IMPORT_MAX_BYTES = 1 << 30  # an imported cloud file (streamed: neither side holds it, so the disk is the limit)
 IMPORT_PART_BYTES = 4 << 20  # what a sender puts in one part of an upload (MapImportRequest.upload_id)
 IMPORT_PART_MAX_BYTES = 32 << 20  # the most one part may carry
 PATH_MAX_POINTS = 10_000  # trajectories and reference paths

@@ -9,6 +9,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .base import (
+    SegmentId,
     _finite,
     Cost_usd,
     Count,
@@ -87,7 +88,7 @@ class MissionStarted(EventPayload):
     type: Literal["mission_started"] = "mission_started"
     pose: Pose
     instruction: str
-    map_id: str
+    map_id: SegmentId
     options: MissionOptions
 
 
@@ -164,7 +165,7 @@ class MissionFinished(EventPayload):
 class ExplorationStarted(EventPayload):
     KINDS: ClassVar[tuple[str, ...]] = ("started",)
     type: Literal["exploration_started"] = "exploration_started"
-    map_id: str
+    map_id: SegmentId
 
 
 class ExplorationOutcome(BaseModel):
@@ -213,7 +214,7 @@ class ExplorationFinished(EventPayload):
     type: Literal["exploration_finished"] = "exploration_finished"
     stage: str = "done"
     progress: float = Field(1.0, ge=0.0, le=1.0)
-    map_id: str
+    map_id: SegmentId
     version: int = Field(ge=1, le=SEQ_LIMIT)
     points: Count
     regions: Count
@@ -272,7 +273,7 @@ class JobEvent(Message):
     instead of inlining them in every event.
     """
 
-    job_id: str
+    job_id: SegmentId
     seq: int = Field(ge=0, le=SEQ_LIMIT)
     kind: JobEventKind
     state: JobState

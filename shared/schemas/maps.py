@@ -10,8 +10,8 @@ from pydantic import Field, model_validator
 from shared.arrays import Array
 
 from .base import (
+    SegmentId,
     _finite_array,
-    _ID_PATTERN,
     BudgetExceeded,
     BUILD_MAX_FRAMES,
     BUILD_MAX_RECORDINGS,
@@ -32,7 +32,7 @@ from .navigation import TourRecording
 
 
 class MapInfo(Message):
-    map_id: str
+    map_id: SegmentId
     version: int = Field(ge=1, le=SEQ_LIMIT)
     point_count: int = Field(ge=0, le=SEQ_LIMIT)
     bounds_min_m: Xyz_m
@@ -51,12 +51,12 @@ class MapListReply(Message):
 
 
 class MapRequest(Message):
-    map_id: str
+    map_id: SegmentId
     version: int | None = Field(None, ge=1, le=2**31 - 1)  # None: latest
 
 
 class MapChunkRequest(Message):
-    map_id: str
+    map_id: SegmentId
     version: int | None = Field(None, ge=1, le=2**31 - 1)
     index: int = Field(0, ge=0, le=SEQ_LIMIT)
     max_points: int = Field(1_000_000, ge=1, le=10_000_000)
@@ -69,7 +69,7 @@ class MapChunkRequest(Message):
 class MapChunk(Message):
     """One slice of a map's points; ``count`` chunks together make the whole cloud."""
 
-    map_id: str
+    map_id: SegmentId
     version: int
     index: int
     count: int
@@ -93,7 +93,7 @@ class BuildCancelRequest(Message):
     """Stop a map build (``MAP_BUILD_CANCEL``): the map is the key's, the build this says. A cancelled
     build stores nothing: the map store keeps only the versions it had."""
 
-    build_id: str = Field(pattern=_ID_PATTERN)
+    build_id: SegmentId
 
 
 class BuildMapRequest(Message):
@@ -102,9 +102,9 @@ class BuildMapRequest(Message):
     A build is a job: the reply is a :class:`JobAccepted`, its events follow on ``MAP_BUILD_EVENTS``
     under ``build_id``."""
 
-    build_id: str
-    exploration_id: str
-    map_id: str
+    build_id: SegmentId
+    exploration_id: SegmentId
+    map_id: SegmentId
     recordings: list[TourRecording] = Field(max_length=BUILD_MAX_RECORDINGS)
     reconstruction: str = "rgbd"
     label_names: dict[LabelId, str] = Field(default_factory=dict, description="semantic ids of the frames")
@@ -128,10 +128,10 @@ class MapImportRequest(Message):
     :class:`MapInfo`. An ``abort`` part (no data) drops what was received. Any failure drops the
     whole upload: a failed upload leaves neither a map nor a partial file."""
 
-    map_id: str
+    map_id: SegmentId
     filename: str = Field(pattern=r"^[^/\\\x00-\x1f]{1,200}\.(ply|pcd)$")
     data: bytes = b""
-    upload_id: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    upload_id: SegmentId | None = None
     offset: int = Field(0, ge=0, le=IMPORT_MAX_BYTES, description="bytes of the upload before this part")
     last: bool = True
     abort: bool = False
@@ -156,5 +156,5 @@ class MapImportRequest(Message):
 class MapImportProgress(Message):
     """The answer to a part of an upload that is not the last (or to an abort)."""
 
-    upload_id: str
+    upload_id: SegmentId
     received_bytes: int = Field(ge=0, le=IMPORT_MAX_BYTES)

@@ -8,7 +8,7 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator
 
-from .base import _free_form_check, _ID_PATTERN, Cost_usd, Count, FREE_FORM_MAX_ITEMS, Message, PATH_MAX_POINTS, Xyz_m
+from .base import SegmentId, _free_form_check, Cost_usd, Count, FREE_FORM_MAX_ITEMS, Message, PATH_MAX_POINTS, Xyz_m
 from .geometry import Pose
 from .navigation import CandidateKind
 from .render import SplatMode
@@ -81,23 +81,23 @@ class MissionOptions(BaseModel):
 
 
 class MissionRequest(Message):
-    mission_id: str
+    mission_id: SegmentId
     instruction: Instruction
-    map_id: str
+    map_id: SegmentId
     options: MissionOptions = Field(default_factory=MissionOptions)
 
 
 class JobAccepted(Message):
     """A job's submission answered: accepted (its events follow on its events key) or refused, with why."""
 
-    job_id: str
+    job_id: SegmentId
     accepted: bool
     reason: str = ""
     instance: str = ""  # the worker instance that took the job ("" : not said; the gateway then looks it up)
 
 
 class CancelRequest(Message):
-    mission_id: str
+    mission_id: SegmentId
 
 
 class JobEventKind(StrEnum):
@@ -111,8 +111,8 @@ class JobEventKind(StrEnum):
 class ExplorationRequest(Message):
     """Pre-explore the robot's current scene, record tours and reconstruct a map named ``map_id``."""
 
-    exploration_id: str
-    map_id: str
+    exploration_id: SegmentId
+    map_id: SegmentId
     # A hard cap on panoramas; None leaves the mapper's safety budget, which scales with the area
     # discovered (the exploration otherwise ends when no frontier is left).
     max_steps: int | None = Field(None, ge=1, le=100_000)
@@ -127,4 +127,4 @@ class ExplorationCancelRequest(Message):
     """Stop a running exploration (``EXPLORATION_CANCEL``): whose robot is the key's, which exploration
     this says. Its ``cancelled`` event (with the stage it stopped in) follows on its events key."""
 
-    exploration_id: str = Field(pattern=_ID_PATTERN)
+    exploration_id: SegmentId

@@ -8,7 +8,7 @@ from pydantic import Field
 
 from shared.arrays import Array
 
-from .base import BUILD_MAX_FRAMES, Distance_m, Message, Metres, Radians
+from .base import SegmentId, BUILD_MAX_FRAMES, Distance_m, Message, Metres, Radians
 from .geometry import Pose
 
 
@@ -69,8 +69,8 @@ class Tour(Message):
 class TourRecording(Message):
     """A finished recorded tour; its frames were published on ``IO_FRAMES`` under ``recording``."""
 
-    exploration_id: str
-    recording: str
+    exploration_id: SegmentId
+    recording: SegmentId
     region: int = Field(ge=-1, le=100_000)
     start_pose: Pose
     frame_count: int = Field(ge=0, le=BUILD_MAX_FRAMES)

@@ -9,7 +9,7 @@ from pydantic import Field, model_validator
 
 from shared.arrays import Array
 
-from .base import _finite_array, BudgetExceeded, Message, PATH_MAX_POINTS, RENDER_MAX_PIXELS, WORLD_LIMIT_M
+from .base import SegmentId, _finite_array, BudgetExceeded, Message, PATH_MAX_POINTS, RENDER_MAX_PIXELS, WORLD_LIMIT_M
 from .geometry import CameraIntrinsics, Pose, ViewPose
 from .navigation import Candidate
 
@@ -25,7 +25,7 @@ SplatMode = Literal["paper", "visibility"]
 class RenderRequest(Message):
     """Anticipated views of one step: every candidate's view in one request."""
 
-    map_id: str
+    map_id: SegmentId
     version: int | None = Field(None, ge=1, le=2**31 - 1)
     views: list[ViewPose] = Field(min_length=1, max_length=64)
     camera: CameraIntrinsics = Field(default_factory=CameraIntrinsics)
@@ -43,7 +43,7 @@ class RenderRequest(Message):
 
 
 class RenderResult(Message):
-    map_id: str
+    map_id: SegmentId
     version: int
     rgb: Array("uint8", 4, 3)  # (B, H, W, 3)
     depth_m: Array("float32", 3)
@@ -54,7 +54,7 @@ class RenderResult(Message):
 
 
 class SpatialMapRequest(Message):
-    map_id: str
+    map_id: SegmentId
     version: int | None = Field(None, ge=1, le=2**31 - 1)
     pose: Pose
     trajectory_m: Array("float64", 2) | None = None  # (T, 3)
@@ -81,7 +81,7 @@ class SpatialMapRequest(Message):
 
 
 class SpatialMapResult(Message):
-    map_id: str
+    map_id: SegmentId
     version: int
     image: Array("uint8", 3, 3)
     metres_per_px: float

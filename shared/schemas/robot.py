@@ -11,6 +11,7 @@ from pydantic import Field, model_validator
 from shared.arrays import Array
 
 from .base import (
+    SegmentId,
     _finite_array,
     BudgetExceeded,
     Message,
@@ -148,7 +149,7 @@ class PoseReply(Message):
 class RecordRequest(Message):
     """Start or stop recording a tour: while on, every motion publishes Frames on IO_FRAMES."""
 
-    recording: str
+    recording: SegmentId
     start: bool
     rate_hz: float = Field(5.0, gt=0.0, le=60.0)
     # Frames are downscaled to this width before publishing (same field of view); None: full size.
@@ -157,7 +158,7 @@ class RecordRequest(Message):
 
 
 class RecordReply(Message):
-    recording: str
+    recording: SegmentId
     recording_on: bool
     frame_count: int
 

@@ -21,7 +21,7 @@ from tests.contract.conftest import authenticated_router, wait_until
 pytestmark = pytest.mark.contract
 
 ROS2 = acl.Ros2Side()
-USERS = ("robot_io", "gateway", ROS2.user)
+USERS = ("robot_io", "gateway", "reconstructor", ROS2.user)
 PASSWORDS = {u: f"pw-{u}" for u in (*acl.SERVICES, ROS2.user)}
 RMW = RmwZenohKeys(domain_id=0)
 ODOM_TYPE = m.RosType(m.MESSAGES["odometry"])
@@ -80,14 +80,15 @@ def test_robot_io_calls_a_ros2_service_and_sees_the_graph_tokens(net):
 
 
 def test_the_ros2_side_cannot_touch_the_services_keys(net):
-    robot, gw, ros = net["robot_io"], net["gateway"], net[ROS2.user]
-    pose = keys.IO_POSE.format(robot="robot0")
+    robot, gw, rec, ros = net["robot_io"], net["gateway"], net["reconstructor"], net[ROS2.user]
+    # robot-io's frames, watched where the ACL lets them be read: by their consumer, the reconstructor.
+    pose = keys.IO_FRAMES.format(robot="robot0", recording="t1")
     at_gw, at_ros = Inbox(), Inbox()
-    sub_gw = gw.subscribe("ant/**", at_gw)
+    sub_gw = rec.subscribe(keys.IO_FRAMES.pattern(), at_gw)
     sub_ros = ros.subscribe("ant/**", at_ros)
     hijack = ros.serve([keys.INFO.format(service="robot_io", instance="fake")], lambda k, p: b"hijacked")
     fake = ros.liveliness_token(keys.ALIVE.format(service="robot_io", instance="impostor"))
-    wait_until(lambda: robot.publish(pose, b"ready") or at_gw.has(pose, b"ready"), what="pose routed to the gateway")
+    wait_until(lambda: robot.publish(pose, b"ready") or at_gw.has(pose, b"ready"), what="frames routed to the reconstructor")
     # The forged sample first, then a genuine one: once the genuine one arrived the forged one would have too.
     ros.publish(pose, b"forged")
     ros.publish("odom", b"marker")  # same session, same router, in order
@@ -167,3 +168,14 @@ def test_the_launcher_keeps_auth_on_with_the_stand_in_and_gives_both_sides_their
     transport = json.loads(robot_io_env["ANT_ROBOT_CONFIG"])["transport_config"]["zenoh"]
     assert transport["username"] == "robot_io" and transport["mode"] == "client"
     assert transport["password_file"] == str(tmp_path / "zenoh" / "robot_io.password")
+
+
+def test_a_system_with_the_stand_in_refuses_to_run_its_bus_open(tmp_path, monkeypatch):
+    from deploy.launcher import Launcher, StandIn
+
+    monkeypatch.setenv("ANT_BUS_AUTH", "0")
+    with pytest.raises(ValueError, match="never runs its bus open"):
+        Launcher(tmp_path, standin=StandIn(keys="bridge"))
+    with pytest.raises(ValueError, match="never runs its bus open"):
+        Launcher(tmp_path, standin=StandIn(keys="bridge"), auth=False)
+    assert not Launcher(tmp_path).auth  # without a robot's ROS 2 side the opt-out still stands

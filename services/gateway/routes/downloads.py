@@ -141,13 +141,21 @@ class RecordingWriter:
         # store under it (it used to wait out settle_s, longer than close() waits for it).
         self._stopping = threading.Event()
         self._subs: list[Closeable] = [
-            bus.subscribe(keys.MISSION_EVENTS.pattern(robot=settings.robot), JobEvent, self._on_event),
-            bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=settings.robot), JobEvent, self._on_event),
+            bus.subscribe(keys.MISSION_EVENTS.pattern(robot=settings.robot), JobEvent,
+                          lambda k, ev: self._on_event(k, ev, keys.MISSION_EVENTS, "mission")),
+            bus.subscribe(keys.EXPLORATION_EVENTS.pattern(robot=settings.robot), JobEvent,
+                          lambda k, ev: self._on_event(k, ev, keys.EXPLORATION_EVENTS, "exploration")),
         ]
         self._worker = threading.Thread(target=self._work, name="recordings", daemon=True)
         self._worker.start()
 
-    def _on_event(self, _key: str, ev: JobEvent) -> None:
+    def _on_event(self, key: str, ev: JobEvent, template: keys.Key | None = None, part: str = "") -> None:
+        if template is not None:
+            try:  # the job is the key's: an event naming another job is not recorded under it
+                keys.agree(template, key, ev, **{part: "job_id"})
+            except keys.KeyExprError as exc:
+                log.warning("recording trigger ignored: %s", exc)
+                return
         if ev.state in TERMINAL:
             try:
                 self._queue.put_nowait((ev.job_id, ev.seq))

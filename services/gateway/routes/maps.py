@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import logging
-import tempfile
 from collections.abc import Iterator
 from typing import Annotated
 
+import anyio.from_thread
 import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
@@ -21,6 +21,58 @@ from shared.schemas import ErrorCode, MapInfo
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/maps", tags=["maps"])
+_HEAD_BYTES = 256  # enough of the body to tell a PLY from a PCD
+
+
+class _BodyReader:
+    """The request body as a blocking binary file for a worker thread: ``read(n)`` pulls the body's
+    chunks from the event loop (``anyio.from_thread``) until it has ``n`` bytes or the body ends. It
+    refuses, before the first part leaves, a body that is not the file its name says, and, whenever it
+    happens, a body over ``max_bytes``; a client that goes away surfaces as the stream's error. Any of
+    these raised inside ``MapClient.import_cloud`` aborts the upload on the reconstructor."""
+
+    def __init__(self, request: Request, max_bytes: int, filename: str):
+        self._chunks = request.stream().__aiter__()
+        self._buf = bytearray()
+        self._ended = False
+        self._checked = False
+        self.max_bytes, self.filename, self.size = max_bytes, filename, 0
+
+    async def _next(self) -> bytes | None:
+        try:
+            return await self._chunks.__anext__()
+        except StopAsyncIteration:
+            return None
+
+    def read(self, n: int) -> bytes:
+        while len(self._buf) < n and not self._ended:
+            chunk = anyio.from_thread.run(self._next)
+            if chunk is None:
+                self._ended = True
+                break
+            self.size += len(chunk)
+            if self.size > self.max_bytes:
+                raise GatewayError(f"request body larger than {self.max_bytes} bytes", 413,
+                                   code=ErrorCode.BUDGET_EXCEEDED.value)
+            self._buf += chunk
+            if not self._checked and len(self._buf) >= _HEAD_BYTES:
+                self._check_head()
+        if not self._checked:
+            self._check_head()
+        out = bytes(self._buf[:n])
+        del self._buf[:n]
+        return out
+
+    def _check_head(self) -> None:
+        self._checked = True
+        if not self._buf:
+            raise GatewayError("empty body: send the PLY/PCD file as the request body", 422)
+        head = bytes(self._buf[:_HEAD_BYTES]).lstrip()
+        is_ply = head.startswith(b"ply")
+        is_pcd = head.startswith(b"#") or head.startswith(b"VERSION")
+        name = self.filename
+        if not (is_ply and name.endswith(".ply")) and not (is_pcd and name.endswith(".pcd")):
+            raise GatewayError(f"{name!r}: the body is not a {name.rsplit('.', 1)[-1].upper()} file", 415)
 
 
 @router.get("", response_model=list[MapInfo], responses={503: {}})
@@ -88,29 +140,13 @@ async def upload_cloud(request: Request, bus: BusDep, settings: SettingsDep, res
     """Store a PLY or PCD cloud as a map: the file is the raw body
     (``curl --data-binary @room.ply -H 'Content-Type: application/octet-stream' '/maps?map_id=room'``).
 
-    The body is spooled to an unlinked temporary file as it arrives (at most ``max_upload_bytes``),
-    then sent to the reconstructor in parts from there: the gateway never holds the file, and a body
-    that is cut short, too large or not a cloud costs the reconstructor nothing."""
-    with tempfile.TemporaryFile(prefix="ant-upload-", dir=settings.upload_spool_dir) as spool:
-        size, head = 0, b""
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > settings.max_upload_bytes:
-                raise GatewayError(f"request body larger than {settings.max_upload_bytes} bytes", 413,
-                                   code=ErrorCode.BUDGET_EXCEEDED.value)
-            if len(head) < 256:
-                head += chunk[:256 - len(head)]
-            spool.write(chunk)
-        if not size:
-            raise GatewayError("empty body: send the PLY/PCD file as the request body", 422)
-        head = head.lstrip()
-        is_ply = head.startswith(b"ply")
-        is_pcd = head.startswith(b"#") or head.startswith(b"VERSION")
-        if not (is_ply and filename.endswith(".ply")) and not (is_pcd and filename.endswith(".pcd")):
-            raise GatewayError(f"{filename!r}: the body is not a {filename.rsplit('.', 1)[-1].upper()} file", 415)
-        spool.seek(0)
-        # Blocking bus requests and file reads: off the event loop.
-        info = await run_in_threadpool(ask, f"cannot import {filename!r}", lambda: MapClient(
-            bus, timeout_s=settings.request_timeout_s).import_cloud(map_id, filename, spool))
+    The body is streamed to the reconstructor in parts as it arrives (``MapClient.import_cloud`` reads
+    it from :class:`_BodyReader`): the gateway holds a part or two, never the file, and writes nothing
+    to disk. A body that is too large, not a cloud, or cut short (the client went away) aborts the
+    upload on the reconstructor, which then drops what it had received: nothing is left behind."""
+    body = _BodyReader(request, settings.max_upload_bytes, filename)
+    # Blocking bus requests: off the event loop; the reader hops back onto it for each body chunk.
+    info = await run_in_threadpool(ask, f"cannot import {filename!r}", lambda: MapClient(
+        bus, timeout_s=settings.request_timeout_s).import_cloud(map_id, filename, body))
     response.headers["Location"] = f"/maps/{map_id}"
     return info

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.cloud import CloudFormatError, PointCloud, read_cloud, read_cloud_bytes
+from shared.cloud import CloudFormatError, PointCloud, copy_ours, read_cloud, read_cloud_bytes
 from shared.keys import KeyExprError, validate_segment
 from shared.schemas import MapChunk, MapInfo
 
@@ -44,6 +44,10 @@ from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStor
 log = logging.getLogger(__name__)
 
 _TMP_PREFIX = ".tmp-"
+
+
+class _NotOurs(Exception):
+    """The file is not a PLY of our layout: parsed whole instead."""
 _CLOUD = "cloud.ply"
 _META = "meta.json"
 _STALE_TMP_S = 3600.0
@@ -82,24 +86,41 @@ class MapStore:
         details: dict[str, Any] | None = None,
     ) -> MapInfo:
         """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`."""
-        map_dir = self._map_dir(map_id, create=True)
         if len(cloud) == 0:
             raise MapFormatError(f"map {map_id!r}: refusing to store an empty cloud")
+
+        def write(ply: Path) -> dict[str, Any]:
+            cloud.save(ply)
+            lo, hi = cloud.bounds()
+            return dict(point_count=len(cloud), bounds_min_m=tuple(float(v) for v in lo),
+                        bounds_max_m=tuple(float(v) for v in hi), has_labels=cloud.labels is not None,
+                        label_names={int(k): v for k, v in cloud.label_names.items()})
+
+        return self._store(map_id, write, source=source, regions=regions, scale_factors=scale_factors,
+                           timings_s=timings_s, details=details)
+
+    def _store(self, map_id: str, write, *, source: str = "", regions: int = 0,
+               scale_factors: list[float] | None = None, timings_s: dict[str, float] | None = None,
+               details: dict[str, Any] | None = None) -> MapInfo:
+        """The next version of ``map_id`` from ``write(ply_path) -> MapInfo fields`` (count, bounds,
+        labels), written in a temporary folder renamed into place: a failure leaves nothing."""
+        try:
+            self._map_dir(map_id)
+            new_map = False
+        except MapNotFoundError:
+            new_map = True
+        map_dir = self._map_dir(map_id, create=True)
         self._clean_stale(map_dir)
         tmp = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=map_dir))
         try:
             ply = tmp / _CLOUD
-            cloud.save(ply)
+            fields = write(ply)
             digest = _sha256(ply)
-            lo, hi = cloud.bounds()
             with self._version_lock(map_dir):
                 version = self._next_version(map_dir)
                 info = MapInfo(
-                    map_id=map_id, version=version, point_count=len(cloud),
-                    bounds_min_m=tuple(float(v) for v in lo), bounds_max_m=tuple(float(v) for v in hi),
-                    source=source, has_labels=cloud.labels is not None,
-                    label_names={int(k): v for k, v in cloud.label_names.items()},
-                    regions=regions, scale_factors=list(scale_factors or []),
+                    map_id=map_id, version=version, **fields,
+                    source=source, regions=regions, scale_factors=list(scale_factors or []),
                     timings_s=dict(timings_s or {}), created_s=time.time(),
                 )
                 meta = {"info": info.model_dump(mode="json"), "details": _jsonable(details or {}),
@@ -114,8 +135,11 @@ class MapStore:
                     _fsync_dir(map_dir)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
+            if new_map:  # a refused first version leaves no empty map behind (rmdir fails if one raced in)
+                with contextlib.suppress(OSError):
+                    map_dir.rmdir()
             raise
-        log.info("stored map %s v%d: %d points", map_id, version, len(cloud))
+        log.info("stored map %s v%d: %d points", map_id, version, info.point_count)
         return info
 
     def import_cloud(
@@ -133,6 +157,10 @@ class MapStore:
                 p = Path(data)
                 if p.suffix.lower() not in (".ply", ".pcd"):
                     raise MapFormatError(f"{p.name!r}: only .ply and .pcd clouds can be imported")
+                if p.suffix.lower() == ".ply":
+                    stored = self._import_ours(map_id, p, filename or p.name, source, max_points)
+                    if stored is not None:
+                        return stored
                 try:
                     cloud = read_cloud(p)
                 except CloudFormatError as exc:
@@ -144,6 +172,27 @@ class MapStore:
         if len(cloud) > max_points:
             raise MapFormatError(f"{filename}: {len(cloud)} points exceed the limit of {max_points}")
         return self.save(map_id, cloud, source=source or f"import:{filename}", details={"imported": filename})
+
+    def _import_ours(self, map_id: str, path: Path, filename: str, source: str | None,
+                     max_points: int) -> MapInfo | None:
+        """A PLY of our layout copied into the store a slice at a time (the upload of a 500 MB file
+        costs ~16 MB, not the cloud); None for any other file."""
+        def write(ply: Path) -> dict[str, Any]:
+            try:
+                copied = copy_ours(path, ply)
+            except CloudFormatError as exc:
+                raise MapFormatError(f"{filename}: {str(exc).replace(path.name, filename, 1)}") from None
+            if copied is None:
+                raise _NotOurs
+            if copied.count > max_points:
+                raise MapFormatError(f"{filename}: {copied.count} points exceed the limit of {max_points}")
+            return dict(point_count=copied.count, bounds_min_m=copied.bounds_min, bounds_max_m=copied.bounds_max,
+                        has_labels=copied.with_labels, label_names=copied.label_names)
+
+        try:
+            return self._store(map_id, write, source=source or f"import:{filename}", details={"imported": filename})
+        except _NotOurs:
+            return None
 
     # --- reading -------------------------------------------------------------------------------
 

@@ -48,8 +48,10 @@ def test_instance_routes_are_listed_for_named_replicas_only():
     assert not covered([e for e in exprs if "@" not in e], view)
     assert not covered(exprs, keys.routed(keys.RENDER_VIEWS.format(), "r-c"))
     conf = acl.acl_config(instances={"renderer": ["r-a"]})
-    read = next(r for r in conf["rules"] if r["id"] == "read")
+    # the consumer of the views (the planner) may address a replica; a non-consumer (the gateway) may not
+    read = next(r for r in conf["rules"] if r["id"] == "read-planner")
     assert view in read["key_exprs"]
+    assert view not in next(r for r in conf["rules"] if r["id"] == "read-gateway")["key_exprs"]
 
 
 def test_acl_shape_is_what_zenoh_accepts(tmp_path):

@@ -1,6 +1,6 @@
-"""Uploads in parts (issue 15 item 12): POST /maps spools the body and sends it to the real
-reconstructor service in parts; every way an upload can fail leaves no map, no partial file on the
-reconstructor and nothing in the gateway's spool.
+"""Uploads in parts (issue 15 item 12, issue 31 item 4): POST /maps streams the body to the real
+reconstructor service in parts as it arrives (the gateway writes nothing to disk); every way an upload
+can fail leaves no map and no partial file on the reconstructor.
 
 Gateway and reconstructor are the real ones, on one in-process fake network (every message is encoded
 and decoded as on zenoh); the measured memory class is tests/reliability/test_upload_memory.py.
@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 from contextlib import contextmanager
 
+import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -24,6 +25,7 @@ from shared.bus.typed import RemoteError, TypedBus
 from shared.clients import MapClient
 from shared.cloud import PointCloud, encode
 from shared.runner import RunningService
+from tests.waiting import wait_until
 from shared.schemas import IMPORT_MAX_BYTES, IMPORT_PART_BYTES, ErrorCode, MapImportProgress, MapImportRequest
 
 HEADERS = {"Content-Type": "application/octet-stream"}
@@ -39,8 +41,6 @@ class Store:
     def __init__(self, tmp_path):
         self.net = FakeNetwork()
         self.root = tmp_path / "maps"
-        self.spool = tmp_path / "spool"
-        self.spool.mkdir()
         self.bus = FakeBus(self.net)
         self.service = RunningService(ReconstructorService(ReconstructorSettings(
             instance="rec-upload", store_dir=str(self.root))), self.bus)
@@ -58,7 +58,7 @@ class Store:
     @contextmanager
     def gateway(self, **overrides):
         settings = GatewaySettings(instance="gw-upload", db_path=self.tmp_path / "gw.sqlite3",
-                                   request_timeout_s=10.0, upload_spool_dir=self.spool, **overrides)
+                                   request_timeout_s=10.0, **overrides)
         with TestClient(create_app(settings, bus_factory=lambda _s: FakeBus(self.net))) as client:
             yield client
 
@@ -85,7 +85,7 @@ def test_an_upload_larger_than_a_part_is_stored_whole(store):
         got = http.get("/maps/big/cloud.ply")
     # The stored map is the upload, byte for byte in its records.
     assert got.content.split(b"end_header\n", 1)[1] == data.split(b"end_header\n", 1)[1]
-    assert store.staged == [] and list(store.spool.iterdir()) == []
+    assert store.staged == []
 
 
 def test_a_body_over_the_limit_is_413_and_leaves_nothing(store):
@@ -101,7 +101,7 @@ def test_a_body_over_the_limit_is_413_and_leaves_nothing(store):
         r = http.post("/maps", params={"map_id": "huge", "filename": "huge.ply"}, content=b"ply\n" * (300 << 10),
                       headers=HEADERS)
         assert r.status_code == 413, r.text
-    assert store.maps() == [] and store.staged == [] and list(store.spool.iterdir()) == []
+    assert store.maps() == [] and store.staged == []
 
 
 def test_an_unreadable_upload_in_parts_is_422_and_leaves_nothing(store):
@@ -111,7 +111,7 @@ def test_an_unreadable_upload_in_parts_is_422_and_leaves_nothing(store):
         r = http.post("/maps", params={"map_id": "junk", "filename": "junk.ply"}, content=junk, headers=HEADERS)
         assert r.status_code == 422, r.text
         assert "junk.ply" in r.json()["detail"] and ".part" not in r.json()["detail"]
-    assert store.maps() == [] and store.staged == [] and list(store.spool.iterdir()) == []
+    assert store.maps() == [] and store.staged == []
 
 
 def test_a_sender_that_fails_mid_way_aborts_its_upload(store):
@@ -152,3 +152,76 @@ def test_parts_out_of_order_or_of_another_map_drop_the_upload(store):
         send(data=b"xx", offset=IMPORT_MAX_BYTES - 1)
     assert e.value.code == ErrorCode.BUDGET_EXCEEDED
     assert store.maps() == []
+
+
+
+@contextmanager
+def live_gateway(store):
+    """The gateway served by uvicorn on a free 127.0.0.1 port (a real HTTP server: the TestClient
+    reads a request body whole before the app sees it, so it cannot show streaming)."""
+    import threading
+
+    import uvicorn
+
+    from deploy.launcher import free_port
+
+    port = free_port()
+    settings = GatewaySettings(instance="gw-live", host="127.0.0.1", port=port,
+                               db_path=store.tmp_path / "gw-live.sqlite3", request_timeout_s=10.0)
+    server = uvicorn.Server(uvicorn.Config(create_app(settings, bus_factory=lambda _s: FakeBus(store.net)),
+                                           host="127.0.0.1", port=port, log_config=None,
+                                           timeout_graceful_shutdown=1))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{port}"
+
+    def up():
+        try:
+            return httpx.get(f"{url}/health", timeout=1).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    try:
+        wait_until(up, what="live gateway up")
+        yield url, port
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
+def _chunks(data: bytes, size: int = 1 << 20) -> list[bytes]:
+    return [data[i:i + size] for i in range(0, len(data), size)]
+
+
+def test_the_body_reaches_the_reconstructor_while_it_is_still_arriving(store):
+    """Streamed, not spooled: the sender holds back the body's end until a part is staged on the
+    reconstructor (a gateway that read the body whole first would never let that happen)."""
+    data = cloud_ply(4 * IMPORT_PART_BYTES // 15)
+    chunks = _chunks(data)
+
+    def body():
+        yield from chunks[:-1]
+        wait_until(lambda: store.staged, what="a part staged on the reconstructor before the body ended")
+        yield chunks[-1]
+
+    with live_gateway(store) as (url, _port):
+        r = httpx.post(f"{url}/maps", params={"map_id": "live", "filename": "live.ply"}, content=body(),
+                       headers=HEADERS, timeout=60)
+        assert r.status_code == 201, r.text
+        assert r.json()["point_count"] == 4 * IMPORT_PART_BYTES // 15
+    assert store.maps() == ["live"] and store.staged == []
+
+
+def test_a_client_that_goes_away_mid_body_leaves_nothing(store):
+    """The connection closes mid-body after the reconstructor has parts of it: it drops them all."""
+    import socket
+
+    data = cloud_ply(4 * IMPORT_PART_BYTES // 15)
+    with live_gateway(store) as (_url, port):
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+            sock.sendall(f"POST /maps?map_id=gone&filename=gone.ply HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                         f"Content-Type: application/octet-stream\r\nContent-Length: {len(data)}\r\n\r\n".encode())
+            sock.sendall(data[:3 * IMPORT_PART_BYTES])
+            wait_until(lambda: store.staged, what="parts staged before the client goes away")
+        wait_until(lambda: not store.staged, what="the broken upload dropped")
+    assert store.maps() == [] and store.staged == []

@@ -200,3 +200,36 @@ def test_truncated_or_garbage_clouds_raise_map_format_error(tmp_path, ascii_ply)
         store.import_cloud("bad", path)
     assert store.list() == []
     assert store.import_cloud("good", data, filename="scan.ply").point_count == 300
+
+
+def test_a_ply_of_ours_is_imported_a_slice_at_a_time(tmp_path, monkeypatch):
+    """A file in our layout is copied into the store in slices (forced small here, so several run),
+    non-finite points dropped, labels and their names kept: the same map as parsing it whole."""
+    import shared.cloud as cloud_mod
+    from shared.cloud import encode
+
+    monkeypatch.setattr(cloud_mod, "_SLICE_POINTS", 7)
+    c = _cloud(100, 3)
+    c.xyz[[5, 50, 99]] = np.nan
+    src = tmp_path / "up.part.ply"
+    src.write_bytes(encode(c))
+    store = MapStore(tmp_path / "maps")
+    info = store.import_cloud("streamed", src, filename="room.ply")
+    keep = np.isfinite(c.xyz).all(axis=1)
+    assert info.point_count == 97 and info.has_labels and info.label_names == c.label_names
+    assert np.allclose(info.bounds_min_m, c.xyz[keep].min(axis=0))
+    assert np.allclose(info.bounds_max_m, c.xyz[keep].max(axis=0))
+    got = store.load("streamed").cloud
+    assert np.array_equal(got.xyz, c.xyz[keep]) and np.array_equal(got.labels, c.labels[keep])
+    assert info.source == "import:room.ply"
+
+
+def test_a_cut_short_ply_of_ours_leaves_no_map(tmp_path):
+    from shared.cloud import encode
+
+    src = tmp_path / "up.part.ply"
+    src.write_bytes(encode(_cloud(100, 4))[:-40])
+    store = MapStore(tmp_path / "maps")
+    with pytest.raises(MapFormatError, match="room.ply"):
+        store.import_cloud("cut", src, filename="room.ply")
+    assert list((tmp_path / "maps").iterdir()) == []
