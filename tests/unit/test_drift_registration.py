@@ -141,3 +141,6 @@ def test_a_map_says_whether_it_was_corrected():
     assert build.details()["drift_correction"] == {"applied": False}
     with pytest.raises(ValueError):
         ReconstructionConfig(registration={"frames": {"max_step_m": -1.0}})
+    for ladder in ([], [float("nan")], [0.4, -0.1]):
+        with pytest.raises(ValueError):
+            RegionRegistrationConfig(correspondence_ladder_m=ladder)
