@@ -144,3 +144,27 @@ def test_a_map_says_whether_it_was_corrected():
     for ladder in ([], [float("nan")], [0.4, -0.1]):
         with pytest.raises(ValueError):
             RegionRegistrationConfig(correspondence_ladder_m=ladder)
+
+
+def test_a_corrected_build_records_what_it_did():
+    from shared.schemas import Pose
+    from services.reconstructor.core.frames import RegionInput
+    from services.reconstructor.core.pipeline import Reconstructor
+
+    ims, _ = _frames((0.004, -0.003, 0.15), range(0, 360, 10))
+    regions = [RegionInput(0, Pose(position_m=(0.2, 0.1, 0.0), heading_rad=0.0), ims[:18], H_M),
+               RegionInput(1, Pose(position_m=(0.2, 0.1, 0.0), heading_rad=0.0), ims[18:], H_M)]
+    cfg = ReconstructionConfig(registration={"frames": {"enabled": True, "pixel_stride": 2},
+                                             "regions": {"enabled": True}})
+    with Reconstructor(cfg) as rec:
+        build = rec.build(regions)
+    import json
+
+    drift = json.loads(json.dumps(build.details()))["drift_correction"]  # what the map store keeps
+    assert drift["applied"] and drift["frames"] and drift["regions"]
+    for r in build.regions:
+        reg = r.registration
+        assert reg["frames"]["frames"] == len(regions[r.region].images)
+        assert reg["frames"]["registered"] + reg["frames"]["fallback"] == reg["frames"]["frames"] - 1
+        assert 0.0 <= reg["region"]["correction_m"] < 0.6
+    assert drift["loop_closures_accepted"] + drift["loop_closures_rejected"] == sum(e["loop"] for e in drift["edges"])

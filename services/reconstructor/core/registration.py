@@ -40,15 +40,14 @@ reconstructor yet).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
-
-import numpy as np
 from typing import Annotated
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.cloud import PointCloud, rotate_view_dirs
-from shared.geometry import rot_z
 
 from .frames import PosedImage
 
@@ -430,8 +429,6 @@ def _overlap_m2(a: np.ndarray, b: np.ndarray) -> float:
 
 def register_regions(clouds: list[np.ndarray], cfg: RegionRegistrationConfig) -> RegionGraphReport:
     """Planar corrections of the region clouds (world xyz, odometry-placed) from one pose graph."""
-    import time
-
     t0 = time.perf_counter()
     n = len(clouds)
     rep = RegionGraphReport([np.eye(3) for _ in range(n)], [])
