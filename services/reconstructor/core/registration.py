@@ -26,15 +26,16 @@ tenths of a degree with nothing to gain) and gives the constraint check for free
   pinned by fake information and gives no per-edge verdict beyond its line-process pruning.
 
 Status (measured on generated:0, bench.agent_maps' noisy robot, 9 regions, 1,448 frames of
-128 px): both stages are off by default because they do not yet make that map truer. Frames:
-the odometry error of a frame against its region's first frame went 0.126 -> 0.042 m (median)
-in the longest region (197 frames) but its maximum rose 0.18 -> 0.22 m, and on exact poses 62 of
-673 frames took spurious corrections up to 8 cm at ``min_gain`` 0.03 (hence 0.1). Regions: 4 of
-9 overlapping pairs registered; the graph made the regions agree (edge residuals 1 mm) but their
-absolute error at the cloud centres went 0.20-0.48 -> 0.09-0.87 m: the registered pairs are
-right relative to each other only where a pair's match is right, and nothing anchors the map to
-the world frame, whose only witness is the exploration's first panorama (not passed to the
-reconstructor yet).
+128 px): both stages are off by default because they do not yet make that map truer. Frames
+(defaults, error of each frame against its region's first frame, median / max, m): 2 of 9 regions
+better (0.126/0.181 -> 0.053/0.233, 0.140/0.301 -> 0.055/0.124), 5 unchanged, 1 worse
+(0.139/0.331 -> 0.180/0.407); most frames fall back ("no gain" under the depth noise, "step" where
+in-region drift outruns 0.10 m a frame). On exact poses 3 of 396 frames of region 0 still took
+spurious corrections, a worst frame 8.7 cm off (final correction 4 mm). Regions: 3-4 of 9
+overlapping pairs registered; the graph makes them agree (edge residuals 1 mm) but their absolute
+error at the cloud centres went 0.20-0.48 -> 0.14-0.57 m, because the pair matches are 0.12-0.27 m
+off (a repetitive house) and nothing anchors the map to the world frame, whose only witness is
+the exploration's first panorama (not passed to the reconstructor yet).
 """
 
 from __future__ import annotations
