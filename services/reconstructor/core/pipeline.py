@@ -22,6 +22,7 @@ from .depth import DEFAULT_METRIC_DEPTH, METRIC_DEPTH, MetricDepth
 from .errors import AlignmentError, EmptyRecordingError, ReconstructorError
 from .frames import RecordingLike, RegionInput, region_from_recording
 from .regional import DEFAULT_RECONSTRUCTOR, RECONSTRUCTORS, RegionalCloud, RegionalReconstructor
+from .registration import RegistrationConfig, register_frames, register_regions, se2_params, transform_cloud
 from .voxel import voxel_downsample
 
 log = logging.getLogger(__name__)
@@ -42,6 +43,8 @@ class ReconstructionConfig(BaseModel):
     # A region that cannot be reconstructed or aligned is left out (and reported) instead of
     # failing the whole map; off by default so that problems are loud.
     skip_failed_regions: bool = False
+    # Drift correction (frames within a region, regions to each other); off unless asked for.
+    registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
 
 
 @dataclass
@@ -58,6 +61,8 @@ class RegionReport:
     timings_s: dict[str, float]
     true_scale: float | None = None
     error: str | None = None
+    # Drift correction of this region: frames registered / fell back, the region's correction.
+    registration: dict | None = None
 
     @property
     def scale_error(self) -> float | None:
@@ -82,6 +87,7 @@ class MapBuild:
     timings_s: dict[str, float]
     config: ReconstructionConfig
     regional_clouds: list[PointCloud] = field(default_factory=list)  # world frame, before the merge
+    drift_correction: dict = field(default_factory=lambda: {"applied": False})
 
     @property
     def scale_factors(self) -> list[float]:
@@ -98,6 +104,8 @@ class MapBuild:
             "metric_depth": self.config.metric_depth,
             "frames": self.frames,
             "regions": [r.as_dict() for r in self.regions],
+            # Says plainly whether the map was corrected for drift, and how (issue 33).
+            "drift_correction": self.drift_correction,
             "config": self.config.model_dump(mode="json"),
         }
 
@@ -147,9 +155,18 @@ class Reconstructor:
         totals = {"regional": 0.0, "align": 0.0, "integrate": 0.0}
         reports: list[RegionReport] = []
         clouds: list[PointCloud] = []
+        fcfg = self.config.registration.frames
+        placed: list[int] = []  # index into reports of each cloud
         for k, region in enumerate(regions):
+            frame_rep = None
+            if fcfg.enabled and self.backend.metric and all(im.depth_m is not None for im in region.images):
+                t0 = time.perf_counter()
+                images, frame_rep = register_frames(region.images, fcfg)
+                region = RegionInput(region.region, region.start_pose, images, region.camera_height_m, region.meta)
+                totals["register_frames"] = totals.get("register_frames", 0.0) + time.perf_counter() - t0
             try:
                 rep, world = self._one(region, label_names, totals)
+                rep.registration = None if frame_rep is None else {"frames": frame_rep.as_dict()}
             except ReconstructorError as exc:
                 if not self.config.skip_failed_regions:
                     raise
@@ -160,10 +177,30 @@ class Reconstructor:
             reports.append(rep)
             if world is not None:
                 clouds.append(world)
+                placed.append(len(reports) - 1)
             if on_region is not None:
                 on_region(k, len(regions), rep)
         if not clouds:
             raise EmptyRecordingError("no region could be reconstructed")
+        drift = {"applied": False, "frames": fcfg.enabled, "regions": False}
+        rcfg = self.config.registration.regions
+        if rcfg.enabled and len(clouds) > 1:
+            graph = register_regions([c.xyz for c in clouds], rcfg)
+            clouds = [transform_cloud(c, x) for c, x in zip(clouds, graph.corrections)]
+            ids = [reports[i].region for i in placed]
+            for i, x in zip(placed, graph.corrections):
+                cx, cy, cyaw = se2_params(x)
+                reg = reports[i].registration or {}
+                reg["region"] = {"correction_m": math.hypot(cx, cy), "correction_deg": abs(math.degrees(cyaw)),
+                                 "shift_m": [cx, cy], "turn_deg": math.degrees(cyaw)}
+                reports[i].registration = reg
+            loops = [e for e in graph.edges if e.loop]
+            drift.update(regions=True, pairs_tried=graph.pairs_tried, pairs_failed=dict(graph.pairs_failed),
+                         edges=[e.as_dict(ids) for e in graph.edges],
+                         loop_closures_accepted=sum(e.accepted for e in loops),
+                         loop_closures_rejected=sum(not e.accepted for e in loops))
+            totals["register_regions"] = graph.timings_s
+        drift["applied"] = bool(drift["frames"] or drift["regions"])
         t0 = time.perf_counter()
         merged = voxel_downsample(PointCloud.concatenate(clouds), self.config.merge_voxel_m)
         if label_names:
@@ -171,7 +208,7 @@ class Reconstructor:
         totals["merge"] = time.perf_counter() - t0
         totals["total"] = time.perf_counter() - t_start
         log.info("map: %d regions, %d points, %.2f s", len(clouds), len(merged), totals["total"])
-        return MapBuild(merged, reports, totals, self.config, clouds)
+        return MapBuild(merged, reports, totals, self.config, clouds, drift)
 
     def _one(self, region: RegionInput, label_names, totals) -> tuple[RegionReport, PointCloud]:
         t0 = time.perf_counter()
