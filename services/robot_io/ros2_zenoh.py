@@ -36,6 +36,19 @@ def env_zenoh_settings() -> ZenohSettings:
     return BusEnv().zenoh
 
 
+LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
+
+
+def loopback_unless_told(settings: ZenohSettings) -> ZenohSettings:
+    """A peer or router told no ``listen`` endpoint listens on loopback only (a free port), not on
+    every interface as zenoh's default ``tcp/[::]:0`` does: a robot's topics (and its cmd_vel)
+    reach another host only when someone asks for it with ``listen`` or ``connect``. A client
+    listens on nothing anyway."""
+    if settings.mode == "client" or settings.listen:
+        return settings
+    return settings.model_copy(update={"listen": [LOOPBACK_LISTEN]})
+
+
 class ZenohTransportConfig(TransportConfig):
     zenoh: ZenohSettings = Field(default_factory=env_zenoh_settings,
                                  description="how to reach the robot's zenoh network (default: the service's bus)")
@@ -78,7 +91,7 @@ class _Pub:
 class ZenohRos2Transport(Ros2Transport):
     def __init__(self, config: ZenohTransportConfig | None = None, *, session: zenoh.Session | None = None):
         self.config = config or ZenohTransportConfig()
-        self.session = session or zenoh.open(zenoh_config(self.config.zenoh))
+        self.session = session or zenoh.open(zenoh_config(loopback_unless_told(self.config.zenoh)))
         self._owns_session = session is None
         self._sid = str(self.session.info.zid())
 
