@@ -40,7 +40,7 @@ from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
 from libs.ros2 import messages as m
-from libs.ros2.keys import key_style
+from libs.ros2.keys import Qos, key_style
 from libs.ros2.node import Received, Ros2Node
 from libs.ros2.profiles import Ros2Profile, profile
 from libs.ros2.transport import TRANSPORTS, Ros2Transport, TransportError
@@ -229,7 +229,9 @@ class Ros2Robot(Robot):
         if p.imu:
             n.subscribe(p.imu, m.MESSAGES["imu"], self._stamped(self._imu), max_queue=64)
         if p.map:
-            n.subscribe(p.map, m.MESSAGES["occupancy_grid"], self._stamped(self._map))
+            # Transient-local: a map_server publishes its map once; a backend that starts later asks
+            # for it on joining instead of waiting for a re-publish that never comes.
+            n.subscribe(p.map, m.MESSAGES["occupancy_grid"], self._stamped(self._map), Qos(transient_local=True, depth=1))
         if p.run_stop:
             n.subscribe(p.run_stop, m.MESSAGES["bool"], self._on_run_stop)
         if p.map_frame:
