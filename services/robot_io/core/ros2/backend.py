@@ -218,10 +218,11 @@ class Ros2Robot(Robot):
             n.subscribe(p.clock, m.MESSAGES["clock"], lambda msg, _i: self.clock.on_clock(m.stamp_s(msg.clock)), max_queue=64)
         n.subscribe(p.odom, m.MESSAGES["odometry"], self._stamped(self._odom), max_queue=64)
         n.subscribe(p.camera_info, m.MESSAGES["camera_info"], self._stamped(self._info))
-        color_type = m.MESSAGES["compressed_image"] if p.color_encoding == "jpeg" else m.MESSAGES["image"]
+        color_type = m.MESSAGES["compressed_image"] if p.color_encoding in ("jpeg", "png") else m.MESSAGES["image"]
         n.subscribe(p.color, color_type, self._stamped(self._color))
         if p.depth:
-            n.subscribe(p.depth, m.MESSAGES["image"], self._stamped(self._depth))
+            depth_type = m.MESSAGES["compressed_image"] if p.depth_encoding == "compressedDepth" else m.MESSAGES["image"]
+            n.subscribe(p.depth, depth_type, self._stamped(self._depth))
         if p.semantic:
             n.subscribe(p.semantic, m.MESSAGES["image"], self._stamped(self._sem))
         if p.scan:
@@ -566,6 +567,8 @@ class Ros2Robot(Robot):
 
     # --- perception ---------------------------------------------------------------------------------------------
     def _depth_m(self, msg) -> np.ndarray:
+        if hasattr(msg, "format"):  # a CompressedImage: compressed_depth_image_transport's layout
+            return self._upright(m.compressed_depth_m(msg))
         a = m.image_array(msg)
         if msg.encoding in ("16UC1", "mono16"):
             d = a.astype(np.float32) * 0.001
@@ -582,7 +585,7 @@ class Ros2Robot(Robot):
         if msg.encoding == "bgr8":
             a = a[..., ::-1]
         elif msg.encoding != "rgb8":
-            raise m.CdrError(f"colour encoding {msg.encoding!r} is not rgb8, bgr8 or JPEG")
+            raise m.CdrError(f"colour encoding {msg.encoding!r} is not rgb8, bgr8, jpeg or png")
         return self._upright(a)
 
     def _upright(self, a: np.ndarray) -> np.ndarray:
@@ -776,7 +779,7 @@ class Ros2Robot(Robot):
         if got is None:
             raise NotImplementedError(f"no {self.profile.map or 'map topic'} published: no geodesic queries")
         if self._map_cache is None or self._map_cache[0] != got[0]:
-            from .occupancy import OccupancyPlanner
+            from libs.ros2.occupancy import OccupancyPlanner
 
             self._map_cache = (got[0], OccupancyPlanner.from_msg(got[1], self.profile.base_radius_m))
         return self._map_cache[1]
