@@ -1,12 +1,14 @@
 """Figures of the ros2 backend against the ROS 2 stand-in (both key styles), printed as tables.
 
-    python -m bench.ros2 [--what panorama,control,images,sr] [--episodes 4]
+    python -m bench.ros2 [--what panorama,control,images,compressed,sr] [--episodes 4]
 
 * panorama: time of one 12-view ``observe`` (turn, settle, capture x 12), simulated and wall, at the
   stand-in's time scale;
 * control: the backend's control-loop rate while turning (ticks per wall second and per robot second);
 * images: colour images the backend receives and decodes per second, from the stand-in (rendering
   bound) and from a publisher of pre-encoded 640x480 rgb8 + 16UC1 frames (the transport + CDR bound);
+* compressed: raw rgb8 / jpeg / png colour and raw 16UC1 / compressedDepth depth at 640x480, bytes per
+  frame and frames per second end to end (encode as image_transport does, zenoh, decode as the backend);
 * sr: SR / SPL / NE of a few generated episodes through the whole system (curated cloud of the scene),
   with robot-io's embedded simulator and with the ros2 backend against the stand-in.
 """
@@ -115,6 +117,72 @@ def bench_images(keys: str, seconds: float, width: int = 640, height: int = 480)
             "MB_per_s": got[1] / dt / 1e6}
 
 
+def _views_640x480(scene: str, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` rendered 640x480 colour + depth views of ``scene`` (real content: jpeg and png sizes
+    depend on it; noise would not compress and a flat image would compress absurdly well)."""
+    from services.robot_io.core import ROBOTS
+
+    with ROBOTS.create("sim", {"scene": scene, "camera": {"width_px": 640, "height_px": 480, "hfov_deg": 87.0}}) as r:
+        pano = r.observe()
+    return pano.rgb[:n], np.nan_to_num(pano.depth_m[:n], nan=0.0, posinf=0.0)
+
+
+# (row name, topic type, encoder of one view (rgb, depth_m) -> message, decoder of a message -> array)
+_CODECS = {
+    "rgb8 (raw)": ("image", lambda rgb, d: msgs.image(0.0, "cam", rgb, "rgb8"), msgs.image_array),
+    "jpeg q90": ("compressed_image", lambda rgb, d: msgs.compressed_image(0.0, "cam", rgb, fmt="jpeg"),
+                 msgs.compressed_rgb),
+    "png": ("compressed_image", lambda rgb, d: msgs.compressed_image(0.0, "cam", rgb, fmt="png"), msgs.compressed_rgb),
+    "16UC1 (raw)": ("image", lambda rgb, d: msgs.image(0.0, "cam", (d * 1000).astype(np.uint16), "16UC1"),
+                    msgs.image_array),
+    "compressedDepth png": ("compressed_image",
+                            lambda rgb, d: msgs.compressed_depth(0.0, "cam", (d * 1000).astype(np.uint16)),
+                            msgs.compressed_depth_m),
+}
+
+
+def bench_compressed(keys: str, scene: str, frames: int) -> list[dict]:
+    """Raw against compressed at 640x480, end to end: the publisher encodes each frame as a camera
+    driver with image_transport would, zenoh carries it, the subscriber decodes it as the backend
+    does. fps = frames decoded per wall second (count-bounded: ``frames`` per codec)."""
+    rgbs, depths = _views_640x480(scene, 6)
+    rows = []
+    for name, (type_key, encode, decode) in _CODECS.items():
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        ta, tb = _transport(listen=[endpoint]), _transport(connect=[endpoint])
+        na, nb = Ros2Node(ta, key_style(keys), "cam"), Ros2Node(tb, key_style(keys), "ant")
+        got, nbytes, dec_s = [0], [0], [0.0]
+        all_in = threading.Event()
+
+        def on(msg, _info, decode=decode):
+            t = time.perf_counter()
+            decode(msg)
+            dec_s[0] += time.perf_counter() - t
+            got[0] += 1
+            if got[0] >= frames:
+                all_in.set()
+
+        nb.subscribe("/camera/image", msgs.MESSAGES[type_key], on, max_queue=frames)
+        time.sleep(1.0)  # discovery between the two sessions
+        pub = na.publisher("/camera/image", msgs.MESSAGES[type_key])
+        enc_s = 0.0
+        t0 = time.perf_counter()
+        for i in range(frames):
+            t = time.perf_counter()
+            payload = msgs.encode(msgs.MESSAGES[type_key], encode(rgbs[i % len(rgbs)], depths[i % len(depths)]))
+            enc_s += time.perf_counter() - t
+            nbytes[0] += len(payload)
+            pub.publish_raw(payload)
+        all_in.wait(30.0)
+        dt = time.perf_counter() - t0
+        na.close(), nb.close(), ta.close(), tb.close()
+        rows.append({"keys": keys, "640x480": name, "bytes_per_frame": int(nbytes[0] / frames),
+                     "fps_end_to_end": got[0] / dt, "encode_ms": 1e3 * enc_s / frames,
+                     "decode_ms": 1e3 * dec_s[0] / max(1, got[0]), "received": f"{got[0]}/{frames}",
+                     "MB_per_s_at_30fps": nbytes[0] / frames * 30 / 1e6})
+    return rows
+
+
 def bench_standin_images(keys: str, scene: str, time_scale: float, camera_px: int, seconds: float) -> dict:
     p = _Pair(keys, scene, time_scale, camera_px)
     try:
@@ -174,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--panoramas", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--episodes", type=int, default=3)
+    ap.add_argument("--frames", type=int, default=60, help="compressed: frames per codec")
     ap.add_argument("--policy", default="heuristic")
     ap.add_argument("--max-steps", type=int, default=15)
     ap.add_argument("--keys", default="bridge,rmw_zenoh")
@@ -190,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
         print("## image throughput: from the stand-in (rendered frames)\n")
         print(table([bench_standin_images(k, a.scene, a.time_scale, a.camera_px, a.seconds) for k in keys]) + "\n",
               flush=True)
+    if "compressed" in what:
+        print("## raw vs compressed at 640x480 (encode, zenoh, decode; rendered views)\n")
+        print(table([r for k in keys for r in bench_compressed(k, a.scene, a.frames)]) + "\n", flush=True)
     if "sr" in what:
         print("## SR: embedded simulator vs ros2 backend through the stand-in (curated cloud)\n")
         print(table(bench_sr(a.scene, a.episodes, keys[0], a.time_scale, a.policy, a.max_steps,

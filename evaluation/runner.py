@@ -510,8 +510,18 @@ class EvalRunner:
             raise MapUnavailable(f"exploration for {map_id}: {exc}") from None
         try:
             # Each poll looks at the run's budget, as a mission's polls do.
-            rec = self.gateway.wait(self.gateway.exploration, xid, cfg.exploration_timeout_s, cfg.poll_s,
-                                    until=lambda _rec: self._halted())
+            # Each poll also logs the exploration's standing when it changed (step, frontiers, time
+            # left): on a real robot an exploration runs for many minutes.
+            shown = [""]
+
+            def poll(rec: dict[str, Any]) -> bool:
+                line = f"{rec.get('stage') or ''}: {rec.get('message') or ''}"
+                if rec.get("message") and line != shown[0]:
+                    log.info("exploring %s: %s", map_id, line)
+                    shown[0] = line
+                return self._halted()
+
+            rec = self.gateway.wait(self.gateway.exploration, xid, cfg.exploration_timeout_s, cfg.poll_s, until=poll)
         except MissionTimeout as exc:
             self._cancel_exploration(xid)
             raise MapUnavailable(f"exploration for {map_id}: {exc}") from None

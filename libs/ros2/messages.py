@@ -222,14 +222,67 @@ def image_array(msg) -> np.ndarray:
     return a
 
 
-def compressed_image(t_s: float, frame_id: str, rgb: np.ndarray, quality: int = 90):
+def compressed_image(t_s: float, frame_id: str, rgb: np.ndarray, quality: int = 90, fmt: str = "jpeg"):
+    """A colour frame as image_transport's ``compressed`` plugin publishes it: ``fmt`` jpeg or png,
+    the format field ``"rgb8; <fmt> compressed bgr8"`` (the codec stores BGR, as OpenCV does)."""
     import cv2
 
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if fmt not in ("jpeg", "png"):
+        raise CdrError(f"unsupported compressed format {fmt!r}: jpeg or png")
+    params = [cv2.IMWRITE_JPEG_QUALITY, quality] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    ok, buf = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", np.ascontiguousarray(rgb[..., ::-1]), params)
     if not ok:
-        raise CdrError("JPEG encoding failed")
-    return new(MESSAGES["compressed_image"], header=header(t_s, frame_id), format="rgb8; jpeg compressed bgr8",
+        raise CdrError(f"{fmt} encoding failed")
+    return new(MESSAGES["compressed_image"], header=header(t_s, frame_id), format=f"rgb8; {fmt} compressed bgr8",
                data=buf.reshape(-1))
+
+
+# compressed_depth_image_transport's ConfigHeader: int32 compressionFormat (INV_DEPTH = 0), then
+# float32 depthParam[2] (the inverse-depth quantisation of 32FC1; unused for 16UC1), little endian.
+_DEPTH_HEADER = np.dtype([("format", "<i4"), ("quant_a", "<f4"), ("quant_b", "<f4")])
+DEPTH_HEADER_BYTES = _DEPTH_HEADER.itemsize  # 12
+
+
+def compressed_depth(t_s: float, frame_id: str, depth_mm: np.ndarray, png_level: int = 1):
+    """16UC1 depth (millimetres, 0 = none) as compressed_depth_image_transport publishes it:
+    format ``"16UC1; compressedDepth png"``, data = ConfigHeader + a 16-bit PNG."""
+    import cv2
+
+    a = np.ascontiguousarray(depth_mm, dtype=np.uint16)
+    ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, png_level])
+    if not ok:
+        raise CdrError("compressedDepth PNG encoding failed")
+    head = np.zeros(1, _DEPTH_HEADER)
+    return new(MESSAGES["compressed_image"], header=header(t_s, frame_id), format="16UC1; compressedDepth png",
+               data=np.concatenate([head.view(np.uint8), buf.reshape(-1)]))
+
+
+def compressed_depth_m(msg) -> np.ndarray:
+    """Depth in metres (float32, 0 = none) from a ``compressedDepth`` CompressedImage: 16UC1
+    millimetres, or 32FC1 as quantised inverse depth (depth = a / (q - b), q = 0 none)."""
+    import cv2
+
+    fmt = str(msg.format)
+    data = np.asarray(msg.data, np.uint8)
+    if "compressedDepth" not in fmt or len(data) <= DEPTH_HEADER_BYTES:
+        raise CdrError(f"not a compressedDepth image ({fmt!r}, {len(data)} bytes)")
+    if "rvl" in fmt.lower():
+        raise CdrError("compressedDepth rvl is not supported: publish png (the plugin's default)")
+    head = data[:DEPTH_HEADER_BYTES].view(_DEPTH_HEADER)[0]
+    img = cv2.imdecode(data[DEPTH_HEADER_BYTES:], cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint16 or img.ndim != 2:
+        raise CdrError(f"compressedDepth payload is not a 16-bit single-channel PNG ({fmt!r})")
+    if fmt.startswith("16UC1"):
+        return img.astype(np.float32) / 1000.0
+    if fmt.startswith("32FC1"):
+        a, b = float(head["quant_a"]), float(head["quant_b"])
+        if not (math.isfinite(a) and math.isfinite(b)) or a <= 0:
+            raise CdrError(f"compressedDepth 32FC1 with bad quantisation ({a}, {b})")
+        q = img.astype(np.float32)
+        with np.errstate(divide="ignore"):
+            d = np.where(q > 0, a / (q - b), 0.0)
+        return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    raise CdrError(f"compressedDepth of {fmt.split(';')[0]!r}: 16UC1 or 32FC1")
 
 
 def compressed_rgb(msg) -> np.ndarray:

@@ -32,7 +32,9 @@ class Publisher:
     def __init__(self, node: Ros2Node, name: str, rtype: m.RosType, qos: Qos):
         self.node, self.name, self.rtype = node, name, rtype
         self.key = node.keys.topic_key(name, rtype)
-        self._raw = node.transport.publisher(self.key, reliable=qos.reliable)
+        # A transient-local publisher keeps its last ``depth`` samples for subscribers that join later.
+        self._raw = node.transport.publisher(self.key, reliable=qos.reliable,
+                                             keep_last=max(1, qos.depth) if qos.transient_local else 0)
         self._token_key = node._declare(EntityKind.PUBLISHER, name, rtype, qos)
         self.gid = gid_for(self._token_key or self.key)
         self._seq = itertools.count(1)
@@ -93,7 +95,7 @@ class Ros2Node:
                 return
             handler(msg, Received(t, att))
 
-        sub = self.transport.subscribe(key, on_sample, max_queue=max_queue)
+        sub = self.transport.subscribe(key, on_sample, max_queue=max_queue, transient_local=qos.transient_local)
         self._declare(EntityKind.SUBSCRIPTION, name, rtype, qos)
         self._owned.append(sub)
         return sub

@@ -20,12 +20,16 @@ from .errors import Ros2ProtocolError
 class ColorEncoding(StrEnum):
     RGB8 = "rgb8"
     BGR8 = "bgr8"
-    JPEG = "jpeg"  # sensor_msgs/CompressedImage
+    JPEG = "jpeg"  # sensor_msgs/CompressedImage (image_transport "compressed", jpeg)
+    PNG = "png"  # sensor_msgs/CompressedImage (image_transport "compressed", png: lossless)
 
 
 class DepthEncoding(StrEnum):
     MM_16UC1 = "16UC1"  # millimetres (RealSense, Stretch)
     M_32FC1 = "32FC1"  # metres
+    # sensor_msgs/CompressedImage as compressed_depth_image_transport publishes 16UC1 millimetres:
+    # a 12-byte ConfigHeader (int32 format, float32 depthParam[2]) then a 16-bit PNG.
+    COMPRESSED_DEPTH = "compressedDepth"
 
 
 class Ros2Profile(BackendConfig):

@@ -40,12 +40,17 @@ class Ros2Transport(ABC):
         """The session id as rmw_zenoh writes it in liveliness tokens (lowercase hex)."""
 
     @abstractmethod
-    def publisher(self, key: str, *, reliable: bool = True) -> RawPublisher: ...
+    def publisher(self, key: str, *, reliable: bool = True, keep_last: int = 0) -> RawPublisher:
+        """``keep_last`` > 0: transient-local as rmw_zenoh does it - the publisher keeps its last
+        ``keep_last`` samples and answers a late subscriber's history query with them."""
 
     @abstractmethod
-    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 8) -> Closeable:
+    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 8,
+                  transient_local: bool = False) -> Closeable:
         """Deliver samples on ``key``; when the handler falls behind by ``max_queue`` samples the
-        newest are dropped (sensor streams: a late image is worth less than a free worker)."""
+        newest are dropped (sensor streams: a late image is worth less than a free worker).
+        ``transient_local``: on joining (and whenever a publisher appears later) ask the
+        publishers for the samples they keep, so a latched topic (/map) arrives at once."""
 
     @abstractmethod
     def query(self, key: str, payload: bytes, attachment: bytes | None, timeout_s: float) -> tuple[bytes, bytes | None]:

@@ -11,6 +11,7 @@ import logging
 import threading
 
 import zenoh
+import zenoh.ext
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
@@ -34,6 +35,28 @@ def env_zenoh_settings() -> ZenohSettings:
     """How this process joins its bus: robot-io's ROS 2 session, unless configured otherwise, goes
     where robot-io itself goes, as robot-io (on an authenticated bus its ACL grants the ROS 2 keys)."""
     return BusEnv().zenoh
+
+
+LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
+
+
+def loopback_unless_told(settings: ZenohSettings) -> ZenohSettings:
+    """A peer or router told no ``listen`` endpoint listens on loopback only (a free port), not on
+    every interface as zenoh's default ``tcp/[::]:0`` does: a robot's topics (and its cmd_vel)
+    reach another host only when someone asks for it with ``listen`` or ``connect``. A client
+    listens on nothing anyway."""
+    if settings.mode == "client" or settings.listen:
+        return settings
+    return settings.model_copy(update={"listen": [LOOPBACK_LISTEN]})
+
+
+def ros2_zenoh_config(settings: ZenohSettings):
+    """The session config of a ROS 2 context: loopback unless told, and timestamping on, as
+    rmw_zenoh's default config has it: the advanced publisher of a transient-local topic orders
+    its cached samples by timestamp and refuses to start without."""
+    conf = zenoh_config(loopback_unless_told(settings))
+    conf.insert_json5("timestamping/enabled", "true")
+    return conf
 
 
 class ZenohTransportConfig(TransportConfig):
@@ -78,7 +101,7 @@ class _Pub:
 class ZenohRos2Transport(Ros2Transport):
     def __init__(self, config: ZenohTransportConfig | None = None, *, session: zenoh.Session | None = None):
         self.config = config or ZenohTransportConfig()
-        self.session = session or zenoh.open(zenoh_config(self.config.zenoh))
+        self.session = session or zenoh.open(ros2_zenoh_config(self.config.zenoh))
         self._owns_session = session is None
         self._sid = str(self.session.info.zid())
 
@@ -86,13 +109,20 @@ class ZenohRos2Transport(Ros2Transport):
     def session_id(self) -> str:
         return self._sid
 
-    def publisher(self, key: str, *, reliable: bool = True):
+    def publisher(self, key: str, *, reliable: bool = True, keep_last: int = 0):
         # DROP, not BLOCK: a stalled robot link must never block the control loop's stop command.
-        return _Pub(self.session.declare_publisher(
-            key, congestion_control=zenoh.CongestionControl.DROP,
-            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT))
+        qos = {"congestion_control": zenoh.CongestionControl.DROP,
+               "reliability": zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT}
+        if keep_last > 0:
+            # rmw_zenoh's transient-local (docs/design.md, "Durability"): an advanced publisher whose
+            # cache holds the last ``depth`` samples and answers history queries, and that announces
+            # itself (publisher_detection) so subscribers already listening learn it is there.
+            return _Pub(zenoh.ext.declare_advanced_publisher(
+                self.session, key, cache=zenoh.ext.CacheConfig(max_samples=keep_last), publisher_detection=True,
+                **qos))
+        return _Pub(self.session.declare_publisher(key, **qos))
 
-    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 8):
+    def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 8, transient_local: bool = False):
         disp = Dispatcher(f"ros2:{key}", 1, max_queue)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -103,7 +133,13 @@ class ZenohRos2Transport(Ros2Transport):
             except Overloaded:
                 pass  # sensor streams: the newest sample is dropped while the worker is behind
 
-        sub = self.session.declare_subscriber(key, on_sample)
+        if transient_local:
+            # rmw_zenoh's transient-local subscription: an advanced subscriber that queries the
+            # publishers' caches on joining, and again for each publisher detected later.
+            sub = zenoh.ext.declare_advanced_subscriber(
+                self.session, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+        else:
+            sub = self.session.declare_subscriber(key, on_sample)
         return _Closer(sub.undeclare, disp.close)
 
     def query(self, key: str, payload: bytes, attachment: bytes | None, timeout_s: float):

@@ -198,13 +198,24 @@ class StageProgress(EventPayload):
 
 
 class ExplorationProgress(StageProgress):
-    """A stage of an exploration (exploring, touring, reconstructing)."""
+    """A stage of an exploration (exploring, touring, reconstructing). While exploring, every step
+    says where the frontier DFS stands: panoramas taken, nodes visited and seen, open frontiers,
+    floors, a coverage estimate (refreshed every few seconds, not every step), elapsed wall time and a
+    rate-based estimate of the exploration's time left (None: no rate yet)."""
 
     type: Literal["exploration_progress"] = "exploration_progress"
     frames: Count | None = None
     nodes: Count | None = None
     timings_s: dict[str, Duration_s] = Field(default_factory=dict)
     outcome: ExplorationOutcome | None = None
+    step: Count | None = None
+    visited: Count | None = None
+    seen: Count | None = None
+    open_frontiers: Count | None = None
+    floors: Count | None = None
+    coverage_estimate: float | None = Field(None, ge=0.0, le=1.0)
+    elapsed_s: Duration_s | None = None
+    time_left_s: Duration_s | None = None
 
 
 class ExplorationFinished(EventPayload):

@@ -357,7 +357,10 @@ function showExploration(rec) {
   const what = rec.error ? `: ${rec.error}`
     : rec.state === "cancelled" && rec.stage ? ` · while ${rec.stage}`
     : TERMINAL.has(rec.state) ? "" : rec.stage ? ` · ${rec.stage}` : "";
-  $("#explore-status").textContent = `${rec.state}${pct}${what}`;
+  // While exploring, the message is the step's standing (visited, frontiers, coverage, time left):
+  // a real robot explores for many minutes and the bar alone would look stuck.
+  const detail = !TERMINAL.has(rec.state) && rec.message ? ` · ${rec.message}` : "";
+  $("#explore-status").textContent = `${rec.state}${pct}${what}${detail}`;
   $("#explore-status").dataset.state = rec.state;
   $("#explore-cancel").hidden = TERMINAL.has(rec.state);
 }
@@ -366,7 +369,7 @@ function followExploration(created, mapId) {
   if (exploreStream) exploreStream.close();
   exploring = created.id;
   $("#explore-cancel").disabled = false;
-  const rec = { state: "queued", progress: 0, stage: null, error: null };
+  const rec = { state: "queued", progress: 0, stage: null, message: null, error: null };
   showExploration(rec);
   exploreStream = new EventSource(withToken(created.events_url));
   const handler = (msg) => {
@@ -374,6 +377,7 @@ function followExploration(created, mapId) {
     rec.state = ev.state;
     if (typeof data.progress === "number") rec.progress = Math.min(1, Math.max(0, data.progress));
     if (typeof data.stage === "string") rec.stage = data.stage;
+    if (typeof data.message === "string") rec.message = data.message;
     if (ev.kind === "error" || typeof data.error === "string") rec.error = data.error || data.message || "error";
     if (ev.state === "succeeded") rec.progress = 1;
     showExploration(rec);

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from shared.schemas import NavGraph, Tour
 
-from services.mapper.core.explorer import ExplorationConfig, ExplorationResult, Explorer, ExplorerRobot
+from services.mapper.core.explorer import ExplorationConfig, ExplorationResult, ExplorationStep, Explorer, ExplorerRobot
 from services.mapper.core.predictor import DEFAULT_PREDICTOR, PREDICTORS, WaypointPredictor
 from services.mapper.core.regions import RegionConfig, SceneMap, analyse
 from services.mapper.core.tours import PlannedTour, TourConfig, TourPlanner
@@ -98,17 +98,19 @@ class Discovery:
 
 
 def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
-             predictor: WaypointPredictor | None = None, checkpoint: Callable[[], None] | None = None) -> Discovery:
+             predictor: WaypointPredictor | None = None, checkpoint: Callable[[], None] | None = None,
+             on_step: Callable[[ExplorationStep], None] | None = None) -> Discovery:
     """Explore with ``robot``, then find stairs, floors and regions and plan one tour per region.
 
     ``predictor`` overrides the one named in ``config`` (e.g. a shared, already loaded backend).
     ``checkpoint`` is called before every exploration step and between the phases; it raises to
-    abandon the discovery (a cancelled exploration job stops within one step).
+    abandon the discovery (a cancelled exploration job stops within one step); ``on_step`` hears
+    where the exploration stands after every panorama.
     """
     cfg = config or DiscoveryConfig()
     pred = predictor or PREDICTORS.create(cfg.predictor, cfg.predictor_config or None)
     t0 = time.perf_counter()
-    result = Explorer(pred, cfg.exploration).explore(robot, checkpoint)
+    result = Explorer(pred, cfg.exploration).explore(robot, checkpoint, on_step)
     t1 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()

@@ -29,6 +29,7 @@ from shared.schemas import (
 )
 
 from .discovery import DiscoveryConfig, discover, discovery_config
+from .explorer import ExplorationStep
 from .execute import RegionRecording, TourRobot, execute_tours
 
 log = logging.getLogger(__name__)
@@ -76,7 +77,7 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     t0 = time.perf_counter()
     cfg = request_discovery_config(req)
     ctx.progress(ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
-    disc = discover(robot, cfg, checkpoint=ctx.check_cancelled)
+    disc = discover(robot, cfg, checkpoint=ctx.check_cancelled, on_step=StepReporter(ctx))
     ctx.check_cancelled()
     publish_graph(disc.nav_graph())
     for tour in disc.tour_messages():
@@ -136,6 +137,34 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
         map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),
         skipped_regions=skipped, nodes=nodes, timings_s=timings_s, outcome=outcome,
         wall_s=round(time.perf_counter() - t0, 2)))
+
+
+class StepReporter:
+    """Turns the explorer's per-panorama standing into progress events: a real robot takes seconds
+    per panorama, and an exploration of a house hundreds of them, so the exploring stage must show
+    that it moves. Its share of the progress bar (0.02 to ``_TOURS_AT``) grows with the visited share
+    of the nodes known (visited + open frontiers), never backwards; the coverage estimate, refreshed
+    every few seconds only, is carried between refreshes."""
+
+    def __init__(self, ctx: JobContext):
+        self.ctx = ctx
+        self.progress = 0.02
+        self.coverage: float | None = None
+
+    def __call__(self, st: ExplorationStep) -> None:
+        if st.coverage_estimate is not None:
+            self.coverage = st.coverage_estimate
+        known = st.visited + st.open_frontiers
+        self.progress = max(self.progress, 0.02 + (_TOURS_AT - 0.03) * st.visited / max(1, known))
+        left = f"~{st.time_left_s:.0f} s left" if st.step > 1 else "time left unknown yet"
+        cover = f"coverage ~{self.coverage:.0%}, " if self.coverage is not None else ""
+        self.ctx.progress(ExplorationProgress(
+            stage="exploring", progress=round(self.progress, 4), step=st.step, visited=st.visited, seen=st.seen,
+            open_frontiers=st.open_frontiers, floors=st.floors, coverage_estimate=self.coverage,
+            elapsed_s=round(st.elapsed_s, 2), time_left_s=round(st.time_left_s, 1) if st.step > 1 else None,
+            message=(f"step {st.step}/{st.step_budget}: {st.visited} visited, {st.seen} seen, "
+                     f"{st.open_frontiers} open frontiers, {st.floors} floor{'s' if st.floors != 1 else ''}, "
+                     f"{cover}{st.elapsed_s:.0f} s elapsed, {left}")), step=st.step)
 
 
 def describe_outcome(outcome: ExplorationOutcome) -> str:

@@ -99,6 +99,27 @@ class Scan:
     node: str
 
 
+@dataclass(frozen=True)
+class ExplorationStep:
+    """Where a running exploration stands after one panorama (what its progress events say).
+
+    ``seen`` counts every node the graph holds (visited, frontiers, covered, unreachable);
+    ``floors`` the levels of the free-space map; ``time_left_s`` is a rate estimate: the mean wall
+    time per panorama so far times the panoramas still expected (open frontiers, capped by the step
+    budget). A frontier is often covered on the way to another, so it errs long, never short by
+    more than the frontiers the predictor has not proposed yet."""
+
+    step: int
+    visited: int
+    seen: int
+    open_frontiers: int
+    floors: int
+    coverage_estimate: float | None  # None: not measured at this step (see ``coverage_every_s``)
+    elapsed_s: float
+    time_left_s: float
+    step_budget: int
+
+
 class StopReason(StrEnum):
     EXHAUSTED = "exhausted"  # no frontier left: the paper's end
     STEPS = "steps"  # the area-scaled panorama budget (or the hard cap) ran out
@@ -165,9 +186,14 @@ class Explorer:
                 base.model_copy(update={"angle_bins": self.config.scan_angle_bins})
             )
 
-    def explore(self, robot: ExplorerRobot, checkpoint: Callable[[], None] | None = None) -> ExplorationResult:
+    def explore(self, robot: ExplorerRobot, checkpoint: Callable[[], None] | None = None,
+                on_step: Callable[[ExplorationStep], None] | None = None,
+                coverage_every_s: float = 2.0) -> ExplorationResult:
         """Run the frontier DFS to its end; ``checkpoint`` (if given) is called before every step and
-        may raise to abandon the exploration (a cancelled job), which then propagates."""
+        may raise to abandon the exploration (a cancelled job), which then propagates. ``on_step``
+        (if given) hears where the exploration stands after every panorama; the coverage estimate
+        in it is refreshed at most every ``coverage_every_s`` of wall time, since it rebuilds the
+        reachable free area of every floor (about as long as a panorama's own mapping on a big house)."""
         cfg = self.config
         t0 = time.perf_counter()
         run = _Run(self, robot)
@@ -175,7 +201,14 @@ class Explorer:
         start_pose = pano.pose
         run.arrive(pano, previous=None, travelled_m=0.0)
         reason = StopReason.EXHAUSTED
+        coverage_at = -math.inf
         while True:
+            if on_step is not None:
+                now = time.perf_counter()
+                coverage = None
+                if now - coverage_at >= coverage_every_s:
+                    coverage, coverage_at = run.coverage_estimate()[0], now
+                on_step(run.progress(now - t0, coverage))
             if checkpoint is not None:
                 checkpoint()
             budget = run.step_budget()
@@ -258,6 +291,16 @@ class _Run:
     def step_budget(self) -> int:
         budget = int(self.cfg.min_steps + self.cfg.steps_per_m2 * len(self.cells))
         return min(budget, self.cfg.max_steps) if self.cfg.max_steps is not None else budget
+
+    def progress(self, elapsed_s: float, coverage: float | None) -> ExplorationStep:
+        g = self.graph
+        open_frontiers = len(g.nodes_with(NodeStatus.FRONTIER))
+        budget = self.step_budget()
+        expected = min(open_frontiers, max(0, budget - self.steps))
+        return ExplorationStep(
+            step=self.steps, visited=len(g.nodes_with(NodeStatus.VISITED)), seen=len(g.g),
+            open_frontiers=open_frontiers, floors=len(self.space.levels), coverage_estimate=coverage,
+            elapsed_s=elapsed_s, time_left_s=elapsed_s / max(1, self.steps) * expected, step_budget=budget)
 
     def _floor_nodes(self) -> dict[float, list[tuple[str, np.ndarray]]]:
         """Visited nodes off the stairs, by floor level of the free-space map."""

@@ -40,7 +40,7 @@ from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
 from libs.ros2 import messages as m
-from libs.ros2.keys import key_style
+from libs.ros2.keys import Qos, key_style
 from libs.ros2.node import Received, Ros2Node
 from libs.ros2.profiles import Ros2Profile, profile
 from libs.ros2.transport import TRANSPORTS, Ros2Transport, TransportError
@@ -218,10 +218,11 @@ class Ros2Robot(Robot):
             n.subscribe(p.clock, m.MESSAGES["clock"], lambda msg, _i: self.clock.on_clock(m.stamp_s(msg.clock)), max_queue=64)
         n.subscribe(p.odom, m.MESSAGES["odometry"], self._stamped(self._odom), max_queue=64)
         n.subscribe(p.camera_info, m.MESSAGES["camera_info"], self._stamped(self._info))
-        color_type = m.MESSAGES["compressed_image"] if p.color_encoding == "jpeg" else m.MESSAGES["image"]
+        color_type = m.MESSAGES["compressed_image"] if p.color_encoding in ("jpeg", "png") else m.MESSAGES["image"]
         n.subscribe(p.color, color_type, self._stamped(self._color))
         if p.depth:
-            n.subscribe(p.depth, m.MESSAGES["image"], self._stamped(self._depth))
+            depth_type = m.MESSAGES["compressed_image"] if p.depth_encoding == "compressedDepth" else m.MESSAGES["image"]
+            n.subscribe(p.depth, depth_type, self._stamped(self._depth))
         if p.semantic:
             n.subscribe(p.semantic, m.MESSAGES["image"], self._stamped(self._sem))
         if p.scan:
@@ -229,7 +230,9 @@ class Ros2Robot(Robot):
         if p.imu:
             n.subscribe(p.imu, m.MESSAGES["imu"], self._stamped(self._imu), max_queue=64)
         if p.map:
-            n.subscribe(p.map, m.MESSAGES["occupancy_grid"], self._stamped(self._map))
+            # Transient-local: a map_server publishes its map once; a backend that starts later asks
+            # for it on joining instead of waiting for a re-publish that never comes.
+            n.subscribe(p.map, m.MESSAGES["occupancy_grid"], self._stamped(self._map), Qos(transient_local=True, depth=1))
         if p.run_stop:
             n.subscribe(p.run_stop, m.MESSAGES["bool"], self._on_run_stop)
         if p.map_frame:
@@ -564,6 +567,8 @@ class Ros2Robot(Robot):
 
     # --- perception ---------------------------------------------------------------------------------------------
     def _depth_m(self, msg) -> np.ndarray:
+        if hasattr(msg, "format"):  # a CompressedImage: compressed_depth_image_transport's layout
+            return self._upright(m.compressed_depth_m(msg))
         a = m.image_array(msg)
         if msg.encoding in ("16UC1", "mono16"):
             d = a.astype(np.float32) * 0.001
@@ -580,7 +585,7 @@ class Ros2Robot(Robot):
         if msg.encoding == "bgr8":
             a = a[..., ::-1]
         elif msg.encoding != "rgb8":
-            raise m.CdrError(f"colour encoding {msg.encoding!r} is not rgb8, bgr8 or JPEG")
+            raise m.CdrError(f"colour encoding {msg.encoding!r} is not rgb8, bgr8, jpeg or png")
         return self._upright(a)
 
     def _upright(self, a: np.ndarray) -> np.ndarray:

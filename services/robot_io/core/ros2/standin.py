@@ -98,10 +98,13 @@ class StandInRobot:
         self._seq = 0
         p = profile
         self._pub_odom = self.node.publisher(p.odom, m.MESSAGES["odometry"])
-        color_type = m.MESSAGES["compressed_image"] if p.color_encoding == ColorEncoding.JPEG else m.MESSAGES["image"]
+        compressed = (ColorEncoding.JPEG, ColorEncoding.PNG)
+        color_type = m.MESSAGES["compressed_image"] if p.color_encoding in compressed else m.MESSAGES["image"]
         self._pub_color = self.node.publisher(p.color, color_type, Qos(reliable=False, depth=1))
         self._pub_info = self.node.publisher(p.camera_info, m.MESSAGES["camera_info"])
-        self._pub_depth = self.node.publisher(p.depth, m.MESSAGES["image"], Qos(reliable=False, depth=1)) if p.depth else None
+        depth_type = (m.MESSAGES["compressed_image"] if p.depth_encoding == DepthEncoding.COMPRESSED_DEPTH
+                      else m.MESSAGES["image"])
+        self._pub_depth = self.node.publisher(p.depth, depth_type, Qos(reliable=False, depth=1)) if p.depth else None
         self._pub_sem = self.node.publisher(p.semantic, m.MESSAGES["image"], Qos(reliable=False, depth=1)) if p.semantic else None
         self._pub_scan = self.node.publisher(p.scan, m.MESSAGES["scan"]) if p.scan else None
         self._pub_imu = self.node.publisher(p.imu, m.MESSAGES["imu"]) if p.imu else None
@@ -250,8 +253,8 @@ class StandInRobot:
         # The mounting rotates what the sensor sees: undo "upright" by the inverse quarter turns.
         rot = (lambda a: np.ascontiguousarray(np.rot90(a, -k))) if k else (lambda a: a)
         rgb = rot(out.rgb[0])
-        if p.color_encoding == ColorEncoding.JPEG:
-            color = m.compressed_image(t, p.camera_frame, rgb)
+        if p.color_encoding in (ColorEncoding.JPEG, ColorEncoding.PNG):
+            color = m.compressed_image(t, p.camera_frame, rgb, fmt=str(p.color_encoding))
         elif p.color_encoding == ColorEncoding.BGR8:
             color = m.image(t, p.camera_frame, rgb[..., ::-1], "bgr8")
         else:
@@ -266,8 +269,10 @@ class StandInRobot:
         if self._pub_depth is not None:
             d = np.where(np.isfinite(out.depth_m[0]), out.depth_m[0], 0.0).astype(np.float32)
             d = self.sim.noise.depth(d)
-            if p.depth_encoding == DepthEncoding.MM_16UC1:
-                img = m.image(t, p.camera_frame, rot(np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16)), "16UC1")
+            if p.depth_encoding in (DepthEncoding.MM_16UC1, DepthEncoding.COMPRESSED_DEPTH):
+                mm = rot(np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16))
+                img = (m.compressed_depth(t, p.camera_frame, mm) if p.depth_encoding == DepthEncoding.COMPRESSED_DEPTH
+                       else m.image(t, p.camera_frame, mm, "16UC1"))
             else:
                 img = m.image(t, p.camera_frame, rot(d), "32FC1")
             self._sensor(self._pub_depth, img)
