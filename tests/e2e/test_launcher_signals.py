@@ -79,62 +79,97 @@ def launcher_argv(name: str, run_dir: Path, episodes: Path) -> tuple[list[str], 
     raise AssertionError(name)
 
 
-def run_case(name: str, sig: signal.Signals, tmp_path: Path, episodes: Path, *, when_up: bool = False) -> None:
-    case = uuid.uuid4().hex
-    run_dir = tmp_path / f"{name}-{sig.name}"
-    argv, children = launcher_argv(name, run_dir, episodes)
-    env = {**os.environ, MARKER: case, "TMPDIR": str(tmp_path), "ANT_LOG_LEVEL": "WARNING",
-           "ANT_ROBOT_CONFIG": f'{{"scene": "{SMALL_SCENE}"}}'}
-    env.pop("ANT_API_TOKEN", None)
-    out_path = tmp_path / f"{name}-{sig.name}.out"
-    with open(out_path, "wb") as out:
-        proc = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
-    try:
-        def output() -> str:
-            return out_path.read_text(errors="replace")
+class Case:
+    """One launcher program given one signal."""
 
+    def __init__(self, name: str, sig: signal.Signals, tmp_path: Path, episodes: Path):
+        self.name, self.sig, self.case = name, sig, uuid.uuid4().hex
+        self.argv, self.children = launcher_argv(name, tmp_path / f"{name}-{sig.name}", episodes)
+        self.env = {**os.environ, MARKER: self.case, "TMPDIR": str(tmp_path), "ANT_LOG_LEVEL": "WARNING",
+                    "ANT_ROBOT_CONFIG": f'{{"scene": "{SMALL_SCENE}"}}'}
+        self.env.pop("ANT_API_TOKEN", None)
+        self.out_path = tmp_path / f"{name}-{sig.name}.out"
+        self.proc: subprocess.Popen | None = None
+
+    def output(self) -> str:
+        return self.out_path.read_text(errors="replace")
+
+    def start(self) -> None:
+        with open(self.out_path, "wb") as out:
+            self.proc = subprocess.Popen(self.argv, cwd=ROOT, env=self.env, stdout=out, stderr=subprocess.STDOUT)
+
+    def marked(self) -> list[int]:
+        return marked(self.case, self.proc.pid)
+
+    def wait_spawned(self, when_up: bool = False) -> None:
+        """Until the launcher has started its router and every service (``when_up``: and they are alive)."""
+        proc = self.proc
         try:
-            wait_until(lambda: len(marked(case, proc.pid)) >= children or proc.poll() is not None, 180,
-                       f"{name} spawns its {children} processes", interval_s=0.1)
+            wait_until(lambda: len(self.marked()) >= self.children or proc.poll() is not None, 180,
+                       f"{self.name} spawns its {self.children} processes", interval_s=0.1)
             if when_up:
-                wait_until(lambda: "all services alive" in output() or proc.poll() is not None, 300,
-                           f"{name}'s system is up", interval_s=0.2)
+                wait_until(lambda: "all services alive" in self.output() or proc.poll() is not None, 300,
+                           f"{self.name}'s system is up", interval_s=0.2)
         except TimeoutError as exc:
-            raise AssertionError(f"{exc}; output:\n{output()}") from None
-        assert proc.poll() is None, f"{name} ended before the signal ({proc.returncode}):\n{output()}"
-        before = marked(case, proc.pid)
-        assert len(before) >= children, before
-        proc.send_signal(sig)
+            raise AssertionError(f"{exc}; output:\n{self.output()}") from None
+        assert proc.poll() is None, f"{self.name} ended before the signal ({proc.returncode}):\n{self.output()}"
+        assert len(self.marked()) >= self.children
+
+    def check_stopped(self) -> None:
+        """The launcher ends, and every process it started with it, in bounded time."""
+        name, sig = self.name, self.sig
         try:
-            code = proc.wait(90)  # the launcher's own stop: SIGTERM, then SIGKILL after 20 s per group
+            code = self.proc.wait(90)  # the launcher's own stop: SIGTERM, then SIGKILL after 20 s per group
         except subprocess.TimeoutExpired:
-            raise AssertionError(f"{name} did not end within 90 s of {sig.name}:\n{output()}") from None
+            raise AssertionError(f"{name} did not end within 90 s of {sig.name}:\n{self.output()}") from None
         try:
-            wait_until(lambda: not marked(case, proc.pid), 30, f"every process of {name} ends", interval_s=0.1)
+            wait_until(lambda: not self.marked(), 30, f"every process of {name} ends", interval_s=0.1)
         except TimeoutError:
             left = {pid: Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")[:120]
-                    for pid in marked(case, proc.pid)}
-            raise AssertionError(f"{sig.name} to {name} left {len(left)} processes: {left}\n{output()}") from None
+                    for pid in self.marked()}
+            raise AssertionError(f"{sig.name} to {name} left {len(left)} processes: {left}\n{self.output()}") from None
         if sig == signal.SIGKILL:
             assert code == -signal.SIGKILL
         elif name in ("demo", "evaluation"):
-            assert code == 128 + sig, output()  # the shell's "ended by signal N"
+            assert code == 128 + sig, self.output()  # the shell's "ended by signal N"
         elif name == "up":
-            assert code == 0 and "stopped every process" in output(), output()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-        for pid in marked(case, -1):  # nothing may outlive the test, even when it failed
+            assert code == 0 and "stopped every process" in self.output(), self.output()
+
+    def cleanup(self) -> None:
+        """Nothing outlives the test, even a failed one."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        for pid in marked(self.case, -1):
             os.kill(pid, signal.SIGKILL)
 
 
 @pytest.mark.parametrize("name", ["demo", "up", "evaluation", "bench"])
-@pytest.mark.parametrize("sig", SIGNALS, ids=[s.name for s in SIGNALS])
-def test_a_signal_to_a_starting_launcher_leaves_no_process(name, sig, tmp_path, episodes):
-    run_case(name, sig, tmp_path, episodes)
+def test_each_signal_to_a_starting_launcher_leaves_no_process(name, tmp_path, episodes):
+    # The four signals' cases run side by side (four launchers at once), which bounds the test's time by
+    # the slowest case rather than their sum; each case has its own marker, so they cannot mix.
+    cases = [Case(name, sig, tmp_path, episodes) for sig in SIGNALS]
+    try:
+        for c in cases:
+            c.start()
+        for c in cases:
+            c.wait_spawned()
+        for c in cases:
+            c.proc.send_signal(c.sig)
+        for c in cases:
+            c.check_stopped()
+    finally:
+        for c in cases:
+            c.cleanup()
 
 
 def test_sigterm_to_a_running_demo_leaves_no_process(tmp_path, episodes):
     """Issue 31's case: a SIGTERM (a CI timeout, kill, systemd, docker stop) to a demo whose system is up."""
-    run_case("demo", signal.SIGTERM, tmp_path, episodes, when_up=True)
+    case = Case("demo", signal.SIGTERM, tmp_path, episodes)
+    try:
+        case.start()
+        case.wait_spawned(when_up=True)
+        case.proc.send_signal(signal.SIGTERM)
+        case.check_stopped()
+    finally:
+        case.cleanup()
