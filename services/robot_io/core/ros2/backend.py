@@ -774,7 +774,7 @@ class Ros2Robot(Robot):
         if got is None:
             raise NotImplementedError(f"no {self.profile.map or 'map topic'} published: no geodesic queries")
         if self._map_cache is None or self._map_cache[0] != got[0]:
-            from .occupancy import OccupancyPlanner
+            from libs.ros2.occupancy import OccupancyPlanner
 
             self._map_cache = (got[0], OccupancyPlanner.from_msg(got[1], self.profile.base_radius_m))
         return self._map_cache[1]
