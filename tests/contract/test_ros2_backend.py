@@ -284,6 +284,7 @@ def test_a_localisation_frame_that_never_arrives_is_refused_at_connect_with_its_
         s.backend(overrides={**SIM_OVERRIDES, "map_frame": "map"}, connect_timeout_s=2.0)
 
 
+@pytest.mark.system  # a router and the stand-in as their own processes
 def test_the_stand_in_killed_mid_move_gives_a_typed_error_and_a_zero_twist():
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
