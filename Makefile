@@ -9,7 +9,7 @@ ROS2_KEYS ?= bridge
 # reconstructor shared by all), for `make demo` (each robot in its own generated house) and `make eval`.
 ROBOTS ?= 1
 
-.PHONY: setup demo up test test-unit test-contract test-e2e bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
+.PHONY: setup demo up test test-unit test-contract test-e2e test-system bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
 
 setup:
 	@bash deploy/bootstrap.sh
@@ -27,14 +27,20 @@ up: setup
 test: setup
 	$(PYTEST) -q -m "not slow" --durations=25 tests
 
+# The tiers: unit (pure logic, in-process), contract (real zenoh peers in this process), e2e (real
+# HTTP servers, browsers, in-process services), system (tests that start OS processes: a launcher, a
+# router, services; marked `system`, wherever they live). `make test` runs all of them.
 test-unit: setup
-	$(PYTEST) -q tests/unit
+	$(PYTEST) -q -m "not slow" --durations=15 tests/unit
 
 test-contract: setup
-	$(PYTEST) -q tests/contract
+	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/contract
 
 test-e2e: setup
-	$(PYTEST) -q tests/e2e
+	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/e2e tests/integration
+
+test-system: setup
+	$(PYTEST) -q -m "system and not slow" --durations=15 tests
 
 bench: setup
 	$(PY) -m bench

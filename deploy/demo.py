@@ -6,7 +6,7 @@
    robot-io, the reconstructor builds and stores the map;
 3. follow a generated instruction with the offline heuristic policy (``POST /missions``), printing
    every step from the live event stream, then the VLN-CE metrics;
-4. stop every process cleanly (also on Ctrl-C).
+4. stop every process cleanly (also on Ctrl-C, SIGTERM or SIGHUP, and the children die with a killed demo).
 
 ``--robots N`` (``make demo ROBOTS=N``) runs robot0..robotN-1 at once, each in its own generated house
 (``generated:<seed+k>``) with its own robot-io and gateway, sharing one planner, mapper, renderer and
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import httpx
 
-from deploy.launcher import Launcher, StandIn
+from deploy.launcher import Launcher, StandIn, Stopped
 from shared.logs import configure_logging
 
 
@@ -191,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
                         robots=args.robots, scenes=scenes if args.robots > 1 else None)
     robots = [(r, url) for r, url in zip(launcher.robots, launcher.gateway_urls)]
     ok = False
+    code = None
     try:
         launcher.start(deadline_s=120)
         say(f"all services alive after {time.time() - t_start:.1f} s: {launcher.alive()}")
@@ -214,14 +215,15 @@ def main(argv: list[str] | None = None) -> int:
             say(f"total {time.time() - t_start:.0f} s; the missions and their events stay in each robot's gateway "
                 f"database under {run_dir}")
             ok = bool(results) and all(results.values())
-    except KeyboardInterrupt:
-        say("interrupted")
+    except Stopped as sig:  # SIGINT, SIGTERM or SIGHUP (deploy.launcher's one lifecycle)
+        say(f"interrupted ({sig})")
+        code = sig.exit_code
     except Exception as exc:
         say(f"FAILED: {type(exc).__name__}: {exc} (logs in {run_dir / 'logs'})")
     finally:
         codes = launcher.stop()
         say(f"stopped every process: {codes}")
-    return 0 if ok else 1
+    return code if code is not None else 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -9,10 +9,21 @@ are generated in ``<run_dir>/zenoh`` at first start (:mod:`deploy.credentials`),
 the generated ACL, and every service connects in client mode as its own user (the ROS 2 stand-in as
 ``ros2_robot``, allowed its ROS 2 keys only), so a stranger on the port can neither publish nor serve anything. Opt out with ``auth=False`` or ``ANT_BUS_AUTH=0``
 (refused with the ROS 2 stand-in: a system with a robot never runs its bus open).
+
+One lifecycle for every program that starts a system (``deploy.demo``, ``deploy.up``, the evaluation
+CLI, the benches, the tests), so none of them leaves a process behind:
+
+- while a launcher is started in the main thread, SIGINT, SIGTERM and SIGHUP raise :class:`Stopped` (a
+  ``KeyboardInterrupt``) in it, so the ``with``/``finally`` that owns the launcher stops every child,
+  exactly as Ctrl-C does; an interpreter that exits with a launcher still started stops it (atexit);
+- every child carries the parent-death signal (Linux ``PR_SET_PDEATHSIG``, SIGKILL): a launcher killed
+  by SIGKILL - or dying any other way that runs no Python - takes its children with it.
 """
 
 from __future__ import annotations
 
+import atexit
+import ctypes
 import json
 import logging
 import os
@@ -41,6 +52,126 @@ SERVICES = ["robot_io", "mapper", "reconstructor", "renderer", "planner", "gatew
 PER_ROBOT = ("robot_io", "gateway")
 # Shared services that may split the robots between their replicas (``serve_robots``).
 SPLIT_ROBOTS = ("planner", "mapper")
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+try:
+    # Loaded before any fork: the child's pre-exec hook only calls into it (no import, no dlopen there).
+    _LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
+except OSError:  # pragma: no cover - a libc without a handle: no parent-death signal, the handlers remain
+    _LIBC = None
+
+
+class Stopped(KeyboardInterrupt):
+    """A stop signal reached a program with a started launcher. A ``KeyboardInterrupt``, so every
+    ``except KeyboardInterrupt``/``finally``/``with`` that handles Ctrl-C handles SIGTERM and SIGHUP alike."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum  # the shell's convention for "ended by signal N"
+
+
+def _child_preexec(parent_pid: int):
+    """Runs in the child between fork and exec: die with the launcher, and take the stop signals."""
+
+    def preexec() -> None:
+        if _LIBC is not None:
+            _LIBC.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        # The launcher may have died between fork and prctl: the death signal would then never come.
+        if os.getppid() != parent_pid:
+            os._exit(1)
+
+    return preexec
+
+
+class _Lifecycle:
+    """The stop-signal handlers of this process while any launcher is started (installed once, in the
+    main thread: Python runs signal handlers there only, and only the main thread may install them)."""
+
+    def __init__(self) -> None:
+        self.live: list[Launcher] = []
+        self.previous: dict[int, object] = {}
+        self.shield_depth = 0  # > 0: spawning or stopping; a signal then waits until the section ends
+        self.pending: int | None = None
+        self.raised = False
+        atexit.register(self.stop_all)
+
+    def attach(self, launcher: Launcher) -> None:
+        if launcher in self.live:
+            return
+        self.live.append(launcher)
+        if not self.previous and threading.current_thread() is threading.main_thread():
+            for sig in STOP_SIGNALS:
+                self.previous[sig] = signal.signal(sig, self._on_signal)
+
+    def detach(self, launcher: Launcher) -> None:
+        """Called by stop(): the last launcher gone, the program's own handlers come back (a signal that
+        came while it was stopping is taken as obeyed: the program was already stopping its system)."""
+        if launcher in self.live:
+            self.live.remove(launcher)
+        if not self.live and threading.current_thread() is threading.main_thread():
+            self._restore()
+
+    def _restore(self) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+        self.previous.clear()
+        self.pending, self.raised = None, False
+
+    def _on_signal(self, signum: int, _frame) -> None:
+        if not self.live:
+            # The last launcher was stopped from another thread, which may not restore handlers: do
+            # it now and hand the signal to the program's own handler.
+            self._restore()
+            os.kill(os.getpid(), signum)
+            return
+        log.warning("%s: stopping every process", signal.Signals(signum).name)
+        if self.shield_depth or self.raised:
+            # Mid-spawn or mid-stop (or already unwinding): raising here would lose track of a child.
+            self.pending = self.pending or signum
+            return
+        self.raised = True
+        raise Stopped(signum)
+
+    def shield(self) -> _Shield:
+        return _Shield(self)
+
+    def stop_all(self) -> None:
+        for launcher in list(self.live):
+            launcher.stop()
+
+
+class _Shield:
+    """A section of the main thread no stop signal interrupts (between fork and the bookkeeping, a child
+    would be lost; in stop(), a half-stopped system); one that came meanwhile is raised when it ends, if
+    the process still has started launchers to unwind. Other threads are never interrupted by a signal
+    handler (Python runs them in the main thread), so the shield is for the main thread only."""
+
+    def __init__(self, life: _Lifecycle):
+        self.life = life
+        self.main = threading.current_thread() is threading.main_thread()
+
+    def __enter__(self) -> None:
+        if self.main:
+            self.life.shield_depth += 1
+
+    def __exit__(self, exc_type, *_) -> None:
+        if not self.main:
+            return
+        life = self.life
+        life.shield_depth -= 1
+        if (life.shield_depth == 0 and life.pending is not None and exc_type is None and life.live
+                and not life.raised):
+            signum, life.pending, life.raised = life.pending, None, True
+            raise Stopped(signum)
+
+
+LIFECYCLE = _Lifecycle()
 
 
 def robot_ids(n: int) -> list[str]:
@@ -111,10 +242,14 @@ class Proc:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         out = open(self.log_path, "ab")
         # start_new_session: Ctrl-C in the terminal reaches the launcher only, which then stops
-        # the children in order instead of every process dying at once.
-        self.popen = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                      start_new_session=True)
-        out.close()
+        # the children in order instead of every process dying at once. The pre-exec hook ties the
+        # child's life to the launcher's (parent-death signal).
+        try:
+            with LIFECYCLE.shield():
+                self.popen = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                              start_new_session=True, preexec_fn=_child_preexec(os.getpid()))
+        finally:
+            out.close()
 
 
 class Launcher:
@@ -142,6 +277,9 @@ class Launcher:
         self.standin = standin
         self.procs: list[Proc] = []
         self._stop = threading.Event()
+        # Held while the supervisor restarts a child and while stop() marks the children stopping, so a
+        # child is never restarted after stop() began.
+        self._lock = threading.Lock()
         self._monitor: threading.Thread | None = None
         self.bus: ZenohBus | None = None
         self.auth = os.environ.get("ANT_BUS_AUTH", "1").lower() not in ("0", "false", "no") if auth is None else auth
@@ -240,22 +378,26 @@ class Launcher:
         return argv
 
     def start(self, deadline_s: float = 60.0) -> None:
+        """Start the router and every service and wait until each is alive. The thread that calls it
+        must outlive the system: Linux sends the parent-death signal when the *thread* that forked a
+        child ends (the supervisor thread, which restarts crashed children, lives until stop())."""
+        LIFECYCLE.attach(self)
         py = sys.executable
         router = Proc("router", self._router_argv(py), self._env("router"), self.run_dir / "logs" / "router.log")
-        router.start()
         self.procs.append(router)
+        router.start()
         wait_tcp(self.router_port, 20.0)
         if self.standin is not None:
             robot = Proc("ros2-robot", self.standin.argv(self.endpoint), self._env("ros2-robot", user=Ros2Side.user),
                          self.run_dir / "logs" / "ros2-robot.log")
-            robot.start()
             self.procs.append(robot)
+            robot.start()
         for name in self.services:
             for proc_name, env in self._service_procs(name):
                 proc = Proc(proc_name, [py, "-m", f"services.{name}"], env,
                             self.run_dir / "logs" / f"{proc_name}.log")
-                proc.start()
                 self.procs.append(proc)
+                proc.start()
         self.bus = ZenohBus(self.client_settings())
         self.wait_alive(deadline_s)
         if self.restart:
@@ -299,17 +441,31 @@ class Launcher:
                 log.warning("%s exited with %s; restarting in %.1f s", p.name, code, p.next_backoff_s)
                 if self._stop.wait(p.next_backoff_s):
                     return
-                p.next_backoff_s = min(p.next_backoff_s * 2, 30.0)
-                p.restarts += 1
-                p.start()
+                with self._lock:
+                    if p.stopping:
+                        continue
+                    p.next_backoff_s = min(p.next_backoff_s * 2, 30.0)
+                    p.restarts += 1
+                    p.start()
 
     def proc(self, name: str) -> Proc:
         return next(p for p in self.procs if p.name == name)
 
     def stop(self, timeout_s: float = 20.0) -> dict[str, int | None]:
-        self._stop.set()
-        if self._monitor:
-            self._monitor.join(2.0)
+        """Stop every child (SIGTERM, SIGKILL after ``timeout_s``); safe to call twice, never interrupted
+        by a stop signal (one that comes meanwhile is taken as already obeyed)."""
+        with LIFECYCLE.shield():
+            try:
+                return self._stop_children(timeout_s)
+            finally:
+                LIFECYCLE.detach(self)
+
+    def _stop_children(self, timeout_s: float) -> dict[str, int | None]:
+        with self._lock:
+            for p in self.procs:
+                p.stopping = True
+        # The supervisor ends after the children: a child it restarted dies with its thread (the
+        # parent-death signal follows the forking thread), which would skip the orderly SIGTERM.
         if self.bus:
             self.bus.close()
             self.bus = None
@@ -322,7 +478,6 @@ class Launcher:
         routers = [p for p in self.procs if p.name == "router"]
         for group in (services, robots, routers):
             for p in group:
-                p.stopping = True
                 if p.popen and p.popen.poll() is None:
                     p.popen.send_signal(signal.SIGTERM)
             end = time.monotonic() + timeout_s
@@ -335,6 +490,9 @@ class Launcher:
                     log.warning("%s did not stop in time: killing it", p.name)
                     p.popen.kill()
                     codes[p.name] = p.popen.wait()
+        self._stop.set()
+        if self._monitor:
+            self._monitor.join(2.0)
         return codes
 
     def __enter__(self):

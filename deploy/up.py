@@ -16,12 +16,11 @@ import argparse
 import json
 import os
 import secrets
-import signal
 import sys
 import threading
 from pathlib import Path
 
-from deploy.launcher import Launcher
+from deploy.launcher import Launcher, Stopped
 from shared.logs import configure_logging
 
 DEFAULT_PORT = 8080
@@ -59,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None, stop: threading.Event | None = None) -> int:
-    """Run until ``stop`` is set (Ctrl-C and SIGTERM set it); returns 0 on a clean stop."""
+    """Run until ``stop`` is set or a stop signal comes (SIGINT, SIGTERM, SIGHUP); returns 0 on a clean stop."""
     args = build_parser().parse_args(argv)
     configure_logging("up", "local", "WARNING")
     if not 0 < args.port < 65536:
@@ -76,17 +75,26 @@ def main(argv: list[str] | None = None, stop: threading.Event | None = None) -> 
     if token:
         env["ANT_API_TOKEN"] = token
     stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
     launcher = Launcher(run_dir, replicas={"renderer": args.renderers}, gateway_port=args.port, extra_env=env)
     print(f"up: starting a zenoh router and {len(launcher.services)} services (logs: {run_dir / 'logs'})", flush=True)
+    # SIGINT, SIGTERM and SIGHUP raise Stopped while the launcher is started (deploy.launcher's one
+    # lifecycle); the finally below stops every process, whether the signal came while starting or serving.
     try:
-        launcher.start(deadline_s=args.deadline_s)
-    except Exception as exc:
-        print(f"up: FAILED to start: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
-        launcher.stop()
-        return 1
+        try:
+            launcher.start(deadline_s=args.deadline_s)
+        except Exception as exc:
+            print(f"up: FAILED to start: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+            return 1
+        _serve(args, run_dir, token, stop)
+    except Stopped as sig:
+        print(f"up: {sig}: stopping", flush=True)
+    finally:
+        codes = launcher.stop()
+        print(f"up: stopped every process: {codes}", flush=True)
+    return 0
+
+
+def _serve(args: argparse.Namespace, run_dir: Path, token: str | None, stop: threading.Event) -> None:
     host = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
     url = f"http://{host}:{args.port}"
     print(f"up: dashboard  {url}/dashboard", flush=True)
@@ -98,13 +106,8 @@ def main(argv: list[str] | None = None, stop: threading.Event | None = None) -> 
         print("up: API token  none (--no-token: the API is open)", flush=True)
     print(f"up: try        curl -s -X POST {url}/explorations -H 'Authorization: Bearer {token or ''}' "
           "-H 'Content-Type: application/json' -d '{\"map_id\": \"house\"}'", flush=True)
-    print("up: running; Ctrl-C stops every process", flush=True)
-    try:
-        stop.wait()
-    finally:
-        codes = launcher.stop()
-        print(f"up: stopped every process: {codes}", flush=True)
-    return 0
+    print("up: running; Ctrl-C (or SIGTERM, SIGHUP) stops every process", flush=True)
+    stop.wait()
 
 
 if __name__ == "__main__":

@@ -374,6 +374,7 @@ def main(argv: list[str] | None = None) -> int:
     except (EvaluationError, FileNotFoundError) as exc:
         log.error("%s", exc)
         return 2
-    except KeyboardInterrupt:
-        log.warning("interrupted: finished episodes are saved; run the same command again to resume")
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C; SIGTERM and SIGHUP too while a system runs (deploy.launcher.Stopped)
+        log.warning("interrupted (%s): finished episodes are saved; run the same command again to resume",
+                    exc or "SIGINT")
+        return getattr(exc, "exit_code", 130)

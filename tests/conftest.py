@@ -12,6 +12,15 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ANT_SHARED_DATA") or REPO_ROOT.parent / "shared" / "data")
 
 
+def pytest_collection_modifyitems(config, items):
+    """A test that uses the launched system (tests/reliability's ``system`` fixture: a router and every
+    service as OS processes) is a ``system`` test wherever it lives, so ``-m "not system"`` keeps a tier
+    in-process without each file having to say so."""
+    for item in items:
+        if "system" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.system)
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """``../shared/data`` beside the repo; tests that use it skip on a user's fresh clone."""

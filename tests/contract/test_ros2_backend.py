@@ -27,7 +27,7 @@ from services.robot_io.core.ros2.backend import (
 from libs.ros2.keys import key_style
 from libs.ros2.node import Ros2Node
 from libs.ros2.profiles import profile
-from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot
+from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot, StandInStats
 from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig
 from shared.bus.config import ZenohSettings
 from shared.schemas import CameraIntrinsics, MoveStatus, Pose
@@ -67,6 +67,7 @@ class StandIn:
         self.profile = profile(prof, overrides)
         cfg = {"scene": SCENE, "time_scale": 4.0, "camera_rate_hz": 5.0, "camera": CAM.model_dump(), **cfg}
         self.robot = StandInRobot(StandInConfig.model_validate(cfg), self.profile, self.t, key_style(keys))
+        self.home = self.robot.true_pose  # where reset() teleports it back to
         self.thread = threading.Thread(target=self.robot.run, daemon=True)
         self.thread.start()
         # The stand-in's first images compile its render kernels (seconds of wall time, four times that
@@ -82,6 +83,16 @@ class StandIn:
                             transport_config={"zenoh": {"connect": [self.endpoint]}}, **cfg)
         return Ros2Robot(config)
 
+    def reset(self) -> None:
+        """Back to the pose it started at, through its own teleport service handler (the ROS 2 reset a
+        backend uses), with fresh counters: a test sees the robot as a new stand-in would be."""
+        home = self.home
+        self.robot._on_teleport(msgs.new("turtlesim/srv/TeleportAbsolute_Request", x=home.position_m[0],
+                                         y=home.position_m[1], theta=home.heading_rad))
+        with self.robot._lock:
+            images = self.robot.stats.images
+            self.robot.stats = StandInStats(images=images)
+
     def close(self):
         self.robot.stop()
         self.thread.join(5)
@@ -89,12 +100,28 @@ class StandIn:
         self.t.close()
 
 
+@pytest.fixture(scope="module")
+def standins():
+    """``standins(keys)``: one default stand-in per key style for the whole module, reset by teleport
+    before each use. Each stand-in costs seconds (its scene, nav grid and render kernels); the tests
+    that need a different configuration build their own."""
+    made: dict[str, StandIn] = {}
+
+    def get(keys: str = "bridge") -> StandIn:
+        if keys not in made:
+            made[keys] = StandIn(keys=keys)
+            made[keys].keys = keys
+        made[keys].reset()
+        return made[keys]
+
+    yield get
+    for s in made.values():
+        s.close()
+
+
 @pytest.fixture(params=["bridge", "rmw_zenoh"])
-def standin(request):
-    s = StandIn(keys=request.param)
-    s.keys = request.param
-    yield s
-    s.close()
+def standin(request, standins):
+    return standins(request.param)
 
 
 def test_observe_turns_through_twelve_headings_and_returns_rgbd(standin):
@@ -148,8 +175,8 @@ def test_a_free_move_reaches_its_goal_and_a_teleport_reset_places_the_robot(stan
         assert np.hypot(*(np.array(res.pose.position_m[:2]) - goal[:2])) <= 0.12
 
 
-def test_a_command_past_its_deadline_is_a_typed_error_and_the_robot_is_stopped():
-    s = StandIn()
+def test_a_command_past_its_deadline_is_a_typed_error_and_the_robot_is_stopped(standins):
+    s = standins("bridge")
     log = CmdLog(s.endpoint, "bridge", s.profile.cmd_vel)
     try:
         with s.backend(command_deadline_s=0.5) as robot:
@@ -162,7 +189,6 @@ def test_a_command_past_its_deadline_is_a_typed_error_and_the_robot_is_stopped()
             robot.turn(math.radians(10))
     finally:
         log.close()
-        s.close()
 
 
 def test_stale_odometry_is_a_typed_error_and_no_motion_is_left_commanded():
@@ -252,15 +278,13 @@ def test_with_localisation_poses_stay_in_the_map_frame_while_odometry_drifts():
         s.close()
 
 
-def test_a_localisation_frame_that_never_arrives_is_refused_at_connect_with_its_name():
-    s = StandIn()  # publishes odom -> base only
-    try:
-        with pytest.raises(RobotUnavailableError, match="map -> odom transform on /tf"):
-            s.backend(overrides={**SIM_OVERRIDES, "map_frame": "map"}, connect_timeout_s=2.0)
-    finally:
-        s.close()
+def test_a_localisation_frame_that_never_arrives_is_refused_at_connect_with_its_name(standins):
+    s = standins("bridge")  # publishes odom -> base only
+    with pytest.raises(RobotUnavailableError, match="map -> odom transform on /tf"):
+        s.backend(overrides={**SIM_OVERRIDES, "map_frame": "map"}, connect_timeout_s=2.0)
 
 
+@pytest.mark.system  # a router and the stand-in as their own processes
 def test_the_stand_in_killed_mid_move_gives_a_typed_error_and_a_zero_twist():
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"

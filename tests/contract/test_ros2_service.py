@@ -21,7 +21,7 @@ from shared.clients import RobotClient
 from tests.contract.test_ros2_backend import SIM_OVERRIDES, CmdLog, StandIn
 from tests.waiting import wait_until
 
-pytestmark = pytest.mark.contract
+pytestmark = [pytest.mark.contract, pytest.mark.system]  # robot-io as its own process
 
 
 def test_sigterm_during_a_turn_sends_a_zero_twist_and_the_service_exits_cleanly():

@@ -15,18 +15,40 @@ LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backgro
                "--disable-component-update", "--no-first-run"]
 
 
+# One Chromium for the whole session (started by the first test that needs it, closed by
+# tests/e2e/conftest.py at the end): launching it costs seconds per test on a loaded machine, and every
+# page gets a fresh context of its own anyway (browser.new_page), so tests share no cookies or storage.
+_SHARED: dict = {}
+
+
 @contextmanager
 def headless_chromium() -> Iterator:
-    """Yield a launched playwright ``Browser``; always closed afterwards."""
+    """Yield the session's launched playwright ``Browser``; the pages (and their contexts) a test opened
+    are closed afterwards, so the next test starts with none."""
     if not Path(CHROMIUM).exists():
         pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")
     sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
-        try:
-            yield browser
-        finally:
+    browser = _SHARED.get("browser")
+    if browser is None or not browser.is_connected():
+        close_shared_browser()
+        pw = sync_api.sync_playwright().start()
+        _SHARED["pw"] = pw
+        _SHARED["browser"] = browser = pw.chromium.launch(executable_path=CHROMIUM, args=LAUNCH_ARGS)
+    try:
+        yield browser
+    finally:
+        for context in list(browser.contexts):
+            context.close()
+
+
+def close_shared_browser() -> None:
+    browser, pw = _SHARED.pop("browser", None), _SHARED.pop("pw", None)
+    try:
+        if browser is not None and browser.is_connected():
             browser.close()
+    finally:
+        if pw is not None:
+            pw.stop()
 
 
 def open_dashboard(browser, url: str, *, fragment: str = "", on_response: Callable | None = None,

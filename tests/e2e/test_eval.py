@@ -10,7 +10,7 @@ from evaluation.cli import main
 from evaluation.dataset import SetSpec, generate_set, write_set
 from evaluation.results import ResultsLog
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 
 # A small house: the runner's path (scene switch, curated map, missions, resume) does not depend on its size,

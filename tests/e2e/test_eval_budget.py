@@ -15,7 +15,7 @@ from evaluation.dataset import SetSpec, generate_set, write_set
 from evaluation.results import ResultsLog
 from services.planner.tools.llm_standin import StandinConfig, StandinServer
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 CALLS_PER_EPISODE = 4  # the stand-in's ``straight`` policy answers stop at this step
 

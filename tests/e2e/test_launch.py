@@ -14,7 +14,7 @@ import pytest
 from deploy.launcher import SERVICES, free_port
 from deploy.up import api_token
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.system]
 ROOT = Path(__file__).resolve().parents[2]
 SMALL_SCENE = "generated:3:area=50"
 

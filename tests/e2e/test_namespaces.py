@@ -37,7 +37,7 @@ from evaluation.dataset import SetSpec, generate_set
 from evaluation.gateway_client import GatewayClient
 from evaluation.runner import EvalRunner, MapSource, RunConfig
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.system]
 ROOT = Path(__file__).resolve().parents[2]
 SERVER_SERVICES = ("planner", "mapper", "renderer", "reconstructor", "gateway")
 ROBOT_SERVICES = ("robot_io",)

@@ -15,7 +15,7 @@ import pytest
 from deploy.demo import make_episode, wait_job
 from deploy.launcher import Launcher
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 # A small house explored to the end (no step budget): 5 regions, where the default house has 7-9 tours to
 # record and reconstruct; what the test checks does not depend on the house's size.

@@ -22,7 +22,7 @@ from shared.bus.typed import TypedBus
 from shared.bus.zenoh_bus import ZenohBus
 from shared.schemas import CameraIntrinsics, Ping, RenderRequest, RenderResult, ServiceMetrics, ViewPose
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 N_REQUESTS = 200
 CAMERA = CameraIntrinsics(width_px=48, height_px=48, hfov_deg=90.0)

@@ -14,7 +14,7 @@ import pytest
 
 from deploy.demo import main as demo_main
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 SCENE = "generated:3:area=50"
 # A small camera at a low rate: the stand-in renders every frame it publishes, on a shared CPU.

@@ -102,6 +102,7 @@ def compose_router(tmp_path_factory):
         proc.wait(10)
 
 
+@pytest.mark.system  # the router as its own process
 def test_the_generated_router_config_requires_usrpwd_and_enables_the_acl(compose_router):
     _, _, parsed = compose_router
     assert parsed["transport"]["auth"]["usrpwd"]["dictionary_file"]
@@ -118,6 +119,7 @@ def _settings(env: dict[str, str], endpoint: str, creds_dir: Path) -> ZenohSetti
                          password_file=fields["password_file"].replace(CREDS_MOUNT, str(creds_dir), 1))
 
 
+@pytest.mark.system  # the router as its own process
 def test_the_router_refuses_a_client_without_credentials_and_admits_every_compose_service(compose_router):
     import zenoh
 

@@ -23,7 +23,7 @@ from shared.cloud import header, records
 from shared.schemas import IMPORT_PART_BYTES
 
 MB = 1 << 20
-pytestmark = pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc")
+pytestmark = [pytest.mark.system, pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc")]
 
 
 def _status_kb(pid: int, field: str) -> int:
