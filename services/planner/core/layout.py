@@ -59,26 +59,41 @@ def _label(img: np.ndarray, text: str) -> None:
     cv2.putText(img, text, (3, th + 3), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 0), thick, cv2.LINE_AA)
 
 
-def mosaic(tiles: list[Tile], tile_px: int, columns: int = MOSAIC_COLUMNS, gap_px: int = 4) -> np.ndarray:
+def mosaic(tiles: list[Tile], tile_px: int, columns: int = MOSAIC_COLUMNS, line_px: int = 2) -> np.ndarray:
     """Cells in rows of ``columns``; each cell stacks its images (``None``: a black tile) and shows its
-    label in the top-left corner. A white gap separates the cells."""
+    label in the top-left corner. White lines over the cell borders separate the cells: drawn over, not
+    added, so that a row of four 256 px cells stays 1024 px (an added gap would push it over a tile
+    boundary and cost a third billed tile column)."""
     if not tiles:
         raise ValueError("a mosaic needs at least one tile")
     rows_per_cell = max(len(t.images) for t in tiles)
     cols = min(columns, len(tiles))
     n_rows = math.ceil(len(tiles) / cols)
     cell_w, cell_h = tile_px, tile_px * rows_per_cell
-    canvas = np.full((n_rows * cell_h + (n_rows - 1) * gap_px, cols * cell_w + (cols - 1) * gap_px, 3), 255,
-                     np.uint8)
+    canvas = np.full((n_rows * cell_h, cols * cell_w, 3), 255, np.uint8)
     for k, tile in enumerate(tiles):
         r, c = divmod(k, cols)
-        y0, x0 = r * (cell_h + gap_px), c * (cell_w + gap_px)
+        y0, x0 = r * cell_h, c * cell_w
         for j in range(rows_per_cell):
             img = tile.images[j] if j < len(tile.images) else None
             part = np.full((tile_px, tile_px, 3), _BLANK, np.uint8) if img is None else fit(np.asarray(img), tile_px)
             canvas[y0 + j * tile_px : y0 + (j + 1) * tile_px, x0 : x0 + tile_px] = part
-        _label(canvas[y0 : y0 + cell_h, x0 : x0 + cell_w], tile.label)
+        cell = canvas[y0 : y0 + cell_h, x0 : x0 + cell_w]
+        cell[:, -line_px:] = 255
+        cell[-line_px:, :] = 255
+        _label(cell, tile.label)
     return canvas
+
+
+def best_columns(n_cells: int, cell_w: int, cell_h: int, cost, max_columns: int = 6) -> int:
+    """The columns (1..``max_columns``) whose canvas costs the fewest image tokens by ``cost(w, h)``
+    (the server's rule); ties go to the column count nearest :data:`MOSAIC_COLUMNS` (a squarer image)."""
+    best = None
+    for cols in range(1, min(n_cells, max_columns) + 1):
+        rows = math.ceil(n_cells / cols)
+        key = (cost(cols * cell_w, rows * cell_h), abs(cols - MOSAIC_COLUMNS), cols)
+        best = key if best is None or key < best else best
+    return best[2]
 
 
 def stack(images: list[np.ndarray], gap_px: int = 8) -> np.ndarray:

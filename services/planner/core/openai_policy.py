@@ -176,7 +176,8 @@ class OpenAIPolicy(Policy):
         cfg, prof = self.config, self.profile
         images = cfg.max_images_per_prompt if cfg.max_images_per_prompt is not None else prof.max_images_per_prompt
         px = cfg.max_image_px if cfg.max_image_px is not None else prof.max_image_px
-        return replace(self.builder.config, layout=cfg.layout, max_images_per_prompt=images, max_image_px=px)
+        return replace(self.builder.config, layout=cfg.layout, max_images_per_prompt=images, max_image_px=px,
+                       image_token_rule=prof.image_token_rule)
 
     def context_window(self) -> int | None:
         """The window: the config's, else what the server reports (profiles that say it does), else the

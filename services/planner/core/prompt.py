@@ -23,7 +23,7 @@ from shared.schemas import CandidateKind
 from .context import CandidateView, StepContext
 from .errors import AnswerError
 from .history import HistoryItem, turn_phrase
-from .layout import LAYOUTS, Layout, Tile, cap_side, fit, mosaic, stack
+from .layout import LAYOUTS, Layout, Tile, best_columns, cap_side, fit, mosaic, stack
 
 ANSWER_FORMAT = '{"action": <candidate number>, "reasoning": "<one or two sentences>"}'
 
@@ -180,6 +180,9 @@ class PromptConfig:
     max_images_per_prompt: int | None = None  # None: no limit
     max_image_px: int | None = None  # None: no limit
     max_history_frames: int | None = None  # None: every history item shows its image
+    # The server's image-token rule (tokens.IMAGE_TOKEN_RULES): a mosaic's columns are chosen to cost the
+    # fewest tokens by it.
+    image_token_rule: str = "openai_tiles"
 
     def __post_init__(self) -> None:
         if self.layout not in LAYOUTS:
@@ -199,7 +202,7 @@ class PromptConfig:
         """One line for records and cache keys: every field that changes what is sent."""
         return (f"layout={self.layout} image_px={self.image_px} max_image_px={self.max_image_px} "
                 f"max_images={self.max_images_per_prompt} history_items={self.max_history_items} "
-                f"history_frames={self.max_history_frames}")
+                f"history_frames={self.max_history_frames} image_rule={self.image_token_rule}")
 
 
 class PromptBuilder:
@@ -245,7 +248,7 @@ class PromptBuilder:
         parts += self._history(ctx.history, cfg, tiles)
         if tiles is not None and tiles["history"]:
             parts += ["History tiles (numbered by step): ",
-                      PromptImage("history_mosaic", cap_side(mosaic(tiles["history"], cfg.image_px), cfg.max_image_px)),
+                      PromptImage("history_mosaic", self._mosaic(tiles["history"], cfg)),
                       "\n"]
         parts.append(f"\nStep {ctx.step + 1} of at most {ctx.max_steps}. Candidate sub-paths:\n")
         for view in ctx.candidates:
@@ -253,8 +256,7 @@ class PromptBuilder:
         if tiles is not None and tiles["candidates"]:
             parts += ["Candidate views (cell k shows candidate k: the observed view above, the anticipated "
                       "view below; a black tile is a view not available): ",
-                      PromptImage("candidates_mosaic",
-                                  cap_side(mosaic(tiles["candidates"], cfg.image_px), cfg.max_image_px)),
+                      PromptImage("candidates_mosaic", self._mosaic(tiles["candidates"], cfg)),
                       "\n"]
         parts += self._spatial_map(ctx, cfg)
         indices = [c.index for c in ctx.candidates]
@@ -274,6 +276,15 @@ class PromptBuilder:
             "prompt_config": cfg.describe(),
         }
         return Prompt(system=SYSTEM_PROMPT, parts=parts, candidate_indices=indices, meta=meta)
+
+    def _mosaic(self, tiles: list[Tile], cfg: PromptConfig) -> np.ndarray:
+        from .tokens import image_tokens_by  # tokens imports this module
+
+        px = cfg.image_px
+        rows = max(len(t.images) for t in tiles)
+        cols = best_columns(len(tiles), px, px * rows,
+                            lambda w, h: image_tokens_by(cfg.image_token_rule, *_capped(w, h, cfg.max_image_px)))
+        return cap_side(mosaic(tiles, px, cols), cfg.max_image_px)
 
     def _spatial_map(self, ctx: StepContext, cfg: PromptConfig) -> list[PromptPart]:
         if not (ctx.ablation.spatial_map and ctx.spatial_map_rgb is not None):
@@ -341,6 +352,13 @@ class PromptBuilder:
             parts.append(PromptImage(f"cand{c.index}_anticipated", self._img(anticipated, cfg)))
         parts.append("\n")
         return parts
+
+
+def _capped(w: int, h: int, max_px: int | None) -> tuple[int, int]:
+    if max_px is None or max(w, h) <= max_px:
+        return w, h
+    s = max_px / max(w, h)
+    return max(1, round(w * s)), max(1, round(h * s))
 
 
 def _as_panel(parts: list[PromptPart], max_images: int, max_image_px: int | None) -> list[PromptPart]:
