@@ -23,6 +23,7 @@ from shared.schemas import CandidateKind
 from .context import CandidateView, StepContext
 from .errors import AnswerError
 from .history import HistoryItem, turn_phrase
+from .image_tokens import image_tokens_by
 from .layout import LAYOUTS, Layout, Tile, best_columns, cap_side, fit, mosaic, stack
 
 ANSWER_FORMAT = '{"action": <candidate number>, "reasoning": "<one or two sentences>"}'
@@ -278,8 +279,6 @@ class PromptBuilder:
         return Prompt(system=SYSTEM_PROMPT, parts=parts, candidate_indices=indices, meta=meta)
 
     def _mosaic(self, tiles: list[Tile], cfg: PromptConfig) -> np.ndarray:
-        from .tokens import image_tokens_by  # tokens imports this module
-
         px = cfg.image_px
         rows = max(len(t.images) for t in tiles)
         cols = best_columns(len(tiles), px, px * rows,

@@ -24,7 +24,11 @@ import re
 import cv2
 import numpy as np
 
+from .image_tokens import IMAGE_TOKEN_RULES, gemini_tile_tokens, image_tokens, image_tokens_by, qwen_patch_tokens
 from .prompt import Prompt, PromptImage
+
+__all__ = ["IMAGE_TOKEN_RULES", "data_url_size", "gemini_tile_tokens", "image_tokens", "image_tokens_by",
+           "message_tokens", "prompt_tokens", "qwen_patch_tokens", "text_tokens"]
 
 MESSAGE_OVERHEAD_TOKENS = 3
 REPLY_PRIMING_TOKENS = 3
@@ -34,58 +38,6 @@ _PIECE = re.compile(r"[A-Za-z0-9]+|[^\sA-Za-z0-9]")
 def text_tokens(text: str) -> int:
     """Approximate BPE tokens of ``text`` (see the module docstring)."""
     return sum(math.ceil(len(p) / 4) if p[0].isalnum() else 1 for p in _PIECE.findall(text))
-
-
-def image_tokens(width_px: int, height_px: int, detail: str = "auto") -> int:
-    """OpenAI's image cost: 85 base tokens + 170 per 512 px tile after scaling (``low``: 85)."""
-    if detail == "low":
-        return 85
-    w, h = float(width_px), float(height_px)
-    if max(w, h) > 2048:
-        s = 2048 / max(w, h)
-        w, h = w * s, h * s
-    if min(w, h) > 768:
-        s = 768 / min(w, h)
-        w, h = w * s, h * s
-    return 85 + 170 * math.ceil(w / 512) * math.ceil(h / 512)
-
-
-def qwen_patch_tokens(width_px: int, height_px: int, detail: str = "auto") -> int:
-    """Qwen2.5-VL's processor (``smart_resize``, 28 px merged patches, default pixel bounds) + 2."""
-    factor, min_px, max_px = 28, 56 * 56, 12845056
-    h = max(factor, round(height_px / factor) * factor)
-    w = max(factor, round(width_px / factor) * factor)
-    if h * w > max_px:
-        beta = math.sqrt(height_px * width_px / max_px)
-        h = max(factor, math.floor(height_px / beta / factor) * factor)
-        w = max(factor, math.floor(width_px / beta / factor) * factor)
-    elif h * w < min_px:
-        beta = math.sqrt(min_px / (height_px * width_px))
-        h = math.ceil(height_px * beta / factor) * factor
-        w = math.ceil(width_px * beta / factor) * factor
-    return (h // factor) * (w // factor) + 2
-
-
-def gemini_tile_tokens(width_px: int, height_px: int, detail: str = "auto") -> int:
-    """Gemini: 258 tokens up to 384 px on both sides, else 258 per 768 px tile."""
-    if width_px <= 384 and height_px <= 384:
-        return 258
-    return 258 * math.ceil(width_px / 768) * math.ceil(height_px / 768)
-
-
-IMAGE_TOKEN_RULES = {
-    "openai_tiles": image_tokens,
-    "qwen_patches": qwen_patch_tokens,
-    "gemini_tiles": gemini_tile_tokens,
-}
-
-
-def image_tokens_by(rule: str, width_px: int, height_px: int, detail: str = "auto") -> int:
-    try:
-        fn = IMAGE_TOKEN_RULES[rule]
-    except KeyError:
-        raise ValueError(f"unknown image-token rule {rule!r}; have {sorted(IMAGE_TOKEN_RULES)}") from None
-    return fn(width_px, height_px, detail)
 
 
 def data_url_size(url: str) -> tuple[int, int]:
