@@ -192,3 +192,19 @@ def test_replay_keys_differ_by_layout(tmp_path):
         with POLICIES.create("replay", cfg) as replay:
             keys.add(replay.key(ctx))
     assert len(keys) == 2
+
+
+def test_the_run_estimate_follows_the_policys_layout_and_profile():
+    from types import SimpleNamespace
+
+    from evaluation.ledger import estimate_run
+    from shared.pricing import PriceTable
+
+    eps = [SimpleNamespace(instruction="Go to the kitchen.", reference_path_m=[[0, 0, 0], [8, 0, 0]])]
+    est = {layout: estimate_run(eps, model="gpt-5.1", prices=PriceTable(), max_steps=20, waypoints=6,
+                                policy_config={"layout": layout})
+           for layout in ("separate", "mosaic")}
+    assert est["mosaic"].prompt_tokens < 0.5 * est["separate"].prompt_tokens
+    assert est["mosaic"].assumptions["layout"] == "mosaic"
+    qwen = estimate_run(eps, model="qwen", prices=PriceTable(), max_steps=20, policy_config={"profile": "vllm"})
+    assert qwen.assumptions["image_rule"] == "qwen_patches" and qwen.cost_usd == 0.0
