@@ -8,7 +8,7 @@ import time
 
 # Each entry is a module with a main(); the order runs the cheap ones first.
 BENCHES = ["bench.bus", "bench.robot_io", "bench.scene_files", "bench.renderer", "bench.mapper", "bench.reconstructor",
-           "bench.planner", "bench.gateway", "bench.replicas", "bench.reliability", "bench.export"]
+           "bench.planner", "bench.vlm_layouts", "bench.gateway", "bench.replicas", "bench.reliability", "bench.export"]
 
 
 def main(argv: list[str]) -> int:

@@ -246,7 +246,7 @@ def cmd_estimate(a: argparse.Namespace, episodes) -> int:
                        anticipation=not a.no_anticipation, spatial_map=not a.no_spatial_map,
                        waypoints=a.estimate_waypoints, step_m=a.estimate_step_m,
                        completion_tokens_per_call=a.estimate_completion_tokens,
-                       detail=str(a.policy_config.get("image_detail", "auto")))
+                       detail=str(a.policy_config.get("image_detail", "auto")), policy_config=a.policy_config)
     if a.policy != "openai":
         print(f"policy {a.policy} makes no LLM calls (it costs $0); as openai:{est.model} the run would cost:")
     print("\n".join(est.lines()))

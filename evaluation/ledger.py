@@ -222,20 +222,34 @@ def path_length_m(points: Sequence[Sequence[float]]) -> float:
 
 def estimate_run(episodes: Sequence[Any], *, model: str, prices: PriceTable, max_steps: int,
                  anticipation: bool = True, spatial_map: bool = True, waypoints: int = 4, step_m: float = 2.0,
-                 completion_tokens_per_call: int = 60, detail: str = "auto", image_px: int = 256) -> Estimate:
+                 completion_tokens_per_call: int = 60, detail: str = "auto", image_px: int = 256,
+                 policy_config: dict[str, Any] | None = None) -> Estimate:
     """Tokens and dollars of a run from the prompt sizes.
 
     Assumptions (printed with the estimate): an episode takes ``ceil(reference path / step_m) + 1`` steps
     (the last is the stop; at most ``max_steps``); every step offers ``waypoints`` waypoints, a backtrack
     after the first step, and stop; every history step is kept (no forward run merged: an upper bound on
     history); one call per step (no re-asks, no retries); ``completion_tokens_per_call`` answer tokens (a
-    reasoning model's hidden reasoning tokens come on top)."""
+    reasoning model's hidden reasoning tokens come on top). ``policy_config`` (the openai policy's) sets the
+    layout, image limits and image-token rule of its provider profile, as the policy would send them (the
+    context budget's compression is not modelled: an upper bound)."""
     from services.planner.core.context import Ablation, StepContext, build_candidate_views
     from services.planner.core.history import ActionKind, ActionRecord, HistoryItem
     from services.planner.core.prompt import PromptBuilder
     from services.planner.core.tokens import prompt_tokens
 
-    builder = PromptBuilder()
+    from services.planner.core.prompt import PromptConfig
+    from services.planner.core.providers import profile
+
+    pc = policy_config or {}
+    prof = profile(pc.get("profile", "openai"), pc.get("profile_overrides") or {})
+    images = pc.get("max_images_per_prompt") or prof.max_images_per_prompt
+    builder = PromptBuilder(PromptConfig(layout=pc.get("layout", "auto"), max_images_per_prompt=images,
+                                         max_image_px=pc.get("max_image_px") or prof.max_image_px,
+                                         image_token_rule=prof.image_token_rule))
+    rule = prof.image_token_rule
+    if not prof.supports_detail:
+        detail = "auto"
     img = np.zeros((image_px, image_px, 3), np.uint8)  # only the size is counted
     ablation = Ablation(anticipation=anticipation, spatial_map=spatial_map)
     pose = Pose(position_m=(0.0, 0.0, 0.0))
@@ -262,7 +276,7 @@ def estimate_run(episodes: Sequence[Any], *, model: str, prices: PriceTable, max
                 ctx = StepContext(instruction=e.instruction, step=s, pose=pose, candidates=views, history=history,
                                   spatial_map_rgb=img if spatial_map else None, ablation=ablation,
                                   max_steps=max_steps)
-                per_step_cache[key] = prompt_tokens(builder.build(ctx), detail)
+                per_step_cache[key] = prompt_tokens(builder.build(ctx), detail, rule)
             n_in += per_step_cache[key]
             n_out += completion_tokens_per_call
             calls += 1
@@ -270,4 +284,5 @@ def estimate_run(episodes: Sequence[Any], *, model: str, prices: PriceTable, max
     cost = (price or prices.price(model)).cost_usd(n_in, n_out)
     return Estimate(model, len(episodes), calls, n_in, n_out, cost, price is not None, {
         "step_m": step_m, "waypoints": waypoints, "completion_tokens_per_call": completion_tokens_per_call,
-        "image_px": image_px, "detail": detail, "anticipation": anticipation, "spatial_map": spatial_map})
+        "image_px": image_px, "detail": detail, "anticipation": anticipation, "spatial_map": spatial_map,
+        "profile": pc.get("profile", "openai"), "layout": pc.get("layout", "auto"), "image_rule": rule})

@@ -28,6 +28,10 @@ class Decision(Message):
     completion_tokens: Count = 0
     cost_usd: Cost_usd = 0.0
     fallback: bool = False
+    # What a VLM server was sent and said beyond the action: the prompt's layout and what the context
+    # budget dropped ("history frames 16->4"), and a reasoning model's <think> text (kept, never parsed).
+    prompt_notes: str = Field("", max_length=2000)
+    thinking: str = Field("", max_length=20_000)
 
 
 class JobState(StrEnum):

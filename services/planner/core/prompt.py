@@ -23,6 +23,8 @@ from shared.schemas import CandidateKind
 from .context import CandidateView, StepContext
 from .errors import AnswerError
 from .history import HistoryItem, turn_phrase
+from .image_tokens import image_tokens_by
+from .layout import LAYOUTS, Layout, Tile, best_columns, cap_side, fit, mosaic, stack
 
 ANSWER_FORMAT = '{"action": <candidate number>, "reasoning": "<one or two sentences>"}'
 
@@ -84,8 +86,10 @@ class Prompt:
                 h.update(arr.tobytes())
         return h.hexdigest()
 
-    def to_openai_messages(self, image_format: str = "png", jpeg_quality: int = 90, detail: str = "auto") -> list[dict]:
-        """OpenAI chat-completions messages: a system message and one multimodal user message."""
+    def to_openai_messages(self, image_format: str = "png", jpeg_quality: int = 90,
+                           detail: str | None = "auto") -> list[dict]:
+        """OpenAI chat-completions messages: a system message and one multimodal user message
+        (``detail`` None: the field is left out, for servers that do not take it)."""
         content: list[dict] = []
         for p in self.parts:
             if isinstance(p, str):
@@ -95,7 +99,8 @@ class Prompt:
                     content.append({"type": "text", "text": p})
             else:
                 url = image_data_url(p.rgb, image_format, jpeg_quality)
-                content.append({"type": "image_url", "image_url": {"url": url, "detail": detail}})
+                image_url = {"url": url} if detail is None else {"url": url, "detail": detail}
+                content.append({"type": "image_url", "image_url": image_url})
         return [{"role": "system", "content": self.system}, {"role": "user", "content": content}]
 
     def save(self, folder: str | Path) -> Path:
@@ -160,107 +165,282 @@ def describe_candidate(view: CandidateView) -> str:
 
 @dataclass(frozen=True)
 class PromptConfig:
-    """How the prompt is assembled."""
+    """How the prompt is assembled.
+
+    ``layout``: ``separate`` (one image per view, the paper's form), ``mosaic`` (one numbered composite
+    per kind, see :mod:`.layout`) or ``auto`` (separate while its images fit ``max_images_per_prompt``,
+    else mosaic). A mosaic that still has more images than the limit becomes one stacked panel.
+    ``max_history_frames`` keeps the images of only the most recent history items; the older ones keep
+    their action text (cheap, and what the history is for). ``max_image_px`` caps every image's longer
+    side (servers resize or refuse larger ones).
+    """
 
     max_history_items: int = 16  # the most recent items of the compressed stream
     image_px: int = 256  # candidate views are resized to this (history is already 256)
+    layout: Layout = "separate"
+    max_images_per_prompt: int | None = None  # None: no limit
+    max_image_px: int | None = None  # None: no limit
+    max_history_frames: int | None = None  # None: every history item shows its image
+    # The server's image-token rule (tokens.IMAGE_TOKEN_RULES): a mosaic's columns are chosen to cost the
+    # fewest tokens by it.
+    image_token_rule: str = "openai_tiles"
+
+    def __post_init__(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {LAYOUTS}, got {self.layout!r}")
+        if not 16 <= self.image_px <= 2048:
+            raise ValueError(f"image_px must be in [16, 2048], got {self.image_px}")
+        if self.max_images_per_prompt is not None and not 1 <= self.max_images_per_prompt <= 10_000:
+            raise ValueError(f"max_images_per_prompt must be in [1, 10000], got {self.max_images_per_prompt}")
+        if self.max_image_px is not None and not 16 <= self.max_image_px <= 8192:
+            raise ValueError(f"max_image_px must be in [16, 8192], got {self.max_image_px}")
+        if self.max_history_frames is not None and not 0 <= self.max_history_frames <= 1000:
+            raise ValueError(f"max_history_frames must be in [0, 1000], got {self.max_history_frames}")
+        if not 0 <= self.max_history_items <= 1000:
+            raise ValueError(f"max_history_items must be in [0, 1000], got {self.max_history_items}")
+
+    def describe(self) -> str:
+        """One line for records and cache keys: every field that changes what is sent."""
+        return (f"layout={self.layout} image_px={self.image_px} max_image_px={self.max_image_px} "
+                f"max_images={self.max_images_per_prompt} history_items={self.max_history_items} "
+                f"history_frames={self.max_history_frames} image_rule={self.image_token_rule}")
 
 
 class PromptBuilder:
-    """Builds the step prompt from a :class:`StepContext` (honouring its ablation flags)."""
+    """Builds the step prompt from a :class:`StepContext` (honouring its ablation flags).
+
+    Sections (instruction, history, candidates, spatial map, answer request) are separate methods that
+    return parts, so that a new block (a scene graph, say) is one more method and one more line in
+    :meth:`build`. In the mosaic layout a section names its tiles in text and hands its views to the
+    composite that :meth:`build` places after the section.
+    """
 
     def __init__(self, config: PromptConfig | None = None):
         self.config = config or PromptConfig()
 
-    def _img(self, rgb: np.ndarray) -> np.ndarray:
-        px = self.config.image_px
-        if rgb.shape[:2] == (px, px):
-            return rgb
-        return cv2.resize(rgb, (px, px), interpolation=cv2.INTER_AREA)
+    def _img(self, rgb: np.ndarray, cfg: PromptConfig | None = None) -> np.ndarray:
+        cfg = cfg or self.config
+        px = cfg.image_px if cfg.max_image_px is None else min(cfg.image_px, cfg.max_image_px)
+        return fit(rgb, px)
 
-    def build(self, ctx: StepContext) -> Prompt:
+    def separate_image_count(self, ctx: StepContext, cfg: PromptConfig | None = None) -> int:
+        """How many images the ``separate`` layout would send for ``ctx``."""
+        cfg = cfg or self.config
+        items = ctx.history[-cfg.max_history_items :] if cfg.max_history_items else []
+        n = len(items) if cfg.max_history_frames is None else min(len(items), cfg.max_history_frames)
+        for view in ctx.candidates:
+            n += view.observed_rgb is not None
+            n += (view.kind != CandidateKind.STOP and ctx.ablation.anticipation and view.anticipated_rgb is not None)
+        return n + bool(ctx.ablation.spatial_map and ctx.spatial_map_rgb is not None)
+
+    def resolve_layout(self, ctx: StepContext, cfg: PromptConfig | None = None) -> str:
+        """``separate`` or ``mosaic`` for this step (``auto`` picks by the image budget)."""
+        cfg = cfg or self.config
+        if cfg.layout != "auto":
+            return cfg.layout
+        limit = cfg.max_images_per_prompt
+        return "separate" if limit is None or self.separate_image_count(ctx, cfg) <= limit else "mosaic"
+
+    def build(self, ctx: StepContext, config: PromptConfig | None = None) -> Prompt:
+        cfg = config or self.config
+        layout = self.resolve_layout(ctx, cfg)
+        tiles: dict[str, list[Tile]] | None = {"history": [], "candidates": []} if layout == "mosaic" else None
         parts: list[PromptPart] = [f"Instruction: {ctx.instruction.strip()}\n\n"]
-        parts += self._history(ctx.history)
+        parts += self._history(ctx.history, cfg, tiles)
+        if tiles is not None and tiles["history"]:
+            parts += ["History tiles (numbered by step): ",
+                      PromptImage("history_mosaic", self._mosaic(tiles["history"], cfg)),
+                      "\n"]
         parts.append(f"\nStep {ctx.step + 1} of at most {ctx.max_steps}. Candidate sub-paths:\n")
         for view in ctx.candidates:
-            parts += self._candidate(ctx, view)
-        if ctx.ablation.spatial_map and ctx.spatial_map_rgb is not None:
-            parts.append(
-                "\nSpatial map (top-down view of the reconstructed building; the line is your trajectory, "
-                "the arrow is you, numbers are the candidates): "
-            )
-            parts.append(PromptImage("spatial_map", np.asarray(ctx.spatial_map_rgb)))
-            parts.append("\n")
+            parts += self._candidate(ctx, view, cfg, tiles)
+        if tiles is not None and tiles["candidates"]:
+            parts += ["Candidate views (cell k shows candidate k: the observed view above, the anticipated "
+                      "view below; a black tile is a view not available): ",
+                      PromptImage("candidates_mosaic", self._mosaic(tiles["candidates"], cfg)),
+                      "\n"]
+        parts += self._spatial_map(ctx, cfg)
         indices = [c.index for c in ctx.candidates]
         parts.append(
             f"\nChoose one candidate number from {indices}. Answer with exactly one JSON object and "
             f"nothing else: {ANSWER_FORMAT}"
         )
+        if layout == "mosaic" and cfg.max_images_per_prompt is not None:
+            parts = _as_panel(parts, cfg.max_images_per_prompt, cfg.max_image_px)
         meta = {
             "mission_id": ctx.mission_id,
             "step": ctx.step,
             "anticipation": ctx.ablation.anticipation,
             "anticipation_hfov_deg": ctx.ablation.anticipation_hfov_deg,
             "spatial_map": ctx.ablation.spatial_map,
+            "layout": layout,
+            "prompt_config": cfg.describe(),
         }
         return Prompt(system=SYSTEM_PROMPT, parts=parts, candidate_indices=indices, meta=meta)
 
-    def _history(self, history: list[HistoryItem]) -> list[PromptPart]:
+    def _mosaic(self, tiles: list[Tile], cfg: PromptConfig) -> np.ndarray:
+        px = cfg.image_px
+        rows = max(len(t.images) for t in tiles)
+        cols = best_columns(len(tiles), px, px * rows,
+                            lambda w, h: image_tokens_by(cfg.image_token_rule, *_capped(w, h, cfg.max_image_px)))
+        return cap_side(mosaic(tiles, px, cols), cfg.max_image_px)
+
+    def _spatial_map(self, ctx: StepContext, cfg: PromptConfig) -> list[PromptPart]:
+        if not (ctx.ablation.spatial_map and ctx.spatial_map_rgb is not None):
+            return []
+        return [
+            "\nSpatial map (top-down view of the reconstructed building; the line is your trajectory, "
+            "the arrow is you, numbers are the candidates): ",
+            PromptImage("spatial_map", cap_side(np.asarray(ctx.spatial_map_rgb), cfg.max_image_px)),
+            "\n",
+        ]
+
+    def _history(self, history: list[HistoryItem], cfg: PromptConfig | None = None,
+                 tiles: dict[str, list[Tile]] | None = None) -> list[PromptPart]:
+        cfg = cfg or self.config
         if not history:
             return ["History: this is the first step; nothing has happened yet.\n"]
-        items = history[-self.config.max_history_items :]
+        items = history[-cfg.max_history_items :] if cfg.max_history_items else []
         parts: list[PromptPart] = ["History (observations joined by the actions taken, oldest first):\n"]
         if len(items) < len(history):
             parts.append(f"(... {len(history) - len(items)} earlier items omitted ...)\n")
-        for item in items:
+        framed = len(items) if cfg.max_history_frames is None else min(len(items), cfg.max_history_frames)
+        for k, item in enumerate(items):
             parts.append(f"[step {item.step + 1}] ")
-            parts.append(PromptImage(f"history_step{item.step + 1}", item.image))
+            if k < len(items) - framed:
+                parts.append("(image dropped)")
+            elif tiles is not None:
+                parts.append(f"(history tile {item.step + 1})")
+                tiles["history"].append(Tile(str(item.step + 1), (item.image,)))
+            else:
+                img = item.image if max(item.image.shape[:2]) <= cfg.image_px else fit(item.image, cfg.image_px)
+                parts.append(PromptImage(f"history_step{item.step + 1}", cap_side(img, cfg.max_image_px)))
             if item.action is not None:
                 parts.append(f" -> {item.action.describe()} ->\n")
             else:
                 parts.append("\n")
         return parts
 
-    def _candidate(self, ctx: StepContext, view: CandidateView) -> list[PromptPart]:
+    def _candidate(self, ctx: StepContext, view: CandidateView, cfg: PromptConfig | None = None,
+                   tiles: dict[str, list[Tile]] | None = None) -> list[PromptPart]:
+        cfg = cfg or self.config
         c = view.candidate
         parts: list[PromptPart] = [f"Candidate {c.index}: "]
+        anticipated = (view.anticipated_rgb if c.kind != CandidateKind.STOP and ctx.ablation.anticipation
+                       else None)
+        if tiles is not None:
+            if view.observed_rgb is not None or anticipated is not None:
+                tiles["candidates"].append(Tile(str(c.index), (view.observed_rgb, anticipated)))
+                parts.append(f"[views: cell {c.index} of the candidate views] ")
+            if c.kind == CandidateKind.STOP:
+                parts.append("[action: stop here - the instruction's destination is reached]\n")
+            else:
+                parts.append(f"[action: {describe_candidate(view)}]\n")
+            return parts
         if c.kind == CandidateKind.STOP:
             if view.observed_rgb is not None:
-                parts += ["[observed view] ", PromptImage(f"cand{c.index}_observed", self._img(view.observed_rgb)), " "]
+                parts += ["[observed view] ", PromptImage(f"cand{c.index}_observed", self._img(view.observed_rgb, cfg)),
+                          " "]
             parts.append("[action: stop here - the instruction's destination is reached]\n")
             return parts
         if view.observed_rgb is not None:
-            parts += ["[observed view] ", PromptImage(f"cand{c.index}_observed", self._img(view.observed_rgb)), " "]
+            parts += ["[observed view] ", PromptImage(f"cand{c.index}_observed", self._img(view.observed_rgb, cfg)), " "]
         parts.append(f"[action: {describe_candidate(view)}]")
-        if ctx.ablation.anticipation and view.anticipated_rgb is not None:
+        if anticipated is not None:
             parts.append(" -> if I took this action, I would partially imagine the next view: ")
-            parts.append(PromptImage(f"cand{c.index}_anticipated", self._img(view.anticipated_rgb)))
+            parts.append(PromptImage(f"cand{c.index}_anticipated", self._img(anticipated, cfg)))
         parts.append("\n")
         return parts
+
+
+def _capped(w: int, h: int, max_px: int | None) -> tuple[int, int]:
+    if max_px is None or max(w, h) <= max_px:
+        return w, h
+    s = max_px / max(w, h)
+    return max(1, round(w * s)), max(1, round(h * s))
+
+
+def _as_panel(parts: list[PromptPart], max_images: int, max_image_px: int | None) -> list[PromptPart]:
+    """Over the image limit even as a mosaic: every composite moves into one stacked panel at the end,
+    and each section names its place in it."""
+    images = [p for p in parts if isinstance(p, PromptImage)]
+    if len(images) <= max_images:
+        return parts
+    out: list[PromptPart] = []
+    k = 0
+    for p in parts:
+        if isinstance(p, PromptImage):
+            k += 1
+            out.append(f"(panel section {k} of {len(images)}, counted from the top)")
+        else:
+            out.append(p)
+    out.append(f"\nPanel ({len(images)} sections, top to bottom: "
+               f"{', '.join(i.tag.replace('_', ' ') for i in images)}): ")
+    out.append(PromptImage("panel", cap_side(stack([i.rgb for i in images]), max_image_px)))
+    return out
 
 
 # --- answers ------------------------------------------------------------------------------------------
 
 _JSON_OBJECT = re.compile(r"\{.*\}", re.DOTALL)
+_THINK = re.compile(r"<think>(.*?)</think>", re.DOTALL | re.IGNORECASE)
+
+
+def split_thinking(text: str | None) -> tuple[str, str]:
+    """(answer, thinking): a reasoning model's ``<think>...</think>`` blocks taken out of its answer.
+
+    Servers with a reasoning parser drop the opening tag (the chat template opens it), leaving
+    ``...</think>{json}``; an unterminated ``<think>`` (the reply cut at its token limit) is all thinking.
+    """
+    text = text or ""
+    thinking = [m.strip() for m in _THINK.findall(text)]
+    text = _THINK.sub("", text)
+    low = text.lower()
+    if "</think>" in low:
+        k = low.rindex("</think>")
+        thinking.append(text[:k].replace("<think>", "").strip())
+        text = text[k + len("</think>"):]
+    elif "<think>" in low:
+        k = low.index("<think>")
+        thinking.append(text[k + len("<think>"):].strip())
+        text = text[:k]
+    return text.strip(), "\n".join(t for t in thinking if t)
+
+
+def _answer_object(text: str) -> dict:
+    """The first JSON object with an "action" field, wherever it sits in prose (prose may hold braces
+    of its own, so each ``{`` is tried as a start)."""
+    decoder = json.JSONDecoder()
+    first_error: str | None = None
+    found_object = False
+    for m in re.finditer(r"\{", text):
+        try:
+            obj, _ = decoder.raw_decode(text, m.start())
+        except json.JSONDecodeError as exc:
+            first_error = first_error or exc.msg
+            continue
+        if isinstance(obj, dict):
+            found_object = True
+            if "action" in obj:
+                return obj
+    if found_object:
+        raise AnswerError('the JSON object has no "action" field')
+    if first_error is not None and _JSON_OBJECT.search(text):
+        raise AnswerError(f"the JSON object is malformed ({first_error})")
+    raise AnswerError("the answer contains no JSON object")
 
 
 def parse_answer(text: str | None, valid_indices: list[int]) -> tuple[int, str]:
-    """Parse ``{"action": k, "reasoning": "..."}`` (code fences and surrounding prose tolerated).
+    """Parse ``{"action": k, "reasoning": "..."}`` (code fences, surrounding prose and ``<think>``
+    blocks tolerated).
 
     Returns (candidate index, reasoning); raises :class:`AnswerError` saying what is wrong, which the
     corrective re-ask quotes back to the model.
     """
+    text, _ = split_thinking(text)
     if not text or not text.strip():
         raise AnswerError("the answer was empty")
-    m = _JSON_OBJECT.search(text)
-    if not m:
-        raise AnswerError("the answer contains no JSON object")
-    try:
-        obj = json.loads(m.group(0))
-    except json.JSONDecodeError as exc:
-        raise AnswerError(f"the JSON object is malformed ({exc.msg})") from None
-    if not isinstance(obj, dict) or "action" not in obj:
-        raise AnswerError('the JSON object has no "action" field')
+    obj = _answer_object(text)
     action = obj["action"]
     if isinstance(action, str):
         digits = re.search(r"-?\d+", action)

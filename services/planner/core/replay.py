@@ -11,6 +11,7 @@ import hashlib
 import json
 import logging
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,7 +23,11 @@ from shared.schemas import Decision
 from .context import StepContext
 from .errors import ReplayMissError
 from .policy import POLICIES, Policy
-from .prompt import PromptBuilder
+from .prompt import PromptBuilder, PromptConfig
+from .providers import profile
+
+# The inner backend's settings that change the prompt's images (see openai_policy.OpenAIConfig).
+_LAYOUT_KEYS = ("layout", "max_images_per_prompt", "max_image_px", "profile", "profile_overrides")
 
 log = logging.getLogger(__name__)
 
@@ -74,10 +79,29 @@ class ReplayPolicy(Policy):
     def __len__(self) -> int:
         return len(self._cache)
 
+    def prompt_config(self) -> PromptConfig:
+        """The prompt the wrapped backend would send: its layout and image limits (inner_config's, else
+        its provider profile's), so that a mosaic and a separate run never share decisions."""
+        inner = self.config.inner_config
+        if not any(k in inner for k in _LAYOUT_KEYS):
+            return self.builder.config
+        prof = profile(inner.get("profile", "openai"), inner.get("profile_overrides") or {})
+        images = inner.get("max_images_per_prompt") or prof.max_images_per_prompt
+        px = inner.get("max_image_px") or prof.max_image_px
+        return replace(self.builder.config, layout=inner.get("layout", "auto"), max_images_per_prompt=images,
+                       max_image_px=px, image_token_rule=prof.image_token_rule)
+
     def key(self, ctx: StepContext) -> str:
-        """Cache key: the wrapped backend, the namespace and the prompt's content hash."""
-        digest = self.builder.build(ctx).digest()
-        h = hashlib.sha256(f"{self.config.inner}\x00{self.config.namespace}\x00{digest}".encode())
+        """Cache key: the wrapped backend, the namespace, the prompt's layout settings and the prompt's
+        content hash (which covers the composed images)."""
+        cfg = self.prompt_config()
+        digest = self.builder.build(ctx, cfg).digest()
+        key = f"{self.config.inner}\x00{self.config.namespace}\x00{digest}"
+        if any(k in self.config.inner_config for k in _LAYOUT_KEYS):
+            # Only then: caches recorded before layouts existed keep their keys.
+            layout = json.dumps({k: self.config.inner_config.get(k) for k in _LAYOUT_KEYS}, sort_keys=True)
+            key = f"{key}\x00{layout}"
+        h = hashlib.sha256(key.encode())
         return h.hexdigest()
 
     def reset(self, mission_id: str) -> None:

@@ -7,6 +7,12 @@ the reply's priming 3 (the OpenAI cookbook's chat overhead). Images follow OpenA
 ``detail=low`` costs 85; otherwise the image is scaled to fit 2048 px, its short side to 768 px, and costs
 85 + 170 per 512 px tile. On English prompts the text count is within ~15 % of tiktoken's; what matters
 for estimates and the stand-in is that it is exact for images (most of a VLN prompt) and scales with text.
+
+Other servers count images differently, so the rule is named (:data:`IMAGE_TOKEN_RULES`) and a provider
+profile picks one: ``openai_tiles`` (above), ``qwen_patches`` (Qwen2-VL/2.5-VL behind vLLM, SGLang or
+Ollama: the image is resized to multiples of 28 px within [56^2, 12845056] pixels and every 28x28 block
+is one token, plus the vision start/end tokens) and ``gemini_tiles`` (258 tokens for an image of at most
+384 px on both sides, else 258 per 768 px tile).
 """
 
 from __future__ import annotations
@@ -18,7 +24,11 @@ import re
 import cv2
 import numpy as np
 
+from .image_tokens import IMAGE_TOKEN_RULES, gemini_tile_tokens, image_tokens, image_tokens_by, qwen_patch_tokens
 from .prompt import Prompt, PromptImage
+
+__all__ = ["IMAGE_TOKEN_RULES", "data_url_size", "gemini_tile_tokens", "image_tokens", "image_tokens_by",
+           "message_tokens", "prompt_tokens", "qwen_patch_tokens", "text_tokens"]
 
 MESSAGE_OVERHEAD_TOKENS = 3
 REPLY_PRIMING_TOKENS = 3
@@ -28,20 +38,6 @@ _PIECE = re.compile(r"[A-Za-z0-9]+|[^\sA-Za-z0-9]")
 def text_tokens(text: str) -> int:
     """Approximate BPE tokens of ``text`` (see the module docstring)."""
     return sum(math.ceil(len(p) / 4) if p[0].isalnum() else 1 for p in _PIECE.findall(text))
-
-
-def image_tokens(width_px: int, height_px: int, detail: str = "auto") -> int:
-    """OpenAI's image cost: 85 base tokens + 170 per 512 px tile after scaling (``low``: 85)."""
-    if detail == "low":
-        return 85
-    w, h = float(width_px), float(height_px)
-    if max(w, h) > 2048:
-        s = 2048 / max(w, h)
-        w, h = w * s, h * s
-    if min(w, h) > 768:
-        s = 768 / min(w, h)
-        w, h = w * s, h * s
-    return 85 + 170 * math.ceil(w / 512) * math.ceil(h / 512)
 
 
 def data_url_size(url: str) -> tuple[int, int]:
@@ -54,7 +50,7 @@ def data_url_size(url: str) -> tuple[int, int]:
     return img.shape[1], img.shape[0]
 
 
-def message_tokens(messages: list[dict]) -> int:
+def message_tokens(messages: list[dict], rule: str = "openai_tiles") -> int:
     """Prompt tokens of chat-completions ``messages`` (text parts and ``image_url`` parts)."""
     total = REPLY_PRIMING_TOKENS
     for m in messages:
@@ -68,18 +64,18 @@ def message_tokens(messages: list[dict]) -> int:
                 total += text_tokens(part.get("text", ""))
             elif part.get("type") == "image_url":
                 img = part.get("image_url") or {}
-                total += image_tokens(*data_url_size(img.get("url", "")), img.get("detail", "auto"))
+                total += image_tokens_by(rule, *data_url_size(img.get("url", "")), img.get("detail", "auto"))
     return total
 
 
-def prompt_tokens(prompt: Prompt, detail: str = "auto") -> int:
+def prompt_tokens(prompt: Prompt, detail: str = "auto", rule: str = "openai_tiles") -> int:
     """Prompt tokens of a :class:`Prompt` as sent (the same count as :func:`message_tokens` of its
     messages, without encoding any image)."""
     total = REPLY_PRIMING_TOKENS + 2 * MESSAGE_OVERHEAD_TOKENS + text_tokens(prompt.system)
     text = []
     for p in prompt.parts:
         if isinstance(p, PromptImage):
-            total += text_tokens("".join(text)) + image_tokens(p.rgb.shape[1], p.rgb.shape[0], detail)
+            total += text_tokens("".join(text)) + image_tokens_by(rule, p.rgb.shape[1], p.rgb.shape[0], detail)
             text = []
         else:
             text.append(p)

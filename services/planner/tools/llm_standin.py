@@ -18,6 +18,14 @@ planner's retries and fleet benchmarks are exercised end to end without an API k
   not labels). ``straight`` takes the candidate nearest straight ahead and stops after ``--stop-after``
   steps. There is no ``oracle``: a prompt carries no ground truth (goal, geodesic), by design; use the
   planner's ``oracle`` policy directly for an upper bound.
+- **Emulation** (``--emulate vllm|ollama|openai``): the server's limits and refusals, with its error
+  bodies, so the planner's profiles are tested against what real servers do (see :data:`EMULATIONS`):
+  vLLM refuses more images than ``--limit-mm-per-prompt`` (default 1: "At most 1 image(s) may be provided
+  in one request.", vllm#13513) and prompts over ``--max-model-len``, as ``{"object": "error", ...}``;
+  OpenAI refuses ``max_tokens`` and a non-default ``temperature`` on reasoning models, unknown fields and
+  over-long prompts (``context_length_exceeded``), as ``{"error": {...}}``; Ollama ignores fields it does
+  not know and silently cuts an over-long prompt to its ``num_ctx`` from the start (the model then never
+  sees the instruction: here, an answer without JSON). Images are counted by each server's rule.
 - **Failures**: 429 with ``Retry-After``, 500, and timeouts (the reply is held ``--timeout-sleep-s``,
   longer than the client waits), each drawn per request at its rate, or scripted in order
   (``--fault-script 429,500,timeout``) for tests.
@@ -72,6 +80,54 @@ class StandinConfig(BaseModel):
     fault_script: list[Fault] = Field(default_factory=list)  # the first requests' outcomes, in order
     seed: int = 0
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024)
+    emulate: Literal["none", "vllm", "ollama", "openai"] = "none"
+    emulate_max_images: int | None = Field(None, ge=1, le=10_000)  # None: the emulated server's default
+    emulate_context_tokens: int | None = Field(None, ge=256, le=10_000_000)  # None: its default
+
+
+@dataclass(frozen=True)
+class Emulation:
+    """What one server enforces (its documented defaults) and how it words a refusal."""
+
+    max_images: int | None
+    context_tokens: int
+    image_rule: str
+    error_style: Literal["vllm", "openai"]
+    params: frozenset[str] | None  # accepted body fields; None: unknown fields are ignored
+    rejected_params: dict[str, str] = field(default_factory=dict)  # field -> the server's message
+    truncates: bool = False  # over-long prompts are cut, not refused (Ollama)
+
+
+_CHAT_FIELDS = frozenset({
+    "model", "messages", "temperature", "top_p", "n", "stream", "stop", "presence_penalty", "frequency_penalty",
+    "logit_bias", "logprobs", "top_logprobs", "user", "seed", "response_format", "tools", "tool_choice",
+    "max_tokens", "max_completion_tokens", "reasoning_effort", "stream_options", "parallel_tool_calls",
+    "metadata", "store", "service_tier", "modalities", "prediction", "audio", "verbosity", "web_search_options",
+})
+
+EMULATIONS: dict[str, Emulation] = {
+    # vLLM serving Qwen2.5-VL: one image unless --limit-mm-per-prompt says more, --max-model-len 32768;
+    # unknown fields are logged and ignored.
+    "vllm": Emulation(max_images=1, context_tokens=32_768, image_rule="qwen_patches", error_style="vllm",
+                      params=None),
+    # Ollama's OpenAI compatibility: num_ctx 4096, unknown fields ignored, the prompt's start cut off.
+    "ollama": Emulation(max_images=None, context_tokens=4096, image_rule="qwen_patches", error_style="openai",
+                        params=None, truncates=True),
+    # OpenAI with a reasoning model (gpt-5.1): 500 images, a 400k window, max_tokens refused.
+    "openai": Emulation(max_images=500, context_tokens=400_000, image_rule="openai_tiles", error_style="openai",
+                        params=_CHAT_FIELDS, rejected_params={
+                            "max_tokens": "Unsupported parameter: 'max_tokens' is not supported with this model. "
+                                          "Use 'max_completion_tokens' instead.",
+                        }),
+}
+
+
+class EmulatedRefusal(Exception):
+    """A request the emulated server refuses: (status, message, param, code)."""
+
+    def __init__(self, status: int, message: str, param: str | None = None, code: str | None = None):
+        super().__init__(message)
+        self.status, self.message, self.param, self.code = status, message, param, code
 
 
 # --- the prompt, read back ----------------------------------------------------------------------------
@@ -79,7 +135,8 @@ class StandinConfig(BaseModel):
 _INSTRUCTION = re.compile(r"Instruction: (.*?)\n\n", re.S)
 _STEP = re.compile(r"Step (\d+) of at most (\d+)\. Candidate sub-paths:")
 _CANDIDATE = re.compile(r"Candidate (\d+): [^\n]*?\[action: ([^\]]*)\]")
-_HISTORY_ACTION = re.compile(r"\[step (\d+)\] <image> -> (.*?) ->")
+# A history item's image is inline (<image>), a mosaic tile or dropped by the budget ("(...)").
+_HISTORY_ACTION = re.compile(r"\[step (\d+)\] (?:<image>|\([^)\n]*\)) -> (.*?) ->")
 _NUM = r"(\d+(?:\.\d+)?)"
 _TURN = re.compile(rf"turn (left|right) (\d+) degrees and move (?:forward )?{_NUM} m")
 _AROUND = re.compile(rf"turn around and move (?:forward )?{_NUM} m")
@@ -255,6 +312,8 @@ class _Conversation:
 class StandinStats:
     requests: int = 0
     by_outcome: dict[str, int] = field(default_factory=dict)
+    refusals: list[str] = field(default_factory=list)  # the emulated servers' refusal messages, in order
+    images_per_request: list[int] = field(default_factory=list)
     prompt_tokens: int = 0
     completion_tokens: int = 0
 
@@ -325,6 +384,54 @@ class StandinServer:
             index, reasoning = conv.answers[p.step]
         return json.dumps({"action": index, "reasoning": reasoning})
 
+    @property
+    def emulation(self) -> Emulation | None:
+        return EMULATIONS.get(self.config.emulate)
+
+    def image_rule(self) -> str:
+        em = self.emulation
+        return em.image_rule if em is not None else "openai_tiles"
+
+    def check(self, body: dict, messages: list[dict], n_in: int) -> bool:
+        """Raise :class:`EmulatedRefusal` where the emulated server would refuse ``body``; True when it
+        would truncate the prompt instead (Ollama)."""
+        em, cfg = self.emulation, self.config
+        if em is None:
+            return False
+        for name, message in em.rejected_params.items():
+            if name in body:
+                raise EmulatedRefusal(400, message, name, "unsupported_parameter")
+        if em.params is not None:
+            unknown = sorted(set(body) - em.params)
+            if unknown:
+                raise EmulatedRefusal(400, f"Unrecognized request argument supplied: {unknown[0]}", unknown[0])
+        if cfg.emulate == "openai" and "temperature" in body and body["temperature"] != 1:
+            raise EmulatedRefusal(400, f"Unsupported value: 'temperature' does not support {body['temperature']} "
+                                       "with this model. Only the default (1) value is supported.",
+                                  "temperature", "unsupported_value")
+        images = sum(1 for m in messages if isinstance(m.get("content"), list)
+                     for p in m["content"] if isinstance(p, dict) and p.get("type") == "image_url")
+        limit = cfg.emulate_max_images if cfg.emulate_max_images is not None else em.max_images
+        if limit is not None and images > limit:
+            if em.error_style == "vllm":
+                raise EmulatedRefusal(400, f"At most {limit} image(s) may be provided in one request.")
+            raise EmulatedRefusal(400, f"Invalid 'messages': {images} images, the maximum is {limit}.",
+                                  "messages", "invalid_value")
+        window = cfg.emulate_context_tokens or em.context_tokens
+        completion = body.get("max_completion_tokens", body.get("max_tokens")) or 0
+        if n_in + (completion if isinstance(completion, int) else 0) > window:
+            if em.truncates:
+                return True
+            if em.error_style == "vllm":
+                raise EmulatedRefusal(400, f"This model's maximum context length is {window} tokens. However, you "
+                                           f"requested {n_in + completion} tokens ({n_in} in the messages, "
+                                           f"{completion} in the completion). Please reduce the length of the "
+                                           "messages or completion.")
+            raise EmulatedRefusal(400, f"This model's maximum context length is {window} tokens. However, your "
+                                       f"messages resulted in {n_in} tokens. Please reduce the length of the "
+                                       "messages.", "messages", "context_length_exceeded")
+        return False
+
     def count(self, n_in: int, n_out: int) -> None:
         with self._lock:
             self.stats.prompt_tokens += n_in
@@ -354,9 +461,20 @@ def _handler(server: StandinServer) -> type[BaseHTTPRequestHandler]:
         def _error(self, status: int, message: str, kind: str, headers=None) -> None:
             self._send(status, {"error": {"message": message, "type": kind, "code": status}}, headers)
 
+        def _refuse(self, exc: EmulatedRefusal) -> None:
+            if server.config.emulate == "vllm":
+                self._send(exc.status, {"object": "error", "message": exc.message, "type": "BadRequestError",
+                                        "param": exc.param, "code": exc.status})
+            else:
+                self._send(exc.status, {"error": {"message": exc.message, "type": "invalid_request_error",
+                                                  "param": exc.param, "code": exc.code}})
+
         def do_GET(self):  # noqa: N802 - http.server naming
             if self.path.rstrip("/") in ("/v1/models", "/models"):
-                self._send(200, {"object": "list", "data": [{"id": "standin", "object": "model"}]})
+                entry = {"id": "standin", "object": "model"}
+                if server.config.emulate == "vllm":  # vLLM reports its --max-model-len here
+                    entry["max_model_len"] = server.config.emulate_context_tokens or EMULATIONS["vllm"].context_tokens
+                self._send(200, {"object": "list", "data": [entry]})
             elif self.path == "/health":
                 self._send(200, {"ok": True, "requests": server.stats.requests})
             else:
@@ -379,10 +497,23 @@ def _handler(server: StandinServer) -> type[BaseHTTPRequestHandler]:
                 model = str(body.get("model", "standin"))
                 if not isinstance(messages, list) or not messages:
                     raise ValueError("messages must be a non-empty list")
-                n_in = message_tokens(messages)
+                n_in = message_tokens(messages, server.image_rule())
             except (ValueError, KeyError, TypeError) as exc:
                 self._error(400, f"bad request: {exc}", "invalid_request_error")
                 return
+            try:
+                truncated = server.check(body, messages, n_in)
+            except EmulatedRefusal as exc:
+                with server._lock:
+                    server.stats.requests += 1
+                    server.stats.by_outcome["refused"] = server.stats.by_outcome.get("refused", 0) + 1
+                    server.stats.refusals.append(exc.message)
+                self._refuse(exc)
+                return
+            with server._lock:
+                server.stats.images_per_request.append(sum(
+                    1 for m in messages if isinstance(m.get("content"), list)
+                    for p in m["content"] if isinstance(p, dict) and p.get("type") == "image_url"))
             fault, latency = server.draw()
             if fault == "timeout":
                 time.sleep(server.config.timeout_sleep_s)
@@ -395,6 +526,20 @@ def _handler(server: StandinServer) -> type[BaseHTTPRequestHandler]:
                 return
             if fault == "500":
                 self._error(500, "server error (injected)", "server_error")
+                return
+            if truncated:
+                # Ollama keeps the prompt's end: the instruction is gone, and the model says so in prose.
+                window = server.config.emulate_context_tokens or server.emulation.context_tokens
+                content = "I cannot see an instruction to follow, so I am not sure where to go."
+                n_out = text_tokens(content)
+                server.count(window, n_out)
+                self._send(200, {
+                    "id": f"chatcmpl-standin-{server.stats.requests}", "object": "chat.completion",
+                    "created": int(time.time()), "model": model,
+                    "choices": [{"index": 0, "finish_reason": "stop",
+                                 "message": {"role": "assistant", "content": content}}],
+                    "usage": {"prompt_tokens": window, "completion_tokens": n_out, "total_tokens": window + n_out},
+                })
                 return
             try:
                 content = server.answer(messages)
@@ -430,13 +575,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--timeout-sleep-s", type=float, default=120.0)
     ap.add_argument("--fault-script", default="", help="comma-separated outcomes of the first requests")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--emulate", choices=["none", *sorted(EMULATIONS)], default="none",
+                    help="enforce that server's image limit, context window, parameters and error bodies")
+    ap.add_argument("--max-images", type=int, default=None, help="the emulated image limit (vLLM's "
+                    "--limit-mm-per-prompt); default: the server's")
+    ap.add_argument("--context-tokens", type=int, default=None, help="the emulated window (vLLM's "
+                    "--max-model-len, Ollama's num_ctx); default: the server's")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     cfg = StandinConfig(
         latency_s=a.latency_s, latency_dist=a.latency_dist, latency_spread=a.latency_spread, policy=a.policy,
         stop_after=a.stop_after, error_rate_429=a.error_rate_429, error_rate_500=a.error_rate_500,
         timeout_rate=a.timeout_rate, retry_after_s=a.retry_after_s, timeout_sleep_s=a.timeout_sleep_s,
-        fault_script=[f for f in a.fault_script.split(",") if f], seed=a.seed)
+        fault_script=[f for f in a.fault_script.split(",") if f], seed=a.seed, emulate=a.emulate,
+        emulate_max_images=a.max_images, emulate_context_tokens=a.context_tokens)
     with StandinServer(cfg, a.host, a.port) as srv:
         log.info("llm stand-in (%s, %.2f s %s) listening on %s", cfg.policy, cfg.latency_s, cfg.latency_dist,
                  srv.url)
