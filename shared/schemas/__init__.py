@@ -144,3 +144,14 @@ from .service import (  # noqa: F401
     ErrorCode,
     ErrorReply,
 )
+from .scene_graph import (  # noqa: F401
+    SCENE_GRAPH_MAX_ROOMS,
+    SCENE_GRAPH_MAX_OBJECTS,
+    SceneOpening,
+    SceneRoom,
+    SceneObject,
+    SceneStairs,
+    FloorGrid,
+    SceneGraph,
+    SceneGraphRequest,
+)
