@@ -54,6 +54,7 @@ class SceneGraphConfig:
     min_floor_share: float = 0.02  # of the floor points, for a height to be a floor
     min_floor_gap_m: float = 1.5  # two floors are at least this far apart
     min_room_m2: float = 1.0  # smaller pieces of a room label are noise (or seen through a door)
+    door_erode_m: float = 0.5  # same-type rooms are split where their floor is narrower than twice this
     object_voxel_m: float = 0.15
     min_object_points: int = 30
     min_opening_cells: int = 2
@@ -184,7 +185,8 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
                 comp, n = ndimage.label(m, structure=np.ones((3, 3)))
                 sizes = ndimage.sum(m, comp, index=np.arange(1, n + 1))
                 for k in np.flatnonzero(sizes >= min_cells):
-                    pieces.append((room_type_of(names[int(fid)]), comp == k + 1, None))
+                    for part in _split_at_doors(comp == k + 1, cfg, min_cells):
+                        pieces.append((room_type_of(names[int(fid)]), part, None))
         elif nav_xyz is not None:
             on_floor = np.abs(nav_xyz[:, 2] - z0) < cfg.min_floor_gap_m / 2
             if on_floor.any():
@@ -240,6 +242,25 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
                       rooms=rooms, openings=openings, objects=objects, stairs=stairs,
                       navigation=navigation if navigation is not None else NavGraph(nodes=[], edges=[]),
                       free_space=grids, build_s=round(time.perf_counter() - t0, 4))
+
+
+def _split_at_doors(mask: np.ndarray, cfg: SceneGraphConfig, min_cells: int) -> list[np.ndarray]:
+    """Two rooms of one type joined by a door share one floor label: erode by ``door_erode_m`` (a door is
+    narrower than twice that, a room wider), and give every cell to the nearest core that survived."""
+    it = max(1, int(round(cfg.door_erode_m / cfg.cell_m)))
+    core = ndimage.binary_erosion(mask, iterations=it)
+    comp, n = ndimage.label(core, structure=np.ones((3, 3)))
+    if n < 2:
+        return [mask]
+    sizes = ndimage.sum(core, comp, index=np.arange(1, n + 1))
+    keep = np.flatnonzero(sizes >= max(1, min_cells // 4)) + 1
+    if len(keep) < 2:
+        return [mask]
+    seeds = np.where(np.isin(comp, keep), comp, 0)
+    _, (ni, nj) = ndimage.distance_transform_edt(seeds == 0, return_indices=True)
+    owner = seeds[ni, nj]
+    parts = [mask & (owner == k) for k in keep]
+    return [p for p in parts if p.sum() >= min_cells] or [mask]
 
 
 def _outline(pts: np.ndarray, cell_m: float) -> list[tuple[float, float]]:

@@ -30,7 +30,7 @@ from shared.jobs import JobRunner
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
     BuildCancelRequest, BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportProgress,
-    MapImportRequest, MapInfo, MapListReply, MapRequest, Ping,
+    MapImportRequest, MapInfo, SceneGraph, SceneGraphRequest, MapListReply, MapRequest, Ping,
 )
 
 log = logging.getLogger(__name__)
@@ -119,6 +119,7 @@ class ReconstructorService(Service[ReconstructorSettings]):
         node.serve(keys.MAP_LIST.format(), Ping, self.list_maps)
         node.serve(keys.MAP_INFO.pattern(), MapRequest, self.info)
         node.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self.chunk)
+        node.serve(keys.MAP_SCENE_GRAPH.pattern(), SceneGraphRequest, self.scene_graph)
         node.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self.import_map, workers=1)
         # One build at a time: reconstruction holds every frame of an exploration in memory.
         self._builds = JobRunner(node.bus, name="map build", workers=1,
@@ -140,6 +141,12 @@ class ReconstructorService(Service[ReconstructorSettings]):
     def info(self, req: MapRequest) -> MapInfo:
         try:
             return self.store.info(req.map_id, req.version)
+        except MapNotFoundError as exc:
+            raise NotFound(str(exc)) from None
+
+    def scene_graph(self, req: SceneGraphRequest) -> SceneGraph:
+        try:
+            return self.store.scene_graph(req.map_id, req.version)
         except MapNotFoundError as exc:
             raise NotFound(str(exc)) from None
 

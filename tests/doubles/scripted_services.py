@@ -23,7 +23,7 @@ from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
     CancelRequest, Candidate, CandidateKind, Decision, EpisodeMetricsData, ExplorationFinished, ExplorationProgress,
     ExplorationCancelRequest, ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled,
-    LoadSceneRequest, MapChunk, MapChunkRequest,
+    LoadSceneRequest, MapChunk, MapChunkRequest, SceneGraph, SceneGraphRequest,
     MapImportRequest, MapInfo, MapListReply, MapRequest, JobAccepted, JobEvent, JobEventKind,
     MissionFinished, MissionRequest, MissionStarted, JobState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
 )
@@ -367,6 +367,7 @@ class ScriptedReconstructor:
             bus.serve(keys.MAP_INFO.pattern(), MapRequest, self._info, workers=2),
             bus.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self._chunk, workers=2),
             bus.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self._import),
+            bus.serve(keys.MAP_SCENE_GRAPH.pattern(), SceneGraphRequest, self._scene_graph, workers=2),
         ]
 
     def add(self, map_id: str, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
@@ -399,6 +400,15 @@ class ScriptedReconstructor:
 
     def _info(self, req: MapRequest) -> MapInfo:
         return self._get(req.map_id)[0]
+
+    def _scene_graph(self, req: SceneGraphRequest) -> SceneGraph:
+        # The real builder on the stored points, as the reconstructor's store builds it.
+        from libs.scenegraph import build_scene_graph
+        from shared.cloud import PointCloud
+
+        info, xyz, rgb, labels = self._get(req.map_id)
+        cloud = PointCloud(xyz, rgb, labels, dict(info.label_names) if labels is not None else {})
+        return build_scene_graph(cloud, map_id=req.map_id, version=info.version)
 
     def _chunk(self, req: MapChunkRequest) -> MapChunk:
         info, xyz, rgb, labels = self._get(req.map_id)

@@ -5,6 +5,8 @@ Layout under ``root``::
     <map_id>/v000001/cloud.ply          points, colours, labels, label names and view directions
                                         (:mod:`shared.cloud`'s PLY)
     <map_id>/v000001/meta.json          MapInfo + details (source, regions, scale factors, timings)
+    <map_id>/v000001/scene_graph.json   the version's scene graph (libs.scenegraph, from the cloud's labels
+                                        and the exploration's navigation graph; issue 32)
     <map_id>/.lock                      serialises version allocation between processes
 
 A version is written into a hidden temporary directory beside the versions, every file is fsynced,
@@ -37,7 +39,8 @@ import numpy as np
 
 from shared.cloud import CloudFormatError, PointCloud, read_cloud, read_cloud_bytes
 from shared.keys import KeyExprError, validate_segment
-from shared.schemas import MapChunk, MapInfo
+from libs.scenegraph import build_scene_graph
+from shared.schemas import MapChunk, MapInfo, NavGraph, SceneGraph
 
 from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStoreError
 
@@ -46,6 +49,7 @@ log = logging.getLogger(__name__)
 _TMP_PREFIX = ".tmp-"
 _CLOUD = "cloud.ply"
 _META = "meta.json"
+_GRAPH = "scene_graph.json"
 _STALE_TMP_S = 3600.0
 
 
@@ -80,8 +84,12 @@ class MapStore:
         scale_factors: list[float] | None = None,
         timings_s: dict[str, float] | None = None,
         details: dict[str, Any] | None = None,
+        navigation: NavGraph | None = None,
     ) -> MapInfo:
-        """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`."""
+        """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`.
+
+        The version's scene graph is built here, from the cloud and the exploration's ``navigation`` graph
+        (when the map came from one), and written beside the cloud: every version has one."""
         map_dir = self._map_dir(map_id, create=True)
         if len(cloud) == 0:
             raise MapFormatError(f"map {map_id!r}: refusing to store an empty cloud")
@@ -91,6 +99,7 @@ class MapStore:
             ply = tmp / _CLOUD
             cloud.save(ply)
             digest = _sha256(ply)
+            graph = build_scene_graph(cloud, navigation, map_id=map_id)
             lo, hi = cloud.bounds()
             with self._version_lock(map_dir):
                 version = self._next_version(map_dir)
@@ -102,8 +111,10 @@ class MapStore:
                     regions=regions, scale_factors=list(scale_factors or []),
                     timings_s=dict(timings_s or {}), created_s=time.time(),
                 )
+                graph.version = version
+                (tmp / _GRAPH).write_text(graph.model_dump_json())
                 meta = {"info": info.model_dump(mode="json"), "details": _jsonable(details or {}),
-                        "files": {_CLOUD: digest}}
+                        "files": {_CLOUD: digest, _GRAPH: _sha256(tmp / _GRAPH)}}
                 (tmp / _META).write_text(json.dumps(meta, indent=1))
                 if self.fsync:
                     for f in tmp.iterdir():
@@ -198,6 +209,21 @@ class MapStore:
                 while len(self._cache) > self._cache_size:
                     self._cache.popitem(last=False)
         return stored
+
+    def scene_graph(self, map_id: str, version: int | None = None) -> SceneGraph:
+        """The version's scene graph; a version stored before graphs were (no file) gets one built from its
+        cloud now, without its exploration's navigation graph (which was not kept then)."""
+        v = self._resolve(map_id, version)
+        path = self._map_dir(map_id) / _version_name(v) / _GRAPH
+        if not path.is_file():
+            return build_scene_graph(self.load(map_id, v).cloud, None, map_id=map_id, version=v)
+        want = self._meta(map_id, v).get("files", {}).get(_GRAPH)
+        if want is not None and _sha256(path) != want:
+            raise MapFormatError(f"map {map_id} v{v}: scene graph file does not match its checksum")
+        try:
+            return SceneGraph.model_validate_json(path.read_text())
+        except ValueError as exc:
+            raise MapFormatError(f"map {map_id} v{v}: unreadable scene graph ({exc})") from exc
 
     def chunk(self, map_id: str, version: int | None = None, index: int = 0, max_points: int = 1_000_000) -> MapChunk:
         """Chunk ``index`` of ``ceil(N / max_points)``: what the bus serves per ``MapChunkRequest``."""
