@@ -50,6 +50,7 @@ from services.planner.core.local import LocalStack, episode_options
 from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
 from libs.pointrender import RENDERERS, IndexedCloud
+from libs.scenegraph import build_scene_graph
 from shared.schemas import MissionOptions
 
 log = logging.getLogger(__name__)
@@ -165,15 +166,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             backend, noise = MAP_KINDS[kind]
             map_robot, cloud = build_map(scene, backend, noise)
             map_robot.close()
-            clouds[kind] = (kind, cloud, ModePorts(cloud, modes))
+            # The map's scene graph, as the store builds it beside every version (issue 32); the cached
+            # maps keep no exploration graph, so it is the one built from the labelled points.
+            clouds[kind] = (kind, cloud, ModePorts(cloud, modes), build_scene_graph(cloud, map_id=kind))
         with closing(ROBOTS.create("sim", {"scene": scene})) as robot:
             predictor = PREDICTORS.create("geometric")
             for e in todo:
                 for v, cfg, kind, lg, d in zip(variants, configs, kinds, logs, done):
                     if str(e.episode_id) in d and d[str(e.episode_id)].status == "done":
                         continue
-                    kind, cloud, port = clouds[kind]
-                    stack = LocalStack(robot, predictor, port, cloud.label_names)
+                    kind, cloud, port, graph = clouds[kind]
+                    stack = LocalStack(robot, predictor, port, cloud.label_names, graph)
                     opts = mission_options(cfg, e)
                     ts = time.perf_counter()
                     out = stack.run(e.instruction, opts, mission_id=f"{v.slug}-{e.episode_id}")

@@ -84,6 +84,18 @@ def presets() -> dict[str, Preset]:
                "Paper (R2R-CE): HFOV 90 deg beats 60 and 120 deg.",
                tuple(Variant(f"hfov {h}", {"anticipation": True, "anticipation_hfov_deg": float(h)})
                      for h in (60, 90, 120))),
+        # Issue 32: the heuristic with the map's scene graph (grounded goal, geodesic route) against the
+        # local one-step heuristic, and anticipation with a route to verify.
+        Preset("scene-graph", "With vs without the scene graph (heuristic)",
+               "SpatialNav (R2R-CE): 64.0 SR / 51.1 SPL from the scene-graph prior alone; SpatialAnt 66.0 / 54.4.",
+               (Variant("without scene graph", {"policy_config": {"scene_graph": False}}),
+                Variant("with scene graph", {"policy_config": {"scene_graph": True}}))),
+        Preset("scene-graph-anticipation", "Scene graph: with vs without anticipation",
+               "Paper (R2R-CE): without anticipated views SR drops from 66 to 55.",
+               (Variant("scene graph, without anticipation", {"policy_config": {"scene_graph": True},
+                                                              "anticipation": False}),
+                Variant("scene graph, with anticipation", {"policy_config": {"scene_graph": True},
+                                                           "anticipation": True}))),
         Preset("policies", "Policy backends side by side",
                "Paper (R2R-CE val-unseen, GPT-5.1): NE 4.42, OSR 76.0, SR 66.0, SPL 54.4, nDTW 69.5.",
                _policy_variants()),

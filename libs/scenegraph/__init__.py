@@ -3,3 +3,4 @@ navigation graph (:mod:`.builder`), and routes over its walkable space (:mod:`.r
 ``shared``, so the reconstructor (which stores it), the planner (which reads it) and bench all use it."""
 
 from .builder import SceneGraphConfig, build_scene_graph, colour_name, room_type_of  # noqa: F401
+from .route import Router  # noqa: F401

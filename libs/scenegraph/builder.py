@@ -170,8 +170,6 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
             s[flat[on_stairs]] = True
             stairs_cells = ndimage.binary_closing(s.reshape(shape), iterations=1) | s.reshape(shape)
         cells = np.where(stairs_cells, 2, np.where(free, 1, 0)).astype(np.uint8)
-        grids.append(FloorGrid(floor=fi, z_m=float(z0), origin_m=(float(lo[0]), float(lo[1])), cell_m=cfg.cell_m,
-                               cells=cells))
 
         # Rooms of this floor.
         raster = np.full(shape, -1, np.int64)
@@ -228,6 +226,8 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
             raster[fill] = raster[ni[fill], nj[fill]]
             openings += _openings(raster, walk, rooms, lo, cfg, z0)
         room_rasters.append(raster)
+        grids.append(FloorGrid(floor=fi, z_m=float(z0), origin_m=(float(lo[0]), float(lo[1])), cell_m=cfg.cell_m,
+                               cells=cells, rooms=raster.astype(np.int16)))
 
     for o in openings:
         for a, b in ((o.a, o.b), (o.b, o.a)):

@@ -94,6 +94,8 @@ class FloorGrid(Message):
     origin_m: Xy_m
     cell_m: float = Field(gt=0.01, le=10.0)
     cells: Array("uint8", 2)
+    # Which room each cell belongs to: an index into SceneGraph.rooms, -1 for none (same shape as cells).
+    rooms: Array("int16", 2) | None = None
 
     @model_validator(mode="after")
     def _sized(self):
@@ -101,6 +103,9 @@ class FloorGrid(Message):
             raise ValueError(f"cells: {self.cells.size} cells, at most {SCENE_GRAPH_MAX_GRID_CELLS}")
         if self.cells.size and int(self.cells.max()) > 2:
             raise ValueError("cells: values are 0 (blocked), 1 (free) or 2 (stairs)")
+        if self.rooms is not None and (self.rooms.shape != self.cells.shape or
+                                       (self.rooms.size and int(self.rooms.min()) < -1)):
+            raise ValueError("rooms: one room index (or -1) per cell, the shape of cells")
         return self
 
 

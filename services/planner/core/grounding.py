@@ -1,0 +1,139 @@
+"""Ground an instruction on the map's scene graph (issue 32): which object instance it ends at, and why.
+
+The instruction's sub-goals (:mod:`.instruction`) name rooms in order, landmarks on the way and a final
+object, often with its colour and room ("Stop next to the blue bed in the bedroom"). Every object of the
+final class is a reading; each is scored by how much of the instruction it explains: its colour, its
+room's type, and whether the shortest route to it from the start passes through the named rooms in the
+named order (a subsequence match) and by the named landmarks. The best reading is the goal; the route
+is the geodesic field towards it (:class:`libs.scenegraph.Router`).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from libs.scenegraph import Router
+from libs.scenegraph.builder import PALETTE
+from shared.schemas import SceneGraph, SceneObject, SceneRoom
+
+from .instruction import ParsedInstruction, label_matches
+
+
+@dataclass
+class Grounding:
+    """The chosen reading: the goal object, where to stand, the rooms the route passes and the field."""
+
+    goal: SceneObject
+    goal_m: np.ndarray
+    field: np.ndarray
+    rooms: list[str]  # room ids along the route, in order
+    explained: str
+    alternatives: int
+    route_m: list[np.ndarray] = field(default_factory=list)
+
+
+class GroundingError(Exception):
+    """The instruction could not be tied to the graph (no such object, no route): the policy falls back."""
+
+
+def _colour_before(text: str, word_phrases: tuple[str, ...]) -> str | None:
+    low = text.lower()
+    for p in word_phrases:
+        m = re.search(rf"\b({'|'.join(PALETTE)})\s+(?:\w+\s+)?{re.escape(p)}\b", low)
+        if m:
+            return m.group(1)
+    return None
+
+
+def _room_of_point(graph: SceneGraph, router: Router, p: np.ndarray) -> SceneRoom | None:
+    """The room of the floor cell under ``p`` (the graph's room raster)."""
+    f = router.floor_of(p)
+    if f < 0:
+        return None
+    g = graph.free_space[f]
+    if g.rooms is None:
+        return None
+    i = int((float(p[0]) - g.origin_m[0]) // g.cell_m)
+    j = int((float(p[1]) - g.origin_m[1]) // g.cell_m)
+    if not (0 <= i < g.rooms.shape[0] and 0 <= j < g.rooms.shape[1]) or g.rooms[i, j] < 0:
+        return None
+    return graph.rooms[int(g.rooms[i, j])]
+
+
+def _subsequence_hits(wanted: list[str], seen: list[str]) -> int:
+    """How many of ``wanted`` appear in ``seen`` in order (greedy)."""
+    k = 0
+    for s in seen:
+        if k < len(wanted) and label_matches(s, wanted[k]):
+            k += 1
+    return k
+
+
+def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m: np.ndarray) -> Grounding:
+    final = parsed.final_landmarks
+    if not final:
+        raise GroundingError("the instruction names no final landmark")
+    if not graph.objects:
+        raise GroundingError("the map's scene graph has no objects (a map without labels)")
+    target = final[-1]
+    candidates = [o for o in graph.objects if label_matches(o.label, target)]
+    if not candidates:
+        raise GroundingError(f"no {target!r} in the map's scene graph")
+    stop_sg = next((sg for sg in parsed.subgoals if sg.stop and target in sg.landmarks), parsed.subgoals[-1])
+    from .instruction import LANDMARKS
+
+    colour = _colour_before(stop_sg.text, LANDMARKS.get(target, (target,)))
+    final_room = stop_sg.rooms[-1] if stop_sg.rooms else None
+    # The rooms the route should pass in order (rooms being left are where it starts).
+    wanted_rooms = [r for sg in parsed.subgoals for r in sg.rooms]
+    passed_marks = [m for sg in parsed.subgoals if not sg.stop for m in sg.landmarks]
+    rooms_by_id = {r.room_id: r for r in graph.rooms}
+    scored = []
+    for o in candidates:
+        if o.points < 20:
+            continue
+        fld = router.field(o.position_m)
+        if fld is None:
+            continue
+        d = router.distance(fld, start_m)
+        if not math.isfinite(d):
+            continue
+        score, why = 0.0, []
+        if colour is not None:
+            ok = o.colour == colour
+            score += 1.0 if ok else 0.0
+            why.append(f"{o.colour}{'' if ok else ' (not ' + colour + ')'}")
+        room = rooms_by_id.get(o.room_id) if o.room_id else None
+        if final_room is not None and room is not None:
+            ok = label_matches(room.room_type, final_room)
+            score += 3.0 if ok else -2.0
+            why.append(f"in {room.room_id}" + ("" if ok else f" (not a {final_room})"))
+        path = router.path(fld, start_m)
+        seen_rooms: list[str] = []
+        for p in path:
+            r = _room_of_point(graph, router, p)
+            if r is not None and (not seen_rooms or seen_rooms[-1] != r.room_id):
+                seen_rooms.append(r.room_id)
+        types = [rooms_by_id[r].room_type for r in seen_rooms]
+        hits = _subsequence_hits(wanted_rooms, types)
+        score += 1.0 * hits - 0.5 * (len(wanted_rooms) - hits)
+        if passed_marks and path:
+            pts = np.array(path)
+            for m in passed_marks:
+                near = [x for x in graph.objects if label_matches(x.label, m)
+                        and np.min(np.linalg.norm(pts[:, :2] - np.array(x.position_m[:2]), axis=1)) < 2.0]
+                score += 0.7 if near else -0.3
+        score -= 0.01 * d  # between equal readings, the nearer
+        why.append(f"route passes {hits}/{len(wanted_rooms)} named rooms in order, {d:.1f} m")
+        scored.append((score, o, fld, seen_rooms, path, ", ".join(why)))
+    if not scored:
+        raise GroundingError(f"no {target!r} of the map is reachable on its walkable space")
+    scored.sort(key=lambda s: -s[0])
+    best = scored[0]
+    goal_node_m = np.asarray(best[4][-1]) if best[4] else np.asarray(best[1].position_m)
+    return Grounding(goal=best[1], goal_m=goal_node_m, field=best[2], rooms=best[3],
+                     explained=f"{best[1].object_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4])
