@@ -58,6 +58,8 @@ class SceneGraphConfig:
     object_voxel_m: float = 0.15
     min_object_points: int = 30
     min_opening_cells: int = 2
+    approach_gap_m: float = 0.6  # an object's approach point is this far out from its seen side
+    min_walk_island_m2: float = 1.0  # smaller pieces of walkable floor are dropped
 
 
 def _words(name: str) -> list[str]:
@@ -170,6 +172,12 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
             s[flat[on_stairs]] = True
             stairs_cells = ndimage.binary_closing(s.reshape(shape), iterations=1) | s.reshape(shape)
         cells = np.where(stairs_cells, 2, np.where(free, 1, 0)).astype(np.uint8)
+        # Islands of floor (seen on top of furniture, between its legs) are no place to walk to: a goal
+        # snapped onto one would be unreachable.
+        comp, n = ndimage.label(cells > 0, structure=np.ones((3, 3)))
+        if n > 1:
+            sizes = ndimage.sum(cells > 0, comp, index=np.arange(1, n + 1))
+            cells[np.isin(comp, np.flatnonzero(sizes < cfg.min_walk_island_m2 / cfg.cell_m**2) + 1)] = 0
 
         # Rooms of this floor.
         raster = np.full(shape, -1, np.int64)
@@ -235,8 +243,8 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
             if b not in r.neighbours:
                 r.neighbours.append(b)
 
-    objects = _objects(xyz, cloud.rgb, labels, names, object_ids, floors, room_rasters, rooms, lo, shape, cfg) \
-        if labels is not None else []
+    objects = _objects(xyz, cloud.rgb, labels, names, object_ids, floors, room_rasters, rooms, lo, shape, cfg,
+                       cloud.view_dirs) if labels is not None else []
     stairs = _stairs(xyz, stair_pt, floors, navigation)
     return SceneGraph(map_id=map_id, version=version, labelled=labelled, floors_z_m=[float(f) for f in floors],
                       rooms=rooms, openings=openings, objects=objects, stairs=stairs,
@@ -303,7 +311,8 @@ def _openings(raster, walk, rooms, lo, cfg: SceneGraphConfig, z0: float) -> list
     return out
 
 
-def _objects(xyz, rgb, labels, names, object_ids, floors, room_rasters, rooms, lo, shape, cfg) -> list[SceneObject]:
+def _objects(xyz, rgb, labels, names, object_ids, floors, room_rasters, rooms, lo, shape, cfg,
+             view_dirs=None) -> list[SceneObject]:
     out: list[SceneObject] = []
     counters: dict[str, int] = {}
     floor_arr = np.asarray(floors)
@@ -348,9 +357,17 @@ def _objects(xyz, rgb, labels, names, object_ids, floors, room_rasters, rooms, l
             key = label.replace(" ", "-")
             counters[key] = counters.get(key, 0) + 1
             col = np.median(rgb[sel[m]], axis=0)
+            approach = None
+            if view_dirs is not None:
+                v = np.asarray(view_dirs[sel[m]], np.float64).mean(axis=0)[:2] / 127.0
+                if np.linalg.norm(v) > 0.15:
+                    v /= np.linalg.norm(v)
+                    reach = float(np.abs(v) @ ((b - a)[:2] / 2)) + cfg.approach_gap_m
+                    approach = (float(centre[0] + v[0] * reach), float(centre[1] + v[1] * reach), float(floors[fi]))
             out.append(SceneObject(object_id=f"{key}-{counters[key]}", label=label, colour=colour_name(col),
                                    colour_rgb=tuple(int(v) for v in col), position_m=tuple(float(v) for v in centre),
-                                   size_m=tuple(float(v) for v in (b - a)), room_id=room_id, points=int(m.sum())))
+                                   size_m=tuple(float(v) for v in (b - a)), room_id=room_id, points=int(m.sum()),
+                                   approach_m=approach))
     return out
 
 

@@ -72,8 +72,8 @@ class Router:
         below = np.flatnonzero(self.floors_z <= float(xyz[2]) + 0.8)
         return int(below[-1]) if len(below) else 0
 
-    def node_of(self, xyz) -> int | None:
-        """The walkable cell of a point (snapped within 1 m), or None."""
+    def node_of(self, xyz, snap_m: float = _SNAP_M) -> int | None:
+        """The walkable cell of a point (snapped within ``snap_m``), or None."""
         f = self.floor_of(xyz)
         if f < 0:
             return None
@@ -83,15 +83,15 @@ class Router:
         if not (0 <= i < g.cells.shape[0] and 0 <= j < g.cells.shape[1]):
             return None
         dist, ni, nj = self._snap[f]
-        if dist[i, j] > _SNAP_M:
+        if dist[i, j] > snap_m:
             return None
         node = self._index[f][ni[i, j], nj[i, j]]
         return int(node) if node >= 0 else None
 
-    def field(self, goal_xyz) -> np.ndarray | None:
+    def field(self, goal_xyz, snap_m: float = 2.0) -> np.ndarray | None:
         """Distance of every walkable cell to ``goal_xyz`` (inf where unreachable); None when the goal is
-        off the walkable space."""
-        node = self.node_of(goal_xyz)
+        off the walkable space (further than ``snap_m``: an object's centre lies inside its footprint)."""
+        node = self.node_of(goal_xyz, snap_m)
         if node is None:
             return None
         if node not in self._fields:

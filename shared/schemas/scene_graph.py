@@ -72,6 +72,9 @@ class SceneObject(Message):
     size_m: Size_m
     room_id: str | None = None
     points: Count = 0
+    # Where to stand to see it: in front of the side its points were seen from (the cloud's view
+    # directions); None when the map does not record them. A goal "next to" it is here, not behind a wall.
+    approach_m: Xyz_m | None = None
 
 
 class SceneStairs(Message):

@@ -20,7 +20,7 @@ from libs.scenegraph import Router
 from libs.scenegraph.builder import PALETTE
 from shared.schemas import SceneGraph, SceneObject, SceneRoom
 
-from .instruction import ParsedInstruction, label_matches
+from .instruction import LANDMARKS, ParsedInstruction, label_matches
 
 
 @dataclass
@@ -34,6 +34,7 @@ class Grounding:
     explained: str
     alternatives: int
     route_m: list[np.ndarray] = field(default_factory=list)
+    readings: list[tuple[float, str, str]] = field(default_factory=list)  # (score, object id, why), best first
 
 
 class GroundingError(Exception):
@@ -73,7 +74,61 @@ def _subsequence_hits(wanted: list[str], seen: list[str]) -> int:
     return k
 
 
-def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m: np.ndarray) -> Grounding:
+def _turns_at_rooms(parsed: ParsedInstruction) -> list[tuple[int, float]]:
+    """(index of the room entered, 0 for the start; expected turn in rad) for each clause with a turn."""
+    # A turn clause ("turn left") is split from the room clause it leads into ("go through the office").
+    out, k, pending = [], 0, None
+    for sg in parsed.subgoals:
+        turn = sg.turn if sg.turn is not None else pending
+        if sg.rooms and not sg.stop:
+            if sg.leave:
+                if turn is not None:
+                    out.append((0, turn.angle_rad))
+            else:
+                k += 1
+                if turn is not None:
+                    out.append((k, turn.angle_rad))
+            pending = None
+        elif sg.turn is not None:
+            pending = sg.turn
+    return out
+
+
+def _turn_agreement(turns, path, seen_rooms, graph, router, start_heading_rad) -> int:
+    """+1 per turn of the instruction that the route makes where it says, -1 per one it does not."""
+    if not turns or len(path) < 3:
+        return 0
+    pts = np.asarray(path)
+    rooms_at = []
+    for p in pts:
+        r = _room_of_point(graph, router, p)
+        rooms_at.append(None if r is None else r.room_id)
+    entry = [0]
+    for i in range(1, len(rooms_at)):
+        if rooms_at[i] is not None and rooms_at[i] != rooms_at[i - 1] and rooms_at[i] not in [
+                rooms_at[j] for j in entry]:
+            entry.append(i)
+    score = 0
+    for k, want in turns:
+        if k >= len(entry):
+            continue
+        i = entry[k]
+        if i == 0:
+            d = pts[min(2, len(pts) - 1)] - pts[0]
+            before = start_heading_rad
+        else:
+            b = pts[i] - pts[max(0, i - 1)]
+            d = pts[min(i + 2, len(pts) - 1)] - pts[i]
+            before = math.atan2(b[1], b[0])
+        if np.hypot(d[0], d[1]) < 1e-6:
+            continue
+        got = math.remainder(math.atan2(d[1], d[0]) - before, 2 * math.pi)
+        score += 1 if abs(math.remainder(got - want, 2 * math.pi)) < math.radians(50) else -1
+    return score
+
+
+def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m: np.ndarray,
+           start_heading_rad: float = 0.0) -> Grounding:
     final = parsed.final_landmarks
     if not final:
         raise GroundingError("the instruction names no final landmark")
@@ -84,25 +139,31 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
     if not candidates:
         raise GroundingError(f"no {target!r} in the map's scene graph")
     stop_sg = next((sg for sg in parsed.subgoals if sg.stop and target in sg.landmarks), parsed.subgoals[-1])
-    from .instruction import LANDMARKS
 
     colour = _colour_before(stop_sg.text, LANDMARKS.get(target, (target,)))
     final_room = stop_sg.rooms[-1] if stop_sg.rooms else None
-    # The rooms the route should pass in order (rooms being left are where it starts).
-    wanted_rooms = [r for sg in parsed.subgoals for r in sg.rooms]
+    # The rooms the route should pass in order (rooms being left are where it starts); the stop clause's
+    # room is the one entered last ("enter the office ... stop next to the desk in the office").
+    wanted_rooms = [r for sg in parsed.subgoals if sg is not stop_sg or not any(
+        s2.rooms for s2 in parsed.subgoals if s2 is not stop_sg) for r in sg.rooms]
+    literal = next((p for p in sorted(LANDMARKS.get(target, (target,)), key=len, reverse=True)
+                    if re.search(rf"\b{re.escape(p)}\b", stop_sg.text.lower())), target)
+    turns = _turns_at_rooms(parsed)
     passed_marks = [m for sg in parsed.subgoals if not sg.stop for m in sg.landmarks]
     rooms_by_id = {r.room_id: r for r in graph.rooms}
     scored = []
     for o in candidates:
         if o.points < 20:
             continue
-        fld = router.field(o.position_m)
+        fld = router.field(o.approach_m if o.approach_m is not None else o.position_m)
         if fld is None:
             continue
         d = router.distance(fld, start_m)
         if not math.isfinite(d):
             continue
         score, why = 0.0, []
+        if re.search(rf"\b{re.escape(literal)}\b", o.label.lower()):
+            score += 1.0  # "cabinet" names a cabinet before a wardrobe (one canonical class)
         if colour is not None:
             ok = o.colour == colour
             score += 1.0 if ok else 0.0
@@ -121,6 +182,10 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
         types = [rooms_by_id[r].room_type for r in seen_rooms]
         hits = _subsequence_hits(wanted_rooms, types)
         score += 1.0 * hits - 0.5 * (len(wanted_rooms) - hits)
+        agree = _turn_agreement(turns, path, seen_rooms, graph, router, start_heading_rad)
+        score += 0.7 * agree
+        if turns:
+            why.append(f"turns {agree:+d}")
         if passed_marks and path:
             pts = np.array(path)
             for m in passed_marks:
@@ -136,4 +201,5 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
     best = scored[0]
     goal_node_m = np.asarray(best[4][-1]) if best[4] else np.asarray(best[1].position_m)
     return Grounding(goal=best[1], goal_m=goal_node_m, field=best[2], rooms=best[3],
-                     explained=f"{best[1].object_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4])
+                     explained=f"{best[1].object_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4],
+                     readings=[(round(x[0], 2), x[1].object_id, x[5]) for x in scored])

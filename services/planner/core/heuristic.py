@@ -69,7 +69,7 @@ class HeuristicConfig(BackendConfig):
     # instance when the map's shaded colours and room splits disagree with the instruction).
     scene_graph: bool = False
     graph_stop_m: float = 0.5  # stop when the route to the grounded goal is this short
-    graph_object_stop_m: float = 0.9  # ... or the goal object this near (straight line, same floor)
+    graph_object_stop_m: float = 0.6  # ... or its approach point this near (straight line, same floor)
     graph_revisit_penalty: float = 0.5  # per earlier visit of a candidate's target (m of progress)
     graph_prune_penalty: float = 1.0  # an anticipated view whose floor is a room off the route
 
@@ -340,7 +340,7 @@ class HeuristicPolicy(Policy):
         if st.grounding is None and not st.ground_note:
             try:
                 st.router = Router(graph)
-                st.grounding = ground(st.parsed, graph, st.router, ctx.pose.xyz)
+                st.grounding = ground(st.parsed, graph, st.router, ctx.pose.xyz, ctx.pose.heading_rad)
                 log.info("mission %s grounded: %s", ctx.mission_id, st.grounding.explained)
             except GroundingError as exc:
                 st.ground_note = f"scene graph not used: {exc}; local heuristic"
@@ -350,7 +350,7 @@ class HeuristicPolicy(Policy):
             return None
         here = ctx.pose.xyz
         d_here = router.distance(g.field, here)
-        obj_m = math.dist(here[:2], g.goal.position_m[:2])
+        obj_m = math.dist(here[:2], (g.goal.approach_m or g.goal.position_m)[:2])
         same_floor = router.floor_of(here) == router.floor_of(g.goal.position_m)
         where = f"route to {g.goal.object_id}"
         stop = ctx.stop_candidate
