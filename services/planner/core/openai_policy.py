@@ -25,7 +25,7 @@ from shared.schemas import Decision, UsageData
 from .context import StepContext
 from .errors import AnswerError, PolicyBackendError
 from .policy import POLICIES, Policy
-from .prompt import PromptBuilder, corrective_message, parse_answer
+from .prompt import PromptBuilder, PromptConfig, corrective_message, parse_answer
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,9 @@ class OpenAIConfig(BackendConfig):
     fallback: Literal["heuristic", "stop"] = "heuristic"
     on_error: Literal["fallback", "raise"] = "fallback"  # after retries are exhausted
     save_prompts_dir: str | None = None  # save every step's prompt, answer and re-ask here
+    # The map's scene graph as text in the prompt (issue 32's ablation switch, as the heuristic's).
+    scene_graph: bool = True
+    scene_graph_max_chars: int = Field(4000, ge=200, le=100_000)
 
     @field_validator("base_url")
     @classmethod
@@ -109,7 +112,8 @@ class OpenAIPolicy(Policy):
     def __init__(self, config: OpenAIConfig, builder: PromptBuilder | None = None):
         super().__init__()
         self.config = config
-        self.builder = builder or PromptBuilder()
+        self.builder = builder or PromptBuilder(PromptConfig(scene_graph=config.scene_graph,
+                                                             scene_graph_max_chars=config.scene_graph_max_chars))
         key = config.api_key or os.environ.get(config.api_key_env)
         if not key:
             if config.base_url is None:

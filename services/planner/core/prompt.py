@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from libs.scenegraph.text import scene_graph_text
 from shared.schemas import CandidateKind
 
 from .context import CandidateView, StepContext
@@ -164,6 +165,8 @@ class PromptConfig:
 
     max_history_items: int = 16  # the most recent items of the compressed stream
     image_px: int = 256  # candidate views are resized to this (history is already 256)
+    scene_graph: bool = True  # the map's scene graph as text (issue 32), when the mission has one
+    scene_graph_max_chars: int = 4000  # ~1,000 tokens: a big house is cut to the rooms nearest the agent
 
 
 class PromptBuilder:
@@ -180,6 +183,7 @@ class PromptBuilder:
 
     def build(self, ctx: StepContext) -> Prompt:
         parts: list[PromptPart] = [f"Instruction: {ctx.instruction.strip()}\n\n"]
+        parts += self._scene_graph(ctx)
         parts += self._history(ctx.history)
         parts.append(f"\nStep {ctx.step + 1} of at most {ctx.max_steps}. Candidate sub-paths:\n")
         for view in ctx.candidates:
@@ -202,8 +206,17 @@ class PromptBuilder:
             "anticipation": ctx.ablation.anticipation,
             "anticipation_hfov_deg": ctx.ablation.anticipation_hfov_deg,
             "spatial_map": ctx.ablation.spatial_map,
+            "scene_graph": bool(self._scene_graph(ctx)),
         }
         return Prompt(system=SYSTEM_PROMPT, parts=parts, candidate_indices=indices, meta=meta)
+
+    def _scene_graph(self, ctx: StepContext) -> list[PromptPart]:
+        """The scene graph block (issue 32): the whole map's rooms, objects and openings, and where the
+        agent is; nothing when switched off or when the mission has no graph."""
+        if not self.config.scene_graph or ctx.scene_graph is None or not ctx.scene_graph.rooms:
+            return []
+        text = scene_graph_text(ctx.scene_graph, ctx.pose.position_m, self.config.scene_graph_max_chars)
+        return [text + "\n\n"]
 
     def _history(self, history: list[HistoryItem]) -> list[PromptPart]:
         if not history:

@@ -36,6 +36,7 @@ import random
 import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -271,6 +272,8 @@ class StandinServer:
         self._script = list(self.config.fault_script)
         self._lock = threading.Lock()
         self._conversations: dict[tuple[str, int], _Conversation] = {}
+        # The last user texts received (images as <image>), bounded: tests read what a client really sent.
+        self.prompts: deque[str] = deque(maxlen=64)
         self.httpd = ThreadingHTTPServer((host, port), _handler(self))
         self.httpd.daemon_threads = True
         self.url = f"http://{host}:{self.httpd.server_address[1]}/v1"
@@ -312,6 +315,8 @@ class StandinServer:
         return fault, max(0.0, latency)
 
     def answer(self, messages: list[dict]) -> str:
+        with self._lock:
+            self.prompts.append(user_text(messages))
         p = read_prompt(messages)
         key = (p.instruction, p.max_steps)
         with self._lock:
