@@ -148,3 +148,12 @@ def scene_graph_text(graph: SceneGraph, agent_xyz=None, max_chars: int = 4000) -
         lines.append(f"(... {omitted} more rooms, farther from you, left out: the map is large)")
     text = "\n".join(head + ["Rooms (name | floor | area | objects | opens onto):"] + lines + tail)
     return text[:max_chars]
+
+
+def floor_room_labels(graph: SceneGraph, xyz) -> list[tuple[str, float, float]]:
+    """(display name, x, y) of every room on the floor a point stands on: what a top-down map of that
+    floor should name, with the same names as the text form ("bedroom 2")."""
+    names = room_names(graph)
+    f = floor_index_of(graph, xyz)
+    return [(names[r.room_id], float(r.centroid_m[0]), float(r.centroid_m[1]))
+            for r in graph.rooms if f is None or r.floor == f]

@@ -98,6 +98,7 @@ from .render import (  # noqa: F401
     SplatMode,
     RenderRequest,
     RenderResult,
+    MapRoomLabel,
     SpatialMapRequest,
     SpatialMapResult,
 )

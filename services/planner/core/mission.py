@@ -9,6 +9,7 @@ objects (the simulator, the renderer core, the predictor core).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -21,12 +22,13 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from libs.scenegraph.text import floor_room_labels
 from shared.jobs import Cancelled, JobContext, JobEnd
 from shared.vln_metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
     CameraIntrinsics, Candidate, CandidateKind, Decision, JobEventKind, JobState, MapInfo, MissionEnd, MissionFinished,
     MissionOptions, MissionRequest, MissionStarted, MissionStep, MoveResult, Panorama, Pose, RenderResult,
-    SceneGraph, SpatialMapResult, SplatMode, ViewPose,
+    MapRoomLabel, SceneGraph, SpatialMapResult, SplatMode, ViewPose,
 )
 
 from .context import Ablation, OracleInfo, StepContext, build_candidate_views, with_stop_and_backtrack
@@ -216,7 +218,13 @@ class MissionLoop:
             # the two on their own workers; two cores share them): the step waits for the longer, not both.
             smap_job = None
             if ablation.spatial_map and self.renderer is not None:
-                smap_job = _in_background(self.renderer.spatial_map, map_id, pose, np.asarray(trajectory), cands)
+                draw = self.renderer.spatial_map
+                if self.scene_graph is not None and self.scene_graph.rooms:
+                    # The graph's room instances ("bedroom 2", as the prompt's text names them), not the
+                    # cloud's one name per room type.
+                    draw = functools.partial(draw, room_labels=[
+                        MapRoomLabel(name=n, x_m=x, y_m=y) for n, x, y in floor_room_labels(self.scene_graph, pose.xyz)])
+                smap_job = _in_background(draw, map_id, pose, np.asarray(trajectory), cands)
             render = None
             if anticipator is not None and movable:
                 views = [ViewPose(position_m=(pose.position_m[0] + c.dx_m, pose.position_m[1] + c.dy_m,
