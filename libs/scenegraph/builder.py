@@ -125,6 +125,8 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
     floor_ids = np.array([k for k, v in names.items() if is_floor_label(v)], np.int64)
     stair_ids = np.array([k for k, v in names.items() if any(w.startswith("stair") for w in _words(v))], np.int64)
     object_ids = [k for k, v in names.items() if not is_structure(v)]
+    wall_ids = np.array([k for k, v in names.items() if any(w.startswith(("wall", "door")) for w in _words(v))],
+                        np.int64)
     is_floor_pt = np.isin(labels, floor_ids) if labels is not None and floor_ids.size else None
     labelled = bool(floor_ids.size)
 
@@ -163,6 +165,10 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
         blocked[flat[body]] = True
         floor_cells = ndimage.binary_closing(floor_cells.reshape(shape), iterations=1) | floor_cells.reshape(shape)
         blocked = blocked.reshape(shape)
+        walls = np.zeros(shape[0] * shape[1], bool)
+        if wall_ids.size:
+            walls[flat[body & np.isin(labels, wall_ids)]] = True
+        walls = walls.reshape(shape)
         free = floor_cells & ~blocked
         # Stairs: cells whose stair points rise from this floor (walkable, joined to the floor above).
         stairs_cells = np.zeros(shape, bool)
@@ -188,6 +194,9 @@ def build_scene_graph(cloud: PointCloud, navigation: NavGraph | None = None,
                 m = np.zeros(shape[0] * shape[1], bool)
                 m[flat[near_floor & (labels == fid)]] = True
                 m = ndimage.binary_closing(m.reshape(shape), iterations=1) | m.reshape(shape)
+                # A wall is thinner than a cell: both sides' floor fills its cells, so the label alone
+                # would join two rooms through it. Cells where something stands are not a room's floor.
+                m = ndimage.binary_fill_holes(m & ~walls) & ~walls  # furniture in the middle is the room's
                 comp, n = ndimage.label(m, structure=np.ones((3, 3)))
                 sizes = ndimage.sum(m, comp, index=np.arange(1, n + 1))
                 for k in np.flatnonzero(sizes >= min_cells):

@@ -65,6 +65,28 @@ def _room_of_point(graph: SceneGraph, router: Router, p: np.ndarray) -> SceneRoo
     return graph.rooms[int(g.rooms[i, j])]
 
 
+def _stand_point(graph: SceneGraph, router: Router, o: SceneObject) -> np.ndarray:
+    """Where to stop "next to" ``o``: the walkable cell of its own room nearest its footprint (the room's
+    side of the wall it stands against), else the side its points were seen from, else its centre."""
+    centre = np.asarray(o.position_m, float)
+    base = centre - [0.0, 0.0, o.size_m[2] / 2]
+    f = router.floor_of(base)
+    room_index = next((k for k, r in enumerate(graph.rooms) if r.room_id == o.room_id), None)
+    if f >= 0 and room_index is not None and graph.free_space[f].rooms is not None:
+        g = graph.free_space[f]
+        ci, cj = np.nonzero((g.cells > 0) & (g.rooms == room_index))
+        if len(ci):
+            pts = np.c_[g.origin_m[0] + (ci + 0.5) * g.cell_m, g.origin_m[1] + (cj + 0.5) * g.cell_m]
+            d = np.maximum(np.abs(pts - centre[:2]) - np.asarray(o.size_m[:2]) / 2, 0.0)
+            dist = np.hypot(d[:, 0], d[:, 1])
+            k = int(np.argmin(dist))
+            if dist[k] <= 1.5:
+                return np.array([pts[k, 0], pts[k, 1], g.z_m])
+    if o.approach_m is not None:
+        return np.asarray(o.approach_m, float)
+    return centre
+
+
 def _subsequence_hits(wanted: list[str], seen: list[str]) -> int:
     """How many of ``wanted`` appear in ``seen`` in order (greedy)."""
     k = 0
@@ -155,7 +177,8 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
     for o in candidates:
         if o.points < 20:
             continue
-        fld = router.field(o.approach_m if o.approach_m is not None else o.position_m)
+        stand = _stand_point(graph, router, o)
+        fld = router.field(stand)
         if fld is None:
             continue
         d = router.distance(fld, start_m)
@@ -199,7 +222,7 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
         raise GroundingError(f"no {target!r} of the map is reachable on its walkable space")
     scored.sort(key=lambda s: -s[0])
     best = scored[0]
-    goal_node_m = np.asarray(best[4][-1]) if best[4] else np.asarray(best[1].position_m)
+    goal_node_m = _stand_point(graph, router, best[1])
     return Grounding(goal=best[1], goal_m=goal_node_m, field=best[2], rooms=best[3],
                      explained=f"{best[1].object_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4],
                      readings=[(round(x[0], 2), x[1].object_id, x[5]) for x in scored])

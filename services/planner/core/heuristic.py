@@ -350,7 +350,7 @@ class HeuristicPolicy(Policy):
             return None
         here = ctx.pose.xyz
         d_here = router.distance(g.field, here)
-        obj_m = math.dist(here[:2], (g.goal.approach_m or g.goal.position_m)[:2])
+        obj_m = math.dist(here[:2], g.goal_m[:2])
         same_floor = router.floor_of(here) == router.floor_of(g.goal.position_m)
         where = f"route to {g.goal.object_id}"
         stop = ctx.stop_candidate
