@@ -371,14 +371,15 @@ class ScriptedReconstructor:
         ]
 
     def add(self, map_id: str, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
-            source: str = "scripted", view_dirs: np.ndarray | None = None) -> MapInfo:
+            source: str = "scripted", view_dirs: np.ndarray | None = None,
+            label_names: dict[int, str] | None = None) -> MapInfo:
         with self._lock:
             version = self.maps[map_id][0].version + 1 if map_id in self.maps else 1
             info = MapInfo(map_id=map_id, version=version, point_count=len(xyz),
                            bounds_min_m=tuple(map(float, xyz.min(0))) if len(xyz) else (0.0, 0.0, 0.0),
                            bounds_max_m=tuple(map(float, xyz.max(0))) if len(xyz) else (0.0, 0.0, 0.0),
                            source=source, has_labels=labels is not None,
-                           label_names={0: "floor", 1: "wall"} if labels is not None else {})
+                           label_names=(label_names or {0: "floor", 1: "wall"}) if labels is not None else {})
             self.maps[map_id] = (info, xyz.astype(np.float32), rgb.astype(np.uint8), labels)
             self.view_dirs[map_id] = view_dirs
         return info
