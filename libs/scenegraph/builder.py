@@ -325,8 +325,11 @@ def _objects(xyz, rgb, labels, names, object_ids, floors, room_rasters, rooms, l
     out: list[SceneObject] = []
     counters: dict[str, int] = {}
     floor_arr = np.asarray(floors)
+    # One sort of the labels instead of a full pass per label (a 1,000 m2 map has ~4 M points, ~40 labels).
+    order = np.argsort(labels, kind="stable")
+    sorted_labels = labels[order]
     for lid in object_ids:
-        sel = np.flatnonzero(labels == lid)
+        sel = order[np.searchsorted(sorted_labels, lid, "left"): np.searchsorted(sorted_labels, lid, "right")]
         if len(sel) < cfg.min_object_points:
             continue
         p = xyz[sel]

@@ -62,3 +62,10 @@ def test_outcome_says_arrived_only_within_the_success_radius():
     assert "17.5 m" in outcome_phrase("succeeded", {"ne_m": 17.48, "success": False})
     assert outcome_phrase("succeeded", {"ne_m": 1.2, "success": True}).startswith("ARRIVED")
     assert "arrived" not in outcome_phrase("failed", {"ne_m": 1.0, "success": False}).lower()
+
+
+def test_backtracks_count_returns_to_earlier_places():
+    from bench.ablation import backtracks
+
+    assert backtracks([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]) == 0
+    assert backtracks([[0, 0, 0], [1, 0, 0], [2, 0, 0], [1.1, 0, 0], [0, 0.1, 0]]) == 2
