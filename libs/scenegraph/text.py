@@ -15,27 +15,13 @@ from collections import Counter, deque
 
 import numpy as np
 
+from shared.scene_names import room_names  # noqa: F401 - one naming rule for every surface
 from shared.schemas import SceneGraph, SceneRoom
 
 # Objects listed per room: a room with 40 chairs and plates says "14 more objects" after this many kinds.
 MAX_OBJECT_KINDS_PER_ROOM = 8
 # Below this an agent "on floor k" is really below floor k (the highest floor at most this below it).
 _FLOOR_TOLERANCE_M = 0.8
-
-
-def room_names(graph: SceneGraph) -> dict[str, str]:
-    """room_id -> display name: the room type, numbered when the graph has several of that type
-    (in the graph's room order, which is deterministic), or "room N" for an unnamed room."""
-    counts = Counter(r.room_type for r in graph.rooms if r.room_type)
-    seen: Counter[str] = Counter()
-    out: dict[str, str] = {}
-    for k, r in enumerate(graph.rooms):
-        if not r.room_type:
-            out[r.room_id] = f"room {k + 1}"
-            continue
-        seen[r.room_type] += 1
-        out[r.room_id] = r.room_type if counts[r.room_type] == 1 else f"{r.room_type} {seen[r.room_type]}"
-    return out
 
 
 def floor_index_of(graph: SceneGraph, xyz) -> int | None:
