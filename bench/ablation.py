@@ -125,7 +125,7 @@ def backtracks(trajectory_m, radius_m: float = 0.5) -> int:
 def table2_markdown(runs) -> str:
     """Per variant: NE, SR, SPL over the done episodes, and the paper's Table 2 columns on the successful
     ones (steps, trajectory length, backtracks)."""
-    lines = ["\n| variant | n | NE m | SR | SPL | successful | steps | TL m | backtracks |",
+    lines = ["\n| variant | n | NE m | SR % | SPL % | successful | steps | TL m | backtracks |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for label, d in runs:
         ok = [r for r in d.values() if r.status == "done" and r.metrics is not None]
