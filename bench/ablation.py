@@ -39,6 +39,8 @@ from contextlib import closing
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from bench.agent_maps import ROWS, build_map
 from evaluation.compare import compare_runs, comparison_markdown
 from evaluation.dataset import SetSpec, generate_set, parse_floors
@@ -50,6 +52,7 @@ from services.planner.core.local import LocalStack, episode_options
 from services.renderer.core import MapRenderer, SpatialMapper
 from services.robot_io.core import ROBOTS
 from libs.pointrender import RENDERERS, IndexedCloud
+from libs.scenegraph import build_scene_graph
 from shared.schemas import MissionOptions
 
 log = logging.getLogger(__name__)
@@ -111,6 +114,32 @@ def mission_options(cfg: RunConfig, ep) -> MissionOptions:
     return episode_options(ep, cfg.policy, seed=episode_seed(cfg.seed, ep.episode_id), **opts)
 
 
+def backtracks(trajectory_m, radius_m: float = 0.5) -> int:
+    """Moves that end where the agent already stood at least two moves before (a return, the paper's
+    backtrack), from the trajectory alone (the results keep no decisions)."""
+    t = np.asarray(trajectory_m, float).reshape(-1, 3)
+    return sum(1 for i in range(2, len(t))
+               if np.min(np.linalg.norm(t[: i - 1, :2] - t[i, :2], axis=1)) < radius_m)
+
+
+def table2_markdown(runs) -> str:
+    """Per variant: NE, SR, SPL over the done episodes, and the paper's Table 2 columns on the successful
+    ones (steps, trajectory length, backtracks)."""
+    lines = ["\n| variant | n | NE m | SR % | SPL % | successful | steps | TL m | backtracks |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for label, d in runs:
+        ok = [r for r in d.values() if r.status == "done" and r.metrics is not None]
+        won = [r for r in ok if r.metrics.get("success")]
+        mean = (lambda xs: float(np.mean(xs)) if xs else float("nan"))
+        lines.append(
+            f"| {label} | {len(ok)} | {mean([r.metrics['ne_m'] for r in ok]):.2f} | "
+            f"{100 * mean([float(bool(r.metrics['success'])) for r in ok]):.1f} | "
+            f"{100 * mean([r.metrics['spl'] for r in ok]):.1f} | {len(won)} | "
+            f"{mean([len(r.trajectory_m) - 1 for r in won]):.1f} | {mean([r.metrics.get('tl_m', 0.0) for r in won]):.2f} | "
+            f"{mean([backtracks(r.trajectory_m) for r in won]):.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--preset", default="anticipation", choices=sorted(presets()))
@@ -165,15 +194,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             backend, noise = MAP_KINDS[kind]
             map_robot, cloud = build_map(scene, backend, noise)
             map_robot.close()
-            clouds[kind] = (kind, cloud, ModePorts(cloud, modes))
+            # The map's scene graph, as the store builds it beside every version (issue 32); the cached
+            # maps keep no exploration graph, so it is the one built from the labelled points.
+            clouds[kind] = (kind, cloud, ModePorts(cloud, modes), build_scene_graph(cloud, map_id=kind))
         with closing(ROBOTS.create("sim", {"scene": scene})) as robot:
             predictor = PREDICTORS.create("geometric")
             for e in todo:
                 for v, cfg, kind, lg, d in zip(variants, configs, kinds, logs, done):
                     if str(e.episode_id) in d and d[str(e.episode_id)].status == "done":
                         continue
-                    kind, cloud, port = clouds[kind]
-                    stack = LocalStack(robot, predictor, port, cloud.label_names)
+                    kind, cloud, port, graph = clouds[kind]
+                    stack = LocalStack(robot, predictor, port, cloud.label_names, graph)
                     opts = mission_options(cfg, e)
                     ts = time.perf_counter()
                     out = stack.run(e.instruction, opts, mission_id=f"{v.slug}-{e.episode_id}")
@@ -194,7 +225,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     print(f"   {ran} episodes x {len(configs)} variants in {el:.0f} s ({scene})", flush=True)
 
     runs = [(v.label, d) for v, d in zip(variants, done)]
-    md = comparison_markdown(runs)
+    md = table2_markdown(runs) + comparison_markdown(runs)
     root.mkdir(parents=True, exist_ok=True)
     (root / "table.md").write_text(f"# {preset.title} ({maps} maps, in-process)\n\n{preset.paper}\n{md}",
                                    encoding="utf-8")

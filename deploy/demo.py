@@ -128,10 +128,24 @@ def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argpa
                                            "options": options}).json()
     rec = follow_mission(http, mission["id"], 900, tag)
     m = rec.get("metrics") or {}
-    say(f"{tag}RESULT: mission {rec['state']} after {rec['step']} steps; "
+    say(f"{tag}RESULT: {outcome_phrase(rec['state'], m)} after {rec['step']} steps; "
         + ", ".join(f"{k}={m[k]:.2f}" if isinstance(m.get(k), float) else f"{k}={m.get(k)}"
                     for k in ("ne_m", "success", "oracle_success", "spl", "ndtw", "tl_m") if k in m))
     return rec["state"] in ("succeeded", "failed")
+
+
+def outcome_phrase(state: str, metrics: dict) -> str:
+    """What happened, in words that do not lie (issue 32): "arrived" only when the success criterion
+    (within the goal radius) holds; the policy stopping is not success; NE beside the outcome."""
+    ne = metrics.get("ne_m")
+    at = f" ({ne:.1f} m from the goal)" if isinstance(ne, (int, float)) else ""
+    if state != "succeeded":
+        return f"mission {state}{at}"
+    if metrics.get("success") is True:
+        return f"ARRIVED{at}"
+    if metrics.get("success") is False:
+        return f"stopped short, did not arrive{at}"
+    return f"stopped (no goal known to judge arrival){at}"
 
 
 def _run_other(url: str, robot: str, scene: str, args: argparse.Namespace) -> bool:

@@ -26,7 +26,7 @@ from shared.schemas import (
     IMPORT_PART_BYTES, IMPORT_PART_MAX_BYTES,
     GeodesicReply, GeodesicRequest, JobAccepted, JobEvent, LoadSceneRequest, MapBuildFinished, MapImportProgress,
     MapImportRequest, MissionRequest,
-    MapChunk, MapChunkRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
+    MapChunk, MapChunkRequest, SceneGraph, SceneGraphRequest, MapInfo, MapListReply, MapRequest, MoveRequest, MoveResult, ObserveRequest,
     Panorama, Ping, Pose, PoseReply, RecordReply, RecordRequest, RenderRequest, RenderResult, ResetRequest,
     SceneSummary, SceneViewsRequest, ServiceInfo, ServiceMetrics, SpatialMapRequest, SpatialMapResult, SplatMode,
     TurnRequest, ViewPose,
@@ -213,6 +213,11 @@ class MapClient:
     def info(self, map_id: str, version: int | None = None) -> MapInfo:
         return self.bus.request(keys.MAP_INFO.format(map=map_id), MapRequest(map_id=map_id, version=version),
                                 MapInfo, timeout_s=self.timeout_s)
+
+    def scene_graph(self, map_id: str, version: int | None = None) -> SceneGraph:
+        """The map version's scene graph (issue 32)."""
+        return self.bus.request(keys.MAP_SCENE_GRAPH.format(map=map_id),
+                                SceneGraphRequest(map_id=map_id, version=version), SceneGraph, timeout_s=self.timeout_s)
 
     def import_cloud(self, map_id: str, filename: str, body: bytes | BinaryIO, *,
                      part_bytes: int = IMPORT_PART_BYTES, timeout_s: float | None = None) -> MapInfo:

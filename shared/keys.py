@@ -225,6 +225,9 @@ MAP_INFO = Key(f"{ROOT}/maps/{{map}}/info", "reconstructor", Usage.QUERYABLE, "M
 MAP_CHUNK = Key(f"{ROOT}/maps/{{map}}/chunk", "reconstructor", Usage.QUERYABLE, "MapChunkRequest", "MapChunk",
                 "the map's points, in chunks",
             consumers=("gateway", "renderer"))
+MAP_SCENE_GRAPH = Key(f"{ROOT}/maps/{{map}}/scene-graph", "reconstructor", Usage.QUERYABLE, "SceneGraphRequest",
+                      "SceneGraph", "the scene graph of a map version (rooms, objects, stairs, navigation graph)",
+                      consumers=("gateway", "planner"))
 MAP_BUILD = Key(f"{ROOT}/maps/{{map}}/build", "reconstructor", Usage.QUERYABLE, "BuildMapRequest", "JobAccepted",
                 "start a job that reconstructs recorded tours into a stored map",
             consumers=("mapper",))

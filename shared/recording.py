@@ -11,6 +11,12 @@ the gateway stores and the dashboard shows) plus, when given, the map's cloud. E
 | ``world/candidates`` | every candidate's target point, labelled ``#i kind`` | per step |
 | ``world/chosen`` | the chosen candidate's target | per step |
 | ``world/goal`` | the goal and the reference path, when the job has them | static |
+| ``world/scene_graph/rooms`` | the map's scene graph: room centroids labelled with their names ("bedroom 2") | static |
+| ``world/scene_graph/footprints`` | each room's floor outline (LineStrips3D, labelled) | static |
+| ``world/scene_graph/objects`` | objects at their positions in their dominant colour, labelled "red bed" | static |
+| ``world/scene_graph/openings`` | doors and openings, labelled with the two rooms they join | static |
+| ``world/scene_graph/navigation`` | the exploration's navigation graph: one line strip per edge, nodes as points | static |
+| ``world/scene_graph/stairs`` | stairways, bottom to top | static |
 | ``views/panorama``, ``views/spatial_map`` | the observed panorama and the spatial map (JPEG) | per step (an exploration: per progress event with a map) |
 | ``views/candidates/<i>/observed`` / ``anticipated`` | each candidate's observed and anticipated view | per step |
 | ``decisions`` | the decision and its reasoning (TextLog) | per step |
@@ -39,7 +45,8 @@ from typing import Any
 
 import numpy as np
 
-from shared.schemas import JobEvent, JobEventKind, JobState
+from shared.scene_names import room_names
+from shared.schemas import JobEvent, JobEventKind, JobState, SceneGraph
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +56,10 @@ _CHOSEN = (40, 200, 80)
 _PATH = (30, 120, 220)
 _GOAL = (220, 40, 40)
 _REFERENCE = (90, 90, 90)
+_ROOM = (30, 120, 50)
+_OPENING = (230, 126, 34)
+_NAV = (120, 120, 200)
+_STAIRS = (160, 60, 200)
 
 
 @dataclass(frozen=True)
@@ -84,6 +95,7 @@ class RecordingInput:
     map_id: str = ""
     info: dict[str, Any] = field(default_factory=dict)  # free-form, logged as the recording's description
     options: dict[str, Any] = field(default_factory=dict)  # the job's options as requested (goal, reference)
+    scene_graph: SceneGraph | None = None  # the map's scene graph (issue 32), drawn under world/scene_graph
 
 
 def _xyz(p: Any) -> np.ndarray | None:
@@ -136,6 +148,47 @@ def _log_static(rr, rec, inp: RecordingInput, max_points: int, seed: int) -> Non
     ref = [p for p in (_xyz(q) for q in opts.get("reference_path_m") or []) if p is not None]
     if len(ref) >= 2:
         rec.log("world/reference", rr.LineStrips3D([np.asarray(ref)], colors=[_REFERENCE], radii=0.03), static=True)
+    if inp.scene_graph is not None:
+        _log_scene_graph(rr, rec, inp.scene_graph)
+
+
+def _log_scene_graph(rr, rec, graph: SceneGraph) -> None:
+    """The map's scene graph, static, under ``world/scene_graph`` (see the module's table). Names sit a
+    little above the floor so that the cloud's floor points do not hide them."""
+    names = room_names(graph)
+    root = "world/scene_graph"
+    if graph.rooms:
+        floor_z = {r.room_id: r.floor_z_m for r in graph.rooms}
+        rec.log(f"{root}/rooms", rr.Points3D([(r.centroid_m[0], r.centroid_m[1], r.floor_z_m + 0.3) for r in graph.rooms],
+                                             colors=[_ROOM], radii=0.12, labels=[names[r.room_id] for r in graph.rooms],
+                                             show_labels=True), static=True)
+        loops = [(r, [(x, y, floor_z[r.room_id] + 0.02) for x, y in [*r.footprint_m, r.footprint_m[0]]])
+                 for r in graph.rooms if len(r.footprint_m) >= 3]
+        if loops:
+            rec.log(f"{root}/footprints", rr.LineStrips3D([p for _, p in loops], colors=[_ROOM], radii=0.02,
+                                                          labels=[names[r.room_id] for r, _ in loops],
+                                                          show_labels=False), static=True)
+    if graph.objects:
+        rec.log(f"{root}/objects", rr.Points3D([o.position_m for o in graph.objects],
+                                               colors=[o.colour_rgb for o in graph.objects], radii=0.08,
+                                               labels=[f"{o.colour} {o.label}".strip() for o in graph.objects],
+                                               show_labels=False), static=True)
+    if graph.openings:
+        rec.log(f"{root}/openings", rr.Points3D([o.position_m for o in graph.openings], colors=[_OPENING], radii=0.1,
+                                                labels=[f"{names[o.a]} - {names[o.b]}" for o in graph.openings],
+                                                show_labels=False), static=True)
+    nav = graph.navigation
+    if nav.nodes:
+        at = {n.node_id: n.position_m for n in nav.nodes}
+        strips = [[at[e.a], at[e.b]] for e in nav.edges if e.a in at and e.b in at]
+        rec.log(f"{root}/navigation/nodes", rr.Points3D([n.position_m for n in nav.nodes], colors=[_NAV], radii=0.05),
+                static=True)
+        if strips:
+            rec.log(f"{root}/navigation", rr.LineStrips3D(strips, colors=[_NAV], radii=0.015), static=True)
+    if graph.stairs:
+        rec.log(f"{root}/stairs", rr.LineStrips3D([[s.bottom_m, s.top_m] for s in graph.stairs], colors=[_STAIRS],
+                                                  radii=0.05, labels=[f"stairs {s.from_floor}-{s.to_floor}"
+                                                                      for s in graph.stairs]), static=True)
 
 
 def _log_event(rr, rec, inp: RecordingInput, ev: RecordedEvent, trajectory: list[np.ndarray]) -> None:

@@ -30,7 +30,7 @@ from shared.jobs import JobRunner
 from shared.runner import Node, Service, ServiceSettings
 from shared.schemas import (
     BuildCancelRequest, BuildMapRequest, Frame, JobAccepted, MapChunk, MapChunkRequest, MapImportProgress,
-    MapImportRequest, MapInfo, MapListReply, MapRequest, Ping,
+    MapImportRequest, MapInfo, SceneGraph, SceneGraphRequest, MapListReply, MapRequest, Ping,
 )
 
 log = logging.getLogger(__name__)
@@ -121,6 +121,7 @@ class ReconstructorService(Service[ReconstructorSettings]):
         # disagrees is refused (shared.keys.agree), so a request on map A's key never touches map B.
         node.serve(keys.MAP_INFO.pattern(), MapRequest, self.info, keyed=True)
         node.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self.chunk, keyed=True)
+        node.serve(keys.MAP_SCENE_GRAPH.pattern(), SceneGraphRequest, self.scene_graph, keyed=True)
         node.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self.import_map, workers=1, keyed=True)
         # One build at a time: reconstruction holds every frame of an exploration in memory.
         self._builds = JobRunner(node.bus, name="map build", workers=1,
@@ -148,6 +149,13 @@ class ReconstructorService(Service[ReconstructorSettings]):
         keys.agree(keys.MAP_INFO, key, req, map="map_id")
         try:
             return self.store.info(req.map_id, req.version)
+        except MapNotFoundError as exc:
+            raise NotFound(str(exc)) from None
+
+    def scene_graph(self, key: str, req: SceneGraphRequest) -> SceneGraph:
+        keys.agree(keys.MAP_SCENE_GRAPH, key, req, map="map_id")
+        try:
+            return self.store.scene_graph(req.map_id, req.version)
         except MapNotFoundError as exc:
             raise NotFound(str(exc)) from None
 

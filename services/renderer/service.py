@@ -173,4 +173,5 @@ class RendererService(Service[RendererSettings]):
 
     def spatial_map(self, req: SpatialMapRequest) -> SpatialMapResult:
         return self._map(req.map_id, req.version).spatial_map(req.map_id, req.pose, req.trajectory_m, req.candidates,
-                                                               req.agent_up, req.size_px, req.radius_m)
+                                                               req.agent_up, req.size_px, req.radius_m,
+                                                               room_labels=req.room_labels)

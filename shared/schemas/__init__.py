@@ -99,6 +99,7 @@ from .render import (  # noqa: F401
     SplatMode,
     RenderRequest,
     RenderResult,
+    MapRoomLabel,
     SpatialMapRequest,
     SpatialMapResult,
 )
@@ -144,4 +145,15 @@ from .service import (  # noqa: F401
     ServiceMetrics,
     ErrorCode,
     ErrorReply,
+)
+from .scene_graph import (  # noqa: F401
+    SCENE_GRAPH_MAX_ROOMS,
+    SCENE_GRAPH_MAX_OBJECTS,
+    SceneOpening,
+    SceneRoom,
+    SceneObject,
+    SceneStairs,
+    FloorGrid,
+    SceneGraph,
+    SceneGraphRequest,
 )

@@ -25,7 +25,7 @@ from .base import (
     TIME_LIMIT_S,
     Xyz_m,
 )
-from .navigation import TourRecording
+from .navigation import NavGraph, TourRecording
 
 
 # --- maps ------------------------------------------------------------------------------------------
@@ -110,6 +110,8 @@ class BuildMapRequest(Message):
     label_names: dict[LabelId, str] = Field(default_factory=dict, description="semantic ids of the frames")
     source: str = ""
     options: dict[str, Any] = Field(default_factory=dict)
+    # The exploration's navigation graph: stored with the map, part of its scene graph (issue 32).
+    navigation: NavGraph | None = None
 
     FREE_FORM: ClassVar[tuple[str, ...]] = ("options",)
 

@@ -53,6 +53,14 @@ class RenderResult(Message):
     splat_mode: SplatMode | None = None  # the mode that rendered these views (None: not said)
 
 
+class MapRoomLabel(Message):
+    """A room name to draw on the spatial map at a floor position (from the map's scene graph, issue 32)."""
+
+    name: str = Field(min_length=1, max_length=64)
+    x_m: float = Field(ge=-WORLD_LIMIT_M, le=WORLD_LIMIT_M)
+    y_m: float = Field(ge=-WORLD_LIMIT_M, le=WORLD_LIMIT_M)
+
+
 class SpatialMapRequest(Message):
     map_id: SegmentId
     version: int | None = Field(None, ge=1, le=2**31 - 1)
@@ -62,6 +70,8 @@ class SpatialMapRequest(Message):
     agent_up: bool = False
     size_px: int = Field(512, ge=64, le=2048)
     radius_m: float | None = Field(None, gt=0.0, le=WORLD_LIMIT_M)  # None: the whole floor
+    # Room instances to name ("bedroom 2"), e.g. the scene graph's; None: the cloud's room labels.
+    room_labels: list[MapRoomLabel] | None = Field(None, max_length=10_000)
 
     @model_validator(mode="after")
     def _trajectory(self):

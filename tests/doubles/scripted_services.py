@@ -23,7 +23,7 @@ from shared.bus.typed import NotFound, TypedBus
 from shared.schemas import (
     CancelRequest, Candidate, CandidateKind, Decision, EpisodeMetricsData, ExplorationFinished, ExplorationProgress,
     ExplorationCancelRequest, ExplorationRequest, ExplorationStarted, GeodesicReply, GeodesicRequest, JobCancelled,
-    LoadSceneRequest, MapChunk, MapChunkRequest,
+    LoadSceneRequest, MapChunk, MapChunkRequest, SceneGraph, SceneGraphRequest,
     MapImportRequest, MapInfo, MapListReply, MapRequest, JobAccepted, JobEvent, JobEventKind,
     MissionFinished, MissionRequest, MissionStarted, JobState, MissionStep, Ping, Pose, RoomInfo, SceneSummary,
 )
@@ -367,17 +367,19 @@ class ScriptedReconstructor:
             bus.serve(keys.MAP_INFO.pattern(), MapRequest, self._info, workers=2),
             bus.serve(keys.MAP_CHUNK.pattern(), MapChunkRequest, self._chunk, workers=2),
             bus.serve(keys.MAP_IMPORT.pattern(), MapImportRequest, self._import),
+            bus.serve(keys.MAP_SCENE_GRAPH.pattern(), SceneGraphRequest, self._scene_graph, workers=2),
         ]
 
     def add(self, map_id: str, xyz: np.ndarray, rgb: np.ndarray, labels: np.ndarray | None = None,
-            source: str = "scripted", view_dirs: np.ndarray | None = None) -> MapInfo:
+            source: str = "scripted", view_dirs: np.ndarray | None = None,
+            label_names: dict[int, str] | None = None) -> MapInfo:
         with self._lock:
             version = self.maps[map_id][0].version + 1 if map_id in self.maps else 1
             info = MapInfo(map_id=map_id, version=version, point_count=len(xyz),
                            bounds_min_m=tuple(map(float, xyz.min(0))) if len(xyz) else (0.0, 0.0, 0.0),
                            bounds_max_m=tuple(map(float, xyz.max(0))) if len(xyz) else (0.0, 0.0, 0.0),
                            source=source, has_labels=labels is not None,
-                           label_names={0: "floor", 1: "wall"} if labels is not None else {})
+                           label_names=(label_names or {0: "floor", 1: "wall"}) if labels is not None else {})
             self.maps[map_id] = (info, xyz.astype(np.float32), rgb.astype(np.uint8), labels)
             self.view_dirs[map_id] = view_dirs
         return info
@@ -399,6 +401,15 @@ class ScriptedReconstructor:
 
     def _info(self, req: MapRequest) -> MapInfo:
         return self._get(req.map_id)[0]
+
+    def _scene_graph(self, req: SceneGraphRequest) -> SceneGraph:
+        # The real builder on the stored points, as the reconstructor's store builds it.
+        from libs.scenegraph import build_scene_graph
+        from shared.cloud import PointCloud
+
+        info, xyz, rgb, labels = self._get(req.map_id)
+        cloud = PointCloud(xyz, rgb, labels, dict(info.label_names) if labels is not None else {})
+        return build_scene_graph(cloud, map_id=req.map_id, version=info.version)
 
     def _chunk(self, req: MapChunkRequest) -> MapChunk:
         info, xyz, rgb, labels = self._get(req.map_id)

@@ -32,8 +32,9 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @contextmanager
-def serve_gateway(tmp_path, **overrides):
-    """The gateway under uvicorn over zenoh, scripted services behind it; yields its URL."""
+def serve_gateway(tmp_path, maps=None, **overrides):
+    """The gateway under uvicorn over zenoh, scripted services behind it; yields its URL. ``maps``: called
+    with the scripted reconstructor to add more maps."""
     uvicorn = pytest.importorskip("uvicorn")
     from shared.bus.zenoh_bus import ZenohBus
 
@@ -42,6 +43,8 @@ def serve_gateway(tmp_path, **overrides):
     typed = TypedBus(services_bus, "scripted")
     recon = ScriptedReconstructor(typed)
     recon.add_random("demo-house", 20_000)
+    if maps is not None:
+        maps(recon)
     planner = ScriptedPlanner(typed, steps=6, step_interval_s=0.6, candidates=3, image_px=128)
     mapper = ScriptedMapper(typed, stages=3, stage_interval_s=0.5, reconstructor=recon)
     settings = GatewaySettings(instance="gw-e2e", host="127.0.0.1", port=hport, db_path=tmp_path / "gw.sqlite3",

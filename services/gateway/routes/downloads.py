@@ -115,8 +115,16 @@ def write_job_recording(store: GatewayStore, bus: TypedBus, settings: GatewaySet
         except RemoteError as exc:
             log.warning("recording %s without its map %s: %s", row.id, map_id, exc)
             info["map"] = f"not available when recorded ({exc})"
+    graph = None
+    if map_id:
+        # The map's scene graph (issue 32) of the version recorded (the latest when the cloud was not read).
+        try:
+            graph = MapClient(bus, timeout_s=settings.request_timeout_s).scene_graph(map_id, info.get("map version"))
+        except Exception as exc:  # a store without graphs, a timeout: the recording is still worth writing
+            log.warning("recording %s without the scene graph of %s: %s", row.id, map_id, exc)
     inp = RecordingInput(job_id=row.id, job_kind=row.kind.value, events=events, cloud_xyz_m=xyz, cloud_rgb=rgb,
-                         map_id=map_id or "", info=info, options=row.request.get("options") or {})
+                         map_id=map_id or "", info=info, options=row.request.get("options") or {},
+                         scene_graph=graph)
     t0 = time.perf_counter()
     path = write_recording(inp, recording_path(settings, row.id), max_points=max(1, settings.recording_max_points))
     log.info("recorded %s %s: %d events, %d map points, %.1f s -> %s", row.kind.value, row.id, len(events),

@@ -17,7 +17,7 @@ from services.gateway.errors import GatewayError, ask
 from services.gateway.params import SEGMENT, MapId, Version
 from shared import cloud as ply
 from shared.clients import MapClient
-from shared.schemas import ErrorCode, MapInfo
+from shared.schemas import ErrorCode, MapInfo, SceneGraph
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/maps", tags=["maps"])
@@ -85,6 +85,15 @@ def list_maps(bus: BusDep, settings: SettingsDep) -> list[MapInfo]:
 def get_map(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version = None) -> MapInfo:
     """Metadata of one map: points, bounds, labels, regions, metric scale factors, timings."""
     return ask(f"map {map_id!r}", lambda: MapClient(bus, timeout_s=settings.request_timeout_s).info(map_id, version))
+
+
+@router.get("/{map_id}/scene-graph.json", response_model=SceneGraph, responses={404: {}, 503: {}})
+def get_scene_graph(map_id: MapId, bus: BusDep, settings: SettingsDep, version: Version = None) -> SceneGraph:
+    """The map version's scene graph: rooms (type, floor, footprint, area, neighbours), openings, objects
+    (class, dominant colour, position, size, room), stairs, the exploration's navigation graph and each
+    floor's walkable cells. Built from what the robot recorded, never from a simulator's scene."""
+    return ask(f"scene graph of map {map_id!r}",
+               lambda: MapClient(bus, timeout_s=settings.request_timeout_s).scene_graph(map_id, version))
 
 
 @router.get("/{map_id}/cloud.ply", response_class=StreamingResponse,

@@ -291,6 +291,7 @@ function onEvent(ev) {
   if (d.decision) renderDecision(Object.assign({ step: ev.ordinal }, d.decision), d);
   renderMetrics(record.metrics);
   addStep(ev);
+  if (d.pose) drawSceneGraph();
 }
 
 async function select(id) {
@@ -310,6 +311,7 @@ async function select(id) {
   renderHead();
   renderMetrics(record.metrics);
   renderDownloads("mission", id);
+  loadSceneGraph(record.map_id);
   stream = new EventSource(withToken(`/missions/${encodeURIComponent(id)}/events`));
   const handler = (msg) => onEvent(JSON.parse(msg.data));
   for (const k of ["started", "step", "progress", "finished", "error"]) stream.addEventListener(k, handler);
@@ -466,3 +468,125 @@ refreshStatus(); refreshMaps(); resumeExploration(); refreshMissions().then(() =
 setInterval(refreshStatus, 5000);
 setInterval(refreshMissions, 3000);
 setInterval(refreshMaps, 15000);
+
+// --- the map's scene graph (issue 32) -----------------------------------------------------------------
+// Rooms (footprints, names at their centroids), openings and objects of the mission's map, from
+// GET /maps/{id}/scene-graph.json, with the mission's trajectory on top. Names follow the planner's text
+// form: a type seen once is "kitchen", several are "bedroom 1", "bedroom 2"; an unnamed room is "room N".
+let sceneGraph = null;   // { map_id, graph } of the mission on screen
+window.sceneGraphProbe = null;  // what the last drawing put on the canvas (for tests and curious users)
+
+function sceneRoomNames(graph) {
+  const counts = {}, seen = {}, out = {};
+  graph.rooms.forEach((r) => { if (r.room_type) counts[r.room_type] = (counts[r.room_type] || 0) + 1; });
+  graph.rooms.forEach((r, k) => {
+    if (!r.room_type) { out[r.room_id] = `room ${k + 1}`; return; }
+    seen[r.room_type] = (seen[r.room_type] || 0) + 1;
+    out[r.room_id] = counts[r.room_type] === 1 ? r.room_type : `${r.room_type} ${seen[r.room_type]}`;
+  });
+  return out;
+}
+
+// The floor a point stands on: the highest floor at most 0.8 m above it (as the planner decides it).
+function sceneFloorOf(graph, z) {
+  const zs = graph.floors_z_m || [];
+  let f = 0;
+  zs.forEach((fz, k) => { if (fz <= z + 0.8) f = k; });
+  return f;
+}
+
+async function loadSceneGraph(mapId) {
+  const meta = $("#graph-meta");
+  if (!mapId) return;
+  if (sceneGraph && sceneGraph.map_id === mapId) { drawSceneGraph(); return; }
+  sceneGraph = null;
+  meta.textContent = "loading ...";
+  try {
+    const graph = await api(`/maps/${encodeURIComponent(mapId)}/scene-graph.json`);
+    if (!record || record.map_id !== mapId) return;  // another mission was selected meanwhile
+    sceneGraph = { map_id: mapId, graph };
+    const floors = Math.max(1, (graph.floors_z_m || []).length);
+    const select = $("#graph-floor");
+    select.replaceChildren(...Array.from({ length: floors }, (_, k) => {
+      const o = el("option", "", `floor ${k}`); o.value = String(k); return o;
+    }));
+    select.value = "";  // follow the robot until the user picks a floor
+    select.hidden = floors < 2;
+    meta.textContent = `${graph.rooms.length} rooms · ${graph.openings.length} openings · ${graph.objects.length} objects` +
+      (graph.labelled ? "" : " · unlabelled map: rooms unnamed");
+    drawSceneGraph();
+  } catch (e) {
+    meta.textContent = `no scene graph (${e.message})`;
+    window.sceneGraphProbe = { map_id: mapId, error: e.message, rooms: [] };
+    const c = $("#scene-graph");
+    c.getContext("2d").clearRect(0, 0, c.width, c.height);
+  }
+}
+
+function drawSceneGraph() {
+  if (!sceneGraph || !record || sceneGraph.map_id !== record.map_id) return;
+  const graph = sceneGraph.graph, names = sceneRoomNames(graph);
+  const t = record.trajectory || [];
+  const picked = $("#graph-floor").value;
+  const floor = picked !== "" ? Number(picked) : t.length ? sceneFloorOf(graph, t[t.length - 1][2]) : 0;
+  const rooms = graph.rooms.filter((r) => r.floor === floor);
+  const ids = new Set(rooms.map((r) => r.room_id));
+  const objects = graph.objects.filter((o) => o.room_id ? ids.has(o.room_id) : sceneFloorOf(graph, o.position_m[2] - 0.3) === floor);
+  const openings = graph.openings.filter((o) => ids.has(o.a) || ids.has(o.b));
+  const path = t.filter((p) => sceneFloorOf(graph, p[2]) === floor);
+  // Fit everything drawn, with a margin; +y up as on the spatial map.
+  const xs = [], ys = [];
+  rooms.forEach((r) => { (r.footprint_m.length ? r.footprint_m : [r.centroid_m]).forEach((p) => { xs.push(p[0]); ys.push(p[1]); }); });
+  objects.forEach((o) => { xs.push(o.position_m[0]); ys.push(o.position_m[1]); });
+  path.forEach((p) => { xs.push(p[0]); ys.push(p[1]); });
+  const c = $("#scene-graph"), g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  const probe = { map_id: sceneGraph.map_id, floor, rooms: [], objects: objects.length, openings: openings.length,
+                  trajectory_points: path.length };
+  window.sceneGraphProbe = probe;
+  if (!xs.length) { g.fillStyle = "#777"; g.font = "16px sans-serif"; g.fillText("nothing mapped on this floor", 20, 30); return; }
+  const pad = 30, lo = [Math.min(...xs), Math.min(...ys)], hi = [Math.max(...xs), Math.max(...ys)];
+  const s = Math.min((c.width - 2 * pad) / Math.max(hi[0] - lo[0], 1), (c.height - 2 * pad) / Math.max(hi[1] - lo[1], 1));
+  const ox = (c.width - s * (hi[0] - lo[0])) / 2, oy = (c.height - s * (hi[1] - lo[1])) / 2;
+  const px = (p) => [ox + (p[0] - lo[0]) * s, c.height - oy - (p[1] - lo[1]) * s];
+  // Rooms: a pale fill per room (a hue from its index, so neighbours differ), a darker outline.
+  rooms.forEach((r, k) => {
+    if (r.footprint_m.length < 3) return;
+    g.beginPath();
+    r.footprint_m.forEach((p, i) => { const [x, y] = px(p); i ? g.lineTo(x, y) : g.moveTo(x, y); });
+    g.closePath();
+    g.fillStyle = `hsl(${(k * 67) % 360}, 45%, 90%)`; g.fill();
+    g.strokeStyle = "#8a8a80"; g.lineWidth = 1.5; g.stroke();
+  });
+  // Openings: where two rooms meet, an orange bar as wide as the opening.
+  g.fillStyle = "#e67e22";
+  openings.forEach((o) => {
+    const [x, y] = px(o.position_m), w = Math.max(6, (o.width_m || 0.8) * s);
+    g.beginPath(); g.arc(x, y, Math.min(7, w / 2), 0, 2 * Math.PI); g.fill();
+  });
+  // Objects: a dot in their dominant colour.
+  objects.forEach((o) => {
+    const [x, y] = px(o.position_m), rgb = o.colour_rgb || [0, 0, 0];
+    g.beginPath(); g.arc(x, y, 4, 0, 2 * Math.PI);
+    g.fillStyle = `rgb(${rgb[0]},${rgb[1]},${rgb[2]})`; g.fill();
+    g.strokeStyle = "#222"; g.lineWidth = 1; g.stroke();
+  });
+  // The trajectory on top of the rooms, under the names.
+  if (path.length) {
+    g.strokeStyle = "#2f6fde"; g.lineWidth = 3; g.beginPath();
+    path.forEach((p, i) => { const [x, y] = px(p); i ? g.lineTo(x, y) : g.moveTo(x, y); });
+    g.stroke();
+    const [x, y] = px(path[path.length - 1]);
+    g.fillStyle = "#ff3b4f"; g.beginPath(); g.arc(x, y, 7, 0, 2 * Math.PI); g.fill();
+  }
+  // Names last, with a white halo so they read over everything else.
+  g.font = "bold 14px system-ui, sans-serif"; g.textAlign = "center"; g.textBaseline = "middle";
+  g.lineJoin = "round"; g.lineWidth = 4; g.strokeStyle = "rgba(255,255,255,0.9)"; g.fillStyle = "#1d5e2c";
+  rooms.forEach((r) => {
+    const name = names[r.room_id], [x, y] = px(r.centroid_m);
+    g.strokeText(name, x, y); g.fillText(name, x, y);
+    probe.rooms.push({ name, x: Math.round(x), y: Math.round(y) });
+  });
+}
+
+$("#graph-floor").addEventListener("change", drawSceneGraph);

@@ -79,7 +79,8 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     ctx.progress(ExplorationProgress(stage="exploring", progress=0.02, message="frontier DFS over waypoints"))
     disc = discover(robot, cfg, checkpoint=ctx.check_cancelled, on_step=StepReporter(ctx))
     ctx.check_cancelled()
-    publish_graph(disc.nav_graph())
+    nav_graph = disc.nav_graph()
+    publish_graph(nav_graph)
     for tour in disc.tour_messages():
         publish_tour(tour)
     nodes = len(disc.result.graph.graph)
@@ -131,7 +132,7 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     info = maps.build(BuildMapRequest(
         build_id=req.exploration_id, exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
         reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
-        label_names=scene.label_names, source=f"exploration {req.exploration_id} of {scene.scene} ({ended})"),
+        label_names=scene.label_names, navigation=nav_graph, source=f"exploration {req.exploration_id} of {scene.scene} ({ended})"),
         on_event=on_build_event, cancel=ctx.cancel)
     return JobEnd(JobState.SUCCEEDED, ExplorationFinished(
         map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.geometry import wrap_angle
-from shared.schemas import Candidate, CandidateKind, Panorama, Pose, RenderResult
+from shared.schemas import Candidate, CandidateKind, Panorama, Pose, RenderResult, SceneGraph
 
 from .errors import ContextError
 from .history import HistoryItem
@@ -90,6 +90,7 @@ class StepContext:
     max_steps: int = 40
     panorama: Panorama | None = None  # the current observation, for policies that look around
     oracle: OracleInfo | None = None
+    scene_graph: SceneGraph | None = None  # the map's scene graph (issue 32), fetched once per mission
 
     def __post_init__(self) -> None:
         if not self.candidates:

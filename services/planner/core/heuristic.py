@@ -17,11 +17,13 @@ from typing import Literal
 
 import numpy as np
 
+from libs.scenegraph import Router
 from shared.registry import BackendConfig
 from shared.schemas import CandidateKind, Decision
 
 from .context import CandidateView, StepContext
 from .history import turn_phrase
+from .grounding import Grounding, GroundingError, ground
 from .instruction import ParsedInstruction, SubGoal, Turn, label_matches, parse_instruction
 from .policy import POLICIES, Policy
 
@@ -61,6 +63,14 @@ class HeuristicConfig(BackendConfig):
     # replacing threw away what the agent sees and gained little.
     anticipation_use: Literal["combine", "replace"] = "combine"
     reach_weight: float = 1.5  # target within reached_distance_m in the candidate's anticipated view
+    # The map's scene graph (issue 32): ground the instruction's final object on it, follow the geodesic
+    # route there, stop where it is grounded. On by default: on the first 40 episodes of the generated
+    # set (seed 0, rgbd maps) SR 65.0 vs 37.5 and SPL 52.1 vs 19.4 (bench.ablation --preset scene-graph).
+    scene_graph: bool = True
+    graph_stop_m: float = 0.5  # stop when the route to the grounded goal is this short
+    graph_object_stop_m: float = 0.6  # ... or its approach point this near (straight line, same floor)
+    graph_revisit_penalty: float = 0.5  # per earlier visit of a candidate's target (m of progress)
+    graph_prune_penalty: float = 1.0  # an anticipated view whose floor is a room off the route
 
 
 @dataclass
@@ -71,6 +81,10 @@ class _MissionState:
     leg_m: float = 0.0  # distance travelled in the current sub-goal
     total_m: float = 0.0
     last_xyz: np.ndarray | None = None
+    grounding: Grounding | None = None
+    router: Router | None = None
+    ground_note: str = ""  # why the scene graph is not used (said in every reasoning)
+    last_route_m: float | None = None
 
 
 @POLICIES.register("heuristic", HeuristicConfig)
@@ -316,8 +330,90 @@ class HeuristicPolicy(Policy):
         why = f"{turn_phrase(c.angle_rad)} {c.distance_m:.1f} m" + (f" ({', '.join(notes)})" if notes else "")
         return score, why
 
+    # --- the scene graph's route (issue 32) -----------------------------------------------------
+
+    def _graph_decide(self, ctx: StepContext, st: _MissionState) -> Decision | None:
+        """Follow the route to the grounded goal; None when there is no grounding (the caller falls back)."""
+        cfg = self.config
+        graph = ctx.scene_graph
+        if st.grounding is None and not st.ground_note:
+            try:
+                st.router = Router(graph)
+                st.grounding = ground(st.parsed, graph, st.router, ctx.pose.xyz, ctx.pose.heading_rad)
+                log.info("mission %s grounded: %s", ctx.mission_id, st.grounding.explained)
+            except GroundingError as exc:
+                st.ground_note = f"scene graph not used: {exc}; local heuristic"
+                log.info("mission %s: %s", ctx.mission_id, st.ground_note)
+        g, router = st.grounding, st.router
+        if g is None or router is None:
+            return None
+        here = ctx.pose.xyz
+        d_here = router.distance(g.field, here)
+        obj_m = math.dist(here[:2], g.goal_m[:2])
+        same_floor = router.floor_of(here) == router.floor_of(g.goal.position_m)
+        where = f"route to {g.goal.object_id}"
+        stop = ctx.stop_candidate
+        if stop is not None and (d_here <= cfg.graph_stop_m or (same_floor and obj_m <= cfg.graph_object_stop_m)):
+            return self._decision(ctx, stop.index, f"{where}: stop - at the grounded goal ({g.explained}; "
+                                  f"{d_here:.1f} m by the route, {obj_m:.1f} m from it)")
+        replanned = st.last_route_m is not None and d_here > st.last_route_m + 0.3
+        st.last_route_m = d_here
+        route_types = {graph.room(r).room_type for r in g.rooms if graph.room(r) is not None}
+        floor_ids = self._floor_ids(ctx.label_names) if ctx.label_names else np.zeros(0, np.int64)
+        scored = []
+        for v in ctx.candidates:
+            if v.kind == CandidateKind.STOP:
+                continue
+            target = ctx.target_m(v)
+            dt = router.distance(g.field, target)
+            if not math.isfinite(dt):
+                continue
+            score = d_here - dt
+            notes = [f"{d_here - dt:+.1f} m along the route"]
+            if len(ctx.trajectory_m) > 1:
+                gaps = np.linalg.norm(ctx.trajectory_m[:-1, :2] - target[:2], axis=1)
+                visits = int(np.count_nonzero(gaps < cfg.revisit_radius_m))
+                if visits:
+                    score -= cfg.graph_revisit_penalty * visits
+                    notes.append(f"revisit x{visits}")
+            # The paper's use of anticipation: a candidate whose anticipated floor is a room the route does
+            # not pass contradicts the next leg (the map is right there, the raster may be wrong).
+            if (ctx.ablation.anticipation and v.anticipated_labels is not None and v.anticipated_depth_m is not None
+                    and floor_ids.size and route_types):
+                lab, dep = v.anticipated_labels, v.anticipated_depth_m
+                near_floor = np.isin(lab, floor_ids) & (dep > 0) & (dep < 2.5)
+                if near_floor.sum() > 0.05 * lab.size:
+                    ids, counts = np.unique(lab[near_floor], return_counts=True)
+                    name = ctx.label_names.get(int(ids[np.argmax(counts)]), "")
+                    rtype = " ".join(w for w in name.lower().split() if w != "floor")
+                    if rtype and not any(label_matches(t, rtype) or label_matches(rtype, t) for t in route_types):
+                        score -= cfg.graph_prune_penalty
+                        notes.append(f"pruned: anticipates a {rtype} off the route")
+            scored.append((score, v, notes))
+        if not scored:
+            return None
+        best_score, best, notes = max(scored, key=lambda s: s[0])
+        if best_score <= 0 and stop is not None and d_here < 1.5:
+            return self._decision(ctx, stop.index, f"{where}: stop - no move gets closer and the goal is "
+                                  f"{d_here:.1f} m away ({g.explained})")
+        c = best.candidate
+        move = "go back" if best.kind == CandidateKind.BACKTRACK else f"{turn_phrase(c.angle_rad)} {c.distance_m:.1f} m"
+        again = "; off the route, re-planned from here" if replanned else ""
+        return self._decision(ctx, best.index, f"{where} ({d_here:.1f} m left, {g.explained}): {move} "
+                              f"({', '.join(notes)}){again}")
+
     def decide(self, ctx: StepContext) -> Decision:
         st = self._update(ctx)
+        if self.config.scene_graph and ctx.scene_graph is not None:
+            graph_decision = self._graph_decide(ctx, st)
+            if graph_decision is not None:
+                return graph_decision
+        decision = self._local_decide(ctx, st)
+        if st.ground_note:
+            decision.reasoning = f"[{st.ground_note}] {decision.reasoning}"
+        return decision
+
+    def _local_decide(self, ctx: StepContext, st: _MissionState) -> Decision:
         sgs = st.parsed.subgoals
         where = f"sub-goal {min(st.k, len(sgs) - 1) + 1}/{len(sgs)}" if sgs else "no parsable sub-goal"
         stop = ctx.stop_candidate

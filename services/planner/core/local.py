@@ -22,12 +22,14 @@ class LocalStack:
     predictor: object  # services.mapper.core.WaypointPredictor
     renderer: object  # services.renderer.core.MapRenderer
     label_names: dict[int, str]
+    scene_graph: object | None = None  # shared.schemas.SceneGraph of the map (libs.scenegraph builds it)
 
     def run(self, instruction: str, opts: MissionOptions, mission_id: str = "local") -> MissionOutcome:
         policy = POLICIES.create(opts.policy, opts.policy_config or None)
         try:
             loop = MissionLoop(robot=self.robot, predictor=self.predictor, renderer=self.renderer, policy=policy,
-                               emit=lambda *a, **k: None, label_names=self.label_names)
+                               emit=lambda *a, **k: None, label_names=self.label_names,
+                               scene_graph=self.scene_graph)
             return loop.run(mission_id, instruction, "local", opts)
         finally:
             policy.close()

@@ -9,6 +9,7 @@ objects (the simulator, the renderer core, the predictor core).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -21,12 +22,13 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from libs.scenegraph.text import floor_room_labels
 from shared.jobs import Cancelled, JobContext, JobEnd
 from shared.vln_metrics import EpisodeMetrics, episode_metrics
 from shared.schemas import (
     CameraIntrinsics, Candidate, CandidateKind, Decision, JobEventKind, JobState, MapInfo, MissionEnd, MissionFinished,
     MissionOptions, MissionRequest, MissionStarted, MissionStep, MoveResult, Panorama, Pose, RenderResult,
-    SpatialMapResult, SplatMode, ViewPose,
+    MapRoomLabel, SceneGraph, SpatialMapResult, SplatMode, ViewPose,
 )
 
 from .context import Ablation, OracleInfo, StepContext, build_candidate_views, with_stop_and_backtrack
@@ -148,6 +150,7 @@ class MissionLoop:
     emit: Emit
     cancel: threading.Event = field(default_factory=threading.Event)
     label_names: dict[int, str] = field(default_factory=dict)
+    scene_graph: SceneGraph | None = None  # the map's, fetched at mission start (issue 32)
     thumb_px: int = 128
     jpeg: Callable[[np.ndarray], bytes] | None = None
     min_progress_m: float = 0.2  # a move shorter than this "went nowhere" (blocked at once)
@@ -215,7 +218,13 @@ class MissionLoop:
             # the two on their own workers; two cores share them): the step waits for the longer, not both.
             smap_job = None
             if ablation.spatial_map and self.renderer is not None:
-                smap_job = _in_background(self.renderer.spatial_map, map_id, pose, np.asarray(trajectory), cands)
+                draw = self.renderer.spatial_map
+                if self.scene_graph is not None and self.scene_graph.rooms:
+                    # The graph's room instances ("bedroom 2", as the prompt's text names them), not the
+                    # cloud's one name per room type.
+                    draw = functools.partial(draw, room_labels=[
+                        MapRoomLabel(name=n, x_m=x, y_m=y) for n, x, y in floor_room_labels(self.scene_graph, pose.xyz)])
+                smap_job = _in_background(draw, map_id, pose, np.asarray(trajectory), cands)
             render = None
             if anticipator is not None and movable:
                 views = [ViewPose(position_m=(pose.position_m[0] + c.dx_m, pose.position_m[1] + c.dy_m,
@@ -232,6 +241,7 @@ class MissionLoop:
                 trajectory_m=np.asarray(trajectory), history=history.compressed(),
                 spatial_map_rgb=None if smap is None else smap.image, label_names=self.label_names,
                 ablation=ablation, mission_id=mission_id, max_steps=opts.max_steps, panorama=pano, oracle=oracle,
+                scene_graph=self.scene_graph,
             )
             t4 = time.perf_counter()
             timings["observe_s"] = observe_s
@@ -333,10 +343,16 @@ def run_mission(ctx: JobContext, req: MissionRequest, *, robot: RobotPort, predi
     A failed mission (step budget exhausted) carries its cause as the error; a stop with a caveat (boxed
     in) as the reason."""
     info = maps.info(req.map_id)
+    graph = None
+    if hasattr(maps, "scene_graph"):
+        try:
+            graph = maps.scene_graph(req.map_id, info.version)
+        except Exception as exc:  # a store without graphs, a timeout: the policy navigates locally
+            log.warning("mission %s: no scene graph for map %s (%s)", req.mission_id, req.map_id, exc)
     loop = MissionLoop(robot=robot, predictor=predictor, renderer=renderer, policy=policy,
                        emit=lambda kind, state, *, step=0, data=None, images=None:
                        ctx.emit(kind, data, step=step, images=images),
-                       cancel=ctx.cancel, label_names=info.label_names, jpeg=jpeg)
+                       cancel=ctx.cancel, label_names=info.label_names, jpeg=jpeg, scene_graph=graph)
     out = loop.run(req.mission_id, req.instruction, req.map_id, req.options)
     failed = out.state == JobState.FAILED
     return JobEnd(out.state, MissionFinished(

@@ -91,6 +91,9 @@ class OpenAIConfig(BackendConfig):
         if v not in PROFILES:
             raise ValueError(f"unknown provider profile {v!r}; have {sorted(PROFILES)}")
         return v
+    # The map's scene graph as text in the prompt (issue 32's ablation switch, as the heuristic's).
+    scene_graph: bool = True
+    scene_graph_max_chars: int = Field(4000, ge=200, le=100_000)
 
     @field_validator("base_url")
     @classmethod
@@ -156,7 +159,8 @@ class OpenAIPolicy(Policy):
     def __init__(self, config: OpenAIConfig, builder: PromptBuilder | None = None):
         super().__init__()
         self.config = config
-        self.builder = builder or PromptBuilder()
+        self.builder = builder or PromptBuilder(PromptConfig(scene_graph=config.scene_graph,
+                                                             scene_graph_max_chars=config.scene_graph_max_chars))
         key = config.api_key or os.environ.get(config.api_key_env)
         if not key:
             if config.base_url is None:

@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from libs.scenegraph.text import scene_graph_text
 from shared.schemas import CandidateKind
 
 from .context import CandidateView, StepContext
@@ -184,6 +185,8 @@ class PromptConfig:
     # The server's image-token rule (tokens.IMAGE_TOKEN_RULES): a mosaic's columns are chosen to cost the
     # fewest tokens by it.
     image_token_rule: str = "openai_tiles"
+    scene_graph: bool = True  # the map's scene graph as text (issue 32), when the mission has one
+    scene_graph_max_chars: int = 4000  # ~1,000 tokens: a big house is cut to the rooms nearest the agent
 
     def __post_init__(self) -> None:
         if self.layout not in LAYOUTS:
@@ -203,7 +206,8 @@ class PromptConfig:
         """One line for records and cache keys: every field that changes what is sent."""
         return (f"layout={self.layout} image_px={self.image_px} max_image_px={self.max_image_px} "
                 f"max_images={self.max_images_per_prompt} history_items={self.max_history_items} "
-                f"history_frames={self.max_history_frames} image_rule={self.image_token_rule}")
+                f"history_frames={self.max_history_frames} image_rule={self.image_token_rule} "
+                f"scene_graph={self.scene_graph}:{self.scene_graph_max_chars}")
 
 
 class PromptBuilder:
@@ -246,6 +250,7 @@ class PromptBuilder:
         layout = self.resolve_layout(ctx, cfg)
         tiles: dict[str, list[Tile]] | None = {"history": [], "candidates": []} if layout == "mosaic" else None
         parts: list[PromptPart] = [f"Instruction: {ctx.instruction.strip()}\n\n"]
+        parts += self._scene_graph(ctx, cfg)
         parts += self._history(ctx.history, cfg, tiles)
         if tiles is not None and tiles["history"]:
             parts += ["History tiles (numbered by step): ",
@@ -275,6 +280,7 @@ class PromptBuilder:
             "spatial_map": ctx.ablation.spatial_map,
             "layout": layout,
             "prompt_config": cfg.describe(),
+            "scene_graph": bool(self._scene_graph(ctx, cfg)),
         }
         return Prompt(system=SYSTEM_PROMPT, parts=parts, candidate_indices=indices, meta=meta)
 
@@ -294,6 +300,15 @@ class PromptBuilder:
             PromptImage("spatial_map", cap_side(np.asarray(ctx.spatial_map_rgb), cfg.max_image_px)),
             "\n",
         ]
+
+    def _scene_graph(self, ctx: StepContext, cfg: PromptConfig | None = None) -> list[PromptPart]:
+        """The scene graph block (issue 32): the whole map's rooms, objects and openings, and where the
+        agent is; nothing when switched off or when the mission has no graph."""
+        cfg = cfg or self.config
+        if not cfg.scene_graph or ctx.scene_graph is None or not ctx.scene_graph.rooms:
+            return []
+        text = scene_graph_text(ctx.scene_graph, ctx.pose.position_m, cfg.scene_graph_max_chars)
+        return [text + "\n\n"]
 
     def _history(self, history: list[HistoryItem], cfg: PromptConfig | None = None,
                  tiles: dict[str, list[Tile]] | None = None) -> list[PromptPart]:

@@ -49,7 +49,9 @@ class ReplayPolicy(Policy):
     def __init__(self, config: ReplayConfig, inner: Policy | None = None, builder: PromptBuilder | None = None):
         super().__init__()
         self.config = config
-        self.builder = builder or PromptBuilder()
+        # The cache key is the prompt the inner backend would send: its scene-graph switch shapes it.
+        self.builder = builder or PromptBuilder(PromptConfig(
+            scene_graph=bool(config.inner_config.get("scene_graph", True))))
         self._inner = inner
         self._cache: dict[str, dict] = {}
         self.path = Path(config.path)

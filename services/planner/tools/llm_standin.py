@@ -44,6 +44,7 @@ import random
 import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -330,6 +331,8 @@ class StandinServer:
         self._script = list(self.config.fault_script)
         self._lock = threading.Lock()
         self._conversations: dict[tuple[str, int], _Conversation] = {}
+        # The last user texts received (images as <image>), bounded: tests read what a client really sent.
+        self.prompts: deque[str] = deque(maxlen=64)
         self.httpd = ThreadingHTTPServer((host, port), _handler(self))
         self.httpd.daemon_threads = True
         self.url = f"http://{host}:{self.httpd.server_address[1]}/v1"
@@ -371,6 +374,10 @@ class StandinServer:
         return fault, max(0.0, latency)
 
     def answer(self, messages: list[dict]) -> str:
+        with self._lock:
+            self.prompts.append(user_text(messages))
+        if is_label_prompt(messages):
+            return label_answer(messages)
         p = read_prompt(messages)
         key = (p.instruction, p.max_steps)
         with self._lock:
@@ -436,6 +443,43 @@ class StandinServer:
         with self._lock:
             self.stats.prompt_tokens += n_in
             self.stats.completion_tokens += n_out
+
+
+# --- the scene-graph labeller's prompt (libs/scenegraph/labeller.py, issue 32) ----------------------------
+# A deterministic answer from the pixels: the dominant channel of the frames' mean colour picks a room and
+# its objects. Enough to test the labeller's mechanics (one call per region, frames sent, answers cached
+# and counted); nothing here recognises a real room.
+LABEL_PROMPT_START = "You label rooms"
+LABEL_TABLE = {"red": ("kitchen", ["fridge", "stove"]), "green": ("bedroom", ["bed", "wardrobe"]),
+               "blue": ("bathroom", ["toilet", "sink"]), "grey": ("hallway", [])}
+
+
+def is_label_prompt(messages: list[dict]) -> bool:
+    return any(m.get("role") == "system" and str(m.get("content", "")).startswith(LABEL_PROMPT_START)
+               for m in messages)
+
+
+def label_answer(messages: list[dict]) -> str:
+    import base64
+
+    import cv2
+
+    means = []
+    for m in messages:
+        if m.get("role") != "user" or not isinstance(m.get("content"), list):
+            continue
+        for part in m["content"]:
+            url = (part.get("image_url") or {}).get("url", "") if part.get("type") == "image_url" else ""
+            if "," in url:
+                img = cv2.imdecode(np.frombuffer(base64.b64decode(url.split(",", 1)[1]), np.uint8), cv2.IMREAD_COLOR)
+                if img is not None:
+                    means.append(img.reshape(-1, 3)[:, ::-1].mean(axis=0))  # BGR -> RGB
+    if not means:
+        raise PromptReadError("a labelling prompt without images")
+    mean = np.mean(means, axis=0)
+    colour = "grey" if mean.max() - mean.min() < 30 else ("red", "green", "blue")[int(np.argmax(mean))]
+    room, objects = LABEL_TABLE[colour]
+    return json.dumps({"room": room, "objects": objects})
 
 
 def _handler(server: StandinServer) -> type[BaseHTTPRequestHandler]:

@@ -5,6 +5,8 @@ Layout under ``root``::
     <map_id>/v000001/cloud.ply          points, colours, labels, label names and view directions
                                         (:mod:`shared.cloud`'s PLY)
     <map_id>/v000001/meta.json          MapInfo + details (source, regions, scale factors, timings)
+    <map_id>/v000001/scene_graph.json   the version's scene graph (libs.scenegraph, from the cloud's labels
+                                        and the exploration's navigation graph; issue 32)
     <map_id>/.lock                      serialises version allocation between processes
 
 A version is written into a hidden temporary directory beside the versions, every file is fsynced,
@@ -37,7 +39,8 @@ import numpy as np
 
 from shared.cloud import CloudFormatError, PointCloud, copy_ours, read_cloud, read_cloud_bytes
 from shared.keys import KeyExprError, validate_segment
-from shared.schemas import MapChunk, MapInfo
+from libs.scenegraph import build_scene_graph
+from shared.schemas import MapChunk, MapInfo, NavGraph, SceneGraph
 
 from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStoreError
 
@@ -48,8 +51,11 @@ _TMP_PREFIX = ".tmp-"
 
 class _NotOurs(Exception):
     """The file is not a PLY of our layout: parsed whole instead."""
+
+
 _CLOUD = "cloud.ply"
 _META = "meta.json"
+_GRAPH = "scene_graph.json"
 _STALE_TMP_S = 3600.0
 
 
@@ -84,8 +90,12 @@ class MapStore:
         scale_factors: list[float] | None = None,
         timings_s: dict[str, float] | None = None,
         details: dict[str, Any] | None = None,
+        navigation: NavGraph | None = None,
     ) -> MapInfo:
-        """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`."""
+        """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`.
+
+        The version's scene graph is built here, from the cloud and the exploration's ``navigation`` graph
+        (when the map came from one), and written beside the cloud."""
         if len(cloud) == 0:
             raise MapFormatError(f"map {map_id!r}: refusing to store an empty cloud")
 
@@ -97,13 +107,18 @@ class MapStore:
                         label_names={int(k): v for k, v in cloud.label_names.items()})
 
         return self._store(map_id, write, source=source, regions=regions, scale_factors=scale_factors,
-                           timings_s=timings_s, details=details)
+                           timings_s=timings_s, details=details,
+                           graph_of=lambda: build_scene_graph(cloud, navigation, map_id=map_id))
 
     def _store(self, map_id: str, write, *, source: str = "", regions: int = 0,
                scale_factors: list[float] | None = None, timings_s: dict[str, float] | None = None,
-               details: dict[str, Any] | None = None) -> MapInfo:
+               details: dict[str, Any] | None = None, graph_of=None) -> MapInfo:
         """The next version of ``map_id`` from ``write(ply_path) -> MapInfo fields`` (count, bounds,
-        labels), written in a temporary folder renamed into place: a failure leaves nothing."""
+        labels), written in a temporary folder renamed into place: a failure leaves nothing.
+
+        ``graph_of() -> SceneGraph`` builds the version's scene graph, written beside the cloud. A cloud
+        streamed in slices (an upload of any size) has none at import, since building it needs the
+        whole cloud in memory: :meth:`scene_graph` builds it from the stored cloud when first asked."""
         try:
             self._map_dir(map_id)
             new_map = False
@@ -116,6 +131,7 @@ class MapStore:
             ply = tmp / _CLOUD
             fields = write(ply)
             digest = _sha256(ply)
+            graph = graph_of() if graph_of is not None else None
             with self._version_lock(map_dir):
                 version = self._next_version(map_dir)
                 info = MapInfo(
@@ -123,8 +139,13 @@ class MapStore:
                     source=source, regions=regions, scale_factors=list(scale_factors or []),
                     timings_s=dict(timings_s or {}), created_s=time.time(),
                 )
+                files = {_CLOUD: digest}
+                if graph is not None:
+                    graph.version = version
+                    (tmp / _GRAPH).write_text(graph.model_dump_json())
+                    files[_GRAPH] = _sha256(tmp / _GRAPH)
                 meta = {"info": info.model_dump(mode="json"), "details": _jsonable(details or {}),
-                        "files": {_CLOUD: digest}}
+                        "files": files}
                 (tmp / _META).write_text(json.dumps(meta, indent=1))
                 if self.fsync:
                     for f in tmp.iterdir():
@@ -247,6 +268,21 @@ class MapStore:
                 while len(self._cache) > self._cache_size:
                     self._cache.popitem(last=False)
         return stored
+
+    def scene_graph(self, map_id: str, version: int | None = None) -> SceneGraph:
+        """The version's scene graph; a version stored before graphs were (no file) gets one built from its
+        cloud now, without its exploration's navigation graph (which was not kept then)."""
+        v = self._resolve(map_id, version)
+        path = self._map_dir(map_id) / _version_name(v) / _GRAPH
+        if not path.is_file():
+            return build_scene_graph(self.load(map_id, v).cloud, None, map_id=map_id, version=v)
+        want = self._meta(map_id, v).get("files", {}).get(_GRAPH)
+        if want is not None and _sha256(path) != want:
+            raise MapFormatError(f"map {map_id} v{v}: scene graph file does not match its checksum")
+        try:
+            return SceneGraph.model_validate_json(path.read_text())
+        except ValueError as exc:
+            raise MapFormatError(f"map {map_id} v{v}: unreadable scene graph ({exc})") from exc
 
     def chunk(self, map_id: str, version: int | None = None, index: int = 0, max_points: int = 1_000_000) -> MapChunk:
         """Chunk ``index`` of ``ceil(N / max_points)``: what the bus serves per ``MapChunkRequest``."""

@@ -57,9 +57,11 @@ class MapRenderer:
 
     def spatial_map(self, map_id: str, pose: Pose, trajectory_m: np.ndarray | None = None,
                     candidates: list[Candidate] | None = None, agent_up: bool = False, size_px: int = 512,
-                    radius_m: float | None = None) -> SpatialMapResult:
+                    radius_m: float | None = None, room_labels=None) -> SpatialMapResult:
         t0 = time.perf_counter()
         map_id = self._check(map_id)
-        img = self.mapper.draw(self.index, pose, trajectory_m, candidates or [], agent_up, size_px, radius_m)
+        rooms = None if room_labels is None else [(r.name, r.x_m, r.y_m) for r in room_labels]
+        img = self.mapper.draw(self.index, pose, trajectory_m, candidates or [], agent_up, size_px, radius_m,
+                               room_labels=rooms)
         return SpatialMapResult(map_id=map_id, version=self.version, image=img.image,
                                 metres_per_px=img.metres_per_px, render_s=time.perf_counter() - t0)

@@ -156,11 +156,14 @@ class SpatialMapper:
         agent_up: bool = False,
         size_px: int = 512,
         radius_m: float | None = None,
+        room_labels: Sequence[tuple[str, float, float]] | None = None,
     ) -> SpatialMapImage:
         """Draw the map around ``pose``.
 
         ``agent_up``: rotate so the agent's heading points up (else +y world is up, +x right).
         ``radius_m``: half-width of the area shown around the agent; None shows the whole floor.
+        ``room_labels``: (name, x, y) of the rooms to name, e.g. the scene graph's instances ("bedroom 2");
+        None names the cloud's room labels (one name per room type, the centre of all its floor points).
         Candidates are waypoints at the agent position plus ``(dx_m, dy_m)`` (world axes), labelled
         with their ``index``; a backtrack candidate with an offset is drawn in another colour.
         """
@@ -195,7 +198,7 @@ class SpatialMapper:
         to_px = lambda xy: np.rint(np.atleast_2d(xy) @ w2p[:, :2].T + w2p[:, 2]).astype(np.int32)  # noqa: E731
         scale = size_px / 512.0
 
-        for name, x, y in grid.rooms:
+        for name, x, y in (grid.rooms if room_labels is None else room_labels):
             _text(img, name.upper(), to_px((x, y))[0], 0.5 * scale, (20, 110, 40), centred=True)
 
         if trajectory_m is not None and len(trajectory_m) > 0:

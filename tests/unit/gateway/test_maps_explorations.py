@@ -141,3 +141,21 @@ def test_an_exploration_no_mapper_runs_is_cancelled_by_the_gateway(world, gatewa
         assert rec["state"] == "cancelled" and "no mapper runs it any more" in rec["message"]
         with client.stream("GET", "/explorations/x-orphan/events") as s:
             assert "cancelled" in s.read().decode()
+
+
+def test_scene_graph_route(world, gateway):
+    # A labelled floor and a wall: the real builder behind the scripted store gives one unnamed-free room.
+    rng = np.random.default_rng(7)
+    floor = np.c_[rng.uniform(0, 4, (3000, 2)), np.zeros(3000)]
+    wall = np.c_[rng.uniform(0, 4, 600), np.zeros(600), rng.uniform(0, 2.5, 600)]
+    xyz = np.r_[floor, wall]
+    labels = np.r_[np.zeros(3000), np.ones(600)].astype(np.int32)
+    world.reconstructor.add("flat", xyz, np.full((len(xyz), 3), 128), labels)
+    with gateway() as client:
+        r = client.get("/maps/flat/scene-graph.json")
+        assert r.status_code == 200, r.text
+        g = r.json()
+        assert g["map_id"] == "flat" and g["free_space"][0]["cell_m"] == 0.25
+        assert len(g["rooms"]) == 1 and g["rooms"][0]["area_m2"] > 10
+        assert client.get("/maps/nowhere/scene-graph.json").status_code == 404
+        assert client.get("/maps/bad*id/scene-graph.json").status_code == 422

@@ -1,0 +1,71 @@
+"""The heuristic with the scene graph (issue 32): grounding, the route, the fallback, honest outcomes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deploy.demo import outcome_phrase
+from libs.scenegraph import Router, build_scene_graph
+from services.planner.core.grounding import GroundingError, ground
+from services.planner.core.instruction import parse_instruction
+from shared.cloud import PointCloud
+
+
+def _two_rooms() -> PointCloud:
+    """A kitchen (x 0-4) and a bedroom (x 4.2-8) joined by a 1 m door, a red bed and a blue bed."""
+    rng = np.random.default_rng(0)
+    pts, lab = [], []
+    for x0, x1, lid in ((0, 4, 0), (4.2, 8, 1)):
+        p = np.c_[rng.uniform(x0, x1, 4000), rng.uniform(0, 4, 4000), np.zeros(4000)]
+        pts.append(p), lab.append(np.full(4000, lid))
+    door = np.c_[rng.uniform(4.0, 4.2, 200), rng.uniform(1.5, 2.5, 200), np.zeros(200)]
+    pts.append(door), lab.append(np.full(200, 1))
+    wall_y = np.r_[rng.uniform(0, 1.5, 800), rng.uniform(2.5, 4, 800)]
+    wall = np.c_[np.full(1600, 4.1), wall_y, rng.uniform(0, 2.5, 1600)]
+    pts.append(wall), lab.append(np.full(1600, 2))
+    for (cx, cy), lid in (((7.0, 0.8), 3), ((7.0, 3.2), 4)):
+        b = np.c_[rng.uniform(cx - 0.6, cx + 0.6, 500), rng.uniform(cy - 0.4, cy + 0.4, 500), rng.uniform(0.2, 0.6, 500)]
+        pts.append(b), lab.append(np.full(500, lid))
+    xyz = np.concatenate(pts).astype(np.float32)
+    labels = np.concatenate(lab).astype(np.int32)
+    rgb = np.full((len(xyz), 3), 200, np.uint8)
+    rgb[labels == 3] = (200, 40, 36)
+    rgb[labels == 4] = (46, 82, 200)
+    return PointCloud(xyz, rgb, labels, {0: "kitchen floor", 1: "bedroom floor", 2: "wall", 3: "bed", 4: "bed"})
+
+
+def test_grounding_picks_the_instance_the_instruction_describes_and_routes_through_the_door():
+    g = build_scene_graph(_two_rooms())
+    router = Router(g)
+    start = np.array([1.0, 2.0, 0.0])
+    for colour, y in (("blue", 3.2), ("red", 0.8)):
+        got = ground(parse_instruction(f"Exit the kitchen. Stop next to the {colour} bed in the bedroom."),
+                     g, router, start)
+        assert got.goal.colour == colour and abs(got.goal.position_m[1] - y) < 0.3, got.explained
+        assert [g.room(r).room_type for r in got.rooms] == ["kitchen", "bedroom"]
+        # The route goes through the door (y 1.5-2.5), not through the wall.
+        crossing = [p for p in got.route_m if 3.95 < p[0] < 4.25]
+        assert all(1.4 < p[1] < 2.6 for p in crossing)
+        assert got.route_m[0][0] < 4.0 < got.route_m[-1][0]
+        assert router.distance(got.field, start) >= 4.0
+
+
+def test_grounding_fails_plainly_when_the_map_has_no_such_object():
+    g = build_scene_graph(_two_rooms())
+    with pytest.raises(GroundingError, match="sofa"):
+        ground(parse_instruction("Stop next to the sofa."), g, Router(g), np.array([1.0, 2.0, 0.0]))
+
+
+def test_outcome_says_arrived_only_within_the_success_radius():
+    assert outcome_phrase("succeeded", {"ne_m": 17.48, "success": False}).startswith("stopped short")
+    assert "17.5 m" in outcome_phrase("succeeded", {"ne_m": 17.48, "success": False})
+    assert outcome_phrase("succeeded", {"ne_m": 1.2, "success": True}).startswith("ARRIVED")
+    assert "arrived" not in outcome_phrase("failed", {"ne_m": 1.0, "success": False}).lower()
+
+
+def test_backtracks_count_returns_to_earlier_places():
+    from bench.ablation import backtracks
+
+    assert backtracks([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]) == 0
+    assert backtracks([[0, 0, 0], [1, 0, 0], [2, 0, 0], [1.1, 0, 0], [0, 0.1, 0]]) == 2
