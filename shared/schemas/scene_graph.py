@@ -16,7 +16,7 @@ from pydantic import Field, model_validator
 
 from shared.arrays import Array
 
-from .base import Count, Distance_m, Message, SEQ_LIMIT, Xyz_m
+from .base import Count, Distance_m, Message, SEQ_LIMIT, SegmentId, Xyz_m
 from .navigation import NavGraph
 
 # Limits of one graph: a 1,000 m2 three-floor house has ~40 rooms and ~300 objects; these leave two
@@ -154,5 +154,5 @@ class SceneGraph(Message):
 class SceneGraphRequest(Message):
     """``MAP_SCENE_GRAPH``: the scene graph of a map version (latest when ``version`` is None)."""
 
-    map_id: str
+    map_id: SegmentId
     version: int | None = Field(None, ge=1, le=SEQ_LIMIT)
