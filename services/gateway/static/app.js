@@ -158,8 +158,10 @@ function renderHead() {
   const outcome = $("#m-outcome");
   outcome.hidden = !record.outcome;
   if (record.outcome) {
-    const goal = record.success === true ? "goal reached" : record.success === false ? "goal missed" : "no goal given";
-    outcome.textContent = `${OUTCOMES[record.outcome] || record.outcome} · ${goal}`;
+    // "arrived" only when the success criterion held (issue 32): the policy stopping is not arriving.
+    const goal = record.success === true ? "arrived" : record.success === false ? "did not arrive" : "no goal given";
+    const ne = record.metrics && typeof record.metrics.ne_m === "number" ? ` · NE ${record.metrics.ne_m.toFixed(1)} m` : "";
+    outcome.textContent = `${OUTCOMES[record.outcome] || record.outcome} · ${goal}${ne}`;
     outcome.className = "badge outcome " + (record.success === true ? "ok" : record.success === false ? "miss" : "");
   }
 }
@@ -279,7 +281,7 @@ function onEvent(ev) {
   Object.assign(record.images, ev.images || {});
   if (TERMINAL.has(ev.state)) {
     // The outcome and success are the gateway's reading of the end: take them from the record.
-    api(`/missions/${record.id}`).then((r) => { record.outcome = r.outcome; record.success = r.success; renderHead(); })
+    api(`/missions/${record.id}`).then((r) => { record.outcome = r.outcome; record.success = r.success; record.metrics = r.metrics || record.metrics; renderHead(); })
       .catch(() => {});
   }
   renderHead();

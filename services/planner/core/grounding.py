@@ -157,17 +157,26 @@ def _turn_agreement(turns, path, seen_rooms, graph, router, start_heading_rad) -
 
 def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m: np.ndarray,
            start_heading_rad: float = 0.0) -> Grounding:
-    final = parsed.final_landmarks
-    if not final:
-        raise GroundingError("the instruction names no final landmark")
     if not graph.objects:
         raise GroundingError("the map's scene graph has no objects (a map without labels)")
-    target = final[-1]
-    candidates = [o for o in graph.objects if label_matches(o.label, target)]
+    if not parsed.subgoals:
+        raise GroundingError("the instruction has no parsable clause")
+    stop_sg = next((sg for sg in parsed.subgoals if sg.stop), parsed.subgoals[-1])
+    # The map's own object classes are vocabulary too: "the brown nightstand" names a class the parser's
+    # table does not know, and without this the last landmark named anywhere (a bookshelf passed) won.
+    known = sorted({o.label.lower() for o in graph.objects}, key=len, reverse=True)
+    own = next((lab for lab in known if re.search(rf"\b{re.escape(lab)}s?\b", stop_sg.text.lower())), None)
+    final = stop_sg.landmarks or parsed.final_landmarks
+    if own is not None and not any(label_matches(own, t) for t in stop_sg.landmarks):
+        target = own
+        candidates = [o for o in graph.objects if o.label.lower() == own]
+    else:
+        if not final:
+            raise GroundingError("the instruction names no final landmark")
+        target = final[-1]
+        candidates = [o for o in graph.objects if label_matches(o.label, target)]
     if not candidates:
         raise GroundingError(f"no {target!r} in the map's scene graph")
-    stop_sg = next((sg for sg in parsed.subgoals if sg.stop and target in sg.landmarks), parsed.subgoals[-1])
-
     colour = _colour_before(stop_sg.text, LANDMARKS.get(target, (target,)))
     final_room = stop_sg.rooms[-1] if stop_sg.rooms else None
     # The rooms the route should pass in order (rooms being left are where it starts); the stop clause's

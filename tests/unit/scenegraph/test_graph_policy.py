@@ -69,3 +69,39 @@ def test_backtracks_count_returns_to_earlier_places():
 
     assert backtracks([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]) == 0
     assert backtracks([[0, 0, 0], [1, 0, 0], [2, 0, 0], [1.1, 0, 0], [0, 0.1, 0]]) == 2
+
+
+def _ctx(graph, instruction, xy=(1.0, 2.0)):
+    from services.planner.core.context import StepContext, build_candidate_views, with_stop_and_backtrack
+    from shared.schemas import Candidate, Pose
+
+    pose = Pose(position_m=(xy[0], xy[1], 0.0), heading_rad=0.0)
+    ways = [Candidate(index=i, dx_m=1.5 * np.cos(a), dy_m=1.5 * np.sin(a), angle_rad=float(a), distance_m=1.5)
+            for i, a in enumerate(np.linspace(-np.pi, np.pi, 8, endpoint=False))]
+    cands = with_stop_and_backtrack(ways, pose, None)
+    return StepContext(instruction=instruction, step=1, pose=pose, candidates=build_candidate_views(cands, None),
+                       label_names={}, scene_graph=graph)
+
+
+def test_policy_follows_the_route_stops_at_the_goal_and_says_when_it_falls_back():
+    from services.planner.core.policy import POLICIES
+    from shared.schemas import CandidateKind
+
+    g = build_scene_graph(_two_rooms())
+    text = "Exit the kitchen. Stop next to the blue bed in the bedroom."
+    policy = POLICIES.create("heuristic", {})
+    policy.reset("m1")
+    ctx = _ctx(g, text)
+    d = policy.decide(ctx)
+    assert d.kind == CandidateKind.WAYPOINT and "route to bed-" in d.reasoning and "along the route" in d.reasoning
+    moved = ctx.candidate(d.candidate_index).candidate
+    assert moved.dx_m > 0  # towards the door, east
+    policy.reset("m2")
+    near = policy.decide(_ctx(g, text, xy=(7.0, 2.6)))
+    assert near.kind == CandidateKind.STOP and "at the grounded goal" in near.reasoning
+    policy.reset("m3")
+    lost = policy.decide(_ctx(g, "Exit the kitchen. Stop next to the sofa."))
+    assert "scene graph not used" in lost.reasoning and "sofa" in lost.reasoning
+    off = POLICIES.create("heuristic", {"scene_graph": False})
+    off.reset("m4")
+    assert "route to" not in off.decide(_ctx(g, text)).reasoning
