@@ -18,7 +18,9 @@ def test_presets_mirror_the_paper(monkeypatch):
     monkeypatch.delenv("OPENAI_API_KEY", raising=False)
     monkeypatch.delenv("ANT_OPENAI_BASE_URL", raising=False)
     p = presets()
-    assert set(p) == {"cloud", "anticipation", "views", "hfov", "policies"}
+    assert set(p) == {"cloud", "anticipation", "views", "hfov", "policies", "scene-graph", "scene-graph-anticipation"}
+    assert [v.overrides["policy_config"]["scene_graph"] for v in p["scene-graph"].variants] == [False, True]
+    assert [v.overrides["anticipation"] for v in p["scene-graph-anticipation"].variants] == [False, True]
     views = p["views"].variants
     assert [v.overrides["anticipation"] for v in views] == [False, True, True, True]
     assert [(v.overrides.get("anticipation_views"), v.overrides.get("anticipation_splat_mode")) for v in views[1:]] \
@@ -29,6 +31,10 @@ def test_presets_mirror_the_paper(monkeypatch):
     assert [v.label for v in p["policies"].variants] == ["heuristic", "oracle"]
     monkeypatch.setenv("OPENAI_API_KEY", "sk-test")
     assert [v.label for v in presets()["policies"].variants] == ["heuristic", "oracle", "openai"]
+    # The MLLM's scene-graph ablation exists only with an LLM configured ("all" never starts a paid run).
+    mllm = presets()["scene-graph-mllm"].variants
+    assert [(v.overrides["policy"], v.overrides["policy_config"]["scene_graph"]) for v in mllm] \
+        == [("openai", False), ("openai", True)]
 
 
 def test_hfov_preset_runs_every_variant_and_writes_table_and_plot(world, gateway, episodes, tmp_path):
