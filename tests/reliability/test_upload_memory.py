@@ -16,10 +16,9 @@ import os
 from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
 
-from shared.cloud import header, records
+from bench.upload import write_ply  # the benchmark's slice-by-slice PLY writer
 from shared.schemas import IMPORT_PART_BYTES
 
 MB = 1 << 20
@@ -35,22 +34,6 @@ def _status_kb(pid: int, field: str) -> int:
 
 def _reset_peak(pid: int) -> None:
     Path(f"/proc/{pid}/clear_refs").write_text("5")  # VmHWM := current RSS
-
-
-def write_ply(path: Path, size_bytes: int, seed: int = 0) -> int:
-    """A PLY in our layout of about ``size_bytes`` bytes, written in slices (the test holds none of it)."""
-    rng = np.random.default_rng(seed)
-    count = size_bytes // 15
-    with open(path, "wb") as fh:
-        fh.write(header(count, False, comment="upload memory test"))
-        left = count
-        while left:
-            n = min(left, 1_000_000)
-            xyz = rng.uniform(-20.0, 20.0, (n, 3)).astype(np.float32)
-            rgb = rng.integers(0, 256, (n, 3), dtype=np.uint8)
-            fh.write(records(xyz, rgb))
-            left -= n
-    return count
 
 
 def _upload(url: str, path: Path, map_id: str) -> dict:

@@ -574,22 +574,17 @@ def _handler(server: StandinServer) -> type[BaseHTTPRequestHandler]:
             if truncated:
                 # Ollama keeps the prompt's end: the instruction is gone, and the model says so in prose.
                 window = server.config.emulate_context_tokens or server.emulation.context_tokens
-                content = "I cannot see an instruction to follow, so I am not sure where to go."
-                n_out = text_tokens(content)
-                server.count(window, n_out)
-                self._send(200, {
-                    "id": f"chatcmpl-standin-{server.stats.requests}", "object": "chat.completion",
-                    "created": int(time.time()), "model": model,
-                    "choices": [{"index": 0, "finish_reason": "stop",
-                                 "message": {"role": "assistant", "content": content}}],
-                    "usage": {"prompt_tokens": window, "completion_tokens": n_out, "total_tokens": window + n_out},
-                })
+                self._complete(model, "I cannot see an instruction to follow, so I am not sure where to go.", window)
                 return
             try:
                 content = server.answer(messages)
             except PromptReadError as exc:
                 self._error(400, f"the stand-in reads only the planner's prompt: {exc}", "invalid_request_error")
                 return
+            self._complete(model, content, n_in)
+
+        def _complete(self, model: str, content: str, n_in: int) -> None:
+            """A chat.completion answer with its usage, counted in the server's stats."""
             n_out = text_tokens(content)
             server.count(n_in, n_out)
             self._send(200, {
