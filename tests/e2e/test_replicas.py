@@ -43,11 +43,15 @@ def cluster(tmp_path):
         bus = ZenohBus(launcher.client_settings("reconstructor"))
         maps = ScriptedReconstructor(TypedBus(bus, "reconstructor"))
         maps.add_random("house", 20_000, seed=3)
-        client = TypedBus(bus, "test")
+        # The client asks for views (the planner's right) and every instance's metrics (the gateway's):
+        # under the least-privilege ACL only the read-only operator may do both, not the map source.
+        op_bus = ZenohBus(launcher.client_settings())
+        client = TypedBus(op_bus, "test")
         try:
             yield launcher, client
         finally:
             client.close()
+            op_bus.close()
             maps.close()
             bus.close()
 
