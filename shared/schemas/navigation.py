@@ -8,7 +8,7 @@ from pydantic import Field
 
 from shared.arrays import Array
 
-from .base import SegmentId, BUILD_MAX_FRAMES, Distance_m, Message, Metres, Radians
+from .base import BUILD_MAX_FRAMES, Distance_m, Message, Metres, Radians, SegmentId, Xyz_m
 from .geometry import Pose
 
 
@@ -39,17 +39,18 @@ class CandidateSet(Message):
 
 
 class NavNode(Message):
+    # Bounded like every number a request carries: the graph now travels in BuildMapRequest (issue 32).
     node_id: str
-    position_m: tuple[float, float, float]
+    position_m: Xyz_m
     visited: bool
-    region: int | None = None
-    floor: int = 0
+    region: int | None = Field(None, ge=-1, le=100_000)
+    floor: int = Field(0, ge=-100, le=100)
 
 
 class NavEdge(Message):
     a: str
     b: str
-    length_m: float
+    length_m: Distance_m
 
 
 class NavGraph(Message):

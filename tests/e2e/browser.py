@@ -15,15 +15,15 @@ LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backgro
                "--disable-component-update", "--no-first-run"]
 
 
-# One Chromium for the whole session (started by the first test that needs it, closed by
-# tests/e2e/conftest.py at the end): launching it costs seconds per test on a loaded machine, and every
+# One Chromium per test module (started by the first test that needs it, closed by
+# tests/e2e/conftest.py after the module): launching it costs seconds per test on a loaded machine, and every
 # page gets a fresh context of its own anyway (browser.new_page), so tests share no cookies or storage.
 _SHARED: dict = {}
 
 
 @contextmanager
 def headless_chromium() -> Iterator:
-    """Yield the session's launched playwright ``Browser``; the pages (and their contexts) a test opened
+    """Yield the module's launched playwright ``Browser``; the pages (and their contexts) a test opened
     are closed afterwards, so the next test starts with none."""
     if not Path(CHROMIUM).exists():
         pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)")

@@ -63,9 +63,15 @@ def test_recording_publishes_frames_and_counts_them(system):
 def test_bad_requests_get_typed_errors_and_service_keeps_serving(system):
     bus = TypedBus(FakeBus(system))
     robot = RobotClient(bus, "robot0")
-    with pytest.raises(RemoteError) as e:
+    # The client refuses a bad recording name itself (SegmentId); a payload forged past it is refused by
+    # the service with a typed error.
+    with pytest.raises(ValueError):
         with robot.recording(recording="bad/name"):
             pass
+    forged = RecordRequest.model_construct(**{**RecordRequest(recording="ok", start=True).model_dump(),
+                                              "recording": "bad/name"})
+    with pytest.raises(RemoteError) as e:
+        bus.request(keys.IO_RECORD.format(robot="robot0"), forged, RecordReply)
     assert e.value.code == ErrorCode.BAD_REQUEST
     with pytest.raises(RemoteError) as e:
         bus.request(keys.IO_RECORD.format(robot="robot0"), RecordRequest(recording="nope", start=False), RecordReply)

@@ -154,7 +154,12 @@ def samples(map_id: str = "m", panorama: schemas.Panorama | None = None) -> dict
         # An abort: valid, and sending it to the real store changes nothing.
         S.MapImportRequest(map_id="fuzz-import", filename="f.ply", upload_id="up-fuzz", offset=5, abort=True, last=False),
         S.BuildMapRequest(build_id="b-fuzz", exploration_id="x-fuzz", map_id="fuzz-build", recordings=[tour], label_names={1: "wall"},
-                          options={"k": 1.5}),
+                          options={"k": 1.5},
+                          navigation=S.NavGraph(nodes=[S.NavNode(node_id="n0", position_m=(1.0, 2.0, 0.0), visited=True,
+                                                                 region=1, floor=0),
+                                                       S.NavNode(node_id="n1", position_m=(1.5, 2.0, 0.0), visited=False)],
+                                                edges=[S.NavEdge(a="n0", b="n1", length_m=0.5)])),
+        S.SceneGraphRequest(map_id=map_id, version=1),
         S.RenderRequest(map_id=map_id, views=[S.ViewPose(position_m=(1.0, 2.0, 0.0), heading_rad=0.2, pitch_rad=0.1)],
                         camera=cam, camera_height_m=1.2),
         S.SpatialMapRequest(map_id=map_id, pose=pose, candidates=[cand], size_px=64, radius_m=5.0),
