@@ -145,26 +145,25 @@ class ReconstructorService(Service[ReconstructorSettings]):
     def list_maps(self, _: Ping) -> MapListReply:
         return MapListReply(maps=self.store.list())
 
-    def info(self, key: str, req: MapRequest) -> MapInfo:
-        keys.agree(keys.MAP_INFO, key, req, map="map_id")
+    def _map_query(self, key_def, key: str, req, read):
+        """A read of one stored map: the map is the key's (a payload id that disagrees is refused) and a
+        map or version the store lacks is answered ``not_found``."""
+        keys.agree(key_def, key, req, map="map_id")
         try:
-            return self.store.info(req.map_id, req.version)
+            return read()
         except MapNotFoundError as exc:
             raise NotFound(str(exc)) from None
+
+    def info(self, key: str, req: MapRequest) -> MapInfo:
+        return self._map_query(keys.MAP_INFO, key, req, lambda: self.store.info(req.map_id, req.version))
 
     def scene_graph(self, key: str, req: SceneGraphRequest) -> SceneGraph:
-        keys.agree(keys.MAP_SCENE_GRAPH, key, req, map="map_id")
-        try:
-            return self.store.scene_graph(req.map_id, req.version)
-        except MapNotFoundError as exc:
-            raise NotFound(str(exc)) from None
+        return self._map_query(keys.MAP_SCENE_GRAPH, key, req,
+                               lambda: self.store.scene_graph(req.map_id, req.version))
 
     def chunk(self, key: str, req: MapChunkRequest) -> MapChunk:
-        keys.agree(keys.MAP_CHUNK, key, req, map="map_id")
-        try:
-            return self.store.chunk(req.map_id, req.version, req.index, req.max_points)
-        except MapNotFoundError as exc:
-            raise NotFound(str(exc)) from None
+        return self._map_query(keys.MAP_CHUNK, key, req,
+                               lambda: self.store.chunk(req.map_id, req.version, req.index, req.max_points))
 
     def import_map(self, key: str, req: MapImportRequest) -> MapInfo | MapImportProgress:
         try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -42,3 +43,19 @@ def authenticated_router(tmp: Path, passwords: Mapping[str, str], **config: Any)
         yield AuthRouter(tmp, endpoint, passwords)
     finally:
         router.close()
+
+
+class Inbox:
+    """A subscriber's callback that keeps every (key, payload) it got, for tests that wait on deliveries."""
+
+    def __init__(self):
+        self.got: list[tuple[str, bytes]] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, key, data):
+        with self.lock:
+            self.got.append((key, bytes(data)))
+
+    def has(self, key, data=None):
+        with self.lock:
+            return any(k == key and (data is None or d == data) for k, d in self.got)

@@ -10,7 +10,7 @@ import pytest
 from deploy.zenoh import acl
 from shared import keys
 from shared.bus.base import QueryTarget
-from tests.contract.conftest import authenticated_router, wait_until
+from tests.contract.conftest import Inbox, authenticated_router, wait_until
 
 pytestmark = pytest.mark.contract
 
@@ -91,20 +91,6 @@ def test_a_wrong_password_is_refused(acl_net):
     _, connect = acl_net
     with pytest.raises(Exception, match="(?i)unable to connect"):
         connect("renderer", "not-the-password")
-
-
-class Inbox:
-    def __init__(self):
-        self.got: list[tuple[str, bytes]] = []
-        self.lock = threading.Lock()
-
-    def __call__(self, key, data):
-        with self.lock:
-            self.got.append((key, bytes(data)))
-
-    def has(self, key, data=None):
-        with self.lock:
-            return any(k == key and (data is None or d == data) for k, d in self.got)
 
 
 def test_a_service_subscribes_only_to_what_it_consumes(acl_net):

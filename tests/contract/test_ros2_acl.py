@@ -7,7 +7,6 @@ reach the ROS 2 keys."""
 from __future__ import annotations
 
 import json
-import threading
 
 import pytest
 
@@ -16,7 +15,7 @@ from libs.ros2 import messages as m
 from libs.ros2.keys import EntityKind, Qos, RmwZenohKeys
 from shared import keys
 from shared.bus.zenoh_bus import ZenohBus
-from tests.contract.conftest import authenticated_router, wait_until
+from tests.contract.conftest import Inbox, authenticated_router, wait_until
 
 pytestmark = pytest.mark.contract
 
@@ -34,20 +33,6 @@ def net(tmp_path_factory):
         yield {**clients, "endpoint": router.endpoint}
         for c in clients.values():
             c.close()
-
-
-class Inbox:
-    def __init__(self):
-        self.got: list[tuple[str, bytes]] = []
-        self.lock = threading.Lock()
-
-    def __call__(self, key, data):
-        with self.lock:
-            self.got.append((key, bytes(data)))
-
-    def has(self, key, data):
-        with self.lock:
-            return (key, data) in self.got
 
 
 def _rmw_odom_key() -> str:
