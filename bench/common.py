@@ -27,3 +27,19 @@ class Timer:
 
     def __exit__(self, *exc):
         self.s = time.perf_counter() - self.t0
+
+
+def wait_gateway(url: str, deadline_s: float, alive=lambda: True, interval_s: float = 0.2) -> bool:
+    """Wait until the gateway at ``url`` answers ``GET /maps`` (it reaches the map store); False when
+    ``deadline_s`` passes or ``alive()`` says the process died first."""
+    import httpx
+
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end and alive():
+        try:
+            if httpx.get(f"{url}/maps", timeout=2).status_code == 200:
+                return True
+        except httpx.HTTPError:
+            pass
+        time.sleep(interval_s)
+    return False

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import httpx
 
-from bench.common import percentiles_ms, table
+from bench.common import percentiles_ms, table, wait_gateway
 from deploy.launcher import free_port
 from tests.doubles.scripted_services import ScriptedPlanner, ScriptedReconstructor
 from shared.bus.config import ZenohSettings
@@ -184,16 +184,8 @@ def main(argv: list[str] | None = None) -> None:
         proc = subprocess.Popen([sys.executable, "-m", "services.gateway"], env=env, cwd=REPO, stdout=log,
                                 stderr=subprocess.STDOUT)
         try:
-            end = time.monotonic() + 60
-            while True:
-                try:
-                    if httpx.get(f"{url}/maps", timeout=2).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                if time.monotonic() > end or proc.poll() is not None:
-                    raise RuntimeError("the gateway did not come up: " + (Path(tmp) / "gateway.log").read_text()[-2000:])
-                time.sleep(0.1)
+            if not wait_gateway(url, 60.0, alive=lambda: proc.poll() is None, interval_s=0.1):
+                raise RuntimeError("the gateway did not come up: " + (Path(tmp) / "gateway.log").read_text()[-2000:])
             ids = []
             for i in range(args.missions):
                 r = httpx.post(f"{url}/missions", json={"instruction": f"bench mission {i}", "map_id": "bench-house",

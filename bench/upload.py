@@ -25,7 +25,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from bench.common import table
+from bench.common import table, wait_gateway
 from shared.cloud import header, records
 
 MB = 1 << 20
@@ -87,16 +87,8 @@ def main() -> int:
         env = {"ANT_LOG_LEVEL": "WARNING", "ANT_REQUEST_TIMEOUT_S": "120"}
         with Launcher(work / "run", services=list(SERVICES), extra_env=env, restart=False) as launcher:
             url = launcher.gateway_url
-            end = time.monotonic() + 120
-            while True:
-                try:
-                    if httpx.get(f"{url}/maps", timeout=5).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                if time.monotonic() > end:
-                    raise TimeoutError("the gateway did not reach the reconstructor within 120 s")
-                time.sleep(0.5)
+            if not wait_gateway(url, 120.0, interval_s=0.5):
+                raise TimeoutError("the gateway did not reach the reconstructor within 120 s")
             pids = {name: launcher.proc(f"{name}-0").popen.pid for name in SERVICES}
             if not args.no_warm:
                 warm = work / "warm.ply"
