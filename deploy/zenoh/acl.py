@@ -10,8 +10,11 @@ Each service authenticates to the router with its own user name (zenoh ``usrpwd`
   or owns (least privilege: the renderer cannot subscribe to the robot's frames, the gateway cannot
   query the robot's motion keys);
 
-and the router delivers samples, replies and declarations under ``ant/**`` (egress): a client only
-receives what it declared interest in, and it can only declare interest where its ingress rules let it.
+* be handed (egress) samples, replies, tokens, subscriptions and queries **only on that same set** -
+  what it owns or consumes, and its own ``alive``/``svc`` keys. Ingress alone would let a wildcard
+  declaration that merely *intersects* a consumed key (``ant/**``) receive everything under it; egress
+  drops every delivery outside the set. Read-only users (``readers``: the operator, tools) are still
+  handed everything under ``ant/**``.
 
 The robot's ROS 2 side (the stand-in, or a real robot's zenoh-bridge-ros2dds / rmw_zenoh router) joins
 as its own user (:class:`Ros2Side`, ``ros2_robot``): it and the services that talk ROS 2 (robot-io) may
@@ -48,8 +51,10 @@ REPLICATED = {"renderer": ("renderer-0", "renderer-1")}
 OWN_MESSAGES = ["put", "delete", "declare_queryable", "reply", "liveliness_token"]
 # What a service may originate on the keys it consumes (and its own): ask, subscribe, watch tokens.
 READ_MESSAGES = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
-# What the router may hand to any client: samples, replies and declarations (already checked on ingress).
+# What the router may hand a client: samples, replies and declarations (already checked on ingress).
 DELIVER_MESSAGES = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
+# Egress: everything the router may hand a client, on the keys that client may see.
+EGRESS_MESSAGES = list(dict.fromkeys([*DELIVER_MESSAGES, *READ_MESSAGES]))
 # On the ROS 2 key space its parties do everything: publish, subscribe, serve, call, hold graph tokens.
 ROS2_MESSAGES = list(dict.fromkeys([*OWN_MESSAGES, *READ_MESSAGES, *DELIVER_MESSAGES]))
 
@@ -183,28 +188,33 @@ def acl_config(services: Iterable[str] = SERVICES,
             keys.validate_segment(n, "instance")
     # "@adv": advanced subscribers' tokens and history queries (a verbatim chunk no wildcard matches).
     everywhere = [f"{keys.ROOT}/**", f"{keys.ROOT}/**/@adv/**", *routed_key_exprs(instances)]
-    rules: list[dict[str, Any]] = [
-        # What the router hands a client: it only reaches a client that declared a subscriber, a
-        # queryable or a token watch there, which that client's own ingress rules limited.
-        {"id": "deliver", "permission": "allow", "flows": ["egress"],
-         "messages": list(dict.fromkeys([*DELIVER_MESSAGES, *READ_MESSAGES])), "key_exprs": everywhere},
-    ]
+    rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
-    policies: list[dict[str, Any]] = [{"id": "everyone", "rules": ["deliver"], "subjects": [*services, *readers]}]
-    if readers:  # tools and tests: read and query everything, originate nothing
+    policies: list[dict[str, Any]] = []
+    if readers:  # the operator, tools and tests: read, query and be handed everything, originate nothing
         rules.append({"id": "read-all", "permission": "allow", "flows": ["ingress"], "messages": READ_MESSAGES,
                       "key_exprs": everywhere})
+        rules.append({"id": "deliver-all", "permission": "allow", "flows": ["egress"], "messages": EGRESS_MESSAGES,
+                      "key_exprs": everywhere})
         subjects += [{"id": r, "usernames": [r]} for r in readers]
-        policies.append({"id": "readers", "rules": ["read-all"], "subjects": list(readers)})
+        policies.append({"id": "readers", "rules": ["read-all", "deliver-all"], "subjects": list(readers)})
     for svc in services:
         owned = owned_key_exprs(svc, instances.get(svc, ()))
         rules.append({"id": f"own-{svc}", "permission": "allow", "flows": ["ingress"], "messages": OWN_MESSAGES,
                       "key_exprs": owned})
         # A service reads what it consumes, and its own keys (an owner may look at what it serves).
+        readable = list(dict.fromkeys([*consumed_key_exprs(svc, instances), *owned]))
         rules.append({"id": f"read-{svc}", "permission": "allow", "flows": ["ingress"], "messages": READ_MESSAGES,
-                      "key_exprs": list(dict.fromkeys([*consumed_key_exprs(svc, instances), *owned]))})
+                      "key_exprs": readable})
+        # Egress mirrors ingress: the router hands a service only what it owns or consumes - samples,
+        # replies and tokens of the keys it reads, and the subscriptions, queries and token watches of
+        # its consumers on the keys it owns. A declaration that slips through ingress (a wildcard that
+        # merely intersects a consumed key) still delivers nothing outside that set.
+        rules.append({"id": f"deliver-{svc}", "permission": "allow", "flows": ["egress"],
+                      "messages": EGRESS_MESSAGES, "key_exprs": readable})
         subjects.append({"id": svc, "usernames": [svc]})
-        policies.append({"id": f"{svc}-owns", "rules": [f"own-{svc}", f"read-{svc}"], "subjects": [svc]})
+        policies.append({"id": f"{svc}-owns", "rules": [f"own-{svc}", f"read-{svc}", f"deliver-{svc}"],
+                         "subjects": [svc]})
     if ros2 is not None:
         peers = [p for p in ros2.peers if p in services]
         rules.append({"id": "ros2", "permission": "allow", "flows": ["ingress", "egress"], "messages": ROS2_MESSAGES,
