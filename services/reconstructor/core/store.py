@@ -37,11 +37,12 @@ from typing import Any
 
 import numpy as np
 
-from shared.cloud import CloudFormatError, PointCloud, copy_ours, read_cloud, read_cloud_bytes
+from shared.cloud import CloudFormatError, PointCloud, copy_ours, header, read_cloud, read_cloud_bytes, records
 from shared.keys import KeyExprError, validate_segment
 from libs.scenegraph import build_scene_graph
 from shared.schemas import MapChunk, MapInfo, NavGraph, SceneGraph
 
+from . import foreign
 from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStoreError
 
 log = logging.getLogger(__name__)
@@ -71,8 +72,12 @@ class StoredMap:
 class MapStore:
     """Versioned maps under ``root``; safe for several threads and processes sharing the folder."""
 
-    def __init__(self, root: str | Path, cache_maps: int = 2, fsync: bool = True):
+    def __init__(self, root: str | Path, cache_maps: int = 2, fsync: bool = True,
+                 max_whole_bytes: int = 256 << 20):
         self.root = Path(root)
+        # A file that cannot be read a chunk at a time (compressed PCD, PLY list properties before the
+        # vertices) is parsed whole (open3d: ~50 bytes per point held); larger ones are refused.
+        self.max_whole_bytes = int(max_whole_bytes)
         self.root.mkdir(parents=True, exist_ok=True)
         self.fsync = fsync
         self._cache: OrderedDict[tuple[str, int], StoredMap] = OrderedDict()
@@ -182,6 +187,13 @@ class MapStore:
                     stored = self._import_ours(map_id, p, filename or p.name, source, max_points)
                     if stored is not None:
                         return stored
+                stored = self._import_foreign(map_id, p, filename or p.name, source, max_points)
+                if stored is not None:
+                    return stored
+                if p.stat().st_size > self.max_whole_bytes:
+                    raise MapFormatError(
+                        f"{filename or p.name}: a compressed PCD, or a PLY with list properties before its vertices, "
+                        f"is parsed whole; this one is {p.stat().st_size} bytes, the limit is {self.max_whole_bytes}")
                 try:
                     cloud = read_cloud(p)
                 except CloudFormatError as exc:
@@ -214,6 +226,51 @@ class MapStore:
             return self._store(map_id, write, source=source or f"import:{filename}", details={"imported": filename})
         except _NotOurs:
             return None
+
+    def _import_foreign(self, map_id: str, path: Path, filename: str, source: str | None,
+                        max_points: int) -> MapInfo | None:
+        """A PLY of another layout, or a PCD, converted into ours a chunk at a time (:mod:`.foreign`):
+        the records go to a body file beside the cloud with the count and bounds taken on the way, then
+        the header (which states the count) and the body make the cloud. None for a file that must be
+        parsed whole (a compressed PCD, list properties before the vertices)."""
+        try:
+            layout = foreign.layout_of(path)
+        except foreign.NotStreamable:
+            return None
+        except CloudFormatError as exc:
+            raise MapFormatError(f"{filename}: {exc}") from None
+        if layout.count > max_points:
+            raise MapFormatError(f"{filename}: {layout.count} points exceed the limit of {max_points}")
+
+        def write(ply: Path) -> dict[str, Any]:
+            body = ply.with_name("body.part")
+            count, lo_b, hi_b, dropped = 0, np.full(3, np.inf), np.full(3, -np.inf), 0
+            try:
+                with open(body, "wb") as out:
+                    for xyz, rgb in foreign.chunks(path, layout):
+                        finite = np.isfinite(xyz).all(axis=1)
+                        if not finite.all():
+                            dropped += int((~finite).sum())
+                            xyz, rgb = xyz[finite], rgb[finite]
+                        if len(xyz):
+                            count += len(xyz)
+                            lo_b, hi_b = np.minimum(lo_b, xyz.min(axis=0)), np.maximum(hi_b, xyz.max(axis=0))
+                            out.write(records(xyz, rgb))
+                if not count:
+                    raise CloudFormatError("every point is non-finite" if layout.count else "no points could be read")
+                if dropped:
+                    log.warning("%s: dropping %d non-finite points", filename, dropped)
+                with open(ply, "wb") as out, open(body, "rb") as src:
+                    out.write(header(count, False))
+                    shutil.copyfileobj(src, out, 16 << 20)
+            except CloudFormatError as exc:
+                raise MapFormatError(f"{filename}: {exc}") from None
+            finally:
+                body.unlink(missing_ok=True)
+            return dict(point_count=count, bounds_min_m=tuple(float(v) for v in lo_b),
+                        bounds_max_m=tuple(float(v) for v in hi_b), has_labels=False, label_names={})
+
+        return self._store(map_id, write, source=source or f"import:{filename}", details={"imported": filename})
 
     # --- reading -------------------------------------------------------------------------------
 
