@@ -1,8 +1,10 @@
 """Upload memory (issue 31 item 4): a large PLY streamed through the gateway into the reconstructor.
 
 The launcher's router, reconstructor and gateway run as real processes, authenticated and behind the
-generated ACL as in production. A PLY of ``--mb`` megabytes (default 500) in our layout is written to
-``--dir`` (default /tmp) a slice at a time and POSTed from the file as the request body. Before the
+generated ACL as in production. A cloud file of ``--mb`` megabytes (default 500) is written to
+``--dir`` (default /tmp) a slice at a time and POSTed from the file as the request body; ``--format``:
+ours (a PLY in the store's layout, copied slice by slice), ply-foreign (double xyz, extra properties:
+converted a chunk at a time) or pcd (binary, converted likewise). Before the
 measured upload each process's peak RSS (VmHWM) is reset to its current RSS (``/proc/<pid>/clear_refs``
 5), so the peak afterwards is what the upload cost it. A first small upload runs before (``--no-warm``
 skips it): whatever a first upload costs once (code paths run the first time, the bus's part
@@ -10,7 +12,7 @@ buffers, allocator arenas) is not the file's size.
 
 The last line printed is the verdict: each process's peak RSS growth against ``--limit-mb`` (150).
 
-    nice -n 5 python -m bench.upload [--mb 500] [--dir /tmp/x]
+    nice -n 5 python -m bench.upload [--mb 500] [--format ours|ply-foreign|pcd] [--dir /tmp/x]
 """
 
 from __future__ import annotations
@@ -47,6 +49,54 @@ def write_ply(path: Path, size_bytes: int, seed: int = 0) -> int:
     return count
 
 
+def write_foreign_ply(path: Path, size_bytes: int, seed: int = 0) -> int:
+    """A PLY of another layout than ours (32 bytes a point): double xyz, an extra float, colour after
+    it with an alpha channel - what a scanner's export looks like; the store converts it a chunk at a
+    time."""
+    dt = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("intensity", "<f4"), ("red", "u1"), ("green", "u1"),
+                   ("blue", "u1"), ("alpha", "u1")])
+    props = "".join(f"property {t} {n}\n" for t, n in (("double", "x"), ("double", "y"), ("double", "z"),
+                                                        ("float", "intensity"), ("uchar", "red"), ("uchar", "green"),
+                                                        ("uchar", "blue"), ("uchar", "alpha")))
+    count = size_bytes // dt.itemsize
+    head = f"ply\nformat binary_little_endian 1.0\ncomment bench.upload\nelement vertex {count}\n{props}end_header\n"
+    return _write_records(path, head.encode(), dt, count, seed)
+
+
+def write_pcd(path: Path, size_bytes: int, seed: int = 0) -> int:
+    """A binary PCD (16 bytes a point: x y z and the packed rgb float)."""
+    dt = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
+    count = size_bytes // dt.itemsize
+    head = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+            f"WIDTH {count}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {count}\nDATA binary\n")
+    return _write_records(path, head.encode(), dt, count, seed)
+
+
+def _write_records(path: Path, head: bytes, dt: np.dtype, count: int, seed: int) -> int:
+    rng = np.random.default_rng(seed)
+    with open(path, "wb") as fh:
+        fh.write(head)
+        left = count
+        while left:
+            n = min(left, 1_000_000)
+            rec = np.zeros(n, dt)
+            for axis in "xyz":
+                rec[axis] = rng.uniform(-20.0, 20.0, n)
+            if "rgb" in dt.names:
+                rec["rgb"] = rng.integers(0, 1 << 24, n, dtype=np.uint32)
+            else:
+                for ch in ("red", "green", "blue", "alpha"):
+                    rec[ch] = rng.integers(0, 256, n, dtype=np.uint8)
+            fh.write(rec.tobytes())
+            left -= n
+    return count
+
+
+# --format -> (file suffix, writer): the import path each exercises (ours: copied slice by slice;
+# the others: converted a chunk at a time by services/reconstructor/core/foreign.py).
+FORMATS = {"ours": (".ply", write_ply), "ply-foreign": (".ply", write_foreign_ply), "pcd": (".pcd", write_pcd)}
+
+
 def _status_kb(pid: int, field: str) -> int:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith(field + ":"):
@@ -70,6 +120,8 @@ def main() -> int:
     ap.add_argument("--dir", default=None, help="where the PLY and the run's files go (default: a /tmp folder)")
     ap.add_argument("--limit-mb", type=float, default=150.0, help="peak RSS growth allowed per process")
     ap.add_argument("--no-warm", action="store_true", help="measure the first upload (no warm-up upload)")
+    ap.add_argument("--format", choices=sorted(FORMATS), default="ours",
+                    help="ours: a PLY in the store's layout; ply-foreign: double xyz, extra properties; pcd: binary PCD")
     args = ap.parse_args()
     if not Path("/proc/self/clear_refs").exists():
         print("bench.upload needs Linux /proc (clear_refs, VmHWM): skipped")
@@ -78,9 +130,10 @@ def main() -> int:
 
     work = Path(tempfile.mkdtemp(prefix="bench-upload-", dir=args.dir))
     try:
-        ply = work / "big.ply"
+        suffix, writer = FORMATS[args.format]
+        ply = work / f"big{suffix}"
         t0 = time.perf_counter()
-        points = write_ply(ply, args.mb * MB)
+        points = writer(ply, args.mb * MB)
         size = ply.stat().st_size
         print(f"wrote {ply} ({size / MB:.0f} MiB, {points} points) in {time.perf_counter() - t0:.1f} s", flush=True)
         (work / "run").mkdir()
@@ -91,8 +144,8 @@ def main() -> int:
                 raise TimeoutError("the gateway did not reach the reconstructor within 120 s")
             pids = {name: launcher.proc(f"{name}-0").popen.pid for name in SERVICES}
             if not args.no_warm:
-                warm = work / "warm.ply"
-                write_ply(warm, 8 * MB, seed=1)
+                warm = work / f"warm{suffix}"
+                writer(warm, 8 * MB, seed=1)
                 _upload(url, warm, "warm")
             before = {}
             for name, pid in pids.items():
@@ -105,18 +158,18 @@ def main() -> int:
             left = {n: (_status_kb(p, "VmRSS") - before[n]) / 1024 for n, p in pids.items()}
         if info["point_count"] != points:
             raise RuntimeError(f"stored {info['point_count']} points, uploaded {points}")
-        table(f"upload of a {size / MB:.0f} MiB PLY ({points} points) in {took_s:.1f} s "
+        table(f"upload of a {size / MB:.0f} MiB {args.format} file ({points} points) in {took_s:.1f} s "
               f"({size / MB / took_s:.1f} MiB/s)",
               [(n, before[n] / 1024, growth[n], left[n], growth[n] / (size / MB)) for n in SERVICES],
               ("process", "RSS before (MiB)", "peak growth (MiB)", "RSS left (MiB)", "growth / file size"))
         ok = all(g < args.limit_mb for g in growth.values())
-        print(f"upload {size / MB:.0f} MiB: peak RSS growth gateway {growth['gateway']:.0f} MiB, "
+        print(f"upload {size / MB:.0f} MiB {args.format}: peak RSS growth gateway {growth['gateway']:.0f} MiB, "
               f"reconstructor {growth['reconstructor']:.0f} MiB (limit {args.limit_mb:.0f} MiB each): "
               f"{'PASS' if ok else 'FAIL'}", flush=True)
         shutil.rmtree(work, ignore_errors=True)
         return 0 if ok else 1
     except BaseException:
-        for p in work.glob("*.ply"):  # the big files go; the run's logs stay for a look
+        for p in [*work.glob("*.ply"), *work.glob("*.pcd")]:  # the big files go; the run's logs stay for a look
             p.unlink()
         print(f"bench.upload failed: logs under {work / 'run' / 'logs'}", file=sys.stderr)
         raise
