@@ -49,7 +49,12 @@ _WORD = re.compile(r"^[a-z][a-z ]{0,40}$")
 
 
 class LabellerError(RuntimeError):
-    """The labeller could not label (no endpoint, a refused answer after its retry)."""
+    """The labeller could not label (no endpoint, a refused answer after its retry). ``usage``: what the
+    calls made before the failure cost (they are billed all the same)."""
+
+    def __init__(self, message: str, usage: UsageData | None = None):
+        super().__init__(message)
+        self.usage = usage or UsageData()
 
 
 @dataclass
@@ -73,6 +78,13 @@ LABELLERS: Registry[Labeller] = Registry("scene-graph labeller")
 
 def _unlabelled(cloud: PointCloud) -> PointCloud:
     return PointCloud(cloud.xyz, cloud.rgb, None, {})
+
+
+def geometric_graph(cloud: PointCloud, navigation: NavGraph | None = None, *, map_id: str = "",
+                    version: int = 0) -> SceneGraph:
+    """The graph without names: rooms from the mapper's regions, their connections (what a map keeps
+    when its labeller fails)."""
+    return build_scene_graph(_unlabelled(cloud), navigation, map_id=map_id, version=version)
 
 
 @LABELLERS.register("sim", BackendConfig)
@@ -223,23 +235,31 @@ class MllmLabeller(Labeller):
                 cache = json.loads(cache_file.read_text())
             except (OSError, ValueError):
                 cache = {}  # a torn cache costs calls, never a wrong label
-        usage, answers = UsageData(), {}
-        with httpx.Client(timeout=cfg.timeout_s, headers={"Authorization": f"Bearer {self._key()}"}) as client:
-            for region in regions:
-                picked = _spread(list(frames[region]), cfg.frames_per_region)
-                images = [_data_url(f, cfg.image_px) for f in picked]
-                digest = hashlib.sha256("".join([cfg.model, LABEL_SYSTEM, *images]).encode()).hexdigest()
-                key = f"{region}:{digest}"
-                if key in cache:
-                    usage.cache_hits += 1
-                    answers[region] = cache[key]
-                    continue
-                answers[region] = cache[key] = self._ask(client, images, usage)
-        if cache_file is not None and answers:
-            cache_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache_file.with_suffix(cache_file.suffix + ".part")
-            tmp.write_text(json.dumps(cache, indent=1, sort_keys=True))
-            tmp.replace(cache_file)
+        usage, answers, asked = UsageData(), {}, False
+        try:
+            with httpx.Client(timeout=cfg.timeout_s, headers={"Authorization": f"Bearer {self._key()}"}) as client:
+                for region in regions:
+                    picked = _spread(list(frames[region]), cfg.frames_per_region)
+                    images = [_data_url(f, cfg.image_px) for f in picked]
+                    digest = hashlib.sha256("".join([cfg.model, LABEL_SYSTEM, *images]).encode()).hexdigest()
+                    key = f"{region}:{digest}"
+                    if key in cache:
+                        usage.cache_hits += 1
+                        answers[region] = cache[key]
+                        continue
+                    asked = True
+                    answers[region] = cache[key] = self._ask(client, images, usage)
+        except LabellerError as exc:
+            raise LabellerError(str(exc), usage) from None
+        except (httpx.HTTPError, ValueError) as exc:  # unreachable, timed out, a body that is no JSON
+            raise LabellerError(f"{cfg.model}: {type(exc).__name__}: {exc}", usage) from None
+        finally:
+            # The answers paid for are kept even when a later region fails: a retry asks only the rest.
+            if cache_file is not None and asked:
+                cache_file.parent.mkdir(parents=True, exist_ok=True)
+                tmp = cache_file.with_suffix(cache_file.suffix + ".part")
+                tmp.write_text(json.dumps(cache, indent=1, sort_keys=True))
+                tmp.replace(cache_file)
         return LabelledGraph(apply_answers(graph, answers), usage, answers)
 
 

@@ -16,8 +16,11 @@ import threading
 import time
 from collections import OrderedDict
 
-from pydantic import Field
+from typing import Any
 
+from pydantic import Field, model_validator
+
+from libs.scenegraph.labeller import LABELLERS
 from shared.cloud import CloudFormatError
 from services.reconstructor.core import (
     DEFAULT_RECONSTRUCTOR, MapNotFoundError, MapStore, ReconstructionConfig,
@@ -44,6 +47,18 @@ class ReconstructorSettings(ServiceSettings):
     max_queued_builds: int = Field(4, ge=1, le=100, description="map builds waiting behind the running one")
     max_open_uploads: int = Field(8, ge=1, le=1000, description="uploads in parts being received at once")
     upload_idle_s: float = Field(300.0, gt=0, le=86400, description="an upload with no part for this long is dropped")
+    labeller: str = Field("sim", description=(
+        "who names the rooms of each map version's scene graph (libs.scenegraph.labeller): sim (the map's "
+        "semantic labels: a simulator or an upstream detector), none (unnamed rooms) or mllm (asks the chat "
+        "model of labeller_config once per region with a few of its tour frames; answers cached per map)"))
+    labeller_config: dict[str, Any] = Field(default_factory=dict, description=(
+        'the labeller\'s typed config, e.g. {"model": "gpt-4o-mini", "base_url": "http://127.0.0.1:8088/v1", '
+        '"api_key_env": "OPENAI_API_KEY", "frames_per_region": 3}'))
+
+    @model_validator(mode="after")
+    def _labeller_known(self):
+        LABELLERS.create(self.labeller, self.labeller_config or None)  # an unknown name or bad config fails at start
+        return self
 
 
 class FrameBuffer:
@@ -96,7 +111,8 @@ class ReconstructorService(Service[ReconstructorSettings]):
 
     def __init__(self, settings: ReconstructorSettings):
         super().__init__(settings)
-        self.store = MapStore(settings.store_dir)
+        self.store = MapStore(settings.store_dir,
+                              labeller=LABELLERS.create(settings.labeller, settings.labeller_config or None))
         self.frames = FrameBuffer(settings.frame_buffer_mb * 1024 * 1024)
         # Beside the maps (same disk, so the finished file is parsed where it lies); a dot name is no map.
         self.uploads = Uploads(self.store.root / ".uploads", max_open=settings.max_open_uploads,
@@ -107,7 +123,8 @@ class ReconstructorService(Service[ReconstructorSettings]):
         self._build_lock = threading.Lock()
 
     def backends(self) -> dict[str, str]:
-        return {"reconstruction": DEFAULT_RECONSTRUCTOR, "store": str(self.store.root)}
+        return {"reconstruction": DEFAULT_RECONSTRUCTOR, "store": str(self.store.root),
+                "labeller": self.store.labeller.name}
 
     def start(self, node: Node) -> None:
         self._node = node

@@ -86,6 +86,7 @@ from .navigation import (  # noqa: F401
 )
 from .maps import (  # noqa: F401
     MapInfo,
+    MapLabelling,
     MapListReply,
     MapRequest,
     MapChunkRequest,

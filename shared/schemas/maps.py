@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from typing import Annotated, Any, ClassVar
 
-from pydantic import Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.arrays import Array
 
@@ -15,6 +15,8 @@ from .base import (
     BudgetExceeded,
     BUILD_MAX_FRAMES,
     BUILD_MAX_RECORDINGS,
+    Cost_usd,
+    Count,
     IMPORT_MAX_BYTES,
     IMPORT_PART_MAX_BYTES,
     LabelId,
@@ -31,6 +33,27 @@ from .navigation import NavGraph, TourRecording
 # --- maps ------------------------------------------------------------------------------------------
 
 
+class MapLabelling(BaseModel):
+    """Who named the rooms of a map version's scene graph and what that cost (issue 32): the store's
+    labeller backend (``sim`` | ``none`` | ``mllm``), the chat model it asked, the calls and tokens
+    (the counters of :class:`~shared.schemas.UsageData`), and ``error`` when the labeller failed and the
+    version kept the geometric graph (rooms unnamed)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    labeller: str = Field(pattern=r"^[a-z][a-z0-9_-]{0,31}$")
+    model: str = Field("", max_length=200)
+    regions: Count = 0  # regions the labeller was given frames of
+    rooms_named: Count = 0
+    calls: Count = 0
+    prompt_tokens: Count = 0
+    completion_tokens: Count = 0
+    cost_usd: Cost_usd = 0.0
+    reasks: Count = 0
+    cache_hits: Count = 0
+    error: str = Field("", max_length=1000)
+
+
 class MapInfo(Message):
     map_id: SegmentId
     version: int = Field(ge=1, le=SEQ_LIMIT)
@@ -44,6 +67,7 @@ class MapInfo(Message):
     scale_factors: list[Annotated[float, Field(gt=0.0, le=1e6)]] = Field(default_factory=list)
     timings_s: dict[str, Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]] = Field(default_factory=dict)
     created_s: Seconds = Field(default_factory=time.time)
+    labelling: MapLabelling | None = None  # None: stored before labellers were (or a streamed import)
 
 
 class MapListReply(Message):

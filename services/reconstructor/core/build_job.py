@@ -16,6 +16,9 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
+import cv2
+import numpy as np
+
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import BuildMapRequest, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo
 
@@ -47,12 +50,14 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
         ctx.progress(MapBuildProgress(stage="collecting", progress=0.0, regions=n,
                                       message=f"waiting for the frames of {n} recordings"))
         regions = []
+        tour_frames: dict[int, list[np.ndarray]] = {}  # region -> a few of its frames, for the labeller
         for i, rec in enumerate(req.recordings):
             ctx.check_cancelled()
             got = _collect(ctx, frames, rec.recording, rec.frame_count, frames_timeout_s)
             if len(got) < rec.frame_count:
                 log.warning("recording %s: %d of %d frames arrived", rec.recording, len(got), rec.frame_count)
             regions.append(region_from_frames(rec.region, rec.start_pose, got))
+            tour_frames.setdefault(rec.region, []).extend(labeller_frames(got))
             ctx.progress(MapBuildProgress(stage="collecting", progress=0.1 * (i + 1) / n, region=rec.region, regions=n,
                                           message=f"region {rec.region}: {len(got)} of {rec.frame_count} frames"))
 
@@ -70,12 +75,35 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
                                       message=f"storing {len(built.cloud):,} points"))
         info = store.save(req.map_id, built.cloud, source=req.source or f"exploration {req.exploration_id}",
                           regions=len(built.regions), scale_factors=built.scale_factors,
-                          timings_s=built.timings_s, details=built.details(), navigation=req.navigation)
+                          timings_s=built.timings_s, details=built.details(), navigation=req.navigation,
+                          frames={r: labeller_frames(f) for r, f in tour_frames.items()})
     finally:
         for rec in req.recordings:
             frames.drop(rec.recording)
     announce(info)
     return JobEnd(JobState.SUCCEEDED, MapBuildFinished(info=info))
+
+
+LABELLER_FRAMES = 8  # tour frames per region kept for the scene-graph labeller (it sends a few of them)
+LABELLER_PX = 384  # ... downscaled to this longer side (the labeller's default image size)
+
+
+def labeller_frames(frames, k: int = LABELLER_FRAMES, px: int = LABELLER_PX) -> list[np.ndarray]:
+    """``k`` RGB frames spread evenly over a tour (not ``k`` of the same corner), each downscaled so
+    that its longer side is at most ``px``: what a region costs to keep until its map is stored is
+    bounded (8 x 384 x 288 x 3 bytes = 2.6 MB), whatever the camera."""
+    frames = list(frames)
+    if len(frames) > k:
+        frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, k).round()]
+    out = []
+    for f in frames:
+        rgb = f if isinstance(f, np.ndarray) else f.rgb
+        scale = px / max(rgb.shape[:2])
+        if scale < 1.0:
+            rgb = cv2.resize(rgb, (max(1, round(rgb.shape[1] * scale)), max(1, round(rgb.shape[0] * scale))),
+                             interpolation=cv2.INTER_AREA)
+        out.append(np.ascontiguousarray(rgb, np.uint8))
+    return out
 
 
 def _collect(ctx: JobContext, frames: FrameSource, recording: str, count: int, timeout_s: float) -> list[Frame]:

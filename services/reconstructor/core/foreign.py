@@ -29,8 +29,8 @@ import numpy as np
 from shared.cloud import CloudFormatError
 
 _HEAD_BYTES = 1 << 20  # a header longer than this is not a point cloud we read
-_CHUNK_POINTS = 1 << 20  # binary records per chunk (a 1 M-record chunk of 27-byte records: ~27 MB)
-_CHUNK_TEXT_BYTES = 8 << 20  # ASCII text per chunk (~8 MB of lines; numbers parsed into ~8 MB of floats)
+_CHUNK_POINTS = 1 << 18  # binary records per chunk: a 256 k chunk of 32-byte records is 8 MB read, ~30 MB of temporaries
+_CHUNK_TEXT_BYTES = 4 << 20  # ASCII text per chunk (4 MB of lines; the numbers parsed into about as much)
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",

@@ -30,7 +30,7 @@ import threading
 import time
 import uuid
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +40,8 @@ import numpy as np
 from shared.cloud import CloudFormatError, PointCloud, copy_ours, header, read_cloud, read_cloud_bytes, records
 from shared.keys import KeyExprError, validate_segment
 from libs.scenegraph import build_scene_graph
-from shared.schemas import MapChunk, MapInfo, NavGraph, SceneGraph
+from libs.scenegraph.labeller import LABELLERS, Labeller, LabellerError, geometric_graph
+from shared.schemas import MapChunk, MapInfo, MapLabelling, NavGraph, SceneGraph
 
 from . import foreign
 from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStoreError
@@ -57,6 +58,9 @@ class _NotOurs(Exception):
 _CLOUD = "cloud.ply"
 _META = "meta.json"
 _GRAPH = "scene_graph.json"
+# The MLLM labeller's answers, per map (beside its versions; a dot name is no version): keyed by the
+# frames and the model, so a rebuild from the same tours asks nothing, across restarts too.
+_LABEL_CACHE = ".labels-cache.json"
 _STALE_TMP_S = 3600.0
 
 
@@ -73,8 +77,11 @@ class MapStore:
     """Versioned maps under ``root``; safe for several threads and processes sharing the folder."""
 
     def __init__(self, root: str | Path, cache_maps: int = 2, fsync: bool = True,
-                 max_whole_bytes: int = 256 << 20):
+                 max_whole_bytes: int = 256 << 20, labeller: Labeller | None = None):
         self.root = Path(root)
+        # Who names the rooms of each version's scene graph (libs.scenegraph.labeller; default: the
+        # map's own semantic labels, which only a simulator or a detector upstream provides).
+        self.labeller = labeller or LABELLERS.create("sim")
         # A file that cannot be read a chunk at a time (compressed PCD, PLY list properties before the
         # vertices) is parsed whole (open3d: ~50 bytes per point held); larger ones are refused.
         self.max_whole_bytes = int(max_whole_bytes)
@@ -96,11 +103,14 @@ class MapStore:
         timings_s: dict[str, float] | None = None,
         details: dict[str, Any] | None = None,
         navigation: NavGraph | None = None,
+        frames: Mapping[int, Sequence[np.ndarray]] | None = None,
     ) -> MapInfo:
         """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`.
 
-        The version's scene graph is built here, from the cloud and the exploration's ``navigation`` graph
-        (when the map came from one), and written beside the cloud."""
+        The version's scene graph is built here by the store's labeller, from the cloud, the
+        exploration's ``navigation`` graph (when the map came from one) and ``frames`` (region -> a few
+        of its tour frames, RGB, for the ``mllm`` labeller), and written beside the cloud; what the
+        labelling cost is the info's ``labelling``."""
         if len(cloud) == 0:
             raise MapFormatError(f"map {map_id!r}: refusing to store an empty cloud")
 
@@ -113,7 +123,26 @@ class MapStore:
 
         return self._store(map_id, write, source=source, regions=regions, scale_factors=scale_factors,
                            timings_s=timings_s, details=details,
-                           graph_of=lambda: build_scene_graph(cloud, navigation, map_id=map_id))
+                           graph_of=lambda: self._label(map_id, cloud, navigation, frames))
+
+    def _label(self, map_id: str, cloud: PointCloud, navigation: NavGraph | None,
+               frames: Mapping[int, Sequence[np.ndarray]] | None) -> tuple[SceneGraph, MapLabelling]:
+        """The version's scene graph through the labeller; a labeller that fails (a refused or garbled
+        answer, an unreachable server) leaves the geometric graph, and the labelling says why."""
+        lab = self.labeller
+        cache = self._map_dir(map_id, create=True) / _LABEL_CACHE
+        try:
+            out = lab.label(cloud, navigation, frames, map_id=map_id, cache_path=cache)
+            graph, usage, error = out.graph, out.usage, ""
+        except LabellerError as exc:
+            log.warning("map %s: the %s labeller failed, the graph stays unnamed: %s", map_id, lab.name, exc)
+            graph, usage, error = geometric_graph(cloud, navigation, map_id=map_id), exc.usage, str(exc)[:1000]
+        labelling = MapLabelling(
+            labeller=lab.name, model=str(getattr(lab.config, "model", "")), regions=len(frames or {}),
+            rooms_named=sum(bool(r.room_type) for r in graph.rooms), error=error,
+            **usage.model_dump(include={"calls", "prompt_tokens", "completion_tokens", "cost_usd", "reasks",
+                                        "cache_hits"}))
+        return graph, labelling
 
     def _store(self, map_id: str, write, *, source: str = "", regions: int = 0,
                scale_factors: list[float] | None = None, timings_s: dict[str, float] | None = None,
@@ -121,7 +150,8 @@ class MapStore:
         """The next version of ``map_id`` from ``write(ply_path) -> MapInfo fields`` (count, bounds,
         labels), written in a temporary folder renamed into place: a failure leaves nothing.
 
-        ``graph_of() -> SceneGraph`` builds the version's scene graph, written beside the cloud. A cloud
+        ``graph_of() -> (SceneGraph, MapLabelling)`` builds the version's scene graph, written beside the
+        cloud, and says who named its rooms (the info's ``labelling``). A cloud
         streamed in slices (an upload of any size) has none at import, since building it needs the
         whole cloud in memory: :meth:`scene_graph` builds it from the stored cloud when first asked."""
         try:
@@ -136,13 +166,13 @@ class MapStore:
             ply = tmp / _CLOUD
             fields = write(ply)
             digest = _sha256(ply)
-            graph = graph_of() if graph_of is not None else None
+            graph, labelling = graph_of() if graph_of is not None else (None, None)
             with self._version_lock(map_dir):
                 version = self._next_version(map_dir)
                 info = MapInfo(
                     map_id=map_id, version=version, **fields,
                     source=source, regions=regions, scale_factors=list(scale_factors or []),
-                    timings_s=dict(timings_s or {}), created_s=time.time(),
+                    timings_s=dict(timings_s or {}), created_s=time.time(), labelling=labelling,
                 )
                 files = {_CLOUD: digest}
                 if graph is not None:
