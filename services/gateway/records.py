@@ -109,6 +109,11 @@ def apply_event(summary: dict[str, Any], event: JobEvent, image_urls: dict[str, 
             summary["message"] = d.message or summary["message"]
         case ExplorationFinished():
             summary["progress"], summary["stage"], summary["map_id"] = d.progress, d.stage, d.map_id
+            # The map's labelling (the reconstructor's MLLM labeller) is this job's cost, as a mission's
+            # decisions are the mission's.
+            summary["prompt_tokens"] += d.usage.prompt_tokens
+            summary["completion_tokens"] += d.usage.completion_tokens
+            summary["cost_usd"] += d.usage.cost_usd
             summary["message"] = f"map {d.map_id} v{d.version}: {d.points} points from {d.regions} regions"
         case JobCancelled():
             summary["message"] = d.message
@@ -189,6 +194,9 @@ class ExplorationRecord(JobRecord):
     progress: float | None = Field(None, ge=0, le=1)
     stage: str | None = None
     request: dict[str, Any] = Field(default_factory=dict)
+    prompt_tokens: int = Field(0, description="what naming the map's rooms cost (the MLLM labeller), like a mission's")
+    completion_tokens: int = 0
+    cost_usd: float = 0.0
 
 
 class MissionSummary(BaseModel):

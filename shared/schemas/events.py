@@ -234,6 +234,8 @@ class ExplorationFinished(EventPayload):
     wall_s: Duration_s = 0.0
     timings_s: dict[str, Duration_s] = Field(default_factory=dict)
     outcome: ExplorationOutcome | None = None
+    # What naming the map's rooms cost (the store's MLLM labeller: MapInfo.labelling), for the ledger.
+    usage: UsageData = Field(default_factory=UsageData)
 
 
 class MapBuildProgress(StageProgress):

@@ -49,7 +49,8 @@ def exploration_record(row: JobRow) -> ExplorationRecord:
         finished_s=s.get("finished_s"), error=s.get("error"), message=s.get("message"),
         images=s.get("images", {}), url=f"/explorations/{row.id}", events_url=f"/explorations/{row.id}/events",
         map_id=s.get("map_id") or row.request.get("map_id"), progress=s.get("progress"), stage=s.get("stage"),
-        request=row.request)
+        request=row.request, prompt_tokens=s.get("prompt_tokens", 0), completion_tokens=s.get("completion_tokens", 0),
+        cost_usd=s.get("cost_usd", 0.0))
 
 
 def _get(store, job_id: str) -> JobRow:

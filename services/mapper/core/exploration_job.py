@@ -25,7 +25,7 @@ from typing import Protocol
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import (
     BuildMapRequest, ExplorationFinished, ExplorationOutcome, ExplorationProgress, ExplorationRequest, JobEvent, JobState, MapBuildProgress,
-    MapInfo, NavGraph, RecordReply, SceneSummary, Tour, TourRecording,
+    MapInfo, NavGraph, RecordReply, SceneSummary, Tour, TourRecording, UsageData,
 )
 
 from .discovery import DiscoveryConfig, discover, discovery_config
@@ -137,7 +137,14 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     return JobEnd(JobState.SUCCEEDED, ExplorationFinished(
         map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),
         skipped_regions=skipped, nodes=nodes, timings_s=timings_s, outcome=outcome,
-        wall_s=round(time.perf_counter() - t0, 2)))
+        wall_s=round(time.perf_counter() - t0, 2), usage=labelling_usage(info)))
+
+
+def labelling_usage(info: MapInfo) -> UsageData:
+    """What the reconstructor's labeller spent naming the map's rooms, as the ledger counts usage."""
+    if info.labelling is None:
+        return UsageData()
+    return UsageData(**info.labelling.model_dump(include=set(UsageData.model_fields)))
 
 
 class StepReporter:
