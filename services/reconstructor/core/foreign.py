@@ -54,6 +54,7 @@ class ForeignLayout:
     skip_lines: int = 0  # ascii: lines of elements before the vertices
     rgb_packed: str | None = None  # PCD: the packed colour field ("rgb" / "rgba")
     rgb_packed_type: str = "f4"  # its stored type: F (float bits) or U
+    float_colours: bool = False  # red/green/blue stored as floats in [0, 1] (scaled to 0-255)
 
     @property
     def values_per_record(self) -> int:
@@ -104,12 +105,14 @@ def _ply_layout(head: bytes) -> ForeignLayout:
     names = [n for n, _ in props]
     if not {"x", "y", "z"} <= set(names) or len(set(names)) != len(names):
         raise CloudFormatError("the PLY's vertices lack x, y or z (or repeat a property)")
+    float_colours = any(t.startswith("f") for n, t in props if n in ("red", "green", "blue"))
     if fmt == "ascii":
         return ForeignLayout("ascii", count, np.dtype([(n, "f8") for n in names]), body,
-                             skip_lines=sum(e[1] for e in elements[:at]))
+                             skip_lines=sum(e[1] for e in elements[:at]), float_colours=float_colours)
     order = "<" if fmt == "binary_little_endian" else ">"
     skip = sum(e[1] * np.dtype([(n, order + t) for n, t in e[2]]).itemsize for e in elements[:at])
-    return ForeignLayout("binary", count, np.dtype([(n, order + t) for n, t in props]), body + skip)
+    return ForeignLayout("binary", count, np.dtype([(n, order + t) for n, t in props]), body + skip,
+                         float_colours=float_colours)
 
 
 def _pcd_layout(head: bytes) -> ForeignLayout:
@@ -178,10 +181,9 @@ def _colours(rec: np.ndarray, layout: ForeignLayout) -> np.ndarray:
         return np.full((n, 3), 128, np.uint8)  # no colour: the whole-file parser's mid grey (0.5)
     out = np.empty((n, 3), np.uint8)
     for i, ch in enumerate(("red", "green", "blue")):
-        c = rec[ch]
-        stored = layout.dtype[ch]
-        if stored.kind == "f" and layout.kind == "binary":
-            c = np.nan_to_num(c.astype(np.float64), nan=0.0) * 255.0
+        c = np.nan_to_num(rec[ch].astype(np.float64), nan=0.0)
+        if layout.float_colours:
+            c = c * 255.0
         out[:, i] = np.clip(np.rint(c), 0, 255).astype(np.uint8)
     return out
 
@@ -213,7 +215,7 @@ def chunks(path: Path, layout: ForeignLayout) -> Iterator[tuple[np.ndarray, np.n
     yield from _ascii_chunks(path, layout)
 
 
-_NUMBER_ROW = re.compile(rb"\S")
+_NON_BLANK = re.compile(rb"\S")
 
 
 def _ascii_chunks(path: Path, layout: ForeignLayout) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -226,9 +228,9 @@ def _ascii_chunks(path: Path, layout: ForeignLayout) -> Iterator[tuple[np.ndarra
             ln = fh.readline()
             if not ln:
                 raise CloudFormatError("the body ends before the vertices")
-            skip -= bool(_NUMBER_ROW.search(ln))
+            skip -= bool(_NON_BLANK.search(ln))
         while done < layout.count:
-            lines = [ln for ln in fh.readlines(_CHUNK_TEXT_BYTES) if _NUMBER_ROW.search(ln)]
+            lines = [ln for ln in fh.readlines(_CHUNK_TEXT_BYTES) if _NON_BLANK.search(ln)]
             if not lines:
                 raise CloudFormatError(f"truncated file ({done} records, the header announces {layout.count})")
             lines = lines[: layout.count - done]

@@ -148,6 +148,18 @@ def test_another_property_order_is_read_right(tmp_path):
     np.testing.assert_array_equal(got.rgb, rgb.astype(np.uint8))
 
 
+@pytest.mark.parametrize("fmt", ["binary_big_endian", "ascii"])
+def test_float_colours_in_0_1_are_scaled(tmp_path, fmt):
+    """open3d divides every colour by 255 (float colours in [0, 1] come out black): the chunked reader
+    scales float channels to 0-255."""
+    xyz, rgb = _rows(10)
+    props = XYZ + [("float", "red"), ("float", "green"), ("float", "blue")]
+    src = write_ply(tmp_path / "in.ply", fmt, props, _cols(xyz, rgb / 255.0))
+    store = MapStore(tmp_path / "maps", fsync=False)
+    store.import_cloud("m", src, filename="x.ply")
+    np.testing.assert_array_equal(store.load("m").cloud.rgb, rgb.astype(np.uint8))
+
+
 def _truncate(p):
     p.write_bytes(p.read_bytes()[:-40])
 
