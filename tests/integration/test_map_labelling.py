@@ -19,6 +19,7 @@ from services.planner.tools.llm_standin import StandinConfig, StandinServer
 from services.reconstructor.core import MapStore, ReconstructionConfig
 from services.reconstructor.core.build_job import LABELLER_FRAMES, build_map
 from services.reconstructor.service import FrameBuffer, ReconstructorSettings
+from shared import keys
 from shared.bus.typed import TypedBus
 from shared.events import EventStream
 from shared.geometry import camera_pose
@@ -32,7 +33,7 @@ pytestmark = pytest.mark.timeout(120)
 CAM = CameraIntrinsics(width_px=48, height_px=36, hfov_deg=90.0)
 COLOURS = {0: (200, 40, 40), 1: (40, 190, 60)}  # region -> wall and floor colour
 CENTRES = {0: (2.0, 2.0), 1: (6.0, 2.0)}
-N_FRAMES = 10  # per region: more than the build keeps for the labeller (LABELLER_FRAMES)
+N_FRAMES = 9  # per region: more than the build keeps for the labeller (LABELLER_FRAMES)
 
 
 def _box(lo, hi) -> o3d.geometry.TriangleMesh:
@@ -83,18 +84,14 @@ def tours():
     return {r: [_frame(scene, i, r, 2 * np.pi * i / N_FRAMES) for i in range(N_FRAMES)] for r in (0, 1)}
 
 
-class _NoBus:
-    """Where the build's progress events go: a publish that keeps them (the events are not under test;
-    the stored map and its info are)."""
-
-    def __init__(self):
-        self.published = []
-
-    def publish(self, key, msg, **kw):
-        self.published.append((key, msg))
+@pytest.fixture
+def bus(peers):
+    """Where the build's progress events go: a real zenoh peer (the events are not under test here; the
+    stored map and its info are)."""
+    return TypedBus(peers[0], "reconstructor")
 
 
-def _build(store: MapStore, tours, build_id: str):
+def _build(store: MapStore, tours, build_id: str, bus: TypedBus):
     frames = FrameBuffer(64 << 20)
     recordings = []
     for region, got in tours.items():
@@ -105,7 +102,8 @@ def _build(store: MapStore, tours, build_id: str):
                                         start_pose=got[0].pose, frame_count=len(got)))
     req = BuildMapRequest(build_id=build_id, exploration_id="e1", map_id="house", recordings=recordings,
                           reconstruction="rgbd", navigation=_nav())
-    ctx = JobContext(build_id, threading.Event(), EventStream(_NoBus(), "ant/maps/house/builds/b/events", build_id))
+    events = keys.MAP_BUILD_EVENTS.format(map="house", build=build_id)
+    ctx = JobContext(build_id, threading.Event(), EventStream(bus, events, build_id))
     end = build_map(ctx, req, frames=frames, store=store, config=ReconstructionConfig(backend="rgbd"),
                     announce=lambda info: None, frames_timeout_s=1.0)
     assert end.state == JobState.SUCCEEDED
@@ -117,13 +115,13 @@ def _mllm(url: str, **kw):
                                      "frames_per_region": 3, **kw})
 
 
-def test_a_build_with_the_mllm_labeller_names_its_rooms_once_and_counts_the_cost(tmp_path, tours):
+def test_a_build_with_the_mllm_labeller_names_its_rooms_once_and_counts_the_cost(tmp_path, tours, bus):
     with StandinServer(StandinConfig(latency_s=0.0)) as srv:
         store = MapStore(tmp_path / "maps", fsync=False, labeller=_mllm(srv.url))
-        info = _build(store, tours, "b1")
+        info = _build(store, tours, "b1", bus)
         calls_first = srv.stats.requests
         # The store restarts (a new process reads the same folder) and the same tours are built again.
-        again = _build(MapStore(tmp_path / "maps", fsync=False, labeller=_mllm(srv.url)), tours, "b2")
+        again = _build(MapStore(tmp_path / "maps", fsync=False, labeller=_mllm(srv.url)), tours, "b2", bus)
         calls_after = srv.stats.requests
         sent = list(srv.prompts)
     graph = store.scene_graph("house", info.version)
@@ -144,7 +142,7 @@ def test_a_build_with_the_mllm_labeller_names_its_rooms_once_and_counts_the_cost
 
 
 @pytest.mark.parametrize("fault", ["500", "garbled"])
-def test_a_refused_or_garbled_answer_leaves_the_geometric_graph_and_says_so(tmp_path, tours, fault):
+def test_a_refused_or_garbled_answer_leaves_the_geometric_graph_and_says_so(tmp_path, tours, fault, bus):
     # Refused: the server answers HTTP 500. Garbled: the answer is no JSON, twice (the labeller's
     # corrective re-ask included) - the stand-in's Ollama emulation cuts an over-long prompt from the
     # start (its system message with it), as Ollama does, and answers without JSON.
@@ -152,7 +150,7 @@ def test_a_refused_or_garbled_answer_leaves_the_geometric_graph_and_says_so(tmp_
            StandinConfig(latency_s=0.0, emulate="ollama", emulate_context_tokens=256))
     with StandinServer(cfg) as srv:
         store = MapStore(tmp_path / "maps", fsync=False, labeller=_mllm(srv.url))
-        info = _build(store, tours, "b1")
+        info = _build(store, tours, "b1", bus)
     graph = store.scene_graph("house", info.version)
     assert sorted(r.region for r in graph.rooms) == [0, 1]
     assert [r.room_type for r in graph.rooms] == ["", ""] and not graph.labelled
