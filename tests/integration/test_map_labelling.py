@@ -17,7 +17,7 @@ import pytest
 from libs.scenegraph.labeller import LABELLERS
 from services.planner.tools.llm_standin import StandinConfig, StandinServer
 from services.reconstructor.core import MapStore, ReconstructionConfig
-from services.reconstructor.core.build_job import LABELLER_FRAMES, build_map
+from services.reconstructor.core.build_job import LABELLER_FRAMES, build_map, labeller_frames
 from services.reconstructor.service import FrameBuffer, ReconstructorSettings
 from shared import keys
 from shared.bus.typed import TypedBus
@@ -171,3 +171,12 @@ def test_the_labeller_is_a_setting_of_the_reconstructor():
     with pytest.raises(Exception, match="base_url"):
         ReconstructorSettings(labeller="mllm", labeller_config={"base_url": "ftp://x"})
     assert LABELLER_FRAMES >= 3
+
+
+def test_the_build_keeps_a_bounded_number_of_downscaled_frames_per_region():
+    """A region's tour of 50 VGA frames costs the labeller 8 frames of at most 384 px, spread over the tour."""
+    tour = [np.full((480, 640, 3), i, np.uint8) for i in range(50)]
+    kept = labeller_frames(tour)
+    assert len(kept) == LABELLER_FRAMES and all(f.shape == (288, 384, 3) and f.dtype == np.uint8 for f in kept)
+    assert [int(f[0, 0, 0]) for f in kept][::7] == [0, 49]  # the first and the last frame of the tour
+    assert len(labeller_frames(tour[:3])) == 3
