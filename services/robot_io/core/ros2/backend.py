@@ -264,6 +264,7 @@ class Ros2Robot(Robot):
         self.zero_twists_sent = 0
         self.cmd_published = 0
         self.nav2_cancels = 0
+        self.nav2_last_goal: ClientGoal | None = None  # the newest Nav2 goal, its status and feedback
         self.control_ticks: list[float] = []  # monotonic time of each control tick (benchmarks)
         self._next_tick: float | None = None
         self._cmd = self.node.publisher(p.cmd_vel, m.MESSAGES["twist"])
@@ -527,6 +528,7 @@ class Ros2Robot(Robot):
             handle = client.send_goal(goal, c.nav2_call_timeout_s)
         except ActionError as exc:
             raise NavigationFailedError(f"{what}: {exc}") from exc
+        self.nav2_last_goal = handle
         try:
             while not handle.wait(0.05):
                 self._check_safe()
