@@ -96,7 +96,9 @@ class _NavGoal:
     yaw_rad: float  # goal heading, true frame
     frame_id: str
     start_s: float
+    goal_xyz: np.ndarray | None = None  # where the path ends, true frame (replans aim here)
     index: int = 0
+    recoveries: int = 0
     best_rem_m: float = math.inf
     best_t_s: float = 0.0
     next_feedback_s: float = 0.0
@@ -168,6 +170,7 @@ class StandInRobot:
         if p.teleport_service:
             self.node.serve(p.teleport_service, "turtlesim/srv/TeleportAbsolute", self._on_teleport)
         self._motion_goal: _NavGoal | _SpinGoal | None = None
+        self._bumped = False  # the last tick's motion hit an obstacle
         self._feedback: list[tuple[ServerGoal, object]] = []
         self._nav_server = self._spin_server = None
         if config.nav2_actions:
@@ -264,7 +267,8 @@ class StandInRobot:
             if path is None:
                 code, why = NAV2_NO_VALID_PATH, "no path to the goal"
             else:
-                path = np.vstack([path[1:], goal_xyz[None]]) if len(path) > 1 else goal_xyz[None]
+                # From the node the robot stands on: the path's segments are clear between node centres.
+                path = np.vstack([path, goal_xyz[None]])
         if code:
             handle.execute()
             handle.finish(GoalStatus.ABORTED, m.new("nav2_msgs/action/NavigateToPose_Result", error_code=code,
@@ -272,7 +276,8 @@ class StandInRobot:
             return
         with self._lock:
             self._end_motion_goal(GoalStatus.ABORTED, 0, "preempted by a new goal")
-            self._motion_goal = _NavGoal(handle, path, float(goal_yaw), frame, self.t_s, best_t_s=self.t_s)
+            self._motion_goal = _NavGoal(handle, path, float(goal_yaw), frame, self.t_s, goal_xyz=goal_xyz,
+                                         best_t_s=self.t_s)
         handle.execute()
 
     def _spin_accepted(self, handle: ServerGoal) -> None:
@@ -325,11 +330,28 @@ class StandInRobot:
                                                    angular_distance_traveled=float(g.travelled_rad))))
         return 0.0, math.copysign(w, g.target_rad)
 
+    def _replan(self, g: _NavGoal) -> bool:
+        """A recovery: the base touched an obstacle (it left the planned line at a corner), so plan
+        again from where it is, as Nav2's replanning tree does. False: no path any more."""
+        path = self.sim.nav.shortest_path(self._pos, g.goal_xyz)
+        if path is None:
+            return False
+        g.path, g.index = np.vstack([path, g.goal_xyz[None]]), 0
+        g.recoveries += 1
+        return True
+
     def _nav_control(self, g: _NavGoal, dt: float) -> tuple[float, float]:
         c, p = self.config, self.profile
+        if self._bumped:
+            self._bumped = False
+            if not self._replan(g):
+                self._end_motion_goal(GoalStatus.ABORTED, NAV2_NO_VALID_PATH, "no path from here any more")
+                return 0.0, 0.0
         pos, heading = self._pos[:2], self._heading
         last = len(g.path) - 1
-        while g.index < last and np.linalg.norm(g.path[g.index, :2] - pos) < max(0.1, 2 * p.max_linear_mps * dt):
+        # Waypoint by waypoint, each one reached (the last tick lands on it): the segments between
+        # them are the clear ones, and cutting a corner would touch the wall beside it.
+        while g.index < last and np.linalg.norm(g.path[g.index, :2] - pos) < 1e-3:
             g.index += 1
         tgt = g.path[g.index, :2]
         d = float(np.linalg.norm(tgt - pos))
@@ -345,24 +367,26 @@ class StandInRobot:
             self._feedback.append((g.handle, m.new(
                 "nav2_msgs/action/NavigateToPose_Feedback", current_pose=pose,
                 navigation_time=duration(self.t_s - g.start_s),
-                estimated_time_remaining=duration(rem / p.max_linear_mps), number_of_recoveries=0,
+                estimated_time_remaining=duration(rem / p.max_linear_mps), number_of_recoveries=g.recoveries,
                 distance_remaining=float(rem))))
         if g.index == last and d <= c.xy_goal_tolerance_m:
             err = float(wrap_angle(g.yaw_rad - heading))
             if abs(err) <= c.yaw_goal_tolerance_rad:
                 self._end_motion_goal(GoalStatus.SUCCEEDED, 0, "")
                 return 0.0, 0.0
-            return 0.0, self._turn_rate(err)
+            return 0.0, math.copysign(min(abs(self._turn_rate(err)), abs(err) / dt), err)
         if self.t_s - g.best_t_s > c.progress_timeout_s:
             self._end_motion_goal(GoalStatus.ABORTED, NAV2_FAILED_TO_MAKE_PROGRESS,
                                   f"no progress for {c.progress_timeout_s:.0f} s")
             return 0.0, 0.0
         err = float(wrap_angle(math.atan2(tgt[1] - pos[1], tgt[0] - pos[0]) - heading))
-        if abs(err) > 0.35:  # face the path first (a differential base turns in place)
-            return 0.0, self._turn_rate(err)
-        v = min(p.max_linear_mps, math.sqrt(2 * p.linear_accel_mps2 * rem) + 0.02) * math.cos(err)
-        w = float(np.clip(2.0 * err, -math.radians(p.max_angular_dps), math.radians(p.max_angular_dps)))
-        return v, w
+        w_max = math.radians(p.max_angular_dps)
+        if abs(err) > 0.05 and d > 1e-3:  # face the segment first (a differential base turns in place)
+            return 0.0, math.copysign(min(abs(self._turn_rate(err)), abs(err) / dt), err)
+        # On the segment's bearing exactly (the heading turns before the step): a tracking
+        # controller's error is centimetres, and a centimetre past a cell edge is a bump here.
+        v = min(p.max_linear_mps, math.sqrt(2 * p.linear_accel_mps2 * rem) + 0.02, d / dt) * math.cos(err)
+        return v, float(np.clip(err / dt, -w_max, w_max))
 
     def _publish_feedback(self) -> None:
         with self._lock:
@@ -402,6 +426,7 @@ class StandInRobot:
                 if not ok:
                     self.stats.collisions += 1
                     self._v = 0.0
+                    self._bumped = True
                 moved = float(np.linalg.norm(end[:2] - self._pos[:2]))
                 self._pos = np.asarray(end, np.float64)
             self.sim.noise.on_motion(moved, abs(w_cmd) * dt)
