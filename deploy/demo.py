@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             labels = {int(k): v for k, v in sim.scene.label_names.items()}
         standin = StandIn(scene=args.scene, keys=args.ros2_keys, time_scale=args.time_scale, label_names=labels,
                           standin_config=json.loads(args.standin_config), motion=args.ros2_motion)
-        say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys, {args.ros2_motion} motion) against the ROS 2 stand-in robot "
+        say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys) with {args.ros2_motion} motion against the ROS 2 stand-in robot "
             f"(time scale {args.time_scale:g}); robot-io speaks only ROS 2 messages over zenoh")
     scenes = [nth_scene(args.scene, k) for k in range(args.robots)]
     if args.robots > 1:

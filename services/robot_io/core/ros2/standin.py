@@ -122,6 +122,7 @@ class StandInStats:
     collisions: int = 0
     images: int = 0
     last_cmd: tuple[float, float] = (0.0, 0.0)
+    nav2_goals: dict[str, int] = field(default_factory=dict)  # "<action> <STATUS>" -> goals ended so
     wall_per_tick_s: list[float] = field(default_factory=list)
 
 
@@ -271,6 +272,7 @@ class StandInRobot:
                 path = np.vstack([path, goal_xyz[None]])
         if code:
             handle.execute()
+            self._count_goal("navigate_to_pose", GoalStatus.ABORTED)
             handle.finish(GoalStatus.ABORTED, m.new("nav2_msgs/action/NavigateToPose_Result", error_code=code,
                                                     error_msg=why))
             return
@@ -297,7 +299,12 @@ class StandInRobot:
         """End the running goal (under ``_lock``)."""
         g, self._motion_goal = self._motion_goal, None
         if g is not None:
+            self._count_goal("spin" if isinstance(g, _SpinGoal) else "navigate_to_pose", status)
             g.handle.finish(status, self._result(g, code, why))
+
+    def _count_goal(self, action: str, status: GoalStatus) -> None:
+        key = f"{action} {status.name}"
+        self.stats.nav2_goals[key] = self.stats.nav2_goals.get(key, 0) + 1
 
     def _turn_rate(self, err: float) -> float:
         p = self.profile
