@@ -57,7 +57,8 @@ def goal_offset(s: StandIn, lo_m: float, hi_m: float, seed: int = 1) -> np.ndarr
     rng = np.random.default_rng(seed)
     for _ in range(2000):
         q = nav.sample_navigable(rng)
-        if lo_m <= nav.geodesic_distance(here, q) <= hi_m and np.linalg.norm(q[:2] - here[:2]) >= 0.5 * lo_m:
+        # Distance from q to here: one shortest-path field (the goal's, here) serves every sample.
+        if lo_m <= nav.geodesic_distance(q, here) <= hi_m and np.linalg.norm(q[:2] - here[:2]) >= 0.5 * lo_m:
             return q[:2] - here[:2]
     raise AssertionError(f"no walkable point {lo_m}-{hi_m} m away")
 
