@@ -49,6 +49,9 @@ SERVICES = {
 # ros-navigation/navigation2 nav2_msgs/action (Jazzy's bt_navigator fills NavigateToPose's
 # error_code with the failing planner's or controller's code, see ``libs.ros2.action``). Error-code
 # constants are left out: they do not enter the type hash, and the codes are data in ``action.py``.
+# Other distros differ in fields, hence in hash and layout: Kilted's Spin goal adds ``bool
+# disable_collision_checks``, Rolling's NavigateToPose feedback adds two tracking errors; a robot on
+# them needs their definitions here (rmw_zenoh keys would not match, bridge payloads would not decode).
 ACTIONS = {
     "nav2_msgs/action/NavigateToPose": (
         "geometry_msgs/PoseStamped pose\nstring behavior_tree\n",
