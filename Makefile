@@ -5,6 +5,8 @@ RENDERERS ?= 1
 # ROBOT=ros2: robot-io's ros2 backend against the ROS 2 stand-in robot, in ROS2_KEYS style (bridge | rmw_zenoh).
 ROBOT ?= sim
 ROS2_KEYS ?= bridge
+# ROS2_MOTION=nav2: move_to/turn/look_around as Nav2 goals (NavigateToPose, Spin) instead of cmd_vel.
+ROS2_MOTION ?= cmdvel
 # ROBOTS=N: robot0..robotN-1 at once (a robot-io and a gateway each; planner, mapper, renderer and
 # reconstructor shared by all), for `make demo` (each robot in its own generated house) and `make eval`.
 ROBOTS ?= 1
@@ -15,7 +17,7 @@ setup:
 	@bash deploy/bootstrap.sh
 
 demo: setup
-	$(PY) -m deploy.demo --renderers $(RENDERERS) --robot $(ROBOT) --ros2-keys $(ROS2_KEYS) --robots $(ROBOTS)
+	$(PY) -m deploy.demo --renderers $(RENDERERS) --robot $(ROBOT) --ros2-keys $(ROS2_KEYS) --ros2-motion $(ROS2_MOTION) --robots $(ROBOTS)
 
 # The whole system until Ctrl-C: prints the dashboard URL and the API token (PORT=8080 SCENE=generated:0).
 PORT ?= 8080

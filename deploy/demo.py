@@ -169,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robot", choices=["sim", "ros2"], default="sim",
                     help="sim: the embedded simulator; ros2: the ros2 backend against the ROS 2 stand-in robot")
     ap.add_argument("--ros2-keys", choices=["bridge", "rmw_zenoh"], default="bridge")
+    ap.add_argument("--ros2-motion", choices=["cmdvel", "nav2"], default="cmdvel",
+                    help="nav2: move/turn as Nav2 goals (NavigateToPose, Spin) to the robot's Nav2 (the stand-in serves them)")
     ap.add_argument("--time-scale", type=float, default=ROS2_TIME_SCALE, help="the ROS 2 stand-in's simulated/real time")
     ap.add_argument("--max-steps", type=int, default=400, help="exploration budget (steps)")
     ap.add_argument("--standin-config", default="{}", help="JSON: the ROS 2 stand-in's config (camera, rates, faults)")
@@ -192,8 +194,8 @@ def main(argv: list[str] | None = None) -> int:
         with ROBOTS_sim(args.scene) as sim:
             labels = {int(k): v for k, v in sim.scene.label_names.items()}
         standin = StandIn(scene=args.scene, keys=args.ros2_keys, time_scale=args.time_scale, label_names=labels,
-                          standin_config=json.loads(args.standin_config))
-        say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys) against the ROS 2 stand-in robot "
+                          standin_config=json.loads(args.standin_config), motion=args.ros2_motion)
+        say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys) with {args.ros2_motion} motion against the ROS 2 stand-in robot "
             f"(time scale {args.time_scale:g}); robot-io speaks only ROS 2 messages over zenoh")
     scenes = [nth_scene(args.scene, k) for k in range(args.robots)]
     if args.robots > 1:

@@ -190,6 +190,7 @@ class StandIn:
     time_scale: float = 4.0
     label_names: dict[int, str] = field(default_factory=dict)
     standin_config: dict = field(default_factory=dict)
+    motion: str = "cmdvel"  # or nav2: robot-io moves with Nav2 goals, which the stand-in serves
 
     def argv(self, endpoint: str) -> list[str]:
         cfg = {"time_scale": self.time_scale, **self.standin_config}
@@ -201,7 +202,8 @@ class StandIn:
         """robot-io's backend config; ``zenoh``: how its ROS 2 session joins (robot-io's credentials)."""
         transport = (zenoh or ZenohSettings(connect=[endpoint])).model_dump(mode="json", exclude_none=True,
                                                                             exclude={"config_file"})
-        config = {"profile": "generic", "profile_overrides": STANDIN_PROFILE_OVERRIDES, "keys": self.keys,
+        config = {"profile": "generic", "profile_overrides": {**STANDIN_PROFILE_OVERRIDES, "motion": self.motion},
+                  "keys": self.keys,
                   "transport_config": {"zenoh": transport}, "connect_timeout_s": 120,
                   # 0.5 s of wall time, in robot time (the stand-in runs time_scale times faster).
                   "max_data_age_s": 0.5 * self.time_scale, "clock_timeout_s": 5.0,

@@ -39,6 +39,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from libs.ros2.action import action_names
 from libs.ros2.keys import LIVELINESS_PREFIX, BridgeKeys, KeyStyleName, fully_qualified
 from libs.ros2.profiles import PROFILES, STANDIN_OVERRIDES, Ros2Profile, profile
 from shared import keys
@@ -63,9 +64,14 @@ ROS_NAME_FIELDS = ("cmd_vel", "odom", "color", "camera_info", "depth", "semantic
                    "clock", "run_stop", "nav_mode_service", "teleport_service")
 
 
+# The Ros2Profile fields that name a ROS action: its three services and two topics (libs.ros2.action).
+ACTION_NAME_FIELDS = ("navigate_action", "spin_action")
+
+
 def ros_names(prof: Ros2Profile) -> list[str]:
-    """Every ROS topic and service name a profile uses."""
-    return [v for f in ROS_NAME_FIELDS if (v := getattr(prof, f))]
+    """Every ROS topic and service name a profile uses (an action's as its services and topics)."""
+    names = [v for f in ROS_NAME_FIELDS if (v := getattr(prof, f))]
+    return names + [n for f in ACTION_NAME_FIELDS if (a := getattr(prof, f)) for n in action_names(a).values()]
 
 
 def default_ros_names() -> tuple[str, ...]:

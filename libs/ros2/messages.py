@@ -39,6 +39,29 @@ MESSAGES = {
 SERVICES = {
     "std_srvs/srv/Trigger": ("", "bool success\nstring message\n"),
     "turtlesim/srv/TeleportAbsolute": ("float32 x\nfloat32 y\nfloat32 theta\n", ""),
+    # An action's cancel service (rcl_action). Constants are not part of the type hash (REP-2016);
+    # the return codes are in ``libs.ros2.action.CancelReturn``.
+    "action_msgs/srv/CancelGoal": ("action_msgs/GoalInfo goal_info\n",
+                                   "int8 return_code\naction_msgs/GoalInfo[] goals_canceling\n"),
+}
+
+# name -> (goal, result, feedback fields), in .action syntax: the Jazzy definitions of
+# ros-navigation/navigation2 nav2_msgs/action (Jazzy's bt_navigator fills NavigateToPose's
+# error_code with the failing planner's or controller's code, see ``libs.ros2.action``). Error-code
+# constants are left out: they do not enter the type hash, and the codes are data in ``action.py``.
+# Other distros differ in fields, hence in hash and layout: Kilted's Spin goal adds ``bool
+# disable_collision_checks``, Rolling's NavigateToPose feedback adds two tracking errors; a robot on
+# them needs their definitions here (rmw_zenoh keys would not match, bridge payloads would not decode).
+ACTIONS = {
+    "nav2_msgs/action/NavigateToPose": (
+        "geometry_msgs/PoseStamped pose\nstring behavior_tree\n",
+        "uint16 error_code\nstring error_msg\n",
+        "geometry_msgs/PoseStamped current_pose\nbuiltin_interfaces/Duration navigation_time\n"
+        "builtin_interfaces/Duration estimated_time_remaining\nint16 number_of_recoveries\nfloat32 distance_remaining\n"),
+    "nav2_msgs/action/Spin": (
+        "float32 target_yaw\nbuiltin_interfaces/Duration time_allowance\n",
+        "builtin_interfaces/Duration total_elapsed_time\nuint16 error_code\nstring error_msg\n",
+        "float32 angular_distance_traveled\n"),
 }
 
 
@@ -47,9 +70,10 @@ class CdrError(Ros2ProtocolError, ValueError):
 
 
 def _as_srv_names(o: Any) -> Any:
-    # get_types_from_msg files every type under "<pkg>/msg/"; a service's parts live under "<pkg>/srv/".
+    # get_types_from_msg files every type under "<pkg>/msg/"; a service's parts live under "<pkg>/srv/"
+    # (an action's under "<pkg>/action/").
     if isinstance(o, str):
-        return o.replace("/srv/msg/", "/srv/")
+        return o.replace("/srv/msg/", "/srv/").replace("/action/msg/", "/action/")
     if isinstance(o, (list, tuple)):
         return type(o)(_as_srv_names(x) for x in o)
     return o
@@ -66,6 +90,24 @@ def service_types(name: str, request: str, response: str) -> dict:
         f"{name}_Event"))
     types.update(get_types_from_msg(
         f"{short}_Request request_message\n{short}_Response response_message\n{short}_Event event_message\n", name))
+    return {_as_srv_names(k): _as_srv_names(v) for k, v in types.items()}
+
+
+def action_types(name: str, goal: str, result: str, feedback: str) -> dict:
+    """The typestore definitions of action ``name`` as rosidl generates them: its Goal, Result and
+    Feedback messages, the ``_SendGoal`` and ``_GetResult`` services (each hashed like any service,
+    which is the hash rmw_zenoh puts in their keys) and the ``_FeedbackMessage`` topic type."""
+    short = name.rsplit("/", 1)[1]
+    types: dict = {}
+    types.update(get_types_from_msg(goal, f"{name}_Goal"))
+    types.update(get_types_from_msg(result, f"{name}_Result"))
+    types.update(get_types_from_msg(feedback, f"{name}_Feedback"))
+    types.update(service_types(f"{name}_SendGoal", f"unique_identifier_msgs/UUID goal_id\n{short}_Goal goal\n",
+                               "bool accepted\nbuiltin_interfaces/Time stamp\n"))
+    types.update(service_types(f"{name}_GetResult", "unique_identifier_msgs/UUID goal_id\n",
+                               f"int8 status\n{short}_Result result\n"))
+    types.update(get_types_from_msg(f"unique_identifier_msgs/UUID goal_id\n{short}_Feedback feedback\n",
+                                    f"{name}_FeedbackMessage"))
     return {_as_srv_names(k): _as_srv_names(v) for k, v in types.items()}
 
 
@@ -91,6 +133,8 @@ def typestore() -> Typestore:
     store = get_typestore(Stores.ROS2_JAZZY)
     for name, (req, resp) in SERVICES.items():
         store.register(service_types(name, req, resp))
+    for name, (goal, result, feedback) in ACTIONS.items():
+        store.register(action_types(name, goal, result, feedback))
     _fix_char_arrays(store)
     return store
 
@@ -113,7 +157,9 @@ class RosType:
 
     @property
     def is_service(self) -> bool:
-        return self.name.split("/")[1] == "srv"
+        """A service, an action's generated ``_SendGoal``/``_GetResult`` services included."""
+        kind = self.name.split("/")[1]
+        return kind == "srv" or (kind == "action" and self.name.endswith(("_SendGoal", "_GetResult")))
 
 
 @functools.cache

@@ -32,6 +32,13 @@ class DepthEncoding(StrEnum):
     COMPRESSED_DEPTH = "compressedDepth"
 
 
+class Motion(StrEnum):
+    """How the backend moves the base."""
+
+    CMDVEL = "cmdvel"  # its own closed loop on odometry, publishing cmd_vel (any base)
+    NAV2 = "nav2"  # goals to the robot's Nav2: NavigateToPose (bt_navigator), Spin (behavior_server)
+
+
 class Ros2Profile(BackendConfig):
     """Topic names (absolute, or relative to the namespace), encodings, frames, services and limits.
 
@@ -55,6 +62,12 @@ class Ros2Profile(BackendConfig):
     run_stop: str | None = None  # std_msgs/Bool, true while the run-stop is pressed
     nav_mode_service: str | None = None  # std_srvs/Trigger called once on connect
     teleport_service: str | None = None  # turtlesim/TeleportAbsolute (simulators only)
+    # ``nav2``: move_to sends NavigateToPose goals (Nav2's planner, costmaps, controller and recoveries
+    # drive the base), turn and look_around Spin goals; ``cmdvel`` where an action server does not
+    # answer. Observe keeps the cmd_vel loop: its 12 headings need 1.5 degree accuracy.
+    motion: Motion = Motion.CMDVEL
+    navigate_action: str = "/navigate_to_pose"  # nav2 bt_navigator's action (nav2_msgs/action/NavigateToPose)
+    spin_action: str | None = "/spin"  # nav2 behavior_server's spin behaviour (nav2_msgs/action/Spin)
     odom_frame: str = "odom"
     base_frame: str = "base_link"
     # The frame of the robot's localisation (nav2's AMCL or slam_toolbox publish ``map_frame ->
@@ -80,7 +93,7 @@ class Ros2Profile(BackendConfig):
     safety_distance_m: float = Field(0.3, ge=0.05, le=3.0)
     base_radius_m: float = Field(0.17, gt=0.0, le=1.0)
 
-    @field_validator("cmd_vel", "odom", "color", "camera_info")
+    @field_validator("cmd_vel", "odom", "color", "camera_info", "navigate_action")
     @classmethod
     def _required(cls, v: str) -> str:
         if not v or not v.strip("/"):

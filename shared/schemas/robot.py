@@ -88,6 +88,9 @@ class Frame(Message):
 class MoveStatus(StrEnum):
     REACHED = "reached"
     BLOCKED = "blocked"
+    # The robot's own planner found no way there (Nav2: goal occupied, outside the map, no valid path):
+    # the robot did not set off.
+    UNREACHABLE = "unreachable"
 
 
 class SceneViewsRequest(Message):

@@ -83,8 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         robot.close()
         transport.close()
-        log.info("stopped after %d ticks, %d commands, %d collisions", robot.stats.ticks, robot.stats.cmd_received,
-                 robot.stats.collisions)
+        log.info("stopped after %d ticks, %d commands, %d collisions; Nav2 goals: %s", robot.stats.ticks,
+                 robot.stats.cmd_received, robot.stats.collisions,
+                 ", ".join(f"{k} {v}" for k, v in sorted(robot.stats.nav2_goals.items())) or "none")
     return 0
 
 

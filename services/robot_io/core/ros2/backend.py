@@ -9,6 +9,11 @@
 * Every command has a deadline. A zero Twist is sent on every exit of a motion - done, timeout,
   exception, ``close`` (shutdown, SIGTERM through the service runner) - so the robot is never left
   moving. Odometry or camera data older than ``max_data_age_s`` is :class:`StaleDataError`.
+* Nav2 motion (profile ``motion: nav2``): ``move_to`` is a NavigateToPose goal to the robot's
+  bt_navigator, ``turn`` and ``look_around`` are Spin goals to its behavior_server; the goal's feedback
+  and status are followed, the goal is cancelled on our deadline, a halt or a lost link, and Nav2's
+  result codes become our outcomes (:data:`NAV2_ERROR_OUTCOMES`). An action server that does not
+  answer at connect leaves that motion on the cmd_vel controller.
 * ``reset`` needs the profile's teleport service; else :class:`ResetUnsupportedError`.
 * Geodesic queries come from the map topic when it is published, else NotImplementedError.
 * Poses: odometry, or with the profile's ``map_frame`` the robot's localisation: odometry composed
@@ -35,14 +40,17 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from enum import StrEnum
+
 from shared.geometry import panorama_headings, planar_apply, wrap_angle
 from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose, SceneSummary
 
 from libs.ros2 import messages as m
+from libs.ros2.action import ActionClient, ActionError, ClientGoal, GoalStatus, duration
 from libs.ros2.keys import Qos, key_style
 from libs.ros2.node import Received, Ros2Node
-from libs.ros2.profiles import Ros2Profile, profile
+from libs.ros2.profiles import Motion, Ros2Profile, profile
 from libs.ros2.transport import TRANSPORTS, Ros2Transport, TransportError
 
 from ..errors import RobotIOError
@@ -75,6 +83,43 @@ class ResetUnsupportedError(Ros2Error, ValueError):
     """``reset`` needs a teleport service, which a real robot does not have."""
 
 
+class NavigationFailedError(Ros2Error):
+    """Nav2 failed for a reason other than the way (TF, a missing planner or controller, its tree)."""
+
+
+class GoalCanceledError(Ros2Error):
+    """A Nav2 goal of ours was cancelled by someone else (an operator, another client)."""
+
+
+class MotionBlockedError(Ros2Error):
+    """A Spin stopped short: Nav2's collision checker saw something ahead of the turning base."""
+
+
+class Nav2Outcome(StrEnum):
+    BLOCKED = "blocked"  # MoveStatus.BLOCKED: set off, could not get there
+    UNREACHABLE = "unreachable"  # MoveStatus.UNREACHABLE: no way there, did not set off
+    TIMEOUT = "timeout"  # DeadlineExceededError
+    FAULT = "fault"  # NavigationFailedError: the navigation stack itself is broken or misconfigured
+
+
+# Nav2's result error codes (nav2_msgs/action: FollowPath 10x, ComputePathToPose 20x, Spin 70x; Jazzy's
+# bt_navigator reports the failing server's code in NavigateToPose's result; 900x are NavigateToPose's
+# own from Kilted on). A code not listed (0, 100, 200, 700: "unknown") counts as blocked.
+NAV2_ERROR_OUTCOMES: dict[int, Nav2Outcome] = {
+    101: Nav2Outcome.FAULT, 102: Nav2Outcome.FAULT, 103: Nav2Outcome.UNREACHABLE, 104: Nav2Outcome.BLOCKED,
+    105: Nav2Outcome.BLOCKED, 106: Nav2Outcome.BLOCKED, 107: Nav2Outcome.TIMEOUT,
+    201: Nav2Outcome.FAULT, 202: Nav2Outcome.FAULT, 203: Nav2Outcome.UNREACHABLE, 204: Nav2Outcome.UNREACHABLE,
+    205: Nav2Outcome.BLOCKED, 206: Nav2Outcome.UNREACHABLE, 207: Nav2Outcome.UNREACHABLE,
+    208: Nav2Outcome.UNREACHABLE,
+    701: Nav2Outcome.TIMEOUT, 702: Nav2Outcome.FAULT, 703: Nav2Outcome.BLOCKED,
+    9001: Nav2Outcome.FAULT, 9002: Nav2Outcome.FAULT, 9003: Nav2Outcome.TIMEOUT,
+}
+
+
+def nav2_outcome(error_code: int) -> Nav2Outcome:
+    return NAV2_ERROR_OUTCOMES.get(int(error_code), Nav2Outcome.BLOCKED)
+
+
 class Ros2Config(BackendConfig):
     """A ROS 2 robot over zenoh. ``profile`` names the topic set; ``profile_overrides`` edits it."""
 
@@ -105,6 +150,14 @@ class Ros2Config(BackendConfig):
     label_names: dict[int, str] = Field(default_factory=dict)
     bounds_min_m: tuple[float, float, float] = (-50.0, -50.0, -1.0)
     bounds_max_m: tuple[float, float, float] = (50.0, 50.0, 3.0)
+    # Nav2 action calls (wall seconds). Every one is longer than zenoh's 5 s default query timeout,
+    # which ends action calls through zenoh-bridge-ros2dds before the robot answers
+    # (zenoh-plugin-ros2dds#413): send_goal and cancel_goal wait for a busy bt_navigator, and each
+    # get_result query stays open for the goal's whole run (asked again when it still times out).
+    nav2_call_timeout_s: float = Field(15.0, gt=0.0, le=120.0)
+    nav2_result_timeout_s: float = Field(300.0, gt=0.0, le=3600.0)
+    nav2_probe_timeout_s: float = Field(3.0, gt=0.0, le=60.0)  # is an action server there (at connect)
+    nav2_cancel_wait_s: float = Field(5.0, ge=0.0, le=60.0)  # for a cancelled goal to report CANCELED
 
 
 # A teleport has landed when odometry is this close to the requested pose (metres, radians), and the
@@ -210,6 +263,8 @@ class Ros2Robot(Robot):
         self._closed = False
         self.zero_twists_sent = 0
         self.cmd_published = 0
+        self.nav2_cancels = 0
+        self.nav2_last_goal: ClientGoal | None = None  # the newest Nav2 goal, its status and feedback
         self.control_ticks: list[float] = []  # monotonic time of each control tick (benchmarks)
         self._next_tick: float | None = None
         self._cmd = self.node.publisher(p.cmd_vel, m.MESSAGES["twist"])
@@ -245,15 +300,39 @@ class Ros2Robot(Robot):
         self._frame_lock = threading.Lock()
         self._rec_threads: list[tuple[threading.Event, threading.Thread]] = []
         self._map_cache: tuple[float, Any] | None = None
+        self._nav: ActionClient | None = None  # NavigateToPose, when the profile moves with Nav2 and it answers
+        self._spin: ActionClient | None = None
         try:
             self._wait_ready()
             if p.nav_mode_service:
                 resp = n.client(p.nav_mode_service, "std_srvs/srv/Trigger").call(m.new("std_srvs/srv/Trigger_Request"), 10.0)
                 if not resp.success:
                     raise RobotUnavailableError(f"{p.nav_mode_service} refused: {resp.message}")
+            if p.motion == Motion.NAV2:
+                self._nav = self._action(p.navigate_action, "nav2_msgs/action/NavigateToPose")
+                self._spin = self._action(p.spin_action, "nav2_msgs/action/Spin") if p.spin_action else None
         except BaseException:
             self.close()
             raise
+
+    def _action(self, name: str, action_type: str) -> ActionClient | None:
+        """An action client when its server answers (a short get_result probe), else None: that
+        motion stays on the cmd_vel controller."""
+        c = self.config
+        client = ActionClient(self.node, name, action_type, result_timeout_s=c.nav2_result_timeout_s)
+        if client.server_present(c.nav2_probe_timeout_s):
+            log.info("Nav2 motion: %s (%s) answers", name, action_type)
+            return client
+        client.close()
+        log.warning("Nav2 motion: no %s action server at %s within %.0f s; that motion uses cmd_vel",
+                    action_type, name, c.nav2_probe_timeout_s)
+        return None
+
+    @property
+    def motion_backends(self) -> dict[str, str]:
+        """Which controller each motion uses now: ``nav2`` or ``cmdvel``."""
+        return {"move_to": "nav2" if self._nav else "cmdvel", "turn": "nav2" if self._spin else "cmdvel",
+                "look_around": "nav2" if self._spin else "cmdvel", "observe": "cmdvel"}
 
     # --- inputs ------------------------------------------------------------------------------------------
     def _stamped(self, latest: _Latest):
@@ -440,9 +519,127 @@ class Ros2Robot(Robot):
             self._tick(end_s, "turn")
         self._send(0.0, 0.0)
 
+    # --- Nav2 goals ----------------------------------------------------------------------------------------
+    def _run_goal(self, client: ActionClient, goal: Any, end_s: float, what: str, on_tick=None) -> ClientGoal:
+        """Send a goal and follow it to its end. Our deadline, a halt, the run-stop or a robot that
+        fell silent cancel it (and raise); its feedback and odometry are read meanwhile."""
+        c, p = self.config, self.profile
+        try:
+            handle = client.send_goal(goal, c.nav2_call_timeout_s)
+        except ActionError as exc:
+            raise NavigationFailedError(f"{what}: {exc}") from exc
+        self.nav2_last_goal = handle
+        try:
+            while not handle.wait(0.05):
+                self._check_safe()
+                if self.clock.now() > end_s:
+                    raise DeadlineExceededError(f"{what} (a Nav2 goal) did not finish within its deadline")
+                self._fresh(self._odom, p.odom)  # the robot or the link is gone: cancel, do not wait
+                if on_tick is not None:
+                    on_tick(handle)
+        except BaseException:
+            self._cancel(client, handle, what)
+            raise
+        if on_tick is not None:
+            on_tick(handle)
+        return handle
+
+    def _cancel(self, client: ActionClient, handle: ClientGoal, what: str) -> None:
+        """Cancel a goal of ours and wait (bounded) to see it end; never raises (a cancel runs while
+        another error is on its way up, and the zero Twists of ``_motion`` follow anyway)."""
+        try:
+            code = client.cancel(handle, self.config.nav2_cancel_wait_s)
+            self.nav2_cancels += 1
+            if not handle.wait(self.config.nav2_cancel_wait_s):
+                log.warning("%s: the cancelled Nav2 goal did not report its end (cancel answered %s)", what, code.name)
+        except Exception:
+            log.exception("%s: could not cancel the Nav2 goal", what)
+
+    def _goal_pose(self, xy, yaw_rad: float, z_m: float):
+        """A PoseStamped in the frame our poses are in (the localisation's map frame, else odometry).
+        Stamp zero: tf2 takes the newest transform, as for a goal clicked in RViz."""
+        p = self.profile
+        frame = p.map_frame or p.odom_frame
+        pose = m.new("geometry_msgs/msg/Pose", position=m.new("geometry_msgs/msg/Point", x=float(xy[0]), y=float(xy[1]),
+                                                             z=float(z_m)), orientation=m.quaternion_from_yaw(yaw_rad))
+        return m.new("geometry_msgs/msg/PoseStamped", header=m.header(0.0, frame), pose=pose)
+
+    @staticmethod
+    def _result_code(handle: ClientGoal) -> tuple[int, str]:
+        r = handle.result
+        return (int(getattr(r, "error_code", 0)), str(getattr(r, "error_msg", ""))) if r is not None else (0, "")
+
+    def _nav2_move(self, dx_m: float, dy_m: float, dist: float) -> MoveResult:
+        p = self.profile
+        with self._motion(self._deadline(dist, math.pi), "move_to") as end:
+            start = self.pose
+            target = np.array(start.position_m[:2]) + (dx_m, dy_m)
+            goal = m.new("nav2_msgs/action/NavigateToPose_Goal",
+                         pose=self._goal_pose(target, math.atan2(dy_m, dx_m), start.position_m[2]), behavior_tree="")
+            odo0 = self._odom_pose(self._fresh(self._odom, p.odom)[1])
+            track = {"xy": np.array(odo0.position_m[:2]), "travelled": 0.0}
+
+            def on_tick(_h: ClientGoal) -> None:
+                got = self._odom.get()
+                xy = np.array(self._odom_pose(got[1]).position_m[:2])
+                track["travelled"] += float(np.linalg.norm(xy - track["xy"]))  # on odometry, as cmd_vel's loop
+                track["xy"] = xy
+
+            handle = self._run_goal(self._nav, goal, end, "move_to", on_tick)
+        code, why = self._result_code(handle)
+        if handle.status == GoalStatus.SUCCEEDED:
+            status = MoveStatus.REACHED
+        elif handle.status == GoalStatus.ABORTED:
+            outcome = nav2_outcome(code)
+            if outcome == Nav2Outcome.TIMEOUT:
+                raise DeadlineExceededError(f"move_to: Nav2 timed out (error {code}: {why})")
+            if outcome == Nav2Outcome.FAULT:
+                raise NavigationFailedError(f"move_to: Nav2 failed (error {code}: {why})")
+            status = MoveStatus.UNREACHABLE if outcome == Nav2Outcome.UNREACHABLE else MoveStatus.BLOCKED
+            log.info("move_to (%.2f, %.2f): Nav2 aborted, error %d %r: %s", dx_m, dy_m, code, why, status.value)
+        elif handle.status == GoalStatus.CANCELED:
+            raise GoalCanceledError("move_to: the Nav2 goal was cancelled by someone else")
+        else:
+            raise NavigationFailedError(f"move_to: the Nav2 goal ended {handle.status.name}")
+        travelled = track["travelled"]
+        return MoveResult(status=status, pose=self.pose, travelled_m=travelled,
+                          steps=max(1, int(math.ceil(travelled / 0.25))) if travelled > 0 else 0)
+
+    def _spin_by(self, angle_rad: float, end_s: float, what: str) -> None:
+        """A Spin goal of ``angle_rad`` (relative, signed), its time allowance what is left of ours."""
+        left_s = max(0.1, end_s - self.clock.now())
+        goal = m.new("nav2_msgs/action/Spin_Goal", target_yaw=float(angle_rad), time_allowance=duration(left_s))
+        handle = self._run_goal(self._spin, goal, end_s, what)
+        if handle.status == GoalStatus.SUCCEEDED:
+            return
+        code, why = self._result_code(handle)
+        if handle.status == GoalStatus.CANCELED:
+            raise GoalCanceledError(f"{what}: the Spin goal was cancelled by someone else")
+        outcome = nav2_outcome(code) if handle.status == GoalStatus.ABORTED else Nav2Outcome.FAULT
+        if outcome == Nav2Outcome.TIMEOUT:
+            raise DeadlineExceededError(f"{what}: Nav2's spin timed out (error {code}: {why})")
+        if outcome == Nav2Outcome.BLOCKED:
+            raise MotionBlockedError(f"{what}: Nav2's spin stopped (error {code}: {why})")
+        raise NavigationFailedError(f"{what}: Nav2's spin ended {handle.status.name} (error {code}: {why})")
+
+    def _turn_to(self, heading_rad: float, end_s: float, what: str) -> None:
+        """To a heading: a Spin goal when Nav2 spins for us, else the cmd_vel loop."""
+        if self._spin is None:
+            self._rotate_to(heading_rad, end_s)
+            return
+        err = float(wrap_angle(heading_rad - self.pose.heading_rad))
+        if abs(err) > math.radians(self.config.yaw_tolerance_deg):
+            self._spin_by(err, end_s, what)
+
     def turn(self, angle_rad: float) -> Pose:
         if not math.isfinite(angle_rad):
             raise ValueError("turn angle must be finite")
+        if self._spin is not None:
+            with self._motion(self._deadline(0.0, angle_rad), "turn") as end:
+                # One goal, however long: Spin turns by its target (relative), not to a heading.
+                if abs(angle_rad) > math.radians(self.config.yaw_tolerance_deg):
+                    self._spin_by(angle_rad, end, "turn")
+            return self.pose
         with self._motion(self._deadline(0.0, angle_rad), "turn") as end:
             start = self.pose.heading_rad
             # Long turns go in steps of at most 120 deg: wrap_angle would pick the short way round.
@@ -481,6 +678,8 @@ class Ros2Robot(Robot):
         dist = math.hypot(dx_m, dy_m)
         if dist < 1e-9:
             return MoveResult(status=MoveStatus.REACHED, pose=self.pose, travelled_m=0.0, steps=0)
+        if self._nav is not None:
+            return self._nav2_move(dx_m, dy_m, dist)
         c, p = self.config, self.profile
         with self._motion(self._deadline(dist, math.pi), "move_to") as end:
             start = self.pose
@@ -727,7 +926,7 @@ class Ros2Robot(Robot):
                 n = max(1, int(round(abs(b - a) / step)))
                 path += [a + (b - a) * k / n for k in range(1, n + 1)]
             for yaw in path:
-                self._rotate_to(h0 + yaw, end)
+                self._turn_to(h0 + yaw, end, "look_around")
                 self.clock.sleep(c.settle_s)
                 t0 = self.clock.now()
                 self._capture(t0, c.camera, True, end)  # waits for a frame taken after settling
@@ -797,6 +996,9 @@ class Ros2Robot(Robot):
         for _ in range(3):
             self._send_zero()
         time.sleep(0.05)  # let the zero Twists leave before the session goes
+        for client in (getattr(self, "_nav", None), getattr(self, "_spin", None)):
+            if client is not None:
+                client.close()
         self.node.close()
         if self._owns_transport:
             self.transport.close()

@@ -11,6 +11,13 @@ faster than real time (tests); stamps are ``epoch + simulated time`` and the clo
 Faults for tests: odometry drift (the simulator's noise model), latency, dropped messages. With the
 profile's ``map_frame`` it localises as well: a perfect ``map -> odom`` transform on ``tf`` beside
 ``odom -> base``, the one that takes the drifting odometry to the true pose.
+
+Nav2 (``nav2_actions``): it serves the profile's NavigateToPose action as bt_navigator does - plan on
+the navigation grid, follow the path under the profile's limits, feedback (pose, distance remaining,
+navigation time), CANCELED on a cancel request, ABORTED with Nav2's planner error codes when there is
+no path (GOAL_OCCUPIED, NO_VALID_PATH) and the controller's FAILED_TO_MAKE_PROGRESS when the base
+stops making progress - and the Spin behaviour. While a goal runs, its controller drives the base and
+cmd_vel from elsewhere is ignored (Nav2's controller_server owns cmd_vel then).
 """
 
 from __future__ import annotations
@@ -29,7 +36,10 @@ from shared.geometry import planar_between, wrap_angle
 from shared.registry import BackendConfig
 from shared.schemas import CameraIntrinsics, Pose
 
+from shared.geometry import planar_apply
+
 from libs.ros2 import messages as m
+from libs.ros2.action import ActionServer, GoalStatus, ServerGoal, duration, duration_s
 from libs.ros2.keys import KeyStyle, Qos
 from libs.ros2.node import Ros2Node
 from libs.ros2.profiles import ColorEncoding, DepthEncoding, Ros2Profile
@@ -62,6 +72,46 @@ class StandInConfig(BackendConfig):
     hardware_max_linear_mps: float = Field(1.0, gt=0.0)
     hardware_max_angular_rps: float = Field(2.0, gt=0.0)
     node_name: str = "standin_robot"
+    # Nav2's actions (bt_navigator's NavigateToPose, behavior_server's Spin) under the profile's names.
+    nav2_actions: bool = True
+    planner_tolerance_m: float = Field(0.25, ge=0.0, le=2.0)  # NavFn's tolerance: a goal this near free space is planned to it
+    xy_goal_tolerance_m: float = Field(0.05, gt=0.0, le=1.0)
+    yaw_goal_tolerance_rad: float = Field(0.05, gt=0.0, le=1.0)
+    progress_timeout_s: float = Field(10.0, gt=0.0, le=120.0)  # Nav2's progress checker: movement_time_allowance
+    feedback_rate_hz: float = Field(10.0, gt=0.0, le=100.0)
+
+
+# Nav2's error codes the stand-in reports (nav2_msgs ComputePathToPose / FollowPath / Spin results; Jazzy's
+# bt_navigator puts the failing server's code into NavigateToPose's result).
+NAV2_GOAL_OCCUPIED = 206
+NAV2_NO_VALID_PATH = 208
+NAV2_FAILED_TO_MAKE_PROGRESS = 105
+NAV2_SPIN_TIMEOUT = 701
+
+
+@dataclass
+class _NavGoal:
+    handle: ServerGoal
+    path: np.ndarray  # (P, 3) in the true frame
+    yaw_rad: float  # goal heading, true frame
+    frame_id: str
+    start_s: float
+    goal_xyz: np.ndarray | None = None  # where the path ends, true frame (replans aim here)
+    index: int = 0
+    recoveries: int = 0
+    best_rem_m: float = math.inf
+    best_t_s: float = 0.0
+    next_feedback_s: float = 0.0
+
+
+@dataclass
+class _SpinGoal:
+    handle: ServerGoal
+    target_rad: float  # signed, relative
+    allowance_s: float  # 0: none
+    start_s: float
+    travelled_rad: float = 0.0
+    next_feedback_s: float = 0.0
 
 
 @dataclass
@@ -72,6 +122,7 @@ class StandInStats:
     collisions: int = 0
     images: int = 0
     last_cmd: tuple[float, float] = (0.0, 0.0)
+    nav2_goals: dict[str, int] = field(default_factory=dict)  # "<action> <STATUS>" -> goals ended so
     wall_per_tick_s: list[float] = field(default_factory=list)
 
 
@@ -119,6 +170,18 @@ class StandInRobot:
             self.node.serve(p.nav_mode_service, "std_srvs/srv/Trigger", self._on_nav_mode)
         if p.teleport_service:
             self.node.serve(p.teleport_service, "turtlesim/srv/TeleportAbsolute", self._on_teleport)
+        self._motion_goal: _NavGoal | _SpinGoal | None = None
+        self._bumped = False  # the last tick's motion hit an obstacle
+        self._feedback: list[tuple[ServerGoal, object]] = []
+        self._nav_server = self._spin_server = None
+        if config.nav2_actions:
+            self._nav_server = ActionServer(self.node, p.navigate_action, "nav2_msgs/action/NavigateToPose",
+                                            on_goal=self._nav_goal_ok, on_accepted=self._nav_accepted,
+                                            on_cancel=lambda _g: True, now_s=lambda: self.stamp_s)
+            if p.spin_action:
+                self._spin_server = ActionServer(self.node, p.spin_action, "nav2_msgs/action/Spin",
+                                                 on_goal=self._spin_goal_ok, on_accepted=self._spin_accepted,
+                                                 on_cancel=lambda _g: True, now_s=lambda: self.stamp_s)
         self._next_cam = 0.0
         self._next_scan = 0.0
         self._next_map = 0.0
@@ -149,12 +212,194 @@ class StandInRobot:
         if not all(map(math.isfinite, (x, y, th))):
             raise ValueError("non-finite teleport pose")
         with self._lock:
+            self._end_motion_goal(GoalStatus.ABORTED, 0, "the robot was teleported")
             self.sim.reset(Pose(position_m=(x, y, float(self._pos[2])), heading_rad=th))
             self._pos = self.sim._pos.copy()
             self._heading = float(self.sim._heading)
             self._v = self._w = 0.0
             self._cmd = (0.0, 0.0, -1e9)
         return m.new("turtlesim/srv/TeleportAbsolute_Response")
+
+    # --- Nav2 actions -----------------------------------------------------------------------------------
+    def _nav_goal_ok(self, goal) -> bool:
+        p = goal.pose.pose
+        return all(map(math.isfinite, (p.position.x, p.position.y, p.orientation.z, p.orientation.w)))
+
+    def _spin_goal_ok(self, goal) -> bool:
+        return math.isfinite(goal.target_yaw) and abs(goal.target_yaw) <= 4 * math.pi
+
+    def _to_true(self, frame_id: str, xyz, yaw: float):
+        """A pose in ``frame_id`` (the map frame is the true frame; the odometry frame drifts) in the true frame."""
+        if self.profile.map_frame and frame_id.strip("/") == self.profile.map_frame.strip("/"):
+            return np.asarray(xyz, np.float64), yaw
+        odo, true = self.odometry_pose(), self.true_pose
+        t_xyz, t_yaw = planar_between(odo.position_m, odo.heading_rad, true.position_m, true.heading_rad)
+        out, h = planar_apply(t_xyz, t_yaw, xyz, yaw)
+        return np.asarray(out, np.float64), h
+
+    def _from_true(self, frame_id: str, xyz, yaw: float):
+        if self.profile.map_frame and frame_id.strip("/") == self.profile.map_frame.strip("/"):
+            return tuple(xyz), yaw
+        odo, true = self.odometry_pose(), self.true_pose
+        t_xyz, t_yaw = planar_between(true.position_m, true.heading_rad, odo.position_m, odo.heading_rad)
+        return planar_apply(t_xyz, t_yaw, xyz, yaw)
+
+    def _nav_accepted(self, handle: ServerGoal) -> None:
+        """Plan as Nav2's planner server would (on the navigation grid, NavFn-like tolerance), then
+        hand the path to the control loop; no path: ABORTED with the planner's error code."""
+        c = self.config
+        ps = handle.goal.pose
+        frame = ps.header.frame_id or self.profile.odom_frame
+        with self._lock:
+            start = self._pos.copy()
+            goal_xyz, goal_yaw = self._to_true(frame, (ps.pose.position.x, ps.pose.position.y, start[2]),
+                                               m.yaw_from_quaternion(ps.pose.orientation))
+        goal_xyz[2] = start[2]
+        nav = self.sim.nav
+        code, why, path = 0, "", None
+        if not nav.is_navigable(goal_xyz):
+            snapped = nav.snap(goal_xyz)
+            if float(np.linalg.norm(snapped[:2] - goal_xyz[:2])) > c.planner_tolerance_m:
+                code, why = NAV2_GOAL_OCCUPIED, f"goal ({goal_xyz[0]:.2f}, {goal_xyz[1]:.2f}) is in an obstacle"
+            else:
+                goal_xyz = snapped
+        if not code:
+            path = nav.shortest_path(start, goal_xyz)
+            if path is None:
+                code, why = NAV2_NO_VALID_PATH, "no path to the goal"
+            else:
+                # From the node the robot stands on: the path's segments are clear between node centres.
+                path = np.vstack([path, goal_xyz[None]])
+        if code:
+            handle.execute()
+            self._count_goal("navigate_to_pose", GoalStatus.ABORTED)
+            handle.finish(GoalStatus.ABORTED, m.new("nav2_msgs/action/NavigateToPose_Result", error_code=code,
+                                                    error_msg=why))
+            return
+        with self._lock:
+            self._end_motion_goal(GoalStatus.ABORTED, 0, "preempted by a new goal")
+            self._motion_goal = _NavGoal(handle, path, float(goal_yaw), frame, self.t_s, goal_xyz=goal_xyz,
+                                         best_t_s=self.t_s)
+        handle.execute()
+
+    def _spin_accepted(self, handle: ServerGoal) -> None:
+        g = handle.goal
+        with self._lock:
+            self._end_motion_goal(GoalStatus.ABORTED, 0, "preempted by a new goal")
+            self._motion_goal = _SpinGoal(handle, float(g.target_yaw), duration_s(g.time_allowance), self.t_s)
+        handle.execute()
+
+    def _result(self, goal, code: int, why: str):
+        if isinstance(goal, _SpinGoal):
+            return m.new("nav2_msgs/action/Spin_Result", total_elapsed_time=duration(self.t_s - goal.start_s),
+                         error_code=code, error_msg=why)
+        return m.new("nav2_msgs/action/NavigateToPose_Result", error_code=code, error_msg=why)
+
+    def _end_motion_goal(self, status: GoalStatus, code: int, why: str) -> None:
+        """End the running goal (under ``_lock``)."""
+        g, self._motion_goal = self._motion_goal, None
+        if g is not None:
+            self._count_goal("spin" if isinstance(g, _SpinGoal) else "navigate_to_pose", status)
+            g.handle.finish(status, self._result(g, code, why))
+
+    def _count_goal(self, action: str, status: GoalStatus) -> None:
+        key = f"{action} {status.name}"
+        self.stats.nav2_goals[key] = self.stats.nav2_goals.get(key, 0) + 1
+
+    def _turn_rate(self, err: float) -> float:
+        p = self.profile
+        w_max, a_max = math.radians(p.max_angular_dps), math.radians(p.angular_accel_dps2)
+        return math.copysign(min(w_max, math.sqrt(2 * a_max * abs(err)), 2.0 * abs(err) + 0.05), err)
+
+    def _goal_control(self, dt: float) -> tuple[float, float] | None:
+        """The running goal's command for this tick (under ``_lock``); None without a goal."""
+        g = self._motion_goal
+        if g is None:
+            return None
+        if g.handle.cancel_requested:
+            self._end_motion_goal(GoalStatus.CANCELED, 0, "canceled")
+            return 0.0, 0.0
+        return self._spin_control(g, dt) if isinstance(g, _SpinGoal) else self._nav_control(g, dt)
+
+    def _spin_control(self, g: _SpinGoal, dt: float) -> tuple[float, float]:
+        rem = abs(g.target_rad) - g.travelled_rad
+        if rem <= 1e-3:
+            self._end_motion_goal(GoalStatus.SUCCEEDED, 0, "")
+            return 0.0, 0.0
+        if g.allowance_s > 0 and self.t_s - g.start_s > g.allowance_s:
+            self._end_motion_goal(GoalStatus.ABORTED, NAV2_SPIN_TIMEOUT, "spin exceeded its time allowance")
+            return 0.0, 0.0
+        w = min(abs(self._turn_rate(rem)), rem / dt)  # the last tick lands on the target
+        g.travelled_rad += w * dt
+        if self.t_s >= g.next_feedback_s:
+            g.next_feedback_s = self.t_s + 1.0 / self.config.feedback_rate_hz
+            self._feedback.append((g.handle, m.new("nav2_msgs/action/Spin_Feedback",
+                                                   angular_distance_traveled=float(g.travelled_rad))))
+        return 0.0, math.copysign(w, g.target_rad)
+
+    def _replan(self, g: _NavGoal) -> bool:
+        """A recovery: the base touched an obstacle (it left the planned line at a corner), so plan
+        again from where it is, as Nav2's replanning tree does. False: no path any more."""
+        path = self.sim.nav.shortest_path(self._pos, g.goal_xyz)
+        if path is None:
+            return False
+        g.path, g.index = np.vstack([path, g.goal_xyz[None]]), 0
+        g.recoveries += 1
+        return True
+
+    def _nav_control(self, g: _NavGoal, dt: float) -> tuple[float, float]:
+        c, p = self.config, self.profile
+        if self._bumped:
+            self._bumped = False
+            if not self._replan(g):
+                self._end_motion_goal(GoalStatus.ABORTED, NAV2_NO_VALID_PATH, "no path from here any more")
+                return 0.0, 0.0
+        pos, heading = self._pos[:2], self._heading
+        last = len(g.path) - 1
+        # Waypoint by waypoint, each one reached (the last tick lands on it): the segments between
+        # them are the clear ones, and cutting a corner would touch the wall beside it.
+        while g.index < last and np.linalg.norm(g.path[g.index, :2] - pos) < 1e-3:
+            g.index += 1
+        tgt = g.path[g.index, :2]
+        d = float(np.linalg.norm(tgt - pos))
+        rem = d + float(np.linalg.norm(np.diff(g.path[g.index:, :2], axis=0), axis=1).sum())
+        if rem < g.best_rem_m - 0.02:
+            g.best_rem_m, g.best_t_s = rem, self.t_s
+        if self.t_s >= g.next_feedback_s:
+            g.next_feedback_s = self.t_s + 1.0 / c.feedback_rate_hz
+            xyz, yaw = self._from_true(g.frame_id, tuple(self._pos), heading)
+            pose = m.new("geometry_msgs/msg/PoseStamped", header=m.header(self.stamp_s, g.frame_id), pose=m.new(
+                "geometry_msgs/msg/Pose", position=m.new("geometry_msgs/msg/Point", x=float(xyz[0]), y=float(xyz[1]),
+                                                         z=float(xyz[2])), orientation=m.quaternion_from_yaw(yaw)))
+            self._feedback.append((g.handle, m.new(
+                "nav2_msgs/action/NavigateToPose_Feedback", current_pose=pose,
+                navigation_time=duration(self.t_s - g.start_s),
+                estimated_time_remaining=duration(rem / p.max_linear_mps), number_of_recoveries=g.recoveries,
+                distance_remaining=float(rem))))
+        if g.index == last and d <= c.xy_goal_tolerance_m:
+            err = float(wrap_angle(g.yaw_rad - heading))
+            if abs(err) <= c.yaw_goal_tolerance_rad:
+                self._end_motion_goal(GoalStatus.SUCCEEDED, 0, "")
+                return 0.0, 0.0
+            return 0.0, math.copysign(min(abs(self._turn_rate(err)), abs(err) / dt), err)
+        if self.t_s - g.best_t_s > c.progress_timeout_s:
+            self._end_motion_goal(GoalStatus.ABORTED, NAV2_FAILED_TO_MAKE_PROGRESS,
+                                  f"no progress for {c.progress_timeout_s:.0f} s")
+            return 0.0, 0.0
+        err = float(wrap_angle(math.atan2(tgt[1] - pos[1], tgt[0] - pos[0]) - heading))
+        w_max = math.radians(p.max_angular_dps)
+        if abs(err) > 0.05 and d > 1e-3:  # face the segment first (a differential base turns in place)
+            return 0.0, math.copysign(min(abs(self._turn_rate(err)), abs(err) / dt), err)
+        # On the segment's bearing exactly (the heading turns before the step): a tracking
+        # controller's error is centimetres, and a centimetre past a cell edge is a bump here.
+        v = min(p.max_linear_mps, math.sqrt(2 * p.linear_accel_mps2 * rem) + 0.02, d / dt) * math.cos(err)
+        return v, float(np.clip(err / dt, -w_max, w_max))
+
+    def _publish_feedback(self) -> None:
+        with self._lock:
+            pending, self._feedback = self._feedback, []
+        for handle, fb in pending:
+            handle.publish_feedback(fb)
 
     # --- simulation ------------------------------------------------------------------------------------
     @property
@@ -173,6 +418,11 @@ class StandInRobot:
             v_cmd, w_cmd, t_cmd = self._cmd
             if self.t_s - t_cmd > c.cmd_timeout_s or self.run_stopped:
                 v_cmd = w_cmd = 0.0
+            if self.run_stopped:
+                self._end_motion_goal(GoalStatus.ABORTED, 0, "run-stopped")
+            goal_cmd = self._goal_control(dt)
+            if goal_cmd is not None:
+                v_cmd, w_cmd = goal_cmd
             self._v, self._w = v_cmd, w_cmd
             self._heading = float(wrap_angle(self._heading + w_cmd * dt))
             moved = 0.0
@@ -183,11 +433,13 @@ class StandInRobot:
                 if not ok:
                     self.stats.collisions += 1
                     self._v = 0.0
+                    self._bumped = True
                 moved = float(np.linalg.norm(end[:2] - self._pos[:2]))
                 self._pos = np.asarray(end, np.float64)
             self.sim.noise.on_motion(moved, abs(w_cmd) * dt)
             self.t_s += dt
             self.stats.ticks += 1
+        self._publish_feedback()
         self._publish_state()
 
     def _sensor(self, pub, msg) -> None:
@@ -338,5 +590,8 @@ class StandInRobot:
 
     def close(self) -> None:
         self.stop()
+        for server in (self._nav_server, self._spin_server):
+            if server is not None:
+                server.close()  # releases the get_result queries waiting on a goal
         self.node.close()
         self.sim.close()
