@@ -1,0 +1,427 @@
+"""Online localisation: the mapper's own map <- odom correction, anchored at the exact start.
+
+A robot without a localiser reports dead-reckoned poses: odometry and heading drift grow with every
+metre and every turn, and a map built from them carries the error (bench.anticipation's noisy row:
+tours started 0.27-0.52 m and up to 7 deg from where the robot believed it was). The only
+drift-free evidence is the start: the pose is exact when exploration begins. So the first panorama
+anchors a model, and every later panorama is placed by registering its horizontal scan against the
+model of the panoramas before it (sequentially, SLAM-style), seeded by odometry under the current
+correction. The correction is what a ROS localiser publishes as ``map -> odom``; every pose the
+mapper uses (the graph, the tours, the poses recorded with frames) goes through it.
+
+The scan: for every image column of every view, the median horizontal range of the pixels between
+``min_height_m`` and ``max_height_m`` above the floor (walls, doors and tall furniture, above the
+tables and beds whose tops look different from every side); a column whose pixels disagree (a lamp
+in front of a wall) is dropped. 12 views of 96 columns are a 1,152-ray laser scan whose per-ray noise
+is the depth noise divided by the square root of the rows in the band.
+
+The matcher: point-to-line ICP (Gauss-Newton on x, y, heading, Cauchy weights) against the model's
+points, whose normals come from their neighbours; only points on a line (a wall's face, not a
+cluttered blob) serve. It is trusted only when enough of the scan lands on the model
+(``min_fitness``, ``min_inliers``), the problem is well-posed in every direction (a featureless
+corridor constrains nothing along it: ``min_constraint``), and the step is plausible
+(``max_step_m``, ``max_step_rad``); otherwise odometry carries on under the old correction.
+
+Exact poses stay exact, bit for bit: the correction moves only when the registration disagrees with
+the current one by more than ``gate_m`` or ``gate_rad`` (a noise-free scan registers within a few
+millimetres of its pose), so the gate is on measured disagreement, not on a noise flag.
+
+Correction model: ``map = odom + (dx, dy)``, ``heading_map = heading_odom + dyaw``. Both our robots'
+odometry (the simulator, the ROS 2 stand-in) drifts as an offset in world axes and closes moves on
+odometry positions, so a displacement in the map is the same displacement in odometry; a rigid
+map -> odom rotation about the odometry origin would turn every later move by the heading error.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, wrap_angle
+from shared.schemas import Frame, MoveResult, Panorama, Pose
+
+log = logging.getLogger(__name__)
+
+
+class LocaliserConfig(BaseModel):
+    """Knobs of the mapper's online localisation (see the module docstring)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = True
+    camera_height_m: float = Field(DEFAULT_CAMERA_HEIGHT_M, gt=0.0, le=3.0)
+    min_height_m: float = Field(1.0, ge=0.0, le=3.0)  # above the floor: over tables, beds and sofas
+    max_height_m: float = Field(2.0, gt=0.0, le=4.0)  # under most ceilings
+    max_range_m: float = Field(4.0, gt=0.2, le=20.0)  # depth noise grows with the square of the range
+    min_column_px: int = Field(3, ge=1, le=1000)  # band pixels a column needs to give a ray
+    column_spread_m: float = Field(0.03, ge=0.0, le=1.0)  # a ray's median abs deviation may be
+    column_spread_rel: float = Field(0.03, ge=0.0, le=1.0)  # ... this plus this times range^2
+    model_cell_m: float = Field(0.03, gt=0.0, le=0.5)  # the model's points are averaged per cell
+    normal_radius_m: float = Field(0.15, gt=0.0, le=1.0)
+    max_line_ratio: float = Field(0.15, gt=0.0, le=1.0)  # neighbourhood eigenvalue ratio of a line
+    same_level_m: float = Field(0.6, gt=0.0, le=3.0)  # model points seen from this near in height
+    iterations: int = Field(20, ge=1, le=200)
+    match_m: tuple[float, float] = (0.3, 0.1)  # correspondence distance, first and last iteration
+    cauchy_m: float = Field(0.03, gt=0.0, le=1.0)
+    inlier_m: float = Field(0.06, gt=0.0, le=1.0)
+    min_inliers: int = Field(80, ge=3)
+    min_fitness: float = Field(0.2, ge=0.0, le=1.0)  # share of the scan's rays on the model
+    min_constraint: float = Field(0.04, ge=0.0, le=1.0)  # weakest direction's share of the information
+    lever_m: float = Field(1.0, gt=0.0)  # heading information is scaled by this lever
+    max_step_m: float = Field(0.5, gt=0.0)  # a bigger jump of the correction at once is not believed
+    max_step_rad: float = Field(math.radians(10.0), gt=0.0)
+    gate_m: float = Field(0.015, ge=0.0)  # disagreement below these leaves the correction alone
+    gate_rad: float = Field(math.radians(0.3), ge=0.0)
+
+
+@dataclass(frozen=True)
+class Correction:
+    """map <- odom as a planar offset: ``map = odom + (dx, dy)``, ``heading_map = heading_odom + dyaw``."""
+
+    dx_m: float = 0.0
+    dy_m: float = 0.0
+    dyaw_rad: float = 0.0
+
+    @property
+    def identity(self) -> bool:
+        return self.dx_m == 0.0 and self.dy_m == 0.0 and self.dyaw_rad == 0.0
+
+    def pose(self, odom: Pose) -> Pose:
+        """The map pose of an odometry pose (the very same object while the correction is zero)."""
+        if self.identity:
+            return odom
+        x, y, z = odom.position_m
+        return Pose(position_m=(x + self.dx_m, y + self.dy_m, z),
+                    heading_rad=float(wrap_angle(odom.heading_rad + self.dyaw_rad)))
+
+    def frame(self, frame: Frame) -> Frame:
+        if self.identity:
+            return frame
+        return frame.model_copy(update={"pose": self.pose(frame.pose), "imu_heading_rad": float(
+            wrap_angle(frame.imu_heading_rad + self.dyaw_rad))})
+
+    def panorama(self, pano: Panorama) -> Panorama:
+        if self.identity:
+            return pano
+        return pano.model_copy(update={"pose": self.pose(pano.pose), "headings_rad": np.asarray(
+            wrap_angle(np.asarray(pano.headings_rad, np.float64) + self.dyaw_rad), np.float64)})
+
+    @staticmethod
+    def between(odom: Pose, map_xy: np.ndarray, map_heading_rad: float) -> Correction:
+        return Correction(float(map_xy[0] - odom.position_m[0]), float(map_xy[1] - odom.position_m[1]),
+                          float(wrap_angle(map_heading_rad - odom.heading_rad)))
+
+
+@dataclass(frozen=True)
+class Match:
+    """One registration's outcome: the pose found and how far to trust it."""
+
+    xy_m: np.ndarray
+    heading_rad: float
+    rays: int  # the scan's rays
+    inliers: int
+    fitness: float  # inliers / rays
+    rmse_m: float  # of the inliers' point-to-line residuals
+    constraint: float  # the weakest direction's share of the information (0: degenerate)
+
+
+@dataclass
+class LocalisationStep:
+    """What one panorama did to the correction (the map metadata's per-panorama record)."""
+
+    timestamp_s: float
+    odom: Pose
+    outcome: str  # "anchor", "corrected", "agrees" (within the gate), or why odometry was kept
+    correction: Correction
+    fitness: float = 0.0
+    rmse_m: float = 0.0
+    constraint: float = 0.0
+    step_m: float = 0.0  # how far this panorama moved the correction
+    step_deg: float = 0.0
+
+    def summary(self) -> dict:
+        c = self.correction
+        return {"t_s": round(self.timestamp_s, 3), "outcome": self.outcome,
+                "correction_m": round(math.hypot(c.dx_m, c.dy_m), 4),
+                "correction_deg": round(math.degrees(c.dyaw_rad), 3), "step_m": round(self.step_m, 4),
+                "step_deg": round(self.step_deg, 3), "fitness": round(self.fitness, 3),
+                "rmse_m": round(self.rmse_m, 4), "constraint": round(self.constraint, 3)}
+
+
+def panorama_scan(pano: Panorama, cfg: LocaliserConfig) -> np.ndarray:
+    """(N, 2) horizontal scan points in the robot's frame (x forward at the panorama's heading):
+    per image column, the median horizontal range of the pixels in the height band."""
+    depth = np.asarray(pano.depth_m, np.float64)
+    views, h, w = depth.shape
+    cam = pano.camera.pinhole()
+    xn = (np.arange(w) - cam.cx) / cam.fx  # right, per unit depth
+    yn = (np.arange(h) - cam.cy) / cam.fy  # down, per unit depth
+    # Height above the floor and horizontal range of every pixel (views, rows, cols).
+    z_up = cfg.camera_height_m - yn[None, :, None] * depth
+    rng = depth * np.sqrt(1.0 + xn[None, None, :] ** 2)
+    ok = (depth > 0) & (z_up >= cfg.min_height_m) & (z_up <= cfg.max_height_m) & (rng <= cfg.max_range_m)
+    r = np.where(ok, rng, np.nan)
+    count = ok.sum(axis=1)  # (views, cols)
+    with np.errstate(all="ignore"), _quiet_nan_warnings():
+        med = np.nanmedian(r, axis=1)
+        mad = np.nanmedian(np.abs(r - med[:, None, :]), axis=1)
+    keep = (count >= cfg.min_column_px) & np.isfinite(med) & (mad <= cfg.column_spread_m + cfg.column_spread_rel * med**2)
+    # Column bearing relative to the panorama's heading (views look at headings_rad[i]; a column
+    # right of the centre looks clockwise of it).
+    rel = np.asarray(pano.headings_rad, np.float64) - pano.pose.heading_rad
+    az = rel[:, None] - np.arctan(xn)[None, :]
+    a, d = az[keep], med[keep]
+    return np.stack([d * np.cos(a), d * np.sin(a)], axis=1)
+
+
+@contextlib.contextmanager
+def _quiet_nan_warnings() -> Iterator[None]:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-nan columns: dropped by ``keep``
+        yield
+
+
+def _rot(theta: float) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+@dataclass
+class _Model:
+    """Scan points in the map frame, averaged per cell and height level, with the mean direction
+    they were seen from: a wall's two faces lie a hand apart, and a scan of a new room must not match
+    its side of the wall to the face seen from the room before (it pulled poses by the wall's
+    thickness, and the errors grew instead of shrinking)."""
+
+    cell_m: float
+    codes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # sorted cell codes
+    sums: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))  # (sx, sy, sz, n, svx, svy) per cell
+
+    def add(self, pts: np.ndarray, origin_xy: np.ndarray, z_m: float) -> None:
+        view = origin_xy - pts
+        view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-9)
+        ij = np.floor(pts / self.cell_m).astype(np.int64) + _CODE_BIAS
+        level = int(round(z_m / 0.25)) + _CODE_BIAS
+        code = (ij[:, 0] << 42) | (ij[:, 1] << 21) | level
+        rows = np.column_stack([pts, np.full(len(pts), z_m), np.ones(len(pts)), view])
+        codes, inv = np.unique(np.concatenate([self.codes, code]), return_inverse=True)
+        sums = np.zeros((len(codes), 6))
+        np.add.at(sums, inv, np.concatenate([self.sums, rows]))
+        self.codes, self.sums = codes, sums
+
+    def near(self, xy: np.ndarray, z_m: float, radius_m: float, same_level_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(points, mean view directions) seen from within ``same_level_m`` of ``z_m``, near ``xy``."""
+        a = self.sums
+        p = a[:, :3] / np.maximum(a[:, 3:4], 1.0)
+        sel = (np.abs(p[:, 2] - z_m) <= same_level_m) & (np.hypot(p[:, 0] - xy[0], p[:, 1] - xy[1]) <= radius_m)
+        return p[sel, :2], a[sel, 4:6]
+
+
+_CODE_BIAS = 1 << 20  # cell indices of +-1,000,000 cells: 31 km at 3 cm
+
+
+def _line_normals(pts: np.ndarray, view: np.ndarray, radius_m: float, max_ratio: float,
+                  k: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """(points on a line, their unit normals facing where they were seen from): PCA of each point's
+    ``k`` nearest neighbours within ``radius_m`` (at least 4)."""
+    if len(pts) < 4:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    d, j = cKDTree(pts).query(pts, k=min(k, len(pts)), distance_upper_bound=radius_m)
+    m = np.isfinite(d)
+    q = np.where(m[..., None], pts[np.minimum(j, len(pts) - 1)], 0.0)
+    cnt = m.sum(axis=1)
+    mean = q.sum(axis=1) / cnt[:, None]
+    dq = np.where(m[..., None], q - mean[:, None, :], 0.0)
+    sxx, syy, sxy = (dq[..., 0] ** 2).sum(1), (dq[..., 1] ** 2).sum(1), (dq[..., 0] * dq[..., 1]).sum(1)
+    # Eigenvalues of the 2x2 scatter in closed form; the normal is the smaller one's eigenvector.
+    tr, det = sxx + syy, sxx * syy - sxy**2
+    disc = np.sqrt(np.maximum(tr**2 / 4.0 - det, 0.0))
+    lo, hi = tr / 2.0 - disc, tr / 2.0 + disc
+    n = np.stack([sxy, lo - sxx], axis=1)
+    alt = np.stack([lo - syy, sxy], axis=1)
+    n = np.where((np.abs(n).sum(1) >= np.abs(alt).sum(1))[:, None], n, alt)
+    norm = np.linalg.norm(n, axis=1)
+    ok = (cnt >= 4) & (hi > 0) & (lo <= max_ratio * hi) & (norm > 1e-12)
+    n = n[ok] / norm[ok, None]
+    n *= np.where(np.einsum("ij,ij->i", n, view[ok]) >= 0, 1.0, -1.0)[:, None]
+    return pts[ok], n
+
+
+def _facing(q: np.ndarray, n: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Model points whose face looks towards the robot at ``xy`` (the robot cannot see a wall's back)."""
+    return np.einsum("ij,ij->i", n, xy - q) > 0.0
+
+
+def register(scan: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, xy0: np.ndarray,
+             heading0: float, cfg: LocaliserConfig) -> Match | None:
+    """Point-to-line ICP of ``scan`` (robot frame) against the model, from the pose (xy0, heading0)."""
+    if len(scan) < cfg.min_inliers or len(model_pts) < cfg.min_inliers:
+        return None
+    tree = cKDTree(model_pts)
+    xy, th = np.asarray(xy0, np.float64).copy(), float(heading0)
+    info = np.zeros((3, 3))
+    for it in range(cfg.iterations):
+        frac = it / max(1, cfg.iterations - 1)
+        dmax = cfg.match_m[0] + (cfg.match_m[1] - cfg.match_m[0]) * frac
+        p = scan @ _rot(th).T + xy
+        d, j = tree.query(p, distance_upper_bound=dmax)
+        m = np.isfinite(d)
+        m[m] = _facing(model_pts[j[m]], model_normals[j[m]], xy)
+        if m.sum() < cfg.min_inliers:
+            return None
+        n = model_normals[j[m]]
+        res = np.einsum("ij,ij->i", n, p[m] - model_pts[j[m]])
+        lever = p[m] - xy
+        jac = np.stack([n[:, 0], n[:, 1], n[:, 1] * lever[:, 0] - n[:, 0] * lever[:, 1]], axis=1)
+        wgt = 1.0 / (1.0 + (res / cfg.cauchy_m) ** 2)
+        info = (jac * wgt[:, None]).T @ jac
+        g = (jac * wgt[:, None]).T @ res
+        try:
+            delta = -np.linalg.solve(info + 1e-9 * np.eye(3), g)
+        except np.linalg.LinAlgError:
+            return None
+        xy += delta[:2]
+        th += float(delta[2])
+        if np.hypot(*delta[:2]) < 1e-5 and abs(delta[2]) < 1e-6 and frac >= 0.5:
+            break
+    p = scan @ _rot(th).T + xy
+    d, j = tree.query(p, distance_upper_bound=cfg.match_m[1])
+    m = np.isfinite(d)
+    m[m] = _facing(model_pts[j[m]], model_normals[j[m]], xy)
+    res = np.einsum("ij,ij->i", model_normals[j[m]], p[m] - model_pts[j[m]]) if m.any() else np.zeros(0)
+    inl = np.abs(res) <= cfg.inlier_m
+    # How well each direction is pinned: the weakest eigenvalue of the information (heading scaled
+    # by the lever arm) as a share of the trace; a corridor's walls say nothing along it.
+    s = np.diag([1.0, 1.0, 1.0 / cfg.lever_m])
+    ev = np.linalg.eigvalsh(s @ info @ s)
+    constraint = float(max(ev[0], 0.0) / max(ev.sum(), 1e-12))
+    return Match(xy, float(wrap_angle(th)), len(scan), int(inl.sum()), float(inl.sum() / len(scan)),
+                 float(np.sqrt(np.mean(res[inl] ** 2))) if inl.any() else math.inf, constraint)
+
+
+class Localiser:
+    """Keeps the map <- odom correction of one exploration (its panoramas in order)."""
+
+    def __init__(self, config: LocaliserConfig | None = None):
+        self.config = config or LocaliserConfig()
+        self.correction = Correction()
+        self.model = _Model(self.config.model_cell_m)
+        self.steps: list[LocalisationStep] = []
+
+    def localise(self, pano: Panorama) -> Panorama:
+        """Register ``pano`` (odometry pose) against the model, update the correction, add the scan
+        to the model; the panorama with its corrected pose (the same object while it is exact)."""
+        cfg = self.config
+        if not cfg.enabled:
+            return pano
+        scan = panorama_scan(pano, cfg)
+        odom = pano.pose
+        old = self.correction
+        seed = old.pose(odom)
+        xy0 = np.asarray(seed.position_m[:2], np.float64)
+        z = float(odom.position_m[2])
+        step = LocalisationStep(pano.timestamp_s, odom, "anchor", old)
+        if not self.steps:
+            pass  # the start is exact: the first panorama anchors the model
+        else:
+            pts, view = self.model.near(xy0, z, cfg.max_range_m + cfg.match_m[0] + cfg.normal_radius_m,
+                                        cfg.same_level_m)
+            mp, mn = _line_normals(pts, view, cfg.normal_radius_m, cfg.max_line_ratio)
+            match = register(scan, mp, mn, xy0, seed.heading_rad, cfg)
+            step.outcome = self._judge(match, xy0, seed.heading_rad)
+            if match is not None:
+                step.fitness, step.rmse_m, step.constraint = match.fitness, match.rmse_m, match.constraint
+            if step.outcome == "corrected":
+                new = Correction.between(odom, match.xy_m, match.heading_rad)
+                step.step_m = math.hypot(new.dx_m - old.dx_m, new.dy_m - old.dy_m)
+                step.step_deg = math.degrees(abs(wrap_angle(new.dyaw_rad - old.dyaw_rad)))
+                self.correction = new
+                step.correction = new
+        self.steps.append(step)
+        out = self.correction.panorama(pano)
+        p = out.pose
+        if len(scan):
+            origin = np.asarray(p.position_m[:2], np.float64)
+            self.model.add(scan @ _rot(p.heading_rad).T + origin, origin, z)
+        return out
+
+    def _judge(self, m: Match | None, xy0: np.ndarray, heading0: float) -> str:
+        cfg = self.config
+        if m is None:
+            return "odometry: too little to match"
+        if m.inliers < cfg.min_inliers or m.fitness < cfg.min_fitness:
+            return "odometry: poor fit"
+        if m.constraint < cfg.min_constraint:
+            return "odometry: degenerate"
+        dxy = float(np.hypot(*(m.xy_m - xy0)))
+        dth = abs(float(wrap_angle(m.heading_rad - heading0)))
+        if dxy > cfg.max_step_m or dth > cfg.max_step_rad:
+            return "odometry: implausible jump"
+        if dxy <= cfg.gate_m and dth <= cfg.gate_rad:
+            return "agrees"
+        return "corrected"
+
+    def report(self) -> dict:
+        """What the map metadata says about the localisation: counts by outcome and the last correction."""
+        out: dict[str, int] = {}
+        for s in self.steps:
+            key = s.outcome.split(":")[0] if s.outcome.startswith("odometry") else s.outcome
+            out[key] = out.get(key, 0) + 1
+        c = self.correction
+        return {"panoramas": len(self.steps), "outcomes": out,
+                "final_correction_m": round(math.hypot(c.dx_m, c.dy_m), 4),
+                "final_correction_deg": round(math.degrees(c.dyaw_rad), 3),
+                "max_step_m": round(max((s.step_m for s in self.steps), default=0.0), 4)}
+
+
+class LocalisedRobot:
+    """A robot seen through the localiser: every pose it reports is corrected, every panorama
+    registered first, every frame recorded with the correction in effect; moves are given in the
+    map frame (a displacement is the same in odometry, see the module docstring). Anything else is
+    the wrapped robot's."""
+
+    def __init__(self, robot: Any, localiser: Localiser):
+        self._robot = robot
+        self.localiser = localiser
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._robot, name)
+
+    @property
+    def pose(self) -> Pose:
+        return self.localiser.correction.pose(self._robot.pose)
+
+    def observe(self, *args: Any, **kwargs: Any) -> Panorama:
+        return self.localiser.localise(self._robot.observe(*args, **kwargs))
+
+    def relocalise(self) -> None:
+        """Take a panorama only to re-register (at a tour's start and its hubs)."""
+        if self.localiser.config.enabled:
+            self.observe()
+
+    def move_to(self, dx_m: float, dy_m: float) -> MoveResult:
+        res = self._robot.move_to(dx_m, dy_m)
+        c = self.localiser.correction
+        return res if c.identity else res.model_copy(update={"pose": c.pose(res.pose)})
+
+    def turn(self, angle_rad: float) -> Any:
+        out = self._robot.turn(angle_rad)
+        return self.localiser.correction.pose(out) if isinstance(out, Pose) else out
+
+    def look_around(self) -> list:
+        c = self.localiser.correction
+        return [c.frame(f) for f in self._robot.look_around()]
+
+    def recording(self, sink: Callable[[Frame], None], rate_hz: float = 5.0) -> contextlib.AbstractContextManager:
+        # The correction in effect when each frame is recorded (a hub's re-localisation moves it).
+        return self._robot.recording(lambda f: sink(self.localiser.correction.frame(f)), rate_hz)
