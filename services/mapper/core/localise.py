@@ -116,6 +116,10 @@ class Correction:
         return Pose(position_m=(x + self.dx_m, y + self.dy_m, z),
                     heading_rad=float(wrap_angle(odom.heading_rad + self.dyaw_rad)))
 
+    def odom(self, pose: Pose) -> Pose:
+        """The odometry pose of a map pose (the inverse of :meth:`pose`)."""
+        return Correction(-self.dx_m, -self.dy_m, -self.dyaw_rad).pose(pose)
+
     def frame(self, frame: Frame) -> Frame:
         if self.identity:
             return frame
