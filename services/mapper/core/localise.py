@@ -91,7 +91,8 @@ class LocaliserConfig(BaseModel):
     prior_max_rad: float = Field(0.03, gt=0.0)
     max_sigma: float = Field(4.0, gt=0.0)
     min_gain: float = Field(0.05, ge=0.0, lt=1.0)  # a correction must lower the fit cost by this share
-    new_territory_m: float = Field(0.15, gt=0.0)  # an unplaced scan adds only points this far from the model
+    new_territory_m: float = Field(0.15, gt=0.0)
+    relocalise_after_m: float = Field(1.0, ge=0.0)  # tours re-register after driving this far  # an unplaced scan adds only points this far from the model
     gate_m: float = Field(0.015, ge=0.0)  # disagreement below these leaves the correction alone
     gate_rad: float = Field(math.radians(0.3), ge=0.0)
 
@@ -378,6 +379,11 @@ class Localiser:
         self._since_fix_m += max(0.0, float(travelled_m))
         self._since_fix_moves += 1
 
+    @property
+    def since_fix_m(self) -> float:
+        """Odometry path since the last panorama placed by registration."""
+        return self._since_fix_m
+
     def prior_sigma(self) -> tuple[float, float]:
         """Odometry's uncertainty since the last fix, capped: the correction tracks the drift, so a
         step is what drifted since the last placed panorama, and a long run of unplaced ones must not
@@ -491,8 +497,11 @@ class LocalisedRobot:
         return self.localiser.localise(self._robot.observe(*args, **kwargs))
 
     def relocalise(self) -> None:
-        """Take a panorama only to re-register (at a tour's start and its hubs)."""
-        if self.localiser.config.enabled:
+        """Take a panorama only to re-register (at a tour's start and its hubs), once the robot has
+        driven ``relocalise_after_m`` since the last placed panorama: a panorama and its registration
+        cost about what a step of exploration does, and a few decimetres drift only millimetres."""
+        loc = self.localiser
+        if loc.config.enabled and loc.since_fix_m >= loc.config.relocalise_after_m:
             self.observe()
 
     def move_to(self, dx_m: float, dy_m: float) -> MoveResult:
