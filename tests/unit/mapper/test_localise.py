@@ -204,3 +204,76 @@ def test_tours_record_the_correction_in_effect(rooms):
     # Odometry is 7 cm and 1.5 deg off; the recorded frames are not.
     assert np.median(pos) < 0.015 and head.max() < 0.3, (np.median(pos), head.max())
 
+
+
+class _DriftingJobRobot:
+    """The exploration job's box-world robot (robot-io as the job sees it) whose odometry drifts
+    with the path it drives: every pose it reports (panoramas, moves, frames) is off by
+    (12, -8) mm times the square root of the metres driven."""
+
+    def __new__(cls):
+        from tests.unit.mapper.test_exploration_cancel import Robot
+
+        class Drifting(Robot):
+            driven_m = 0.0
+            true_starts: list = []
+
+            @property
+            def pose(self) -> Pose:
+                x, y, z = (float(v) for v in self._pos)
+                k = math.sqrt(self.driven_m)
+                return Pose(position_m=(x + 0.012 * k, y - 0.008 * k, z), heading_rad=self._heading)
+
+            def move_to(self, dx_m: float, dy_m: float):
+                before = self._pos.copy()
+                res = super().move_to(dx_m, dy_m)
+                self.driven_m += float(np.hypot(*(self._pos[:2] - before[:2])))
+                return res.model_copy(update={"pose": self.pose})
+
+            def recording(self, sink=None, rate_hz: float = 5.0):
+                self.true_starts.append(tuple(float(v) for v in self._pos))
+                return super().recording(sink, rate_hz)
+
+        return Drifting()
+
+
+class _CaptureBuild:
+    """A map builder that keeps the request and refuses it (the test reads what the mapper sent)."""
+
+    def __init__(self):
+        self.requests: list = []
+
+    def build(self, req, *, on_event=None, cancel=None):
+        self.requests.append(req)
+        raise RuntimeError("captured")
+
+
+@pytest.mark.parametrize("drift", [True, False])
+def test_the_exploration_job_hands_the_corrections_to_the_reconstructor(drift):
+    """Robot-io publishes the tours' frames with odometry poses, past the mapper: the job sends each
+    recording's start pose as odometry has it, beside the corrections that put it (and the frames)
+    where the robot truly was. An exact robot's recordings carry none and are as before."""
+    from shared.bus import FakeNetwork
+    from tests.unit.mapper.test_exploration_cancel import Job, Robot
+
+    robot = _DriftingJobRobot() if drift else Robot()
+    maps = _CaptureBuild()
+    job = Job(FakeNetwork(), robot, maps, max_steps=10)
+    try:
+        job.end()
+    finally:
+        job.close()
+    (req,) = maps.requests
+    assert req.recordings
+    for rec in req.recordings:
+        if not drift:
+            assert rec.odom_corrections == []
+            continue
+        true = robot.true_starts[int(rec.recording.rsplit("-r", 1)[1])]
+        odo_err = math.hypot(rec.start_pose.position_m[0] - true[0], rec.start_pose.position_m[1] - true[1])
+        c = rec.odom_corrections[0]
+        fixed = (rec.start_pose.position_m[0] + c.dx_m, rec.start_pose.position_m[1] + c.dy_m)
+        assert odo_err > 0.03  # the drift is real by then
+        # The correction of the last fix: what drifted since (under the 1 m re-registration) remains.
+        fixed_err = math.hypot(fixed[0] - true[0], fixed[1] - true[1])
+        assert fixed_err < min(0.03, odo_err / 4), (odo_err, fixed_err, c)
