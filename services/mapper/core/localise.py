@@ -11,16 +11,21 @@ mapper uses (the graph, the tours, the poses recorded with frames) goes through 
 
 The scan: for every image column of every view, the median horizontal range of the pixels between
 ``min_height_m`` and ``max_height_m`` above the floor (walls, doors and tall furniture, above the
-tables and beds whose tops look different from every side); a column whose pixels disagree (a lamp
-in front of a wall) is dropped. 12 views of 96 columns are a 1,152-ray laser scan whose per-ray noise
-is the depth noise divided by the square root of the rows in the band.
+tables and beds whose tops look different from every side), within ``max_range_m``; a column whose
+pixels disagree (a lamp in front of a wall) is dropped. 12 views of 128 columns are a 1,536-ray laser
+scan whose per-ray noise is the depth noise divided by the square root of the rows in the band. The
+model keeps, per 5 cm cell, the mean point and the direction it was seen from, so that a scan in a
+new room does not match its face of a wall to the face seen from the room before.
 
 The matcher: point-to-line ICP (Gauss-Newton on x, y, heading, Cauchy weights) against the model's
 points, whose normals come from their neighbours; only points on a line (a wall's face, not a
-cluttered blob) serve. It is trusted only when enough of the scan lands on the model
-(``min_fitness``, ``min_inliers``), the problem is well-posed in every direction (a featureless
-corridor constrains nothing along it: ``min_constraint``), and the step is plausible
-(``max_step_m``, ``max_step_rad``); otherwise odometry carries on under the old correction.
+cluttered blob) serve. Odometry is a prior as wide as its drift since the last fix could be. It is
+trusted only when enough of the scan lands on the model (``min_fitness``, ``min_inliers``), the step
+is plausible under that prior (``max_sigma``, ``max_step_m``) and it fits the model better than
+odometry does (``min_gain``); otherwise odometry carries on under the old correction, and the scan
+adds only what the model has not seen (a new room). Where the scan pins one direction only (a
+featureless corridor constrains nothing along it: ``min_constraint``) the match is kept across it
+and odometry along it. A tour re-registers at its start and at its hubs.
 
 Exact poses stay exact, bit for bit: the correction moves only when the registration disagrees with
 the current one by more than ``gate_m`` or ``gate_rad`` (a noise-free scan registers within a few
@@ -91,8 +96,8 @@ class LocaliserConfig(BaseModel):
     prior_max_rad: float = Field(0.03, gt=0.0)
     max_sigma: float = Field(4.0, gt=0.0)
     min_gain: float = Field(0.05, ge=0.0, lt=1.0)  # a correction must lower the fit cost by this share
-    new_territory_m: float = Field(0.15, gt=0.0)
-    relocalise_after_m: float = Field(1.0, ge=0.0)  # tours re-register after driving this far  # an unplaced scan adds only points this far from the model
+    new_territory_m: float = Field(0.15, gt=0.0)  # an unplaced scan adds only points this far from the model
+    relocalise_after_m: float = Field(1.0, ge=0.0)  # tours re-register after driving this far
     gate_m: float = Field(0.015, ge=0.0)  # disagreement below these leaves the correction alone
     gate_rad: float = Field(math.radians(0.3), ge=0.0)
 
