@@ -32,7 +32,8 @@ def _noise(scale: float) -> dict:
     return {k: v * scale if k in DRIFT_KEYS else v for k, v in NOISY.items()}
 
 
-def run(spec: str, noise: dict | None, localise: bool, size_px: int = 128, rate_hz: float = 4.0) -> dict:
+def run(spec: str, noise: dict | None, localise: bool, size_px: int = 128, rate_hz: float = 4.0,
+        localisation: dict | None = None) -> dict:
     """Explore ``spec`` and record its tours; the figures of one row (and the recordings' digest)."""
     from services.mapper.core import discover, discovery_config, execute_tours
     from services.robot_io.core.robot import ROBOTS
@@ -50,7 +51,7 @@ def run(spec: str, noise: dict | None, localise: bool, size_px: int = 128, rate_
         return frame
 
     robot.render_frame = recorded
-    dcfg = discovery_config("default", {"localisation": {"enabled": localise}})
+    dcfg = discovery_config("default", {"localisation": {**(localisation or {}), "enabled": localise}})
     t0 = time.perf_counter()
     d = discover(robot, dcfg)
     skipped: list[int] = []

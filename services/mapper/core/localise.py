@@ -84,16 +84,19 @@ class LocaliserConfig(BaseModel):
     max_step_m: float = Field(0.5, gt=0.0)  # a bigger jump of the correction at once is not believed
     max_step_rad: float = Field(math.radians(10.0), gt=0.0)
     # Odometry as a prior on the registration, as uncertain as its drift since the last fix could
-    # make it (about twice the noisy row's drift, so that odometry never outvotes a good match): it
+    # make it (about four times the noisy row's drift, so that odometry never outvotes a good match): it
     # holds the directions a scan does not pin (a corridor's length) where odometry has them, and a
     # match far outside it (``max_sigma``) is a wrong minimum, not a correction.
     ray_sigma_m: float = Field(0.02, gt=0.0)  # a ray's error (the model's cells, the depth noise)
     prior_m: float = Field(0.01, gt=0.0)
-    prior_m_per_sqrt_m: float = Field(0.02, ge=0.0)
+    prior_m_per_sqrt_m: float = Field(0.04, ge=0.0)
     prior_rad: float = Field(0.003, gt=0.0)
-    prior_rad_per_sqrt_move: float = Field(0.015, ge=0.0)
-    prior_max_m: float = Field(0.05, gt=0.0)
-    prior_max_rad: float = Field(0.03, gt=0.0)
+    prior_rad_per_sqrt_move: float = Field(0.03, ge=0.0)
+    # Twice the noisy row's drift needs this much room: with half of it (0.02 m/sqrt(m), 0.015
+    # rad/sqrt(move), capped at 0.05 m and 0.03 rad) generated:0 at 2x drift lost its heading by 9 deg
+    # and skipped 7 of 13 regions; with these, 1.2 deg and none (1x: median tour start 3.0 -> 4.2 cm).
+    prior_max_m: float = Field(0.1, gt=0.0)
+    prior_max_rad: float = Field(0.06, gt=0.0)
     max_sigma: float = Field(4.0, gt=0.0)
     min_gain: float = Field(0.05, ge=0.0, lt=1.0)  # a correction must lower the fit cost by this share
     new_territory_m: float = Field(0.15, gt=0.0)  # an unplaced scan adds only points this far from the model
@@ -393,7 +396,8 @@ class Localiser:
     def prior_sigma(self) -> tuple[float, float]:
         """Odometry's uncertainty since the last fix, capped: the correction tracks the drift, so a
         step is what drifted since the last placed panorama, and a long run of unplaced ones must not
-        open the door to a wrong basin half a metre off (noise-free generated:0 jumped 0.32 m after 20)."""
+        open the door to a wrong basin half a metre off (noise-free generated:0 jumped 0.32 m after 20
+        unplaced panoramas before the cap; the fit-cost check now refuses that jump too)."""
         c = self.config
         return (min(c.prior_max_m, c.prior_m + c.prior_m_per_sqrt_m * math.sqrt(self._since_fix_m)),
                 min(c.prior_max_rad, c.prior_rad + c.prior_rad_per_sqrt_move * math.sqrt(self._since_fix_moves)))
