@@ -83,6 +83,7 @@ from .navigation import (  # noqa: F401
     NavGraph,
     Tour,
     TourRecording,
+    OdomCorrection,
 )
 from .maps import (  # noqa: F401
     MapInfo,

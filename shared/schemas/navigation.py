@@ -8,7 +8,7 @@ from pydantic import Field
 
 from shared.arrays import Array
 
-from .base import BUILD_MAX_FRAMES, Distance_m, Message, Metres, Radians, SegmentId, Xyz_m
+from .base import BUILD_MAX_FRAMES, Distance_m, Message, Metres, Radians, Seconds, SegmentId, Xyz_m
 from .geometry import Pose
 
 
@@ -67,11 +67,25 @@ class Tour(Message):
     coverage: float
 
 
+class OdomCorrection(Message):
+    """The mapper's map <- odom correction from robot time ``since_s`` on (until the next one):
+    ``map = odom + (dx, dy)``, ``heading_map = heading_odom + dyaw`` (issue 33)."""
+
+    since_s: Seconds
+    dx_m: Metres
+    dy_m: Metres
+    dyaw_rad: Radians
+
+
 class TourRecording(Message):
     """A finished recorded tour; its frames were published on ``IO_FRAMES`` under ``recording``."""
 
     exploration_id: SegmentId
     recording: SegmentId
     region: int = Field(ge=-1, le=100_000)
-    start_pose: Pose
+    start_pose: Pose  # as the frames report it: the robot's odometry
     frame_count: int = Field(ge=0, le=BUILD_MAX_FRAMES)
+    # The frames carry the robot's odometry poses; the mapper localised the robot meanwhile, and
+    # these corrections (in time order, each from its robot time on) put a frame, and ``start_pose``,
+    # in the map frame that the exploration's graph and the other regions share. Empty: none known.
+    odom_corrections: list[OdomCorrection] = Field(default_factory=list, max_length=10_000)

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.schemas import NavGraph, Tour
 
 from services.mapper.core.explorer import ExplorationConfig, ExplorationResult, ExplorationStep, Explorer, ExplorerRobot
+from services.mapper.core.localise import LocalisedRobot, Localiser, LocaliserConfig
 from services.mapper.core.predictor import DEFAULT_PREDICTOR, PREDICTORS, WaypointPredictor
 from services.mapper.core.regions import RegionConfig, SceneMap, analyse
 from services.mapper.core.tours import PlannedTour, TourConfig, TourPlanner
@@ -78,6 +79,8 @@ class DiscoveryConfig(BaseModel):
     exploration: ExplorationConfig = Field(default_factory=ExplorationConfig)
     regions: RegionConfig = Field(default_factory=RegionConfig)
     tours: TourConfig = Field(default_factory=TourConfig)
+    # The mapper's own map <- odom correction (localise.py): exact poses pass through it unchanged.
+    localisation: LocaliserConfig = Field(default_factory=LocaliserConfig)
 
 
 @dataclass
@@ -110,11 +113,15 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
     cfg = config or DiscoveryConfig()
     pred = predictor or PREDICTORS.create(cfg.predictor, cfg.predictor_config or None)
     t0 = time.perf_counter()
+    if cfg.localisation.enabled and not isinstance(robot, LocalisedRobot):
+        robot = LocalisedRobot(robot, Localiser(cfg.localisation))
     result = Explorer(pred, cfg.exploration).explore(robot, checkpoint, on_step)
     t1 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()
     scene = analyse(result, cfg.regions)
+    if isinstance(robot, LocalisedRobot):
+        scene.localiser = robot.localiser
     t2 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()

@@ -22,6 +22,7 @@ from shared.geometry import wrap_angle
 from shared.schemas import Frame, MoveResult, MoveStatus, Panorama, Pose
 
 from services.mapper.core.errors import TourExecutionError
+from services.mapper.core.localise import Correction, LocalisedRobot
 from services.mapper.core.navgraph import NodeStatus
 from services.mapper.core.regions import SceneMap
 from services.mapper.core.tours import PlannedTour
@@ -55,6 +56,10 @@ class RegionRecording:
     hubs_visited: int = 0
     blocked_moves: int = 0
     travelled_m: float = 0.0
+    # The map <- odom correction in effect from each robot time on while recording (start first):
+    # the frames above already carry it; a robot that publishes its frames itself (robot-io over the
+    # bus) sends odometry poses, and these say how to correct them.
+    corrections: list[tuple[float, Correction]] = field(default_factory=list)
 
 
 def execute_tours(
@@ -74,6 +79,8 @@ def execute_tours(
     move; it raises to abandon the tours (a cancelled job), a recording under way being stopped.
     """
     out = []
+    if scene is not None and scene.localiser is not None and not isinstance(robot, LocalisedRobot):
+        robot = LocalisedRobot(robot, scene.localiser)
     for pt in tours:
         try:
             rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint)
@@ -99,6 +106,11 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
     check()
     if scene is not None:
         _transit(robot, scene, start, check)
+    relocalise = getattr(robot, "relocalise", None)
+    if relocalise is not None:
+        # Re-localised where the transit ended, the tour's start reached by the map, not by odometry:
+        # a drifted robot missed one-hub regions by more than the 0.75 m it may start short.
+        relocalise()
     first = _reach_tour_start(robot, tour.region, path if len(path) else start[None], scene, check)
     turn = float(wrap_angle(tour.start_pose.heading_rad - robot.pose.heading_rad))
     if abs(turn) > 1e-3:
@@ -111,11 +123,20 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
         frames.append(frame)
 
     rec = RegionRecording(region=tour.region, start_pose=robot.pose)
+    localiser = getattr(robot, "localiser", None)
+
+    def note_correction() -> None:
+        if localiser is not None and (not rec.corrections or rec.corrections[-1][1] != localiser.correction):
+            # From the robot time of the panorama that set it (the frames' clock, on any robot).
+            since = localiser.steps[-1].timestamp_s if localiser.steps else 0.0
+            rec.corrections.append((float(since), localiser.correction))
+
     hubs = set(pt.hub_path_index)
     # Hubs before the first reachable sample are looked around from there, their nearest
     # reachable place on the path.
     if any(k < first for k in hubs):
         hubs.add(first)
+    note_correction()
     with robot.recording(sink, rate_hz):
         for k in range(first, len(path)):
             check()  # inside the recording: abandoning it here stops the recording on the way out
@@ -128,6 +149,9 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
                     if res.status != MoveStatus.REACHED:
                         rec.blocked_moves += 1
             if k in hubs:
+                if relocalise is not None:
+                    relocalise()
+                    note_correction()
                 for f in robot.look_around():
                     # Some robots also emit look-around frames through the sink: keep one copy.
                     if f.index not in seen:

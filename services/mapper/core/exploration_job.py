@@ -25,7 +25,7 @@ from typing import Protocol
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import (
     BuildMapRequest, ExplorationFinished, ExplorationOutcome, ExplorationProgress, ExplorationRequest, JobEvent, JobState, MapBuildProgress,
-    MapInfo, NavGraph, RecordReply, SceneSummary, Tour, TourRecording, UsageData,
+    MapInfo, NavGraph, OdomCorrection, RecordReply, SceneSummary, Tour, TourRecording, UsageData,
 )
 
 from .discovery import DiscoveryConfig, discover, discovery_config
@@ -102,8 +102,14 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
         last = robot.last_recording
         if last is None:
             raise RuntimeError(f"region {rec.region}: the robot reported no recording")
+        # Robot-io publishes the frames with its odometry poses: the start pose goes with them, and
+        # the mapper's corrections beside them, for the reconstructor to apply (issue 33).
+        start = rec.corrections[0][1].odom(rec.start_pose) if rec.corrections else rec.start_pose
+        corrections = [OdomCorrection(since_s=t, dx_m=c.dx_m, dy_m=c.dy_m, dyaw_rad=c.dyaw_rad)
+                       for t, c in rec.corrections if not c.identity or len(rec.corrections) > 1]
         recordings.append(TourRecording(exploration_id=req.exploration_id, recording=last.recording,
-                                        region=rec.region, start_pose=rec.start_pose, frame_count=last.frame_count))
+                                        region=rec.region, start_pose=start, frame_count=last.frame_count,
+                                        odom_corrections=corrections))
         ctx.progress(ExplorationProgress(
             stage="touring", progress=tours_progress(), region=rec.region, frames=last.frame_count,
             message=f"region {rec.region}: {last.frame_count} frames ({len(recordings)}/{len(disc.tours)})"))

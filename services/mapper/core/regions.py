@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import networkx as nx
 import numpy as np
@@ -61,6 +62,9 @@ class SceneMap:
     regions: dict[int, list[str]]  # region id -> visited node ids
     region_floor: dict[int, int]
     node_region: dict[str, int] = field(default_factory=dict)
+    # The exploration's map <- odom localiser (localise.Localiser), when it ran one: the tours go on
+    # correcting the robot's odometry with it, so they reach the hubs the graph placed.
+    localiser: Any = None
 
 
 def detect_floors(
