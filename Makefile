@@ -30,16 +30,17 @@ test: setup
 	$(PYTEST) -q -m "not slow" --durations=25 tests
 
 # The tiers: unit (pure logic, in-process), contract (real zenoh peers in this process), e2e (real
-# HTTP servers, browsers, in-process services), system (tests that start OS processes: a launcher, a
-# router, services; marked `system`, wherever they live). `make test` runs all of them.
+# HTTP servers, browsers, in-process services, the reliability suite's in-process system), system (tests
+# that start OS processes: a launcher, a router, services, a helper program; marked `system`, wherever they
+# live; one launched system is shared by the session). Together they are exactly `make test`.
 test-unit: setup
-	$(PYTEST) -q -m "not slow" --durations=15 tests/unit
+	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/unit
 
 test-contract: setup
 	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/contract
 
 test-e2e: setup
-	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/e2e tests/integration
+	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/e2e tests/integration tests/reliability
 
 test-system: setup
 	$(PYTEST) -q -m "system and not slow" --durations=15 tests

@@ -13,7 +13,7 @@ SHARED_DATA = Path(os.environ.get("ANT_SHARED_DATA") or REPO_ROOT.parent / "shar
 
 
 def pytest_collection_modifyitems(config, items):
-    """A test that uses the launched system (tests/reliability's ``system`` fixture: a router and every
+    """A test that uses the launched system (the ``system`` fixture below: a router and every
     service as OS processes) is a ``system`` test wherever it lives, so ``-m "not system"`` keeps a tier
     in-process without each file having to say so."""
     for item in items:
@@ -27,6 +27,28 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"reference data not present at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def system(tmp_path_factory):
+    """The whole system as real processes over a real zenoh router, supervised (restart on crash), two
+    robots, with one map imported from the scene (tests/launched.py); started once per session and shared
+    by tests/e2e and tests/reliability."""
+    from tests.launched import import_map, launch
+
+    with launch(tmp_path_factory.mktemp("system")) as launcher:
+        import_map(launcher)
+        yield launcher
+
+
+@pytest.fixture
+def system_on_scene(system):
+    """``system`` for a test that switches its robots' scenes (the evaluation runner does) or leaves work
+    behind: afterwards every robot is back on the shared scene with nothing running."""
+    from tests.launched import put_back
+
+    yield system
+    put_back(system)
 
 
 @pytest.fixture

@@ -21,7 +21,7 @@ AREA_M2 = 60.0
 START_SCENE = "generated:3:area=50"
 
 
-def test_make_eval_path_on_a_generated_house(tmp_path, capsys, monkeypatch):
+def test_make_eval_path_on_a_generated_house(tmp_path, capsys, monkeypatch, system_on_scene):
     monkeypatch.setenv("ANT_ROBOT_CONFIG", json.dumps({"scene": START_SCENE}))
     ds, gt = generate_set(SetSpec(houses=1, per_house=2, floors=(1,), seed=7, area_m2=AREA_M2), with_gt=True)
     assert all(e.scene_id != START_SCENE for e in ds.episodes)
@@ -40,6 +40,8 @@ def test_make_eval_path_on_a_generated_house(tmp_path, capsys, monkeypatch):
     # The oracle follows the ground truth: it must reach the goal on these easy episodes.
     assert sum(r.metrics["success"] for r in results.values()) >= 1
     assert "| oracle/curated | 2 | 0 | 0 |" in capsys.readouterr().out
-    # Resuming does nothing (everything is done) and prints the same table.
-    assert main(argv) == 0
+    # Resuming does nothing (everything is done) and prints the same table; it runs against the session's
+    # launched system (tests/conftest.py) through ``--gateway``, the other way the runner finds a system,
+    # rather than starting a second one of its own only to find nothing left to do.
+    assert main([*argv, "--gateway", system_on_scene.gateway_url]) == 0
     assert "0 episodes run, 2 resumed" in capsys.readouterr().out

@@ -10,13 +10,12 @@ import json
 
 import pytest
 
-from deploy.launcher import Launcher
 from evaluation.cli import main
 from evaluation.dataset import SetSpec, generate_set, write_set
 from evaluation.results import ResultsLog
 from services.planner.tools.llm_standin import StandinConfig, StandinServer
 
-pytestmark = [pytest.mark.e2e, pytest.mark.timeout(600)]  # ~70 s per run here (map upload included)
+pytestmark = [pytest.mark.e2e, pytest.mark.system, pytest.mark.timeout(600)]  # ~70 s per run here (map upload included)
 
 # emulated server -> (its limits, the policy config beyond base_url)
 SERVERS = {
@@ -40,37 +39,28 @@ def _run(tmp_path, launcher, episodes, name: str, limits: dict, policy: dict) ->
     return ResultsLog(out / "results.jsonl").load(), llm
 
 
-def _system(tmp_path):
+@pytest.fixture(scope="module")
+def episodes(tmp_path_factory):
     ds, gt = generate_set(SetSpec(houses=1, per_house=1, floors=(1,), seed=3), with_gt=True)
-    episodes = write_set(ds, gt, tmp_path / "set.json.gz")[0]
-    launcher = Launcher(tmp_path / "system", robots=1)
-    return launcher, episodes
+    return write_set(ds, gt, tmp_path_factory.mktemp("set") / "set.json.gz")[0]
 
 
-def test_one_mission_per_emulated_server(tmp_path):
-    launcher, episodes = _system(tmp_path)
-    try:
-        launcher.start(300.0)
-        run = lambda *a: _run(tmp_path, launcher, episodes, *a)  # noqa: E731
-        for name, (limits, policy) in SERVERS.items():
-            results, llm = run(name, limits, policy)
-            assert len(results) == 1, name
-            (r,) = results.values()
-            assert r.status == "done", (name, r.reason)
-            assert llm.stats.refusals == [] and llm.stats.by_outcome.get("ok", 0) >= 1, (name, llm.stats)
-            if name == "vllm":
-                assert max(llm.stats.images_per_request) == 1
-    finally:
-        launcher.stop()
-
-
-def test_the_old_separate_prompt_is_refused_by_vllm_and_ends_the_mission(tmp_path):
-    launcher, episodes = _system(tmp_path)
-    try:
-        launcher.start(300.0)
-        results, llm = _run(tmp_path, launcher, episodes, "vllm-old", {}, {"profile": "generic", "layout": "separate"})
+# The session's launched system (tests/conftest.py), through robot0's gateway; the runner switches its
+# robot's scene, and ``system_on_scene`` puts it back afterwards.
+def test_one_mission_per_emulated_server(tmp_path, system_on_scene, episodes):
+    run = lambda *a: _run(tmp_path, system_on_scene, episodes, *a)  # noqa: E731
+    for name, (limits, policy) in SERVERS.items():
+        results, llm = run(name, limits, policy)
+        assert len(results) == 1, name
         (r,) = results.values()
-        assert r.status != "done" and "At most 1 image(s) may be provided in one request" in r.reason, r.reason
-        assert llm.stats.requests == 1 and llm.stats.by_outcome == {"refused": 1}
-    finally:
-        launcher.stop()
+        assert r.status == "done", (name, r.reason)
+        assert llm.stats.refusals == [] and llm.stats.by_outcome.get("ok", 0) >= 1, (name, llm.stats)
+        if name == "vllm":
+            assert max(llm.stats.images_per_request) == 1
+
+
+def test_the_old_separate_prompt_is_refused_by_vllm_and_ends_the_mission(tmp_path, system_on_scene, episodes):
+    results, llm = _run(tmp_path, system_on_scene, episodes, "vllm-old", {}, {"profile": "generic", "layout": "separate"})
+    (r,) = results.values()
+    assert r.status != "done" and "At most 1 image(s) may be provided in one request" in r.reason, r.reason
+    assert llm.stats.requests == 1 and llm.stats.by_outcome == {"refused": 1}

@@ -18,7 +18,9 @@ CAM = {"width_px": 64, "height_px": 64, "hfov_deg": 90.0}
 
 
 @pytest.fixture(scope="module")
-def system():
+def services_net():
+    """robot-io and the mapper in this process on one fake network (not named ``system``: that name marks
+    a test that launches OS processes, tests/conftest.py)."""
     net = FakeNetwork()
     robot_settings = RobotIoSettings(instance="io-1", robot_config={"scene": "generated:0", "camera": CAM})
     with RunningService(RobotIoService(robot_settings), FakeBus(net)), \
@@ -26,8 +28,8 @@ def system():
         yield net
 
 
-def test_observe_move_and_pose_over_the_bus(system):
-    bus = TypedBus(FakeBus(system))
+def test_observe_move_and_pose_over_the_bus(services_net):
+    bus = TypedBus(FakeBus(services_net))
     robot = RobotClient(bus, "robot0")
     start = robot.reset()
     pano = robot.observe()
@@ -42,8 +44,8 @@ def test_observe_move_and_pose_over_the_bus(system):
     assert scene.rooms and scene.label_names and scene.reachable_area_m2 > 20
 
 
-def test_recording_publishes_frames_and_counts_them(system):
-    bus = TypedBus(FakeBus(system))
+def test_recording_publishes_frames_and_counts_them(services_net):
+    bus = TypedBus(FakeBus(services_net))
     robot = RobotClient(bus, "robot0", recording_px=32, recording_prefix="tour")
     robot.reset()
     got: list[Frame] = []
@@ -60,8 +62,8 @@ def test_recording_publishes_frames_and_counts_them(system):
     assert len(got) == n and got[0].rgb.shape == (32, 32, 3) and got[0].camera.width_px == 32
 
 
-def test_bad_requests_get_typed_errors_and_service_keeps_serving(system):
-    bus = TypedBus(FakeBus(system))
+def test_bad_requests_get_typed_errors_and_service_keeps_serving(services_net):
+    bus = TypedBus(FakeBus(services_net))
     robot = RobotClient(bus, "robot0")
     # The client refuses a bad recording name itself (SegmentId); a payload forged past it is refused by
     # the service with a typed error.
@@ -93,8 +95,8 @@ def test_downscale_keeps_field_of_view_geometry():
     assert small.camera.pinhole().fx == pytest.approx(cam.pinhole().fx / 4)
 
 
-def test_load_scene_switches_the_simulator_and_refuses_bad_specs(system):
-    bus = TypedBus(FakeBus(system))
+def test_load_scene_switches_the_simulator_and_refuses_bad_specs(services_net):
+    bus = TypedBus(FakeBus(services_net))
     robot = RobotClient(bus, "robot0")
     before = robot.scene()
     other = robot.load_scene("generated:3")
@@ -105,11 +107,11 @@ def test_load_scene_switches_the_simulator_and_refuses_bad_specs(system):
     robot.load_scene("generated:0")
 
 
-def test_exploration_options_are_refused_before_the_job_is_accepted(system):
+def test_exploration_options_are_refused_before_the_job_is_accepted(services_net):
     """A bad discovery profile or knob is an answer to the submit, not a failed job: nothing starts."""
     from shared.schemas import ExplorationRequest
 
-    mapper = MapperClient(TypedBus(FakeBus(system)), "robot0")
+    mapper = MapperClient(TypedBus(FakeBus(services_net)), "robot0")
     for i, options in enumerate([{"profile": "no-such-profile"}, {"discovery": {"exploration": {"nope": 1}}},
                                  {"profile": 3}, {"discovery": []}]):
         ack = mapper.explore(ExplorationRequest(exploration_id=f"x-bad{i}", map_id="m", options=options))

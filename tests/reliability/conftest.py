@@ -1,4 +1,5 @@
-"""Fixtures of the reliability suite: a real system (router + six service processes) and a tally.
+"""Fixtures of the reliability suite: an in-process live system and a tally (the launched system,
+``system``, is shared with tests/e2e: tests/conftest.py).
 
 The tally is what ``python -m bench.reliability`` prints: every test adds what it injected and what
 survived (faults, fuzzed payloads, HTTP cases, 5xx answers, lost missions and events). Where
@@ -7,20 +8,17 @@ survived (faults, fuzzed payloads, HTTP cases, 5xx answers, lost missions and ev
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import threading
 from collections import Counter
 from pathlib import Path
 
-import httpx
 import pytest
 
-from tests import waiting
-
-SCENE = "generated:0"
-MAP_ID = "rel-house"
+# The launched system (``system``) is tests/conftest.py's, shared with tests/e2e; these names stay importable
+# from here, where the reliability tests always found them.
+from tests.launched import MAP_ID, SCENE, scene_ply, wait_until  # noqa: F401  (re-exported)
 
 
 class Tally:
@@ -47,56 +45,6 @@ def tally():
     path = os.environ.get("ANT_RELIABILITY_REPORT")
     if path:
         Path(path).write_text(json.dumps({"counts": dict(t.counts), "notes": t.notes}, indent=1))
-
-
-def wait_until(pred, timeout_s: float, what: str, interval_s: float = 0.1):
-    """tests.waiting.wait_until, where a gateway that is down or restarting means "not yet"."""
-    return waiting.wait_until(pred, timeout_s, what, interval_s=interval_s, ignore=(httpx.HTTPError, OSError))
-
-
-@functools.lru_cache(maxsize=1)
-def _sim_scene():
-    """The scene robot-io simulates and its walkable viewpoints, built once per session: four fixtures and
-    tests sample it, and the default house and its nav grids cost seconds to build (read-only here)."""
-    from evaluation.clouds import walkable_viewpoints
-    from services.robot_io.core import ROBOTS
-
-    with ROBOTS.create("sim", {"scene": SCENE}) as robot:
-        return robot.scene, walkable_viewpoints(robot.scene)
-
-
-def scene_ply(density_per_m2: float = 60.0) -> bytes:
-    """A PLY of points sampled from the scene robot-io simulates (the map a mission runs on)."""
-    from evaluation.clouds import sample_scene_cloud
-    from shared.cloud import encode
-
-    scene, viewpoints = _sim_scene()
-    return encode(sample_scene_cloud(scene, density_per_m2=density_per_m2, max_points=200_000,
-                                     viewpoints_m=viewpoints))
-
-
-@pytest.fixture(scope="session")
-def system(tmp_path_factory):
-    """The whole system as real processes over a real zenoh router, supervised (restart on crash),
-    with one map imported from the scene; shared by the suite so it starts once."""
-    from deploy.launcher import Launcher
-
-    run_dir = tmp_path_factory.mktemp("reliability")
-    env = {
-        "ANT_ROBOT_CONFIG": json.dumps({"scene": SCENE}),
-        "ANT_STORE_DIR": str(run_dir / "maps"),
-        "ANT_DB_PATH": str(run_dir / "gateway.sqlite3"),
-        "ANT_LOG_LEVEL": "WARNING",
-    }
-    launcher = Launcher(run_dir, extra_env=env, restart=True)
-    with launcher:
-        with httpx.Client(base_url=launcher.gateway_url, timeout=120) as http:
-            wait_until(lambda: http.get("/maps").status_code == 200, 60, "gateway reaches the reconstructor")
-            r = http.post("/maps", params={"map_id": MAP_ID, "filename": "scene.ply"}, content=scene_ply(),
-                          headers={"Content-Type": "application/octet-stream"})
-            assert r.status_code == 201, r.text
-        launcher.run_dir_path = run_dir
-        yield launcher
 
 
 @pytest.fixture(scope="session")

@@ -28,6 +28,8 @@ import services.robot_io.ros2_zenoh  # noqa: F401  (registers the zenoh transpor
 from services.robot_io.core.ros2.backend import Ros2Config, Ros2Error, Ros2Robot
 from tests.waiting import wait_until
 
+pytestmark = pytest.mark.system  # the stand-in as its own process, in a network namespace
+
 TAG = f"ant{os.getpid() % 100000}"
 NS, VH, VR = f"{TAG}ns", f"{TAG}h", f"{TAG}r"
 HOST_IP, ROBOT_IP = "10.213.7.1", "10.213.7.2"

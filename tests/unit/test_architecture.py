@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -19,12 +20,20 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@functools.lru_cache(maxsize=None)
+def _import_nodes(path: Path) -> tuple[ast.Import | ast.ImportFrom, ...]:
+    """Every import statement of a file, at any depth. Parsed once per session: the checks below walk
+    the same files again and again (each service, each library, the whole tree for cycles), and
+    parsing them was most of this module's time."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    return tuple(n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)))
+
+
 def _imports(path: Path) -> list[tuple[int, str]]:
     """(line, module) of every import in a file, relative imports resolved against its package."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     package = path.relative_to(ROOT).with_suffix("").parts[:-1]
     out = []
-    for node in ast.walk(tree):
+    for node in _import_nodes(path):
         if isinstance(node, ast.Import):
             out.extend((node.lineno, a.name) for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -123,10 +132,9 @@ def _import_graph(tops: tuple[str, ...] = OURS) -> dict[str, set[str]]:
     modules = {_module_of(p): p for p in files}
     graph: dict[str, set[str]] = {}
     for mod, path in modules.items():
-        tree = ast.parse(path.read_text(encoding="utf-8"))
         package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
         out: set[str] = set()
-        for node in ast.walk(tree):
+        for node in _import_nodes(path):
             if isinstance(node, ast.Import):
                 out.update(a.name for a in node.names if a.name in modules)
             elif isinstance(node, ast.ImportFrom):

@@ -113,6 +113,7 @@ def test_exhausted_retries_fall_back_and_bad_requests_get_400():
         assert not decisions[0].fallback
 
 
+@pytest.mark.system  # the stand-in as its own process
 def test_command_line_server_with_latency():
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.planner.tools.llm_standin", "--port", "0", "--latency-s", "0.3",

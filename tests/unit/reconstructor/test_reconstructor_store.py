@@ -146,6 +146,7 @@ def test_corrupted_cloud_is_detected(tmp_path):
         store.load("m")
 
 
+@pytest.mark.system  # writers as their own processes, killed
 def test_killed_writer_never_leaves_a_broken_map(tmp_path):
     # A writer storing big maps in a loop is SIGKILLed at arbitrary moments; every version that is
     # visible afterwards must load and match its checksum.
