@@ -21,7 +21,7 @@ from services.robot_io.service import RobotIoService, RobotIoSettings
 from shared import keys
 from shared.bus import FakeBus, FakeNetwork
 from shared.bus.typed import TypedBus
-from shared.clients import MapClient, MapperClient
+from shared.clients import MapClient, MapperClient, RobotClient
 from shared.geometry import PinholeCamera
 from shared.jobs import TERMINAL_STATES, JobRunner
 from shared.runner import RunningService
@@ -197,6 +197,10 @@ def test_the_mapper_cancels_only_the_exploration_of_the_robot_whose_key_asks(net
     mapper = MapperService(MapperSettings(instance="map-1", explore_camera_px=32))
     with RunningService(io, FakeBus(net)), RunningService(mapper, FakeBus(net)):
         bus = TypedBus(FakeBus(net))
+        # One panorama first, with a generous budget: on a fresh clone robot-io's first observe compiles
+        # its render kernels (tens of seconds on a loaded 2-core machine), longer than the mapper's 30 s
+        # request budget. What this test checks starts after that.
+        RobotClient(bus, "robot0", timeout_s=300.0).observe()
         events: list[JobEvent] = []
         first = threading.Event()
 
