@@ -19,8 +19,11 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from shared.geometry import wrap_angle
 from shared.jobs import JobContext, JobEnd
-from shared.schemas import BuildMapRequest, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo
+from shared.schemas import (
+    BuildMapRequest, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo, OdomCorrection, Pose, TourRecording,
+)
 
 from .frames import region_from_frames
 from .pipeline import ReconstructionConfig, Reconstructor, RegionReport
@@ -56,7 +59,8 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
             got = _collect(ctx, frames, rec.recording, rec.frame_count, frames_timeout_s)
             if len(got) < rec.frame_count:
                 log.warning("recording %s: %d of %d frames arrived", rec.recording, len(got), rec.frame_count)
-            regions.append(region_from_frames(rec.region, rec.start_pose, got))
+            start, got = in_map_frame(rec, got)
+            regions.append(region_from_frames(rec.region, start, got))
             tour_frames.setdefault(rec.region, []).extend(labeller_frames(got))
             ctx.progress(MapBuildProgress(stage="collecting", progress=0.1 * (i + 1) / n, region=rec.region, regions=n,
                                           message=f"region {rec.region}: {len(got)} of {rec.frame_count} frames"))
@@ -82,6 +86,30 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
             frames.drop(rec.recording)
     announce(info)
     return JobEnd(JobState.SUCCEEDED, MapBuildFinished(info=info))
+
+
+def _corrected_pose(pose: Pose, c: OdomCorrection) -> Pose:
+    x, y, z = pose.position_m
+    return Pose(position_m=(x + c.dx_m, y + c.dy_m, z), heading_rad=float(wrap_angle(pose.heading_rad + c.dyaw_rad)))
+
+
+def in_map_frame(rec: TourRecording, frames: list[Frame]) -> tuple[Pose, list[Frame]]:
+    """A recording's start pose and frames in the map frame. Robot-io publishes frames with its odometry
+    poses; the mapper localised the robot meanwhile (issue 33) and sent its map <- odom corrections
+    beside the recording, each from a robot time on (``map = odom + (dx, dy)``, heading + dyaw, as the
+    mapper's own ``Correction``). A frame takes the latest correction at or before its timestamp (the
+    first one before any). No corrections: the recording exactly as it came (an exact robot, or an
+    uncorrected mapper)."""
+    if not rec.odom_corrections:
+        return rec.start_pose, frames
+    cs = sorted(rec.odom_corrections, key=lambda c: c.since_s)
+    since = np.array([c.since_s for c in cs])
+    out = []
+    for f in frames:
+        c = cs[max(0, int(np.searchsorted(since, f.timestamp_s, side="right")) - 1)]
+        out.append(f.model_copy(update={"pose": _corrected_pose(f.pose, c),
+                                        "imu_heading_rad": float(wrap_angle(f.imu_heading_rad + c.dyaw_rad))}))
+    return _corrected_pose(rec.start_pose, cs[0]), out
 
 
 LABELLER_FRAMES = 8  # tour frames per region kept for the scene-graph labeller (it sends a few of them)

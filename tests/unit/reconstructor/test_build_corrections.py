@@ -1,0 +1,51 @@
+"""The build job puts a recording's odometry frames in the map frame with the mapper's corrections
+(issue 33): robot-io publishes frames past the mapper, with odometry poses, and the mapper sends its
+map <- odom corrections beside the recording."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from services.reconstructor.core.build_job import in_map_frame
+from shared.schemas import CameraIntrinsics, Frame, OdomCorrection, Pose, TourRecording
+
+CAM = CameraIntrinsics(width_px=8, height_px=8, hfov_deg=90.0)
+
+
+def _frame(i: int, t: float, x: float, heading: float) -> Frame:
+    return Frame(index=i, timestamp_s=t, pose=Pose(position_m=(x, 1.0, 0.0), heading_rad=heading),
+                 imu_heading_rad=heading, camera=CAM, rgb=np.zeros((8, 8, 3), np.uint8))
+
+
+def _recording(corrections: list[OdomCorrection]) -> TourRecording:
+    return TourRecording(exploration_id="x1", recording="x1-r0", region=0, frame_count=4,
+                         start_pose=Pose(position_m=(0.0, 1.0, 0.0), heading_rad=3.1), odom_corrections=corrections)
+
+
+def test_each_frame_takes_the_correction_in_effect_at_its_time():
+    first = OdomCorrection(since_s=1.0, dx_m=0.1, dy_m=-0.2, dyaw_rad=0.05)
+    second = OdomCorrection(since_s=3.0, dx_m=-0.3, dy_m=0.0, dyaw_rad=-0.1)
+    frames = [_frame(0, 0.5, 0.0, 3.1), _frame(1, 1.0, 1.0, 0.0), _frame(2, 2.9, 2.0, 0.0), _frame(3, 3.5, 3.0, 0.0)]
+    # Given out of order: the build sorts them by time.
+    start, fixed = in_map_frame(_recording([second, first]), frames)
+    assert start.position_m == (0.1, 0.8, 0.0)
+    # 3.1 + 0.05 wraps past pi.
+    assert math.isclose(start.heading_rad, 3.15 - 2 * math.pi, abs_tol=1e-12)
+    want = [first, first, first, second]  # a frame before the first correction takes the first
+    for f, g, c in zip(frames, fixed, want):
+        assert g.index == f.index and g.timestamp_s == f.timestamp_s and g.rgb is f.rgb
+        assert np.allclose(g.pose.position_m, (f.pose.position_m[0] + c.dx_m, f.pose.position_m[1] + c.dy_m, 0.0))
+        assert math.isclose(math.remainder(g.pose.heading_rad - f.pose.heading_rad - c.dyaw_rad, 2 * math.pi), 0.0,
+                            abs_tol=1e-12)
+        assert math.isclose(math.remainder(g.imu_heading_rad - f.imu_heading_rad - c.dyaw_rad, 2 * math.pi), 0.0,
+                            abs_tol=1e-12)
+    assert frames[1].pose.position_m == (1.0, 1.0, 0.0)  # the frames given are not changed
+
+
+def test_a_recording_without_corrections_is_built_exactly_as_it_came():
+    frames = [_frame(0, 0.5, 0.0, 0.2), _frame(1, 1.0, 1.0, 0.0)]
+    rec = _recording([])
+    start, same = in_map_frame(rec, frames)
+    assert start is rec.start_pose and same is frames
