@@ -85,6 +85,8 @@ from .navigation import (  # noqa: F401
     TourRecording,
 )
 from .maps import (  # noqa: F401
+    DriftCorrection,
+    RegionDriftCorrection,
     MapInfo,
     MapListReply,
     MapRequest,

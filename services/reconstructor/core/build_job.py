@@ -70,7 +70,8 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
                                       message=f"storing {len(built.cloud):,} points"))
         info = store.save(req.map_id, built.cloud, source=req.source or f"exploration {req.exploration_id}",
                           regions=len(built.regions), scale_factors=built.scale_factors,
-                          timings_s=built.timings_s, details=built.details(), navigation=req.navigation)
+                          timings_s=built.timings_s, details=built.details(), navigation=req.navigation,
+                          drift_correction=built.drift_summary())
     finally:
         for rec in req.recordings:
             frames.drop(rec.recording)

@@ -40,7 +40,7 @@ import numpy as np
 from shared.cloud import CloudFormatError, PointCloud, copy_ours, read_cloud, read_cloud_bytes
 from shared.keys import KeyExprError, validate_segment
 from libs.scenegraph import build_scene_graph
-from shared.schemas import MapChunk, MapInfo, NavGraph, SceneGraph
+from shared.schemas import DriftCorrection, MapChunk, MapInfo, NavGraph, SceneGraph
 
 from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStoreError
 
@@ -91,6 +91,7 @@ class MapStore:
         timings_s: dict[str, float] | None = None,
         details: dict[str, Any] | None = None,
         navigation: NavGraph | None = None,
+        drift_correction: DriftCorrection | None = None,
     ) -> MapInfo:
         """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`.
 
@@ -107,12 +108,13 @@ class MapStore:
                         label_names={int(k): v for k, v in cloud.label_names.items()})
 
         return self._store(map_id, write, source=source, regions=regions, scale_factors=scale_factors,
-                           timings_s=timings_s, details=details,
+                           timings_s=timings_s, details=details, drift_correction=drift_correction,
                            graph_of=lambda: build_scene_graph(cloud, navigation, map_id=map_id))
 
     def _store(self, map_id: str, write, *, source: str = "", regions: int = 0,
                scale_factors: list[float] | None = None, timings_s: dict[str, float] | None = None,
-               details: dict[str, Any] | None = None, graph_of=None) -> MapInfo:
+               details: dict[str, Any] | None = None, graph_of=None,
+               drift_correction: DriftCorrection | None = None) -> MapInfo:
         """The next version of ``map_id`` from ``write(ply_path) -> MapInfo fields`` (count, bounds,
         labels), written in a temporary folder renamed into place: a failure leaves nothing.
 
@@ -138,6 +140,7 @@ class MapStore:
                     map_id=map_id, version=version, **fields,
                     source=source, regions=regions, scale_factors=list(scale_factors or []),
                     timings_s=dict(timings_s or {}), created_s=time.time(),
+                    drift_correction=drift_correction,
                 )
                 files = {_CLOUD: digest}
                 if graph is not None:

@@ -129,7 +129,7 @@ def test_regions_are_registered_to_each_other():
     b_true = room[room[:, 0] > -0.5]
     drift = se2(0.15, -0.10, math.radians(2.0))
     b = apply_se2(drift, b_true)
-    rep = register_regions([a, b], RegionRegistrationConfig(enabled=True))
+    rep = register_regions([a, b], RegionRegistrationConfig(enabled=True, method="graph"))
     assert len(rep.edges) == 1 and rep.edges[0].accepted
     rel = np.linalg.inv(rep.corrections[0]) @ rep.corrections[1] @ drift  # should be the identity
     x, y, yaw = se2_params(rel)
@@ -155,7 +155,7 @@ def test_a_corrected_build_records_what_it_did():
     regions = [RegionInput(0, Pose(position_m=(0.2, 0.1, 0.0), heading_rad=0.0), ims[:18], H_M),
                RegionInput(1, Pose(position_m=(0.2, 0.1, 0.0), heading_rad=0.0), ims[18:], H_M)]
     cfg = ReconstructionConfig(registration={"frames": {"enabled": True, "pixel_stride": 2},
-                                             "regions": {"enabled": True}})
+                                             "regions": {"enabled": True, "method": "graph"}})
     with Reconstructor(cfg) as rec:
         build = rec.build(regions)
     import json
@@ -168,3 +168,62 @@ def test_a_corrected_build_records_what_it_did():
         assert reg["frames"]["registered"] + reg["frames"]["fallback"] == reg["frames"]["frames"] - 1
         assert 0.0 <= reg["region"]["correction_m"] < 0.6
     assert drift["loop_closures_accepted"] + drift["loop_closures_rejected"] == sum(e["loop"] for e in drift["edges"])
+
+
+# --- sequential: each region registered to the model of the regions before it (anchored) -------
+
+
+def _two_regions(spacing_m: float = 0.03):
+    room = _wall_points(spacing_m)
+    return room[room[:, 0] < 1.2], room[room[:, 0] > -0.5]
+
+
+def test_sequential_regions_are_pulled_onto_the_anchor():
+    a, b_true = _two_regions()
+    drift = se2(0.15, -0.10, math.radians(2.0))
+    rep = register_regions([a, apply_se2(drift, b_true)], RegionRegistrationConfig(enabled=True, method="sequential"))
+    assert rep.method == "sequential" and rep.regions[0]["anchor"]
+    assert np.array_equal(rep.corrections[0], np.eye(3))  # the anchor never moves
+    x, y, yaw = se2_params(rep.corrections[1] @ drift)  # should be the identity: b back where it was
+    assert math.hypot(x, y) < 0.01 and abs(math.degrees(yaw)) < 0.2, rep.regions
+    assert not rep.regions[1]["fell_back"] and rep.regions[1]["fitness"] > 0.5
+
+
+def test_sequential_leaves_exact_regions_exactly_where_they_are():
+    a, b = _two_regions()
+    rep = register_regions([a, b], RegionRegistrationConfig(enabled=True, method="sequential"))
+    assert all(np.array_equal(c, np.eye(3)) for c in rep.corrections), rep.regions
+
+
+def test_sequential_keeps_odometry_where_only_a_corridor_wall_overlaps():
+    # Two regions that share one long plain wall: sliding along it costs nothing, so the 8 cm the
+    # odometry says must stay (no match can deny it) instead of being "corrected" anywhere.
+    y, z = np.meshgrid(np.arange(-3.0, 3.0, 0.03), np.arange(0.0, 2.5, 0.03))
+    wall = np.stack([np.full(y.size, 2.0), y.ravel(), z.ravel()], axis=1)
+    a, b = wall[wall[:, 1] < 1.0], wall[wall[:, 1] > -1.0]
+    rep = register_regions([a, apply_se2(se2(0.0, 0.08, 0.0), b)],
+                           RegionRegistrationConfig(enabled=True, method="sequential"))
+    assert np.array_equal(rep.corrections[1], np.eye(3)) and rep.regions[1]["fell_back"], rep.regions
+
+
+def test_a_corrected_build_says_so_in_its_map_info():
+    from shared.schemas import DriftCorrection, MapInfo, Pose
+    from services.reconstructor.core.frames import RegionInput
+    from services.reconstructor.core.pipeline import Reconstructor
+
+    ims, _ = _frames((0.004, -0.003, 0.15), range(0, 360, 10))
+    regions = [RegionInput(0, Pose(position_m=(0.2, 0.1, 0.0), heading_rad=0.0), ims[:18], H_M),
+               RegionInput(1, Pose(position_m=(0.2, 0.1, 0.0), heading_rad=0.0), ims[18:], H_M)]
+    with Reconstructor(ReconstructionConfig(registration={"regions": {"enabled": True}})) as rec:
+        on = rec.build(regions).drift_summary()
+    with Reconstructor(ReconstructionConfig(registration={"regions": {"enabled": False}})) as rec:
+        off = rec.build(regions).drift_summary()
+    assert on.applied and on.method == "sequential" and [r.region for r in on.per_region] == [0, 1]
+    assert on.per_region[0].anchor and on.regions_corrected + on.regions_fallback <= 1
+    assert not off.applied and off.per_region == []  # "built without correction", said plainly
+    info = MapInfo(map_id="m", version=1, point_count=1, bounds_min_m=(0, 0, 0), bounds_max_m=(1, 1, 1),
+                   drift_correction=on)
+    assert MapInfo.model_validate_json(info.model_dump_json()).drift_correction == on
+    for bad in ({"max_correction_m": float("nan")}, {"max_correction_deg": 400.0}, {"regions_corrected": -1}):
+        with pytest.raises(ValueError):
+            DriftCorrection(**bad)
