@@ -59,19 +59,21 @@ _RECORDINGS: dict[tuple, tuple] = {}  # one exploration serves the ladder's corr
 
 
 def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0,
-              drift_scale: float = 1.0, correction: str | None = None):
+              drift_scale: float = 1.0, correction: str | None = None, oracle_starts: bool = False):
     """(robot, cloud): the simulator of ``spec`` and the map the system builds of it (cached).
 
     ``size_px`` and ``rate_hz`` are the mapper service's defaults (tour_frame_px, tour_rate_hz);
     ``drift_scale`` scales the noise's drift (the ladder); ``correction`` names a CORRECTIONS entry
-    (None: the reconstructor's default)."""
+    (None: the reconstructor's default); ``oracle_starts`` stands in for a mapper that re-localises
+    each tour's start (issue 33, item 4): every tour starts at its true pose and dead-reckons from
+    there (a bench-only oracle, to measure the reconstructor's stage on near-true poses)."""
     from services.robot_io.core.robot import ROBOTS
 
     cam = CameraIntrinsics(width_px=size_px, height_px=size_px)
     robot_cfg = {"scene": spec, "camera": cam}
     if noise:
         robot_cfg["noise"] = noise_config(noise, drift_scale)
-    path, profile = _map_path(spec, backend, noise, size_px, drift_scale, correction)
+    path, profile = _map_path(spec, backend, noise, size_px, drift_scale, correction, oracle_starts)
     name = path.name
     robot = ROBOTS.create("sim", robot_cfg)
     if backend == "curated":
@@ -99,6 +101,8 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
         skipped = len(skips)
         _RECORDINGS.clear()  # frames are large: keep the latest exploration only
         _RECORDINGS[key] = (recs, truth, skipped)
+    if oracle_starts:
+        recs = _oracle_tour_starts(recs, truth)
     reg = {} if correction is None else {"registration": CORRECTIONS[correction]}
     t1 = time.perf_counter()
     with Reconstructor(ReconstructionConfig(backend=backend, **reg)) as r:
@@ -123,7 +127,7 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
 
 
 def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128, drift_scale: float = 1.0,
-              correction: str | None = None) -> tuple[Path, str]:
+              correction: str | None = None, oracle_starts: bool = False) -> tuple[Path, str]:
     """(the cached map's path, the exploration profile it is built with)."""
     from libs.world.scene import is_generated_spec
 
@@ -134,7 +138,7 @@ def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128, dr
     # A mesh file's map is named after its folder and file, not its absolute path (which would put
     # the cache beside the mesh, inside the team's reference data).
     stem = f"{Path(spec).parent.name}_{Path(spec).stem}" if not is_generated_spec(spec) else spec
-    ladder = (f"_x{drift_scale:g}" if drift_scale != 1.0 else "") + (f"_corr-{correction.replace('+', '-')}" if correction else "")
+    ladder = (f"_x{drift_scale:g}" if drift_scale != 1.0 else "") + (f"_corr-{correction.replace('+', '-')}" if correction else "") + ("_oracle" if oracle_starts else "")
     name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{f'_{noise}' if noise else ''}{tag}{ladder}_{size_px}.ply"
     return MAPS / name, profile
 
@@ -160,7 +164,7 @@ def _tour_start_drift(recs, truth: dict[int, tuple], shifts: dict | None = None)
     pos, head, cpos = [], [], []
     for rec in recs:
         if rec.frames and rec.frames[0].index in truth:
-            true, odo = truth[rec.frames[0].index]
+            true, odo = truth[rec.frames[0].index][0], rec.frames[0].pose  # the pose as recorded
             pos.append(float(np.hypot(*np.subtract(true.position_m[:2], odo.position_m[:2]))))
             head.append(abs(math.degrees(math.remainder(true.heading_rad - odo.heading_rad, 2 * math.pi))))
             x, y, yaw = (shifts or {}).get(rec.region, (0.0, 0.0, 0.0))
@@ -170,15 +174,44 @@ def _tour_start_drift(recs, truth: dict[int, tuple], shifts: dict | None = None)
     return {"position_m": pos, "heading_deg": head, "corrected_position_m": cpos}
 
 
+def _oracle_tour_starts(recs, truth: dict[int, tuple]) -> list:
+    """The recordings as a mapper that re-localised each tour's start exactly would record them:
+    every frame moved by the planar transform that puts the tour's first frame at its true pose
+    (the drift within the tour stays)."""
+    from dataclasses import replace
+
+    from shared.schemas import Pose
+
+    def m(p):
+        c, s = math.cos(p.heading_rad), math.sin(p.heading_rad)
+        return np.array([[c, -s, p.position_m[0]], [s, c, p.position_m[1]], [0.0, 0.0, 1.0]])
+
+    out = []
+    for rec in recs:
+        if not rec.frames or rec.frames[0].index not in truth:
+            out.append(rec)
+            continue
+        true, odo = truth[rec.frames[0].index]
+        fix = m(true) @ np.linalg.inv(m(odo))
+        frames = []
+        for f in rec.frames:
+            t = fix @ m(f.pose)
+            pose = Pose(position_m=(float(t[0, 2]), float(t[1, 2]), f.pose.position_m[2]),
+                        heading_rad=math.atan2(t[1, 0], t[0, 0]))
+            frames.append(f.model_copy(update={"pose": pose}))
+        out.append(replace(rec, frames=frames, start_pose=frames[0].pose))
+    return out
+
+
 def _drift_path(map_path: Path) -> Path:
     return map_path.with_suffix(".drift.json")
 
 
 def build_record(spec: str, backend: str, noise: str | None, drift_scale: float = 1.0,
-                 correction: str | None = None) -> dict:
+                 correction: str | None = None, oracle_starts: bool = False) -> dict:
     """What was measured when the map was built: tour-start error, regions skipped, build time,
     the drift correction's record (empty for a map cached before these were recorded)."""
-    path = _drift_path(_map_path(spec, backend, noise, 128, drift_scale, correction)[0])
+    path = _drift_path(_map_path(spec, backend, noise, 128, drift_scale, correction, oracle_starts)[0])
     return json.loads(path.read_text()) if path.exists() else {}
 
 

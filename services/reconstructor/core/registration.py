@@ -15,7 +15,12 @@ tenths of a degree with nothing to gain) and gives the constraint check for free
   the largest, falls below ``min_constraint``) and the residual drops by ``min_gain`` (exact poses
   leave nothing to gain, so they are left exactly as they are). Otherwise the frame keeps the odometry
   step from the previous frame: it falls back to odometry.
-* :func:`register_regions` (between regions): each region's world cloud is registered, coarse to
+* :func:`register_regions` (between regions), ``method="sequential"`` (the default): each region in
+  recording order is registered to the model of the regions registered before it, anchored at the
+  first region, which never moves; a correction must match more of the region than its seed did
+  (inlier gain) and below 1 cm / 0.2 deg it is not applied. It refines poses that are already
+  near-true (the mapper's re-localised tours); it cannot undo an error the anchor itself carries.
+* ``method="graph"``: each region's world cloud is registered, coarse to
   fine and seeded by odometry, to every earlier region whose bounds overlap it. Edges between
   regions recorded one after the other tie the chain; edges to earlier regions are loop closures
   (the robot came back to a place). One planar pose graph (a node per region, the first fixed)
