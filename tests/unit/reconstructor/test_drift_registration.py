@@ -227,3 +227,29 @@ def test_a_corrected_build_says_so_in_its_map_info():
     for bad in ({"max_correction_m": float("nan")}, {"max_correction_deg": 400.0}, {"regions_corrected": -1}):
         with pytest.raises(ValueError):
             DriftCorrection(**bad)
+
+
+def test_the_map_store_keeps_the_drift_record_with_the_version(tmp_path):
+    from shared.schemas import DriftCorrection, RegionDriftCorrection
+    from services.reconstructor.core.store import MapStore
+
+    store = MapStore(tmp_path)
+    cloud = PointCloud(_wall_points(0.2), np.zeros((len(_wall_points(0.2)), 3), np.uint8))
+    dc = DriftCorrection(applied=True, method="sequential", regions=True, regions_corrected=1, max_correction_m=0.12,
+                         max_correction_deg=1.5, per_region=[RegionDriftCorrection(region=0, anchor=True),
+                                                             RegionDriftCorrection(region=3, correction_m=0.12,
+                                                                                   correction_deg=1.5, fitness=0.6)])
+    assert store.save("m", cloud, regions=2, drift_correction=dc).drift_correction == dc
+    store.save("m", cloud, regions=2, drift_correction=DriftCorrection())
+    assert store.info("m", 1).drift_correction == dc  # read back from the stored version
+    assert store.info("m").drift_correction == DriftCorrection() and not store.info("m").drift_correction.applied
+    assert store.import_cloud("n", _ply_bytes(cloud), "n.ply").drift_correction is None  # imported: not a build
+
+
+def _ply_bytes(cloud: PointCloud) -> bytes:
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        cloud.save(Path(d) / "c.ply")
+        return (Path(d) / "c.ply").read_bytes()
