@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.cloud import PointCloud
+from shared.cloud import PointCloud, view_dirs_unit
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M
 from shared.schemas import DriftCorrection, RegionDriftCorrection
 
@@ -212,7 +212,8 @@ class Reconstructor:
         drift = {"applied": False, "frames": fcfg.enabled, "regions": False}
         rcfg = self.config.registration.regions
         if rcfg.enabled and len(clouds) > 1:
-            graph = register_regions([c.xyz for c in clouds], rcfg)
+            views = [None if c.view_dirs is None else view_dirs_unit(c.view_dirs) for c in clouds]
+            graph = register_regions([c.xyz for c in clouds], rcfg, views)
             clouds = [transform_cloud(c, x) for c, x in zip(clouds, graph.corrections)]
             ids = [reports[i].region for i in placed]
             for j, (i, x) in enumerate(zip(placed, graph.corrections)):

@@ -178,10 +178,25 @@ def voxel_keys(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
 
 def voxel_thin(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     """One point per voxel (the first), for registration only: cheap and deterministic."""
+    return xyz[voxel_thin_index(xyz, voxel_m)] if len(xyz) else xyz
+
+
+def voxel_thin_index(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Indices of :func:`voxel_thin`'s points."""
     if len(xyz) == 0:
-        return xyz
+        return np.zeros(0, np.int64)
     _, first = np.unique(voxel_keys(xyz, voxel_m), return_index=True)
-    return xyz[np.sort(first)]
+    return np.sort(first)
+
+
+def orient_normals(normals: np.ndarray, view: np.ndarray | None) -> np.ndarray:
+    """Normals turned towards where their points were seen from (``view``: directions, any length)."""
+    if view is None:
+        return normals
+    flip = np.einsum("ij,ij->i", normals, view) < 0.0
+    out = normals.copy()
+    out[flip] *= -1.0
+    return out
 
 
 def estimate_normals(xyz: np.ndarray, k: int = 12) -> np.ndarray:
@@ -207,20 +222,24 @@ class Target:
     xyz: np.ndarray
     normals: np.ndarray
     tree: object
+    # Normals turned towards the viewer: then a match between a wall's two faces (10 cm apart, seen
+    # from two rooms) is refused instead of pulling a region 10 cm through the wall.
+    oriented: bool = False
 
     @classmethod
-    def build(cls, xyz: np.ndarray, normals: np.ndarray | None = None, max_normal_z: float = 0.8) -> Target | None:
+    def build(cls, xyz: np.ndarray, normals: np.ndarray | None = None, max_normal_z: float = 0.8,
+              view: np.ndarray | None = None) -> Target | None:
         from scipy.spatial import cKDTree
 
         if len(xyz) < 3:
             return None
-        nrm = estimate_normals(xyz) if normals is None else normals
+        nrm = orient_normals(estimate_normals(xyz) if normals is None else normals, view)
         # Floors and ceilings say nothing about x, y or yaw; only walls and furniture sides do.
         keep = np.abs(nrm[:, 2]) < max_normal_z
         if keep.sum() < 3:
             return None
         xyz, nrm = xyz[keep], nrm[keep]
-        return cls(xyz, nrm, cKDTree(xyz))
+        return cls(xyz, nrm, cKDTree(xyz), view is not None)
 
 
 class _Model:
@@ -262,10 +281,16 @@ class IcpResult:
     matched: int
 
 
-def _residuals(src: np.ndarray, tgt: Target, t: np.ndarray, max_d: float):
+def _residuals(src: np.ndarray, tgt: Target, t: np.ndarray, max_d: float, src_normals: np.ndarray | None = None):
     p = apply_se2(t, src)
     d, j = tgt.tree.query(p, distance_upper_bound=max_d)
     ok = np.isfinite(d)
+    if src_normals is not None and tgt.oriented:
+        # Oriented normals on both sides: a surface matches only a surface that faces the same way.
+        jj = np.where(ok, j, 0)
+        nrot = src_normals[:, :2] @ t[:2, :2].T
+        facing = np.einsum("ij,ij->i", nrot, tgt.normals[jj, :2]) + src_normals[:, 2] * tgt.normals[jj, 2]
+        ok &= facing > 0.3
     p, j = p[ok], j[ok]
     n = tgt.normals[j]
     r = np.einsum("ij,ij->i", n, p - tgt.xyz[j])
@@ -273,14 +298,15 @@ def _residuals(src: np.ndarray, tgt: Target, t: np.ndarray, max_d: float):
 
 
 def icp_planar(src: np.ndarray, tgt: Target, seed: np.ndarray, max_d: float, iterations: int,
-               huber_m: float) -> IcpResult:
-    """Planar point-to-plane ICP of ``src`` onto ``tgt`` from ``seed`` (Huber-weighted Gauss-Newton)."""
+               huber_m: float, src_normals: np.ndarray | None = None) -> IcpResult:
+    """Planar point-to-plane ICP of ``src`` onto ``tgt`` from ``seed`` (Huber-weighted Gauss-Newton);
+    with oriented ``src_normals`` and an oriented target, only surfaces facing the same way match."""
     t = seed.copy()
-    _, _, r0, ok0 = _residuals(src, tgt, t, max_d)
+    _, _, r0, ok0 = _residuals(src, tgt, t, max_d, src_normals)
     rmse_seed = float(np.sqrt(np.mean(r0 ** 2))) if len(r0) else math.inf
     h = np.zeros((3, 3))
     for _ in range(iterations):
-        p, n, r, ok = _residuals(src, tgt, t, max_d)
+        p, n, r, ok = _residuals(src, tgt, t, max_d, src_normals)
         if len(r) < 3:
             break
         c = p.mean(axis=0)  # rotate about the matched points' centre: better conditioned
@@ -298,7 +324,7 @@ def icp_planar(src: np.ndarray, tgt: Target, seed: np.ndarray, max_d: float, ite
         t = step @ t
         if abs(dx[0]) + abs(dx[1]) < 1e-5 and abs(dx[2]) < 1e-5:
             break
-    p, n, r, ok = _residuals(src, tgt, t, max_d)
+    p, n, r, ok = _residuals(src, tgt, t, max_d, src_normals)
     rmse = float(np.sqrt(np.mean(r ** 2))) if len(r) else math.inf
     if len(r) >= 3:
         c = p.mean(axis=0)
@@ -448,15 +474,18 @@ def _overlap_m2(a: np.ndarray, b: np.ndarray) -> float:
     return float(ext[0] * ext[1]) if zhi > zlo else 0.0
 
 
-def register_regions(clouds: list[np.ndarray], cfg: RegionRegistrationConfig) -> RegionGraphReport:
-    """Planar corrections of the region clouds (world xyz, odometry-placed), by ``cfg.method``."""
+def register_regions(clouds: list[np.ndarray], cfg: RegionRegistrationConfig,
+                     views: list[np.ndarray | None] | None = None) -> RegionGraphReport:
+    """Planar corrections of the region clouds (world xyz, odometry-placed), by ``cfg.method``;
+    ``views`` (per cloud, where each point was seen from) orient the normals (sequential)."""
     n = len(clouds)
     if not cfg.enabled or n < 2:
         return RegionGraphReport([np.eye(3) for _ in range(n)], [], method=cfg.method)
-    return _REGION_METHODS[cfg.method](clouds, cfg)
+    return _REGION_METHODS[cfg.method](clouds, cfg, views or [None] * n)
 
 
-def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig) -> RegionGraphReport:
+def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig,
+                         views: list[np.ndarray | None]) -> RegionGraphReport:
     """Each region, in recording order, registered to the model of the regions placed before it.
 
     The first region is the anchor and never moves: a map is only as true as its anchor, which is
@@ -468,18 +497,31 @@ def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig
     t0 = time.perf_counter()
     n = len(clouds)
     rep = RegionGraphReport([np.eye(3) for _ in range(n)], [], method="sequential")
-    thin = [voxel_thin(np.asarray(c, np.float64), cfg.voxel_m) for c in clouds]
+    thin, normals = [], []
+    for c, v in zip(clouds, views):
+        c = np.asarray(c, np.float64)
+        idx = voxel_thin_index(c, cfg.voxel_m)
+        thin.append(c[idx])
+        nrm = estimate_normals(c[idx])
+        # Without view directions the normals cannot be oriented: every region's are left unoriented.
+        normals.append(orient_normals(nrm, None if v is None else np.asarray(v, np.float64)[idx]))
+    oriented = all(v is not None for v in views)
     rep.regions.append({"anchor": True})
-    model = [thin[0]]
+    model, model_n = [thin[0]], [normals[0]]
     max_rad = math.radians(cfg.max_correction_deg)
     last = np.eye(3)
     for k in range(1, n):
         entry: dict = {"anchor": False}
-        placed = np.concatenate(model)
+        placed, placed_n = np.concatenate(model), np.concatenate(model_n)
         pad = max(cfg.correspondence_ladder_m)
         lo, hi = thin[k].min(axis=0) - pad, thin[k].max(axis=0) + pad
-        near = placed[np.all((placed >= lo) & (placed <= hi), axis=1)]  # the model around the region
-        tgt = Target.build(near) if len(near) >= 50 else None
+        sel = np.all((placed >= lo) & (placed <= hi), axis=1)  # the model around the region
+        tgt = None
+        if sel.sum() >= 50:
+            tgt = Target.build(placed[sel], placed_n[sel])
+            if tgt is not None:
+                tgt.oriented = oriented
+        src_all_n = normals[k] if oriented else None
         best, why = None, "no overlap"
         if tgt is not None:
             rep.pairs_tried += 1
@@ -489,19 +531,20 @@ def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig
                 # new rooms): the fitness is of that overlap, and it must hold enough points.
                 d0, _ = tgt.tree.query(apply_se2(seed, thin[k]), distance_upper_bound=pad)
                 src = thin[k][np.isfinite(d0)]
+                src_n = None if src_all_n is None else src_all_n[np.isfinite(d0)]
                 if len(src) < cfg.min_overlap_points:
                     why = "no overlap" if best is None else why
                     continue
                 t, res = seed, None
                 for d in cfg.correspondence_ladder_m:
-                    res = icp_planar(src, tgt, t, d, cfg.iterations, cfg.huber_m)
+                    res = icp_planar(src, tgt, t, d, cfg.iterations, cfg.huber_m, src_n)
                     t = res.transform
                 x, y, yaw = se2_params(np.linalg.inv(seed) @ t)
                 # Inliers at the finest distance, at the seed and at the result: a correction that
                 # matches no more of the region than its seed did slid along a corridor or snapped
                 # onto a twin wall (measured: 0.21 m slides at an unchanged residual).
                 fine = min(cfg.correspondence_ladder_m)
-                at_seed = int(_residuals(src, tgt, seed, fine)[3].sum())
+                at_seed = int(_residuals(src, tgt, seed, fine, src_n)[3].sum())
                 if res.fitness < cfg.min_fitness:
                     reason = "fitness"
                 elif res.rmse_m > cfg.max_rmse_m:
@@ -537,11 +580,14 @@ def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig
             # Only registered regions join the model: a region left on its odometry may carry the
             # drift of its own tour, and the next region would be registered onto that drift.
             model.append(apply_se2(corr, thin[k]))
+            r = np.eye(3)
+            r[:2, :2] = corr[:2, :2]
+            model_n.append(normals[k] @ r.T)
     rep.timings_s = time.perf_counter() - t0
     return rep
 
 
-def _register_graph(clouds: list[np.ndarray], cfg: RegionRegistrationConfig) -> RegionGraphReport:
+def _register_graph(clouds: list[np.ndarray], cfg: RegionRegistrationConfig, views=None) -> RegionGraphReport:
     """Planar corrections of the region clouds (world xyz, odometry-placed) from one pose graph."""
     t0 = time.perf_counter()
     n = len(clouds)
