@@ -576,9 +576,12 @@ def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig
             entry.update(fell_back=False, seed=name, fitness=res.fitness, rmse_m=res.rmse_m)
         rep.corrections[k] = corr
         rep.regions.append(entry)
-        if best is not None:
-            # Only registered regions join the model: a region left on its odometry may carry the
-            # drift of its own tour, and the next region would be registered onto that drift.
+        # What joins the model: a registered region; one whose poses already agreed with the model
+        # (no gain); one that saw only new ground (no overlap: nothing contradicts it, and later
+        # regions are registered to it, as a SLAM map grows). A region that overlapped the model but
+        # did not register (fitness, rmse, degenerate, too far) is left out: it may carry its own
+        # tour's drift, and the next region would be registered onto that drift.
+        if best is not None or why in ("no gain", "no overlap"):
             model.append(apply_se2(corr, thin[k]))
             r = np.eye(3)
             r[:2, :2] = corr[:2, :2]
