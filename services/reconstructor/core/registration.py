@@ -268,7 +268,10 @@ class _Model:
     def target(self) -> Target | None:
         if not self.xyz:
             return None
-        return Target.build(np.concatenate(self.xyz), np.concatenate(self.normals))
+        tgt = Target.build(np.concatenate(self.xyz), np.concatenate(self.normals))
+        if tgt is not None:
+            tgt.oriented = True  # every frame's normals were turned towards its camera
+        return tgt
 
 
 @dataclass
@@ -388,6 +391,9 @@ def register_frames(images: list[PosedImage], cfg: FrameRegistrationConfig
     rays_cache: dict[tuple, np.ndarray] = {}
     for k, im in enumerate(images):
         src = _frame_points(im, cfg.pixel_stride, cfg.max_depth_m, cfg.voxel_m, rays_cache)
+        # Normals turned towards the camera: a surface matches only one facing the same way (the far
+        # face of a wall seen through a door is not the near face of the same wall).
+        src_n = orient_normals(estimate_normals(src), im.world_from_camera[:3, 3] - src) if len(src) >= 3 else None
         reason = None
         if k > 0:
             if target is None or pending >= cfg.rebuild_every:
@@ -396,7 +402,7 @@ def register_frames(images: list[PosedImage], cfg: FrameRegistrationConfig
             if target is None or len(src) < cfg.min_points:
                 reason = "few points"
             else:
-                res = icp_planar(src, target, corr, cfg.max_correspondence_m, cfg.iterations, cfg.huber_m)
+                res = icp_planar(src, target, corr, cfg.max_correspondence_m, cfg.iterations, cfg.huber_m, src_n)
                 dx, dy, dyaw = se2_params(np.linalg.inv(corr) @ res.transform)
                 if res.fitness < cfg.min_fitness:
                     reason = "fitness"
@@ -421,7 +427,9 @@ def register_frames(images: list[PosedImage], cfg: FrameRegistrationConfig
         out.append(im)
         if len(src) >= 3:
             placed = apply_se2(corr, src)
-            model.add(placed, estimate_normals(placed))
+            r = np.eye(3)
+            r[:2, :2] = corr[:2, :2]
+            model.add(placed, src_n @ r.T)
             pending += 1
         cx, cy, _ = se2_params(corr)
         rep.max_correction_m = max(rep.max_correction_m, math.hypot(cx, cy))
