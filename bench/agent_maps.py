@@ -116,7 +116,9 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
         rg = (rep.registration or {}).get("region") or {}
         if "shift_m" in rg:
             shifts[rep.region] = (*rg["shift_m"], math.radians(rg["turn_deg"]))
+    register_s = sum(v for k, v in built.timings_s.items() if k.startswith("register"))
     side = {**_tour_start_drift(recs, truth, shifts), "regions_skipped": skipped, "build_s": build_s,
+            "register_s": register_s,
             "drift_correction": built.drift_summary().model_dump(mode="json")}
     _drift_path(path).write_text(json.dumps(side))
     print(f"   built {name}: {len(cloud)} points in {time.perf_counter() - t0:.0f} s")

@@ -30,17 +30,22 @@ tenths of a degree with nothing to gain) and gives the constraint check for free
   solve in milliseconds: open3d's 6-DoF global optimisation would need its roll, pitch and z
   pinned by fake information and gives no per-edge verdict beyond its line-process pruning.
 
-Status (measured on generated:0, bench.agent_maps' noisy robot, 9 regions, 1,448 frames of
-128 px): both stages are off by default because they do not yet make that map truer. Frames
-(defaults, error of each frame against its region's first frame, median / max, m): 2 of 9 regions
-better (0.126/0.181 -> 0.053/0.233, 0.140/0.301 -> 0.055/0.124), 5 unchanged, 1 worse
-(0.139/0.331 -> 0.180/0.407); most frames fall back ("no gain" under the depth noise, "step" where
-in-region drift outruns 0.10 m a frame). On exact poses 3 of 396 frames of region 0 still took
-spurious corrections, a worst frame 8.7 cm off (final correction 4 mm). Regions: 3-4 of 9
-overlapping pairs registered; the graph makes them agree (edge residuals 1 mm) but their absolute
-error at the cloud centres went 0.20-0.48 -> 0.14-0.57 m, because the pair matches are 0.12-0.27 m
-off (a repetitive house) and nothing anchors the map to the world frame, whose only witness is
-the exploration's first panorama (not passed to the reconstructor yet).
+Status (issue 33; bench.anticipation --ladder, generated:0, 24 free poses, visibility renderer):
+both stages are off by default because neither yet makes a map measurably truer.
+* Regions, sequential: on exact poses every region is left exactly as it is (the map is byte-for-byte
+  the uncorrected one: 10 of 10 regions 'no gain'/'fitness'); on the noisy row (tour starts
+  0.27-0.52 m off) 0 of 8 regions moved ('fitness', 'too far', 'no overlap'): the anchor region
+  itself is 0.29 m off, and a region-to-region match cannot undo an error its anchor carries; with
+  each tour started at its true pose (a bench oracle for the mapper's re-localisation) 0 of 8 moved
+  too: mapped within 3 cm < 1 m 1.5 % -> 63.6 % comes from the start poses alone.
+* Frames (oriented normals, pixel_stride 4), on those oracle poses: region median frame error
+  0.091 -> 0.015, 0.198 -> 0.131, 0.069 -> 0.044 m, others unchanged, but the worst frame of 4 of 9
+  regions got worse (0.030 -> 0.055, 0.058 -> 0.100 m) and the stage took 377 s for 1,448 frames
+  on a loaded 2-core machine (the build without it ~60 s): neither trustworthy nor cheap enough yet.
+  Earlier (unoriented, stride 3, drifted poses): 2 of 9 regions better, 1 worse.
+* Graph (method="graph", the previous all-pairs pose graph, no anchor): made regions agree with
+  each other (edge residuals 1 mm) but their absolute error at the cloud centres went 0.20-0.48 ->
+  0.14-0.57 m.
 """
 
 from __future__ import annotations
