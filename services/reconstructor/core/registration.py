@@ -37,7 +37,10 @@ both stages are off by default because neither yet makes a map measurably truer.
   0.27-0.52 m off) 0 of 8 regions moved ('fitness', 'too far', 'no overlap'): the anchor region
   itself is 0.29 m off, and a region-to-region match cannot undo an error its anchor carries; with
   each tour started at its true pose (a bench oracle for the mapper's re-localisation) 0 of 8 moved
-  too: mapped within 3 cm < 1 m 1.5 % -> 63.6 % comes from the start poses alone.
+  too: mapped within 3 cm < 1 m 1.5 % -> 63.6 % comes from the start poses alone. Where it did
+  move a region it was no better: generated:3:floors=2 at 1x, 1 of 9 moved 0.27 m / 2.2 deg (its
+  tour start 0.165 -> 0.166 m off; mapped < 1 m 23.0 -> 22.5 %); generated:0 at 2x, 1 of 4 moved
+  0.41 m (tour start 0.60 -> 0.73 m off). The two-floor house's exact map is byte-identical too.
 * Frames (oriented normals, pixel_stride 4), on those oracle poses: region median frame error
   0.091 -> 0.015, 0.198 -> 0.131, 0.069 -> 0.044 m, others unchanged, but the worst frame of 4 of 9
   regions got worse (0.030 -> 0.055, 0.058 -> 0.100 m) and the stage took 377 s for 1,448 frames
