@@ -26,6 +26,21 @@ MAPS = ROOT / "runs" / "anticipation" / "maps"
 NOISY = {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05, "odometry_drift_per_m": 0.01,
          "heading_drift_per_rad": 0.005}
 NOISE = {"noisy": NOISY, "depth-noise": {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05}}
+DRIFT_KEYS = ("odometry_drift_per_m", "heading_drift_per_rad")
+# Drift correction of a build (ReconstructionConfig.registration), by name. "off" is explicit so
+# that an uncorrected row stays uncorrected whatever the reconstructor's default becomes.
+CORRECTIONS = {
+    "off": {"frames": {"enabled": False}, "regions": {"enabled": False}},
+    "regions": {"frames": {"enabled": False}, "regions": {"enabled": True, "method": "sequential"}},
+    "frames+regions": {"frames": {"enabled": True}, "regions": {"enabled": True, "method": "sequential"}},
+}
+
+
+def noise_config(noise: str, drift_scale: float = 1.0) -> dict:
+    """The named sensor noise with its odometry and heading drift times ``drift_scale`` (the ladder)."""
+    if not (math.isfinite(drift_scale) and 0.0 <= drift_scale <= 10.0):
+        raise ValueError(f"drift_scale {drift_scale} outside [0, 10]")
+    return {k: v * drift_scale if k in DRIFT_KEYS else v for k, v in NOISE[noise].items()}
 
 
 # The maps of the table: name -> (scene, reconstructor backend or "curated", sensor noise or None).
@@ -40,17 +55,25 @@ ROWS = {
 }
 
 
-def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0):
+_RECORDINGS: dict[tuple, tuple] = {}  # one exploration serves the ladder's corrected and uncorrected builds
+
+
+def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0,
+              drift_scale: float = 1.0, correction: str | None = None, oracle_starts: bool = False):
     """(robot, cloud): the simulator of ``spec`` and the map the system builds of it (cached).
 
-    ``size_px`` and ``rate_hz`` are the mapper service's defaults (tour_frame_px, tour_rate_hz)."""
+    ``size_px`` and ``rate_hz`` are the mapper service's defaults (tour_frame_px, tour_rate_hz);
+    ``drift_scale`` scales the noise's drift (the ladder); ``correction`` names a CORRECTIONS entry
+    (None: the reconstructor's default); ``oracle_starts`` stands in for a mapper that re-localises
+    each tour's start (issue 33, item 4): every tour starts at its true pose and dead-reckons from
+    there (a bench-only oracle, to measure the reconstructor's stage on near-true poses)."""
     from services.robot_io.core.robot import ROBOTS
 
     cam = CameraIntrinsics(width_px=size_px, height_px=size_px)
     robot_cfg = {"scene": spec, "camera": cam}
     if noise:
-        robot_cfg["noise"] = NOISE[noise]
-    path, profile = _map_path(spec, backend, noise, size_px)
+        robot_cfg["noise"] = noise_config(noise, drift_scale)
+    path, profile = _map_path(spec, backend, noise, size_px, drift_scale, correction, oracle_starts)
     name = path.name
     robot = ROBOTS.create("sim", robot_cfg)
     if backend == "curated":
@@ -67,15 +90,37 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
     from services.reconstructor.core import ReconstructionConfig, Reconstructor
 
     t0 = time.perf_counter()
-    truth = _recording_truth(robot) if noise else {}
-    d = discover(robot, discovery_config(profile))
-    recs = execute_tours(robot, d.tours, d.scene, rate_hz=rate_hz)
-    with Reconstructor(ReconstructionConfig(backend=backend)) as r:
-        cloud = r.build_from_recordings(recs, robot.scene.label_names).cloud
+    key = (spec, noise, drift_scale, size_px, rate_hz)
+    if key in _RECORDINGS:
+        recs, truth, skipped = _RECORDINGS[key]
+    else:
+        truth = _recording_truth(robot) if noise else {}
+        d = discover(robot, discovery_config(profile))
+        skips: list = []
+        recs = execute_tours(robot, d.tours, d.scene, rate_hz=rate_hz, on_skip=lambda t, e: skips.append(str(e)))
+        skipped = len(skips)
+        _RECORDINGS.clear()  # frames are large: keep the latest exploration only
+        _RECORDINGS[key] = (recs, truth, skipped)
+    if oracle_starts:
+        recs = _oracle_tour_starts(recs, truth)
+    reg = {} if correction is None else {"registration": CORRECTIONS[correction]}
+    t1 = time.perf_counter()
+    with Reconstructor(ReconstructionConfig(backend=backend, **reg)) as r:
+        built = r.build_from_recordings(recs, robot.scene.label_names)
+    cloud = built.cloud
+    build_s = time.perf_counter() - t1
     MAPS.mkdir(parents=True, exist_ok=True)
     cloud.save(path)
-    if noise:
-        _drift_path(path).write_text(json.dumps(_tour_start_drift(recs, truth)))
+    shifts = {}
+    for rep in built.regions:  # the region stage's correction moves each tour's start with its region
+        rg = (rep.registration or {}).get("region") or {}
+        if "shift_m" in rg:
+            shifts[rep.region] = (*rg["shift_m"], math.radians(rg["turn_deg"]))
+    register_s = sum(v for k, v in built.timings_s.items() if k.startswith("register"))
+    side = {**_tour_start_drift(recs, truth, shifts), "regions_skipped": skipped, "build_s": build_s,
+            "register_s": register_s,
+            "drift_correction": built.drift_summary().model_dump(mode="json")}
+    _drift_path(path).write_text(json.dumps(side))
     print(f"   built {name}: {len(cloud)} points in {time.perf_counter() - t0:.0f} s")
     # A fresh simulator for what is scored: a noisy robot's depth draws continue its generator, so
     # the candidates proposed from the built-with robot differed from a cached map's run.
@@ -83,7 +128,8 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
     return ROBOTS.create("sim", robot_cfg), cloud
 
 
-def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128) -> tuple[Path, str]:
+def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128, drift_scale: float = 1.0,
+              correction: str | None = None, oracle_starts: bool = False) -> tuple[Path, str]:
     """(the cached map's path, the exploration profile it is built with)."""
     from libs.world.scene import is_generated_spec
 
@@ -94,7 +140,8 @@ def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128) ->
     # A mesh file's map is named after its folder and file, not its absolute path (which would put
     # the cache beside the mesh, inside the team's reference data).
     stem = f"{Path(spec).parent.name}_{Path(spec).stem}" if not is_generated_spec(spec) else spec
-    name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{f'_{noise}' if noise else ''}{tag}_{size_px}.ply"
+    ladder = (f"_x{drift_scale:g}" if drift_scale != 1.0 else "") + (f"_corr-{correction.replace('+', '-')}" if correction else "") + ("_oracle" if oracle_starts else "")
+    name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{f'_{noise}' if noise else ''}{tag}{ladder}_{size_px}.ply"
     return MAPS / name, profile
 
 
@@ -112,29 +159,72 @@ def _recording_truth(robot) -> dict[int, tuple]:
     return truth
 
 
-def _tour_start_drift(recs, truth: dict[int, tuple]) -> dict[str, list[float]]:
+def _tour_start_drift(recs, truth: dict[int, tuple], shifts: dict | None = None) -> dict[str, list[float]]:
     """How far each tour's first frame's odometry is from the truth: the error the exploration left
-    (a tour adds only centimetres), which no renderer can undo."""
-    pos, head = [], []
+    (a tour adds only centimetres), which no renderer can undo; with ``shifts`` (region -> the
+    reconstructor's planar correction x, y, yaw) also where the corrected map put that frame."""
+    pos, head, cpos = [], [], []
     for rec in recs:
         if rec.frames and rec.frames[0].index in truth:
-            true, odo = truth[rec.frames[0].index]
+            true, odo = truth[rec.frames[0].index][0], rec.frames[0].pose  # the pose as recorded
             pos.append(float(np.hypot(*np.subtract(true.position_m[:2], odo.position_m[:2]))))
             head.append(abs(math.degrees(math.remainder(true.heading_rad - odo.heading_rad, 2 * math.pi))))
-    return {"position_m": pos, "heading_deg": head}
+            x, y, yaw = (shifts or {}).get(rec.region, (0.0, 0.0, 0.0))
+            c, s = math.cos(yaw), math.sin(yaw)
+            px, py = odo.position_m[0], odo.position_m[1]
+            cpos.append(float(np.hypot(true.position_m[0] - (c * px - s * py + x), true.position_m[1] - (s * px + c * py + y))))
+    return {"position_m": pos, "heading_deg": head, "corrected_position_m": cpos}
+
+
+def _oracle_tour_starts(recs, truth: dict[int, tuple]) -> list:
+    """The recordings as a mapper that re-localised each tour's start exactly would record them:
+    every frame moved by the planar transform that puts the tour's first frame at its true pose
+    (the drift within the tour stays)."""
+    from dataclasses import replace
+
+    from shared.schemas import Pose
+
+    def m(p):
+        c, s = math.cos(p.heading_rad), math.sin(p.heading_rad)
+        return np.array([[c, -s, p.position_m[0]], [s, c, p.position_m[1]], [0.0, 0.0, 1.0]])
+
+    out = []
+    for rec in recs:
+        if not rec.frames or rec.frames[0].index not in truth:
+            out.append(rec)
+            continue
+        true, odo = truth[rec.frames[0].index]
+        fix = m(true) @ np.linalg.inv(m(odo))
+        frames = []
+        for f in rec.frames:
+            t = fix @ m(f.pose)
+            pose = Pose(position_m=(float(t[0, 2]), float(t[1, 2]), f.pose.position_m[2]),
+                        heading_rad=math.atan2(t[1, 0], t[0, 0]))
+            frames.append(f.model_copy(update={"pose": pose}))
+        out.append(replace(rec, frames=frames, start_pose=frames[0].pose))
+    return out
 
 
 def _drift_path(map_path: Path) -> Path:
     return map_path.with_suffix(".drift.json")
 
 
-def drift_line(spec: str, backend: str, noise: str | None) -> str | None:
+def build_record(spec: str, backend: str, noise: str | None, drift_scale: float = 1.0,
+                 correction: str | None = None, oracle_starts: bool = False) -> dict:
+    """What was measured when the map was built: tour-start error, regions skipped, build time,
+    the drift correction's record (empty for a map cached before these were recorded)."""
+    path = _drift_path(_map_path(spec, backend, noise, 128, drift_scale, correction, oracle_starts)[0])
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def drift_line(spec: str, backend: str, noise: str | None, drift_scale: float = 1.0,
+               correction: str | None = None) -> str | None:
     """The noisy robot's odometry error at its tours' start, as measured when its map was built."""
-    path = _drift_path(_map_path(spec, backend, noise)[0])
+    path = _drift_path(_map_path(spec, backend, noise, 128, drift_scale, correction)[0])
     if not noise or not path.exists():
         return None
     d = json.loads(path.read_text())
-    pos, head = d["position_m"], d["heading_deg"]
+    pos, head = d.get("position_m", []), d.get("heading_deg", [])
     if not pos:
         return None
     if max(pos) < 1e-6 and max(head) < 1e-6:

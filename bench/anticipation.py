@@ -8,6 +8,10 @@ simulator's ray-cast view at the same camera pose, for each renderer mode.
     python -m bench.anticipation --full     # + noisy rgbd (and its depth noise alone), mono-sim,
                                             # curated, 2-floor house, Replica
     python -m bench.anticipation --rows rgbd curated --agents 0   # chosen maps, free poses only
+    python -m bench.anticipation --ladder --views 24   # issue 33's drift ladder: noise-free, then the
+                                            # noisy robot's drift x 0.5 / 1 / 2 (--drift-scales), each
+                                            # map built uncorrected and corrected (--corrections), on
+                                            # generated:0 and a two-floor house, side by side
 
 Maps are built the way the system builds them: explore (frontier DFS, hubs, tours), recorded tours,
 then the reconstructor (``rgbd``, ``mono-sim``, or ``rgbd`` on a robot with sensor noise on: all of it,
@@ -63,7 +67,9 @@ from shared.geometry import PinholeCamera, camera_pose
 from libs.pointrender import RENDERERS, IndexedCloud, SplatConfig
 from shared.schemas import CameraIntrinsics
 
-from bench.agent_maps import MAPS, NOISE, NOISY, ROWS, build_map, candidate_poses, drift_line, free_poses  # noqa: F401
+from bench.agent_maps import (  # noqa: F401
+    CORRECTIONS, MAPS, NOISE, NOISY, ROWS, build_map, build_record, candidate_poses, drift_line, free_poses,
+)
 
 # The colour the renderer draws a surface's unseen side in (SplatConfig.unseen_side_rgb's default).
 UNSEEN_RGB = np.array(SplatConfig.model_fields["unseen_side_rgb"].default, np.int16)
@@ -280,6 +286,85 @@ def speed(modes: list[str], n_points: int, reps: int) -> None:
                    reps, {m: {"mode": m} for m in modes})
 
 
+LADDER_SCENES = ("generated:0", "generated:3:floors=2")
+
+
+def ladder(scenes, scales: list[float], corrections: list[str], n_views: int, mode: str, seed: int = 7,
+           mapped_m: float = MAPPED_M, config: dict | None = None, oracle_starts: bool = False) -> None:
+    """Issue 33's drift ladder: every map of a scene scored at the same free poses, all pixels, one
+    renderer mode; per band mapped within ``mapped_m``, SSIM, labels, leak; per map the tour-start
+    error (the recorded poses, and where the corrected map put them), regions skipped, build time."""
+    cam = PinholeCamera(256, 256, 90.0)
+    renderer = RENDERERS.create("numpy", {**(config or {}), "mode": mode})
+    renderer.warm_up()
+    for spec in scenes:
+        # (label, noise, drift scale, correction): the noise-free map built both ways shows the
+        # correction leaves exact poses alone; then the ladder.
+        maps = [("exact", None, 1.0, c) for c in corrections]
+        maps += [(f"{k:g}x", "noisy", k, c) for k in scales for c in corrections]
+        # The oracle tours (started at their true pose) only exist for a noisy robot: exact is exact.
+        ora = [oracle_starts and noise is not None for _, noise, _, _ in maps]
+        rows = []
+        robot0 = None
+        for (label, noise, k, corr), o in zip(maps, ora):
+            robot, cloud = build_map(spec, "rgbd", noise, drift_scale=k, correction=corr, oracle_starts=o)
+            if robot0 is None:
+                robot0 = robot  # noise-free: its ray cast and free poses score every map of the scene
+                poses = free_poses(robot0, n_views, seed)
+            elif robot is not robot0:
+                robot.close()
+            gt = GroundTruth(robot0, cloud, poses, cam, mapped_m)
+            bands = score(renderer, IndexedCloud(cloud), gt, poses, cam, mapped_only=False)
+            rows.append((label, corr, bands, build_record(spec, "rgbd", noise, k, corr, o), len(cloud)))
+            print(f"   scored {label} {corr}", flush=True)  # each map takes minutes: say where the run is
+        _ladder_report(spec + (" (oracle tour starts: each tour started at its true pose)" if oracle_starts else ""),
+                       mode, n_views, mapped_m, rows)
+        robot0.close()
+
+
+def _ladder_report(spec: str, mode: str, n_views: int, mapped_m: float, rows) -> None:
+    print(f"\n== drift ladder: {spec}, {n_views} free poses, {mode} renderer, all pixels; mapped = true surface "
+          f"within {100 * mapped_m:.0f} cm of a map point ==")
+    print(f"{'drift':<6} {'corr':<15} {'band':<6} {'views':>5} {'mapped%':>7} {'SSIM':>6} {'label%':>7} {'leak%':>6}"
+          f"   {'start m (rec/corr, median)':>26} {'skipped':>7} {'build s':>7} {'moved/fb':>8}")
+    ref = {}
+    for label, corr, bands, rec, _n in rows:
+        pos, cpos = rec.get("position_m", []), rec.get("corrected_position_m", [])
+        start = (f"{np.median(pos):.3f} / {np.median(cpos):.3f}" if pos and cpos else "-")
+        dc = rec.get("drift_correction") or {}
+        moved = f"{dc.get('regions_corrected', 0)}/{dc.get('regions_fallback', 0)}" if dc.get("applied") else "off"
+        first = True
+        for band, s in bands.items():
+            if not s.coverage:
+                continue
+            vals = (np.mean(s.coverage), np.mean(s.ssim) if s.ssim else math.nan,
+                    np.mean(s.label) if s.label else math.nan, np.mean(s.leak) if s.leak else math.nan)
+            if label == "exact":
+                ref.setdefault(corr, {})[band] = vals
+            tail = (f"   {start:>26} {rec.get('regions_skipped', '-'):>7} {rec.get('build_s', math.nan):>7.1f} {moved:>8}"
+                    if first else "")
+            first = False
+            print(f"{label:<6} {corr:<15} {band:<6} {len(s.coverage):>5} {100 * vals[0]:>7.1f} {vals[1]:>6.3f} "
+                  f"{100 * vals[2]:>7.1f} {100 * vals[3]:>6.1f}{tail}")
+    # Targets (issue 33, at 1x, every band) against the noise-free map built the same way.
+    for label, corr, bands, rec, _n in rows:
+        if label != "1x" or corr not in ref:
+            continue
+        for band, s in bands.items():
+            if band not in ref[corr] or not s.coverage:
+                continue
+            r = ref[corr][band]
+            v = (np.mean(s.coverage), np.mean(s.ssim), np.mean(s.label) if s.label else math.nan, np.mean(s.leak))
+            met = (v[0] >= 0.85 * r[0], v[1] >= r[1] - 0.05, v[2] >= 0.90, v[3] <= max(2 * r[3], 1e-3))
+            print(f"targets 1x {corr:<15} {band:<6} mapped>=85% {'+' if met[0] else '-'}  SSIM-0.05 {'+' if met[1] else '-'}"
+                  f"  labels>=90% {'+' if met[2] else '-'}  leak<=2x {'+' if met[3] else '-'}")
+    if len(ref) > 1:
+        base = ref.get("off", next(iter(ref.values())))
+        worst = max(abs(a - b) for c in ref.values() for band in c for a, b in zip(c[band], base.get(band, c[band]))
+                    if math.isfinite(a) and math.isfinite(b))
+        print(f"noise-free map, corrected vs uncorrected: largest change {100 * worst:.2f} points (must stay <= 0.5)")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", action="store_true", help="every map kind, 2-floor house and Replica; more views")
@@ -293,7 +378,18 @@ def main(argv: list[str] | None = None) -> None:
                     help="renderer config overrides for every mode, e.g. lod_points_per_px=2")
     ap.add_argument("--mapped-m", type=float, default=MAPPED_M,
                     help=f"a pixel is mapped when its true surface is this close to a map point (default {MAPPED_M})")
+    ap.add_argument("--ladder", action="store_true", help="issue 33's drift ladder (see the module docstring)")
+    ap.add_argument("--ladder-scenes", nargs="+", default=list(LADDER_SCENES))
+    ap.add_argument("--drift-scales", nargs="+", type=float, default=[0.5, 1.0, 2.0])
+    ap.add_argument("--corrections", nargs="+", choices=list(CORRECTIONS), default=["off", "frames+regions"])
+    ap.add_argument("--oracle-starts", action="store_true",
+                    help="ladder: each tour starts at its true pose (stands in for the mapper's re-localisation)")
     args = ap.parse_args(argv)
+    if args.ladder:
+        logging.basicConfig(level=logging.WARNING)
+        ladder(args.ladder_scenes, args.drift_scales, args.corrections, args.views or 24,
+               args.modes[-1], mapped_m=args.mapped_m, oracle_starts=args.oracle_starts)
+        return
     logging.basicConfig(level=logging.WARNING)
     views = args.views or (96 if args.full else 48)
     agents = args.agents if args.agents is not None else (16 if args.full else 6)

@@ -86,6 +86,8 @@ from .navigation import (  # noqa: F401
     OdomCorrection,
 )
 from .maps import (  # noqa: F401
+    DriftCorrection,
+    RegionDriftCorrection,
     MapInfo,
     MapLabelling,
     MapListReply,

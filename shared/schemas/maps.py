@@ -54,6 +54,38 @@ class MapLabelling(BaseModel):
     error: str = Field("", max_length=1000)
 
 
+class RegionDriftCorrection(Message):
+    """How one region of a built map was corrected for odometry drift (issue 33)."""
+
+    region: int = Field(ge=0, le=100_000)
+    anchor: bool = False  # the region the others were registered to; it never moves
+    fell_back: bool = False  # no trustworthy registration: the region kept its recorded poses
+    reason: str = Field("", max_length=64)  # why it fell back ("no overlap", "no gain", ...)
+    correction_m: float = Field(0.0, ge=0.0, le=1000.0)  # the region's planar correction applied
+    correction_deg: float = Field(0.0, ge=0.0, le=180.0)
+    fitness: float | None = Field(None, ge=0.0, le=1.0)  # matched fraction of its overlap
+    rmse_m: float | None = Field(None, ge=0.0, le=1000.0)  # point-to-plane residual after
+    frames_registered: int = Field(0, ge=0, le=SEQ_LIMIT)  # within the region (frame to model)
+    frames_fallback: int = Field(0, ge=0, le=SEQ_LIMIT)
+
+
+class DriftCorrection(Message):
+    """Whether and how a built map was corrected for drift; ``applied`` False says plainly that the
+    map is placed by the recorded poses alone."""
+
+    applied: bool = False
+    method: str = Field("", max_length=32)  # region stage: "sequential" or "graph"; "" when off
+    frames: bool = False  # frames registered within regions
+    regions: bool = False  # regions registered to each other
+    regions_corrected: int = Field(0, ge=0, le=100_000)
+    regions_fallback: int = Field(0, ge=0, le=100_000)
+    max_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
+    max_correction_deg: float = Field(0.0, ge=0.0, le=180.0)
+    loop_closures_accepted: int = Field(0, ge=0, le=100_000)
+    loop_closures_rejected: int = Field(0, ge=0, le=100_000)
+    per_region: list[RegionDriftCorrection] = Field(default_factory=list, max_length=100_000)
+
+
 class MapInfo(Message):
     map_id: SegmentId
     version: int = Field(ge=1, le=SEQ_LIMIT)
@@ -68,6 +100,10 @@ class MapInfo(Message):
     timings_s: dict[str, Annotated[float, Field(ge=0.0, le=TIME_LIMIT_S)]] = Field(default_factory=dict)
     created_s: Seconds = Field(default_factory=time.time)
     labelling: MapLabelling | None = None  # None: stored before labellers were (or a streamed import)
+
+
+    # Built maps only (None: imported, or stored before issue 33).
+    drift_correction: DriftCorrection | None = None
 
 
 class MapListReply(Message):

@@ -170,7 +170,12 @@ def samples(map_id: str = "m", panorama: schemas.Panorama | None = None) -> dict
         S.Frame(index=0, timestamp_s=1.0, pose=pose, pitch_rad=0.1, imu_heading_rad=0.2, camera=cam,
                 rgb=np.zeros((16, 16, 3), np.uint8)),
         S.MapInfo(map_id=map_id, version=1, point_count=5, bounds_min_m=(0.0, 0.0, 0.0), bounds_max_m=(1.0, 1.0, 1.0),
-                  label_names={1: "wall"}, regions=1, scale_factors=[1.0], timings_s={"t": 1.0}, created_s=1.0),
+                  label_names={1: "wall"}, regions=1, scale_factors=[1.0], timings_s={"t": 1.0}, created_s=1.0,
+                  drift_correction=S.DriftCorrection(
+                      applied=True, method="sequential", regions=True, regions_corrected=1, max_correction_m=0.1,
+                      max_correction_deg=1.0, per_region=[S.RegionDriftCorrection(
+                          region=0, correction_m=0.1, correction_deg=1.0, fitness=0.5, rmse_m=0.01,
+                          frames_registered=1, frames_fallback=1)])),
         tour,
     ]
     out_by_name = {m.SCHEMA: m for m in out}

@@ -78,6 +78,24 @@ async function refreshStatus() {
   }
 }
 
+// Issue 33: a built map says whether it was corrected for odometry drift, and how much.
+function driftLabel(d) {
+  if (!d) return "";
+  if (!d.applied) return " · built without drift correction";
+  return ` · drift corrected: ${d.regions_corrected} regions moved (max ${(+d.max_correction_m).toFixed(2)} m, ` +
+    `${(+d.max_correction_deg).toFixed(1)}°), ${d.regions_fallback} kept odometry`;
+}
+
+function driftDetails(d) {
+  if (!d || !d.applied) return "";
+  const rows = (d.per_region || []).map((r) => `\nregion ${r.region}: ` + (r.anchor ? "anchor" :
+    r.fell_back ? `kept odometry (${r.reason})` : `${(+r.correction_m).toFixed(3)} m ${(+r.correction_deg).toFixed(2)}°` +
+    (r.rmse_m != null ? `, rmse ${(100 * r.rmse_m).toFixed(1)} cm` : "")) +
+    (r.frames_registered || r.frames_fallback ? `, frames ${r.frames_registered} registered / ${r.frames_fallback} odometry` : ""));
+  return `\ndrift correction (${d.method || "frames"}), loop closures ${d.loop_closures_accepted} accepted / ` +
+    `${d.loop_closures_rejected} rejected` + rows.join("");
+}
+
 async function refreshMaps() {
   const list = $("#maps"), select = $("#map-select");
   try {
@@ -88,8 +106,8 @@ async function refreshMaps() {
     list.replaceChildren(...(maps.length ? maps.map((m) => {
       const li = el("li");
       li.append(el("span", "text", m.map_id),
-        el("span", "meta", `${points(m.point_count)} · v${m.version}`));
-      li.title = `source ${m.source || "?"}; click to download the cloud`;
+        el("span", "meta", `${points(m.point_count)} · v${m.version}` + driftLabel(m.drift_correction)));
+      li.title = `source ${m.source || "?"}${driftDetails(m.drift_correction)}; click to download the cloud`;
       li.onclick = () => { window.location.href = withToken(`/maps/${encodeURIComponent(m.map_id)}/cloud.ply`); };
       li.append(mapDownloads(m.map_id));
       return li;

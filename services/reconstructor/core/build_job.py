@@ -80,7 +80,8 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
         info = store.save(req.map_id, built.cloud, source=req.source or f"exploration {req.exploration_id}",
                           regions=len(built.regions), scale_factors=built.scale_factors,
                           timings_s=built.timings_s, details=built.details(), navigation=req.navigation,
-                          frames={r: labeller_frames(f) for r, f in tour_frames.items()})
+                          frames={r: labeller_frames(f) for r, f in tour_frames.items()},
+                          drift_correction=built.drift_summary())
     finally:
         for rec in req.recordings:
             frames.drop(rec.recording)

@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.cloud import PointCloud
+from shared.cloud import PointCloud, view_dirs_unit
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M
+from shared.schemas import DriftCorrection, RegionDriftCorrection
 
 from .align import AlignmentConfig, AlignmentReport, MetricAligner, to_world
 from .depth import DEFAULT_METRIC_DEPTH, METRIC_DEPTH, MetricDepth
@@ -96,6 +97,32 @@ class MapBuild:
     @property
     def frames(self) -> int:
         return sum(r.frames for r in self.regions)
+
+    def drift_summary(self) -> DriftCorrection:
+        """The typed record of the drift correction that goes into the map's :class:`MapInfo`."""
+        d = self.drift_correction
+        per = []
+        for r in self.regions:
+            reg = r.registration or {}
+            fr, rg = reg.get("frames") or {}, reg.get("region") or {}
+            if not reg:
+                continue
+            per.append(RegionDriftCorrection(
+                region=r.region, anchor=bool(rg.get("anchor", False)), fell_back=bool(rg.get("fell_back", False)),
+                reason=str(rg.get("reason", ""))[:64],
+                correction_m=float(rg.get("correction_m", fr.get("correction_m", 0.0))),
+                correction_deg=min(180.0, float(rg.get("correction_deg", fr.get("correction_deg", 0.0)))),
+                fitness=rg.get("fitness"), rmse_m=rg.get("rmse_m"),
+                frames_registered=int(fr.get("registered", 0)), frames_fallback=int(fr.get("fallback", 0))))
+        moved = [p for p in per if p.correction_m > 0.0 or p.correction_deg > 0.0]
+        return DriftCorrection(
+            applied=bool(d.get("applied")), method=str(d.get("method", "")), frames=bool(d.get("frames")),
+            regions=bool(d.get("regions")), regions_corrected=len(moved),
+            regions_fallback=sum(p.fell_back for p in per),
+            max_correction_m=max((p.correction_m for p in per), default=0.0),
+            max_correction_deg=max((p.correction_deg for p in per), default=0.0),
+            loop_closures_accepted=int(d.get("loop_closures_accepted", 0)),
+            loop_closures_rejected=int(d.get("loop_closures_rejected", 0)), per_region=per)
 
     def details(self) -> dict:
         """Metadata for the map store (regions, alignment, timings, config)."""
@@ -185,17 +212,19 @@ class Reconstructor:
         drift = {"applied": False, "frames": fcfg.enabled, "regions": False}
         rcfg = self.config.registration.regions
         if rcfg.enabled and len(clouds) > 1:
-            graph = register_regions([c.xyz for c in clouds], rcfg)
+            views = [None if c.view_dirs is None else view_dirs_unit(c.view_dirs) for c in clouds]
+            graph = register_regions([c.xyz for c in clouds], rcfg, views)
             clouds = [transform_cloud(c, x) for c, x in zip(clouds, graph.corrections)]
             ids = [reports[i].region for i in placed]
-            for i, x in zip(placed, graph.corrections):
+            for j, (i, x) in enumerate(zip(placed, graph.corrections)):
                 cx, cy, cyaw = se2_params(x)
                 reg = reports[i].registration or {}
                 reg["region"] = {"correction_m": math.hypot(cx, cy), "correction_deg": abs(math.degrees(cyaw)),
-                                 "shift_m": [cx, cy], "turn_deg": math.degrees(cyaw)}
+                                 "shift_m": [cx, cy], "turn_deg": math.degrees(cyaw),
+                                 **(graph.regions[j] if j < len(graph.regions) else {})}
                 reports[i].registration = reg
             loops = [e for e in graph.edges if e.loop]
-            drift.update(regions=True, pairs_tried=graph.pairs_tried, pairs_failed=dict(graph.pairs_failed),
+            drift.update(regions=True, method=graph.method, pairs_tried=graph.pairs_tried, pairs_failed=dict(graph.pairs_failed),
                          edges=[e.as_dict(ids) for e in graph.edges],
                          loop_closures_accepted=sum(e.accepted for e in loops),
                          loop_closures_rejected=sum(not e.accepted for e in loops))

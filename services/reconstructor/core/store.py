@@ -41,7 +41,7 @@ from shared.cloud import CloudFormatError, PointCloud, copy_ours, header, read_c
 from shared.keys import KeyExprError, validate_segment
 from libs.scenegraph import build_scene_graph
 from libs.scenegraph.labeller import LABELLERS, Labeller, LabellerError, geometric_graph
-from shared.schemas import MapChunk, MapInfo, MapLabelling, NavGraph, SceneGraph
+from shared.schemas import DriftCorrection, MapChunk, MapInfo, MapLabelling, NavGraph, SceneGraph
 
 from . import foreign
 from .errors import InvalidMapIdError, MapFormatError, MapNotFoundError, MapStoreError
@@ -104,6 +104,7 @@ class MapStore:
         details: dict[str, Any] | None = None,
         navigation: NavGraph | None = None,
         frames: Mapping[int, Sequence[np.ndarray]] | None = None,
+        drift_correction: DriftCorrection | None = None,
     ) -> MapInfo:
         """Store ``cloud`` as the next version of ``map_id``; returns its :class:`MapInfo`.
 
@@ -143,10 +144,13 @@ class MapStore:
             **usage.model_dump(include={"calls", "prompt_tokens", "completion_tokens", "cost_usd", "reasks",
                                         "cache_hits"}))
         return graph, labelling
+                           timings_s=timings_s, details=details, drift_correction=drift_correction,
+                           graph_of=lambda: build_scene_graph(cloud, navigation, map_id=map_id))
 
     def _store(self, map_id: str, write, *, source: str = "", regions: int = 0,
                scale_factors: list[float] | None = None, timings_s: dict[str, float] | None = None,
-               details: dict[str, Any] | None = None, graph_of=None) -> MapInfo:
+               details: dict[str, Any] | None = None, graph_of=None,
+               drift_correction: DriftCorrection | None = None) -> MapInfo:
         """The next version of ``map_id`` from ``write(ply_path) -> MapInfo fields`` (count, bounds,
         labels), written in a temporary folder renamed into place: a failure leaves nothing.
 
@@ -173,6 +177,7 @@ class MapStore:
                     map_id=map_id, version=version, **fields,
                     source=source, regions=regions, scale_factors=list(scale_factors or []),
                     timings_s=dict(timings_s or {}), created_s=time.time(), labelling=labelling,
+                    drift_correction=drift_correction,
                 )
                 files = {_CLOUD: digest}
                 if graph is not None:
