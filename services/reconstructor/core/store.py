@@ -123,7 +123,7 @@ class MapStore:
                         label_names={int(k): v for k, v in cloud.label_names.items()})
 
         return self._store(map_id, write, source=source, regions=regions, scale_factors=scale_factors,
-                           timings_s=timings_s, details=details,
+                           timings_s=timings_s, details=details, drift_correction=drift_correction,
                            graph_of=lambda: self._label(map_id, cloud, navigation, frames))
 
     def _label(self, map_id: str, cloud: PointCloud, navigation: NavGraph | None,
@@ -144,8 +144,6 @@ class MapStore:
             **usage.model_dump(include={"calls", "prompt_tokens", "completion_tokens", "cost_usd", "reasks",
                                         "cache_hits"}))
         return graph, labelling
-                           timings_s=timings_s, details=details, drift_correction=drift_correction,
-                           graph_of=lambda: build_scene_graph(cloud, navigation, map_id=map_id))
 
     def _store(self, map_id: str, write, *, source: str = "", regions: int = 0,
                scale_factors: list[float] | None = None, timings_s: dict[str, float] | None = None,
