@@ -18,6 +18,7 @@ from scipy.sparse.csgraph import dijkstra
 from shared.schemas import SceneGraph
 
 _SNAP_M = 1.0  # a point off the walkable cells (furniture, a wall's edge) snaps to one within this
+_STAIRS_REACH_M = 4.0  # a point this far above a floor's stairs cell may still be on those stairs
 
 
 class Router:
@@ -58,6 +59,7 @@ class Router:
             a, b = self._index[k][up], self._index[k + 1][up]
             rows.append(a), cols.append(b), w.append(np.full(len(a), max(hi.z_m - lo.z_m, lo.cell_m)))
         self.n = n
+        self._stairs_floors = [f for f, g in enumerate(self.grids) if (g.cells == 2).any()]
         self._node_cell = np.concatenate(self._cells) if self._cells else np.zeros((0, 3), np.int64)
         r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
         c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
@@ -99,8 +101,21 @@ class Router:
         return self._fields[node]
 
     def distance(self, field: np.ndarray, xyz) -> float:
+        """Route distance of ``xyz`` to the field's goal. On stairs a point's height does not tell its floor
+        (a move down the stairs is proposed at the robot's height): a stairs cell of any floor under the
+        point counts too, and the shorter distance wins."""
         node = self.node_of(xyz)
-        return math.inf if node is None else float(field[node])
+        d = math.inf if node is None else float(field[node])
+        for f in self._stairs_floors:
+            g = self.grids[f]
+            i = int(math.floor((float(xyz[0]) - g.origin_m[0]) / g.cell_m))
+            j = int(math.floor((float(xyz[1]) - g.origin_m[1]) / g.cell_m))
+            if 0 <= i < g.cells.shape[0] and 0 <= j < g.cells.shape[1] and g.cells[i, j] == 2 \
+                    and -0.5 < float(xyz[2]) - g.z_m < _STAIRS_REACH_M:
+                k = self._index[f][i, j]
+                if k >= 0:
+                    d = min(d, float(field[k]))
+        return d
 
     def position(self, node: int) -> np.ndarray:
         f, i, j = self._node_cell[node]

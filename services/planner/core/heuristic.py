@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -71,6 +71,16 @@ class HeuristicConfig(BackendConfig):
     graph_object_stop_m: float = 0.6  # ... or its approach point this near (straight line, same floor)
     graph_revisit_penalty: float = 0.5  # per earlier visit of a candidate's target (m of progress)
     graph_prune_penalty: float = 1.0  # an anticipated view whose floor is a room off the route
+    # SPL counts every metre: a move that goes 3 m for 1 m of progress wastes 2 m; each wasted metre costs
+    # this much of a metre of progress.
+    graph_detour_weight: float = 0.3
+    # A dead end: a place where no move gains graph_min_progress_m along the route (the map's route goes
+    # where the waypoint predictor offers no move: a doorway seen at a sharp angle, a gap under a table).
+    # Going back there is what made the robot oscillate (A -> B -> A ...) until the revisit penalties grew;
+    # a move ending within graph_dead_end_radius_m of one costs graph_dead_end_penalty (m of progress).
+    graph_min_progress_m: float = 0.15
+    graph_dead_end_radius_m: float = 1.0
+    graph_dead_end_penalty: float = 2.0
 
 
 @dataclass
@@ -85,6 +95,7 @@ class _MissionState:
     router: Router | None = None
     ground_note: str = ""  # why the scene graph is not used (said in every reasoning)
     last_route_m: float | None = None
+    dead_ends: list[np.ndarray] = field(default_factory=list)  # xy of places no move got on from
 
 
 @POLICIES.register("heuristic", HeuristicConfig)
@@ -357,9 +368,32 @@ class HeuristicPolicy(Policy):
             return self._decision(ctx, stop.index, f"{where}: stop - at the grounded goal ({g.explained}; "
                                   f"{d_here:.1f} m by the route, {obj_m:.1f} m from it)")
         replanned = st.last_route_m is not None and d_here > st.last_route_m + 0.3
-        st.last_route_m = d_here
         route_types = {graph.room(r).room_type for r in g.rooms if graph.room(r) is not None}
         floor_ids = self._floor_ids(ctx.label_names) if ctx.label_names else np.zeros(0, np.int64)
+        scored = self._graph_scores(ctx, st, g, router, d_here, route_types, floor_ids)
+        gains = [d_here - dt for _, v, _, dt in scored if v.kind == CandidateKind.WAYPOINT]
+        if d_here > cfg.graph_stop_m and max(gains, default=-1.0) < cfg.graph_min_progress_m:
+            st.dead_ends.append(np.asarray(here[:2], float))
+        st.last_route_m = d_here
+        scored = [(sc, v, n) for sc, v, n, _ in scored]
+        if not scored:
+            return None
+        log.debug("step %d at %s (%.1f m left): %s", ctx.step, np.round(here[:2], 2), d_here,
+                  [(round(s, 2), s_v.kind.value, round(math.degrees(s_v.candidate.angle_rad)),
+                    round(s_v.candidate.distance_m or 0.0, 1), n) for s, s_v, n in scored])
+        best_score, best, notes = max(scored, key=lambda s: s[0])
+        if best_score <= 0 and stop is not None and d_here < 1.5:
+            return self._decision(ctx, stop.index, f"{where}: stop - no move gets closer and the goal is "
+                                  f"{d_here:.1f} m away ({g.explained})")
+        c = best.candidate
+        move = "go back" if best.kind == CandidateKind.BACKTRACK else f"{turn_phrase(c.angle_rad)} {c.distance_m:.1f} m"
+        again = "; off the route, re-planned from here" if replanned else ""
+        return self._decision(ctx, best.index, f"{where} ({d_here:.1f} m left, {g.explained}): {move} "
+                              f"({', '.join(notes)}){again}")
+
+    def _graph_scores(self, ctx, st, g, router, d_here, route_types, floor_ids):
+        """(score, candidate, notes, route distance of its target) of every move."""
+        cfg = self.config
         scored = []
         for v in ctx.candidates:
             if v.kind == CandidateKind.STOP:
@@ -368,14 +402,19 @@ class HeuristicPolicy(Policy):
             dt = router.distance(g.field, target)
             if not math.isfinite(dt):
                 continue
-            score = d_here - dt
-            notes = [f"{d_here - dt:+.1f} m along the route"]
+            gain = d_here - dt
+            length = v.candidate.distance_m or math.hypot(v.candidate.dx_m, v.candidate.dy_m)
+            score = gain - cfg.graph_detour_weight * max(0.0, length - gain)
+            notes = [f"{gain:+.1f} m along the route"]
             if len(ctx.trajectory_m) > 1:
                 gaps = np.linalg.norm(ctx.trajectory_m[:-1, :2] - target[:2], axis=1)
                 visits = int(np.count_nonzero(gaps < cfg.revisit_radius_m))
                 if visits:
                     score -= cfg.graph_revisit_penalty * visits
                     notes.append(f"revisit x{visits}")
+            if st.dead_ends and min(math.dist(target[:2], p) for p in st.dead_ends) < cfg.graph_dead_end_radius_m:
+                score -= cfg.graph_dead_end_penalty
+                notes.append("a dead end")
             # The paper's use of anticipation: a candidate whose anticipated floor is a room the route does
             # not pass contradicts the next leg (the map is right there, the raster may be wrong).
             if (ctx.ablation.anticipation and v.anticipated_labels is not None and v.anticipated_depth_m is not None
@@ -389,18 +428,8 @@ class HeuristicPolicy(Policy):
                     if rtype and not any(label_matches(t, rtype) or label_matches(rtype, t) for t in route_types):
                         score -= cfg.graph_prune_penalty
                         notes.append(f"pruned: anticipates a {rtype} off the route")
-            scored.append((score, v, notes))
-        if not scored:
-            return None
-        best_score, best, notes = max(scored, key=lambda s: s[0])
-        if best_score <= 0 and stop is not None and d_here < 1.5:
-            return self._decision(ctx, stop.index, f"{where}: stop - no move gets closer and the goal is "
-                                  f"{d_here:.1f} m away ({g.explained})")
-        c = best.candidate
-        move = "go back" if best.kind == CandidateKind.BACKTRACK else f"{turn_phrase(c.angle_rad)} {c.distance_m:.1f} m"
-        again = "; off the route, re-planned from here" if replanned else ""
-        return self._decision(ctx, best.index, f"{where} ({d_here:.1f} m left, {g.explained}): {move} "
-                              f"({', '.join(notes)}){again}")
+            scored.append((score, v, notes, dt))
+        return scored
 
     def decide(self, ctx: StepContext) -> Decision:
         st = self._update(ctx)
