@@ -110,6 +110,7 @@ class HeuristicPolicy(Policy):
         self.config = config
         self._state: _MissionState | None = None
         self._ids_cache: dict[tuple, np.ndarray] = {}
+        self._router: tuple[object, Router] | None = None
 
     def reset(self, mission_id: str) -> None:
         super().reset(mission_id)
@@ -352,7 +353,10 @@ class HeuristicPolicy(Policy):
         graph = ctx.scene_graph
         if st.grounding is None and not st.ground_note:
             try:
-                st.router = Router(graph)
+                # One router per map (its raster graph and snapping tables), not one per mission.
+                if self._router is None or self._router[0] is not graph:
+                    self._router = (graph, Router(graph))
+                st.router = self._router[1]
                 st.grounding = ground(st.parsed, graph, st.router, ctx.pose.xyz, ctx.pose.heading_rad)
                 log.info("mission %s grounded: %s", ctx.mission_id, st.grounding.explained)
             except GroundingError as exc:
