@@ -371,7 +371,10 @@ class HeuristicPolicy(Policy):
         same_floor = router.floor_of(here) == router.floor_of(g.goal.position_m)
         where = f"route to {g.goal.object_id}"
         stop = ctx.stop_candidate
-        if stop is not None and (d_here <= cfg.graph_stop_m or (same_floor and obj_m <= cfg.graph_object_stop_m)):
+        # The stand point is one side of the object; the true goal may be on another side, up to the object's
+        # length away (a bed): the larger the object, the closer to the stand point before stopping.
+        stop_m = min(cfg.graph_stop_m, max(0.5, cfg.graph_stop_m - max(g.goal.size_m[:2]) / 2))
+        if stop is not None and (d_here <= stop_m or (same_floor and obj_m <= min(stop_m, cfg.graph_object_stop_m))):
             return self._decision(ctx, stop.index, f"{where}: stop - at the grounded goal ({g.explained}; "
                                   f"{d_here:.1f} m by the route, {obj_m:.1f} m from it)")
         replanned = st.last_route_m is not None and d_here > st.last_route_m + 0.3
@@ -379,7 +382,7 @@ class HeuristicPolicy(Policy):
         floor_ids = self._floor_ids(ctx.label_names) if ctx.label_names else np.zeros(0, np.int64)
         scored = self._graph_scores(ctx, st, g, router, d_here, route_types, floor_ids)
         gains = [d_here - dt for _, v, _, dt in scored if v.kind == CandidateKind.WAYPOINT]
-        if d_here > cfg.graph_stop_m and max(gains, default=-1.0) < cfg.graph_min_progress_m:
+        if d_here > stop_m and max(gains, default=-1.0) < cfg.graph_min_progress_m:
             st.dead_ends.append(np.asarray(here[:2], float))
         st.last_route_m = d_here
         scored = [(sc, v, n) for sc, v, n, _ in scored]
@@ -389,7 +392,12 @@ class HeuristicPolicy(Policy):
                   [(round(s, 2), s_v.kind.value, round(math.degrees(s_v.candidate.angle_rad)),
                     round(s_v.candidate.distance_m or 0.0, 1), n) for s, s_v, n in scored])
         best_score, best, notes = max(scored, key=lambda s: s[0])
-        if best_score <= 0 and stop is not None and d_here < 1.5:
+        # Stuck near the goal: stop, but only the second time here (the first time the dead-end memory makes
+        # the robot try another way in; the demo's bed stand point was reached so, 0.4 m instead of 1.3 m).
+        stuck_again = len(st.dead_ends) > 1 and min(
+            math.dist(here[:2], p) for p in st.dead_ends[:-1]) < cfg.graph_dead_end_radius_m
+        if stop is not None and max(gains, default=-1.0) < cfg.graph_min_progress_m and d_here < 1.5 and (
+                stuck_again or d_here <= stop_m):
             return self._decision(ctx, stop.index, f"{where}: stop - no move gets closer and the goal is "
                                   f"{d_here:.1f} m away ({g.explained})")
         c = best.candidate
