@@ -388,9 +388,10 @@ class HeuristicPolicy(Policy):
         scored = [(sc, v, n) for sc, v, n, _ in scored]
         if not scored:
             return None
-        log.debug("step %d at %s (%.1f m left): %s", ctx.step, np.round(here[:2], 2), d_here,
-                  [(round(s, 2), s_v.kind.value, round(math.degrees(s_v.candidate.angle_rad)),
-                    round(s_v.candidate.distance_m or 0.0, 1), n) for s, s_v, n in scored])
+        if log.isEnabledFor(logging.DEBUG):  # every move's score, for reading an episode (built only then)
+            log.debug("step %d at %s (%.1f m left): %s", ctx.step, np.round(here[:2], 2), d_here,
+                      [(round(s, 2), s_v.kind.value, round(math.degrees(s_v.candidate.angle_rad)),
+                        round(s_v.candidate.distance_m or 0.0, 1), n) for s, s_v, n in scored])
         best_score, best, notes = max(scored, key=lambda s: s[0])
         # Stuck near the goal: stop, but only the second time here (the first time the dead-end memory makes
         # the robot try another way in; the demo's bed stand point was reached so, 0.4 m instead of 1.3 m).
