@@ -17,6 +17,7 @@ episodes do. The key lines are printed last.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -54,19 +55,25 @@ def main(argv: list[str] | None = None) -> dict:
         cloud.save(cache)
     print(f"   {args.scene}: {len(cloud):,} labelled points ready in {time.perf_counter() - t0:.0f} s")
 
-    build_s = []
+    # Wall time is the target; CPU time (this process, user + system) beside it, because on a shared machine
+    # the wall time is mostly waiting for a core (the load is printed with it).
+    build_s, build_cpu_s = [], []
     graph = None
     for _ in range(args.repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         graph = build_scene_graph(cloud, map_id="bench")
         build_s.append(time.perf_counter() - t)
+        build_cpu_s.append(time.process_time() - c)
     size_b = len(graph.model_dump_json())
     cells = sum(int((g.cells > 0).sum()) for g in graph.free_space)
 
     rng = np.random.default_rng(0)
     rooms = {r.room_id: r for r in graph.rooms}
     goals = [o for o in graph.objects if o.points >= 200 and o.room_id in rooms]
-    mission_ms, step_ms, grounded = [], [], 0
+    mission_ms, step_ms, step_cpu_ms, grounded = [], [], [], 0
+    t = time.perf_counter()
+    router = Router(graph)  # once per map, as the policy keeps it
+    router_ms = 1000 * (time.perf_counter() - t)
     for k in range(min(args.missions, len(goals))):
         o = goals[int(rng.integers(len(goals)))]
         start_room = graph.rooms[int(rng.integers(len(graph.rooms)))]
@@ -75,7 +82,6 @@ def main(argv: list[str] | None = None) -> dict:
         start = np.asarray(start_room.centroid_m)
         t = time.perf_counter()
         try:
-            router = Router(graph)
             got = ground(parse_instruction(text), graph, router, start)
         except GroundingError:
             continue
@@ -83,24 +89,32 @@ def main(argv: list[str] | None = None) -> dict:
         grounded += 1
         # One step: the robot's distance along the route and 12 candidates' (what the policy does).
         angles = np.linspace(0, 2 * np.pi, 12, endpoint=False)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         router.distance(got.field, start)
         for a in angles:
             router.distance(got.field, start + [1.5 * np.cos(a), 1.5 * np.sin(a), 0.0])
         step_ms.append(1000 * (time.perf_counter() - t))
+        step_cpu_ms.append(1000 * (time.process_time() - c))
 
     med_build = statistics.median(build_s)
+    med_cpu = statistics.median(build_cpu_s)
     print(f"   rooms {len(graph.rooms)}, openings {len(graph.openings)}, objects {len(graph.objects)}, "
           f"stairs {len(graph.stairs)}, floors {len(graph.floors_z_m)}, walkable cells {cells:,}")
-    print(f"   grounded {grounded} of {min(args.missions, len(goals))} instructions")
+    print(f"   grounded {grounded} of {min(args.missions, len(goals))} instructions; router per map {router_ms:.0f} ms")
     p = (lambda xs, q: float(np.percentile(xs, q)) if xs else float("nan"))
+    load = os.getloadavg()[0]
+    print(f"   load average {load:.1f} on {os.cpu_count()} cores; build CPU time median {med_cpu:.2f} s, "
+          f"per step CPU p95 {p(step_cpu_ms, 95):.2f} ms")
     print(f"scene graph build ({args.scene}, {len(cloud):,} points): median {med_build:.2f} s of {args.repeats} "
           f"(target <= 5 s: {'ok' if med_build <= 5 else 'MISSED'}); size {size_b / 1e6:.2f} MB JSON")
     print(f"grounding + route planning, once per mission: p50 {p(mission_ms, 50):.1f} ms, p95 {p(mission_ms, 95):.1f} ms; "
           f"per step: p50 {p(step_ms, 50):.2f} ms, p95 {p(step_ms, 95):.2f} ms "
           f"(target <= 10 ms: {'ok' if p(step_ms, 95) <= 10 else 'MISSED'})")
-    return {"build_s": med_build, "size_bytes": size_b, "mission_ms_p50": p(mission_ms, 50),
-            "step_ms_p95": p(step_ms, 95)}
+    # The last line: each figure against its target (<= 1.0 meets it).
+    print(f"scene graph cost ratio to target: build {med_build / 5.0:.2f} (CPU {med_cpu / 5.0:.2f}), "
+          f"step p95 {p(step_ms, 95) / 10.0:.2f} (CPU {p(step_cpu_ms, 95) / 10.0:.2f}), load {load:.1f}")
+    return {"build_s": med_build, "build_cpu_s": med_cpu, "size_bytes": size_b, "mission_ms_p50": p(mission_ms, 50),
+            "step_ms_p95": p(step_ms, 95), "step_cpu_ms_p95": p(step_cpu_ms, 95), "load": load}
 
 
 if __name__ == "__main__":

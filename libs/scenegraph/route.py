@@ -18,6 +18,8 @@ from scipy.sparse.csgraph import dijkstra
 from shared.schemas import SceneGraph
 
 _SNAP_M = 1.0  # a point off the walkable cells (furniture, a wall's edge) snaps to one within this
+_MAX_FIELDS = 64  # distance fields kept per router (one per goal or start asked for)
+_STAIRS_REACH_M = 4.0  # a point this far above a floor's stairs cell may still be on those stairs
 
 
 class Router:
@@ -26,6 +28,7 @@ class Router:
     def __init__(self, graph: SceneGraph):
         self.grids = graph.free_space
         self.floors_z = np.array([g.z_m for g in self.grids], float)
+        self._floors_list = [float(g.z_m) for g in self.grids]
         self._offset: list[int] = []
         self._index: list[np.ndarray] = []  # per floor: cell -> node index (-1 blocked)
         self._snap: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -58,6 +61,12 @@ class Router:
             a, b = self._index[k][up], self._index[k + 1][up]
             rows.append(a), cols.append(b), w.append(np.full(len(a), max(hi.z_m - lo.z_m, lo.cell_m)))
         self.n = n
+        # Per node: its room (index into graph.rooms, -1 none) and its centre; what a route's reading needs
+        # for every cell it passes (a lookup per point was a third of a grounding).
+        self.node_room = np.concatenate([g.rooms[g.cells > 0] if g.rooms is not None
+                                         else np.full(int((g.cells > 0).sum()), -1) for g in self.grids]
+                                        ).astype(np.int64) if self.grids else np.zeros(0, np.int64)
+        self._stairs_floors = [f for f, g in enumerate(self.grids) if (g.cells == 2).any()]
         self._node_cell = np.concatenate(self._cells) if self._cells else np.zeros((0, 3), np.int64)
         r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
         c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
@@ -69,8 +78,12 @@ class Router:
         """The floor a point stands on: the highest floor at most 0.8 m above it."""
         if len(self.floors_z) == 0:
             return -1
-        below = np.flatnonzero(self.floors_z <= float(xyz[2]) + 0.8)
-        return int(below[-1]) if len(below) else 0
+        z = float(xyz[2]) + 0.8
+        f = 0
+        for k, fz in enumerate(self._floors_list):  # a handful of floors: no array call per point
+            if fz <= z:
+                f = k
+        return f
 
     def node_of(self, xyz, snap_m: float = _SNAP_M) -> int | None:
         """The walkable cell of a point (snapped within ``snap_m``), or None."""
@@ -95,21 +108,40 @@ class Router:
         if node is None:
             return None
         if node not in self._fields:
+            if len(self._fields) >= _MAX_FIELDS:  # a router lives as long as its map: bound what it keeps
+                self._fields.pop(next(iter(self._fields)))
             self._fields[node] = dijkstra(self._csr, directed=False, indices=node)
         return self._fields[node]
 
     def distance(self, field: np.ndarray, xyz) -> float:
+        """Route distance of ``xyz`` to the field's goal. On stairs a point's height does not tell its floor
+        (a move down the stairs is proposed at the robot's height): a stairs cell of any floor under the
+        point counts too, and the shorter distance wins."""
         node = self.node_of(xyz)
-        return math.inf if node is None else float(field[node])
+        d = math.inf if node is None else float(field[node])
+        for f in self._stairs_floors:
+            g = self.grids[f]
+            i = int(math.floor((float(xyz[0]) - g.origin_m[0]) / g.cell_m))
+            j = int(math.floor((float(xyz[1]) - g.origin_m[1]) / g.cell_m))
+            if 0 <= i < g.cells.shape[0] and 0 <= j < g.cells.shape[1] and g.cells[i, j] == 2 \
+                    and -0.5 < float(xyz[2]) - g.z_m < _STAIRS_REACH_M:
+                k = self._index[f][i, j]
+                if k >= 0:
+                    d = min(d, float(field[k]))
+        return d
 
     def position(self, node: int) -> np.ndarray:
-        f, i, j = self._node_cell[node]
-        g = self.grids[f]
-        return np.array([g.origin_m[0] + (i + 0.5) * g.cell_m, g.origin_m[1] + (j + 0.5) * g.cell_m, g.z_m])
+        return self.positions(np.array([node]))[0]
 
-    def path(self, field: np.ndarray, start_xyz, max_nodes: int = 10_000) -> list[np.ndarray]:
-        """The cells from ``start_xyz`` down the field to its goal (empty when unreachable)."""
-        node = self.node_of(start_xyz)
+    def positions(self, nodes) -> np.ndarray:
+        """(n, 3) centres of the cells ``nodes``."""
+        fij = self._node_cell[np.asarray(nodes, np.int64)]
+        org = np.array([[g.origin_m[0], g.origin_m[1], g.cell_m, g.z_m] for g in self.grids])[fij[:, 0]]
+        return np.c_[org[:, 0] + (fij[:, 1] + 0.5) * org[:, 2], org[:, 1] + (fij[:, 2] + 0.5) * org[:, 2], org[:, 3]]
+
+    def path_nodes(self, field: np.ndarray, start_xyz, max_nodes: int = 10_000, snap_m: float = _SNAP_M) -> list[int]:
+        """The nodes from ``start_xyz`` down the field to its origin (empty when unreachable)."""
+        node = self.node_of(start_xyz, snap_m)
         if node is None or not np.isfinite(field[node]):
             return []
         out = [node]
@@ -121,4 +153,11 @@ class Router:
                 break
             node = nxt
             out.append(node)
-        return [self.position(k) for k in out[:: 2]] + [self.position(out[-1])]
+        return out
+
+    def path(self, field: np.ndarray, start_xyz, max_nodes: int = 10_000) -> list[np.ndarray]:
+        """The cells from ``start_xyz`` down the field to its goal (empty when unreachable)."""
+        out = self.path_nodes(field, start_xyz, max_nodes)
+        if not out:
+            return []
+        return list(self.positions(out[::2] + [out[-1]]))

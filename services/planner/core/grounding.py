@@ -56,33 +56,24 @@ def _colour_before(text: str, word_phrases: tuple[str, ...]) -> str | None:
     return None
 
 
-def _room_of_point(graph: SceneGraph, router: Router, p: np.ndarray) -> SceneRoom | None:
-    """The room of the floor cell under ``p`` (the graph's room raster)."""
-    f = router.floor_of(p)
-    if f < 0:
-        return None
-    g = graph.free_space[f]
-    if g.rooms is None:
-        return None
-    i = int((float(p[0]) - g.origin_m[0]) // g.cell_m)
-    j = int((float(p[1]) - g.origin_m[1]) // g.cell_m)
-    if not (0 <= i < g.rooms.shape[0] and 0 <= j < g.rooms.shape[1]) or g.rooms[i, j] < 0:
-        return None
-    return graph.rooms[int(g.rooms[i, j])]
-
-
-def _stand_point(graph: SceneGraph, router: Router, o: SceneObject) -> np.ndarray:
+def _stand_point(graph: SceneGraph, router: Router, o: SceneObject, cells_of: dict | None = None) -> np.ndarray:
     """Where to stop "next to" ``o``: the walkable cell of its own room nearest its footprint (the room's
-    side of the wall it stands against), else the side its points were seen from, else its centre."""
+    side of the wall it stands against), else the side its points were seen from, else its centre.
+    ``cells_of``: a cache of each (floor, room)'s walkable cell centres for the readings of one grounding."""
     centre = np.asarray(o.position_m, float)
     base = centre - [0.0, 0.0, o.size_m[2] / 2]
     f = router.floor_of(base)
     room_index = next((k for k, r in enumerate(graph.rooms) if r.room_id == o.room_id), None)
     if f >= 0 and room_index is not None and graph.free_space[f].rooms is not None:
         g = graph.free_space[f]
-        ci, cj = np.nonzero((g.cells > 0) & (g.rooms == room_index))
-        if len(ci):
+        key = (f, room_index)
+        pts = None if cells_of is None else cells_of.get(key)
+        if pts is None:
+            ci, cj = np.nonzero((g.cells > 0) & (g.rooms == room_index))
             pts = np.c_[g.origin_m[0] + (ci + 0.5) * g.cell_m, g.origin_m[1] + (cj + 0.5) * g.cell_m]
+            if cells_of is not None:
+                cells_of[key] = pts
+        if len(pts):
             d = np.maximum(np.abs(pts - centre[:2]) - np.asarray(o.size_m[:2]) / 2, 0.0)
             dist = np.hypot(d[:, 0], d[:, 1])
             k = int(np.argmin(dist))
@@ -122,15 +113,12 @@ def _turns_at_rooms(parsed: ParsedInstruction) -> list[tuple[int, float]]:
     return out
 
 
-def _turn_agreement(turns, path, seen_rooms, graph, router, start_heading_rad) -> int:
-    """+1 per turn of the instruction that the route makes where it says, -1 per one it does not."""
+def _turn_agreement(turns, path, rooms_at, start_heading_rad) -> int:
+    """+1 per turn of the instruction that the route makes where it says, -1 per one it does not.
+    ``rooms_at``: the room id (or None) of each point of ``path``."""
     if not turns or len(path) < 3:
         return 0
     pts = np.asarray(path)
-    rooms_at = []
-    for p in pts:
-        r = _room_of_point(graph, router, p)
-        rooms_at.append(None if r is None else r.room_id)
     entry = [0]
     for i in range(1, len(rooms_at)):
         if rooms_at[i] is not None and rooms_at[i] != rooms_at[i - 1] and rooms_at[i] not in [
@@ -190,15 +178,22 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
     rooms_by_id = {r.room_id: r for r in graph.rooms}
     mark_xy = {m: np.array([x.position_m[:2] for x in graph.objects if label_matches(x.label, m)]).reshape(-1, 2)
                for m in passed_marks}
+    # One Dijkstra from the start answers every reading: its distance and (descending this field from the
+    # reading's stand point) its route. Only the chosen reading gets its own field, the one followed.
+    from_start = router.field(start_m, snap_m=1.0)
+    if from_start is None:
+        raise GroundingError("the robot's start is off the map's walkable space")
+    cells_of: dict = {}
+    room_ids = [r.room_id for r in graph.rooms]
     scored = []
     for o in candidates:
         if o.points < 20:
             continue
-        stand = _stand_point(graph, router, o)
-        fld = router.field(stand)
-        if fld is None:
+        stand = _stand_point(graph, router, o, cells_of)
+        nodes = router.path_nodes(from_start, stand, snap_m=2.0)[::-1]  # start -> stand
+        if not nodes:
             continue
-        d = router.distance(fld, start_m)
+        d = float(from_start[nodes[-1]])
         if not math.isfinite(d):
             continue
         score, why = 0.0, []
@@ -213,16 +208,17 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
             ok = label_matches(room.room_type, final_room)
             score += 3.0 if ok else -2.0
             why.append(f"in {room.room_id}" + ("" if ok else f" (not a {final_room})"))
-        path = router.path(fld, start_m)
+        sampled = nodes[::2] + ([nodes[-1]] if (len(nodes) - 1) % 2 else [])
+        path = list(router.positions(sampled))
         seen_rooms: list[str] = []
-        for p in path:
-            r = _room_of_point(graph, router, p)
-            if r is not None and (not seen_rooms or seen_rooms[-1] != r.room_id):
-                seen_rooms.append(r.room_id)
+        for k in router.node_room[nodes]:
+            if k >= 0 and (not seen_rooms or seen_rooms[-1] != room_ids[k]):
+                seen_rooms.append(room_ids[k])
         types = [rooms_by_id[r].room_type for r in seen_rooms]
         hits = _subsequence_hits(wanted_rooms, types)
         score += 1.0 * hits - 0.5 * (len(wanted_rooms) - hits)
-        agree = _turn_agreement(turns, path, seen_rooms, graph, router, start_heading_rad)
+        rooms_at = [room_ids[k] if k >= 0 else None for k in router.node_room[sampled]]
+        agree = _turn_agreement(turns, path, rooms_at, start_heading_rad)
         score += 0.7 * agree
         if turns:
             why.append(f"turns {agree:+d}")
@@ -234,12 +230,15 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
                 score += 0.7 if near else -0.3
         score -= 0.01 * d  # between equal readings, the nearer
         why.append(f"route passes {hits}/{len(wanted_rooms)} named rooms in order, {d:.1f} m")
-        scored.append((score, o, fld, seen_rooms, path, ", ".join(why)))
+        scored.append((score, o, stand, seen_rooms, path, ", ".join(why)))
     if not scored:
         raise GroundingError(f"no {target!r} of the map is reachable on its walkable space")
     scored.sort(key=lambda s: -s[0])
     best = scored[0]
-    goal_node_m = _stand_point(graph, router, best[1])
-    return Grounding(goal=best[1], goal_m=goal_node_m, field=best[2], rooms=best[3],
+    goal_node_m = best[2]
+    fld = router.field(goal_node_m)
+    if fld is None:
+        raise GroundingError(f"{best[1].object_id} is off the map's walkable space")
+    return Grounding(goal=best[1], goal_m=goal_node_m, field=fld, rooms=best[3],
                      explained=f"{best[1].object_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4],
                      readings=[(round(x[0], 2), x[1].object_id, x[5]) for x in scored])

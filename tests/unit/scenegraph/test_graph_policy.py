@@ -105,3 +105,25 @@ def test_policy_follows_the_route_stops_at_the_goal_and_says_when_it_falls_back(
     off = POLICIES.create("heuristic", {"scene_graph": False})
     off.reset("m4")
     assert "route to" not in off.decide(_ctx(g, text)).reasoning
+
+
+def test_route_distance_on_stairs_reads_the_stairs_of_the_floor_below():
+    """A move down the stairs is proposed at the robot's height (the upper floor's): its distance is the
+    stairs cell's of the floor below, not inf (the upper floor has a hole there) - the robot used to turn
+    back at the top of the stairs."""
+    from shared.schemas import FloorGrid, SceneGraph
+
+    lower = np.ones((12, 4), np.uint8)
+    lower[4:11, 1:3] = 2  # the stairs, rising along +x, their top step under the upper landing
+    upper = np.zeros((12, 4), np.uint8)
+    upper[10:, :] = 1  # the landing; the stairwell below x = 5 m is open
+    grids = [FloorGrid(floor=0, z_m=0.0, origin_m=(0.0, 0.0), cell_m=0.5, cells=lower),
+             FloorGrid(floor=1, z_m=3.0, origin_m=(0.0, 0.0), cell_m=0.5, cells=upper)]
+    router = Router(SceneGraph(floors_z_m=[0.0, 3.0], free_space=grids))
+    goal_below = router.field(np.array([0.25, 0.75, 0.0]))
+    mid_stairs = np.array([3.75, 0.75, 3.0])  # x = 3.75 m: stairs cell i = 7, at the upper floor's height
+    d = router.distance(goal_below, mid_stairs)
+    assert np.isfinite(d)
+    assert d == pytest.approx(router.distance(goal_below, np.array([3.75, 0.75, 0.0])))
+    landing = np.array([5.25, 0.75, 3.0])
+    assert d < router.distance(goal_below, landing)  # down the stairs is progress towards a goal below
