@@ -431,6 +431,18 @@ _HEAD_BYTES = 1 << 20  # a header longer than this (label names of a huge label 
 _SLICE_POINTS = 1 << 20  # records read or written at a time when a file is streamed
 
 
+def record_chunks(fh, dtype: np.dtype, count: int, chunk: int = _SLICE_POINTS, what: str = "PLY body"):
+    """``(first index, records)`` for ``count`` fixed-size records read from ``fh``'s position ``chunk``
+    at a time (a streamed file is never whole in memory); a body that ends early is a
+    :class:`CloudFormatError`, not a short cloud."""
+    for lo in range(0, count, chunk):
+        want = min(chunk, count - lo)
+        rec = np.fromfile(fh, dtype, want)
+        if len(rec) != want:
+            raise CloudFormatError(f"{what} ends after {lo + len(rec)} of {count} records")
+        yield lo, rec
+
+
 def _read_ours(path: Path) -> PointCloud | None:
     """:func:`decode` straight from a file, a slice of records at a time (the file is never in memory
     whole: what is held is the cloud itself)."""
@@ -443,11 +455,8 @@ def _read_ours(path: Path) -> PointCloud | None:
         def fill(xyz, rgb, labels, views):
             fh.seek(layout.body_offset)
             finite = np.empty(layout.count, bool)
-            for lo in range(0, layout.count, _SLICE_POINTS):
-                hi = min(lo + _SLICE_POINTS, layout.count)
-                rec = np.fromfile(fh, layout.dtype, hi - lo)
-                if len(rec) != hi - lo:
-                    raise CloudFormatError(f"PLY body ends after {lo + len(rec)} of {layout.count} vertices")
+            for lo, rec in record_chunks(fh, layout.dtype, layout.count):
+                hi = lo + len(rec)
                 finite[lo:hi] = _unpack(rec, xyz[lo:hi], rgb[lo:hi], None if labels is None else labels[lo:hi],
                                         None if views is None else views[lo:hi])
             return finite
@@ -483,11 +492,7 @@ def copy_ours(src: str | Path, dst: str | Path) -> CopiedCloud | None:
 
         def slices():
             fh.seek(layout.body_offset)
-            for lo in range(0, layout.count, _SLICE_POINTS):
-                want = min(_SLICE_POINTS, layout.count - lo)
-                rec = np.fromfile(fh, layout.dtype, want)
-                if len(rec) != want:
-                    raise CloudFormatError(f"PLY body ends after {lo + len(rec)} of {layout.count} vertices")
+            for _lo, rec in record_chunks(fh, layout.dtype, layout.count):
                 xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
                 finite = np.isfinite(xyz).all(axis=1)
                 yield rec, xyz, finite

@@ -21,34 +21,13 @@ from libs.ros2.keys import key_style
 from libs.ros2.node import Ros2Node
 from services.robot_io.core.ros2.backend import DeadlineExceededError, RunStoppedError
 from shared.schemas import MoveStatus
-from tests.contract.test_ros2_backend import SIM_OVERRIDES, StandIn, transport
+# The module's stand-ins (one per key style, reset by teleport) are test_ros2_backend's fixtures.
+from tests.contract.test_ros2_backend import SIM_OVERRIDES, StandIn, standin, standins, transport  # noqa: F401
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.contract
 
 NAV2 = {**SIM_OVERRIDES, "motion": "nav2"}
-
-
-@pytest.fixture(scope="module")
-def standins():
-    """One stand-in per key style for the module (each costs seconds), reset by teleport before use."""
-    made: dict[str, StandIn] = {}
-
-    def get(keys: str = "bridge") -> StandIn:
-        if keys not in made:
-            made[keys] = StandIn(keys=keys)
-            made[keys].keys = keys
-        made[keys].reset()
-        return made[keys]
-
-    yield get
-    for s in made.values():
-        s.close()
-
-
-@pytest.fixture(params=["bridge", "rmw_zenoh"])
-def standin(request, standins):
-    return standins(request.param)
 
 
 def goal_offset(s: StandIn, lo_m: float, hi_m: float, seed: int = 1) -> np.ndarray:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.cloud import CloudFormatError
+from shared.cloud import CloudFormatError, record_chunks
 
 _HEAD_BYTES = 1 << 20  # a header longer than this is not a point cloud we read
 _CHUNK_POINTS = 1 << 18  # binary records per chunk: a 256 k chunk of 32-byte records is 8 MB read, ~30 MB of temporaries
@@ -205,11 +205,7 @@ def chunks(path: Path, layout: ForeignLayout) -> Iterator[tuple[np.ndarray, np.n
                                    f"{layout.count} records need {need - layout.body_offset})")
         with open(path, "rb") as fh:
             fh.seek(layout.body_offset)
-            for lo in range(0, layout.count, _CHUNK_POINTS):
-                want = min(_CHUNK_POINTS, layout.count - lo)
-                rec = np.fromfile(fh, layout.dtype, want)
-                if len(rec) != want:
-                    raise CloudFormatError(f"the body ends after {lo + len(rec)} of {layout.count} records")
+            for _lo, rec in record_chunks(fh, layout.dtype, layout.count, _CHUNK_POINTS, what="the body"):
                 yield _xyz(rec), _colours(rec, layout)
         return
     yield from _ascii_chunks(path, layout)
