@@ -216,8 +216,12 @@ def acl_config(services: Iterable[str] = SERVICES,
         # replies and tokens of the keys it reads, and the subscriptions, queries and token watches of
         # its consumers on the keys it owns. A declaration that slips through ingress (a wildcard that
         # merely intersects a consumed key) still delivers nothing outside that set.
+        # The gateway asks every instance at once (``ant/svc/*/*/info``, ``.../metrics``): the router
+        # hands that query on under its wildcard key, which no one service's own info key includes, so
+        # every service is also handed the all-services form (ingress still lets only the gateway ask).
+        everyone = [keys.INFO.pattern(), keys.METRICS.pattern()]
         rules.append({"id": f"deliver-{svc}", "permission": "allow", "flows": ["egress"],
-                      "messages": EGRESS_MESSAGES, "key_exprs": readable})
+                      "messages": EGRESS_MESSAGES, "key_exprs": list(dict.fromkeys([*readable, *everyone]))})
         subjects.append({"id": svc, "usernames": [svc]})
         policies.append({"id": f"{svc}-owns", "rules": [f"own-{svc}", f"read-{svc}", f"deliver-{svc}"],
                          "subjects": [svc]})

@@ -57,6 +57,9 @@ def test_egress_of_a_service_is_what_it_owns_or_consumes(service):
     assert rule["flows"] == ["egress"]
     assert f"{keys.ROOT}/**" not in rule["key_exprs"]
     allowed = set(acl.consumed_key_exprs(service)) | set(acl.owned_key_exprs(service, acl.REPLICATED.get(service, ())))
+    # ... and the gateway's all-instances info/metrics query, which reaches each service under its
+    # wildcard key (without it /status saw no instance's details: tests/e2e/test_launch.py).
+    allowed |= {keys.INFO.pattern(), keys.METRICS.pattern()}
     assert set(rule["key_exprs"]) == allowed
     # No rule hands a service everything any more; only read-only users get that.
     policies = [p for p in conf["policies"] if service in p["subjects"]]
