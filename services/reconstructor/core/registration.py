@@ -490,6 +490,29 @@ def _overlap_m2(a: np.ndarray, b: np.ndarray) -> float:
     return float(ext[0] * ext[1]) if zhi > zlo else 0.0
 
 
+def _icp_ladder(src: np.ndarray, tgt: Target, seed: np.ndarray, cfg: RegionRegistrationConfig,
+                src_normals: np.ndarray | None = None) -> IcpResult:
+    """Region ICP down the correspondence ladder (coarse to fine), each rung seeded by the last."""
+    t, res = seed, None
+    for d in cfg.correspondence_ladder_m:  # at least one rung (the config's min_length)
+        res = icp_planar(src, tgt, t, d, cfg.iterations, cfg.huber_m, src_normals)
+        t = res.transform
+    return res
+
+
+def _refusal(res: IcpResult, x: float, y: float, yaw: float, cfg: RegionRegistrationConfig) -> str | None:
+    """Why a region registration is not trustworthy (None: it is), the same tests for both region methods."""
+    if res.fitness < cfg.min_fitness:
+        return "fitness"
+    if res.rmse_m > cfg.max_rmse_m:
+        return "rmse"
+    if res.constraint < cfg.min_constraint:
+        return "degenerate"
+    if math.hypot(x, y) > cfg.max_correction_m or abs(yaw) > math.radians(cfg.max_correction_deg):
+        return "too far"
+    return None
+
+
 def register_regions(clouds: list[np.ndarray], cfg: RegionRegistrationConfig,
                      views: list[np.ndarray | None] | None = None) -> RegionGraphReport:
     """Planar corrections of the region clouds (world xyz, odometry-placed), by ``cfg.method``;
@@ -524,7 +547,6 @@ def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig
     oriented = all(v is not None for v in views)
     rep.regions.append({"anchor": True})
     model, model_n = [thin[0]], [normals[0]]
-    max_rad = math.radians(cfg.max_correction_deg)
     last = np.eye(3)
     for k in range(1, n):
         entry: dict = {"anchor": False}
@@ -551,28 +573,16 @@ def _register_sequential(clouds: list[np.ndarray], cfg: RegionRegistrationConfig
                 if len(src) < cfg.min_overlap_points:
                     why = "no overlap" if best is None else why
                     continue
-                t, res = seed, None
-                for d in cfg.correspondence_ladder_m:
-                    res = icp_planar(src, tgt, t, d, cfg.iterations, cfg.huber_m, src_n)
-                    t = res.transform
-                x, y, yaw = se2_params(np.linalg.inv(seed) @ t)
+                res = _icp_ladder(src, tgt, seed, cfg, src_n)
+                x, y, yaw = se2_params(np.linalg.inv(seed) @ res.transform)
                 # Inliers at the finest distance, at the seed and at the result: a correction that
                 # matches no more of the region than its seed did slid along a corridor or snapped
                 # onto a twin wall (measured: 0.21 m slides at an unchanged residual).
                 fine = min(cfg.correspondence_ladder_m)
                 at_seed = int(_residuals(src, tgt, seed, fine, src_n)[3].sum())
-                if res.fitness < cfg.min_fitness:
-                    reason = "fitness"
-                elif res.rmse_m > cfg.max_rmse_m:
-                    reason = "rmse"
-                elif res.constraint < cfg.min_constraint:
-                    reason = "degenerate"
-                elif math.hypot(x, y) > cfg.max_correction_m or abs(yaw) > max_rad:
-                    reason = "too far"
-                elif res.matched < (1.0 + cfg.min_inlier_gain) * at_seed:
+                reason = _refusal(res, x, y, yaw, cfg)
+                if reason is None and res.matched < (1.0 + cfg.min_inlier_gain) * at_seed:
                     reason = "no gain"
-                else:
-                    reason = None
                 if reason is None and (best is None or res.fitness > best[1].fitness):
                     best = (name, res)
                 elif reason is not None and best is None:
@@ -614,7 +624,6 @@ def _register_graph(clouds: list[np.ndarray], cfg: RegionRegistrationConfig, vie
     thin = [voxel_thin(np.asarray(c, np.float64), cfg.voxel_m) for c in clouds]
     boxes = [np.stack([c.min(axis=0), c.max(axis=0)]) if len(c) else np.zeros((2, 3)) for c in thin]
     targets = [Target.build(c) for c in thin]
-    max_rad = math.radians(cfg.max_correction_deg)
     for j in range(1, n):
         for i in range(j):
             if _overlap_m2(boxes[i], boxes[j]) < cfg.min_overlap_m2 or targets[i] is None:
@@ -632,21 +641,10 @@ def _register_graph(clouds: list[np.ndarray], cfg: RegionRegistrationConfig, vie
             if len(src) < 50:
                 rep.pairs_failed["no overlap"] = rep.pairs_failed.get("no overlap", 0) + 1
                 continue
-            t = np.eye(3)
-            res = None
-            for d in cfg.correspondence_ladder_m:
-                res = icp_planar(src, targets[tgt_k], t, d, cfg.iterations, cfg.huber_m)
-                t = res.transform
+            res = _icp_ladder(src, targets[tgt_k], np.eye(3), cfg)
+            t = res.transform
             x, y, yaw = se2_params(t)
-            why = None
-            if res is None or res.fitness < cfg.min_fitness:
-                why = "fitness"
-            elif res.rmse_m > cfg.max_rmse_m:
-                why = "rmse"
-            elif res.constraint < cfg.min_constraint:
-                why = "degenerate"
-            elif math.hypot(x, y) > cfg.max_correction_m or abs(yaw) > max_rad:
-                why = "too far"
+            why = _refusal(res, x, y, yaw, cfg)
             if why is not None:
                 rep.pairs_failed[why] = rep.pairs_failed.get(why, 0) + 1
                 continue
