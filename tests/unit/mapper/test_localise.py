@@ -274,6 +274,8 @@ def test_the_exploration_job_hands_the_corrections_to_the_reconstructor(drift):
         c = rec.odom_corrections[0]
         fixed = (rec.start_pose.position_m[0] + c.dx_m, rec.start_pose.position_m[1] + c.dy_m)
         assert odo_err > 0.03  # the drift is real by then
-        # The correction of the last fix: what drifted since (under the 1 m re-registration) remains.
+        # The correction of the last fix: what drifted since (under the 1 m re-registration) and the fix's
+        # own error remain. Since the odometry prior was widened (ad7169e: 0.03 -> 0.042 m median at a
+        # tour start on generated:0) a fix on this 32 px box world lands 3-4 cm from the truth, not < 3.
         fixed_err = math.hypot(fixed[0] - true[0], fixed[1] - true[1])
-        assert fixed_err < min(0.03, odo_err / 4), (odo_err, fixed_err, c)
+        assert fixed_err < min(0.05, odo_err / 3), (odo_err, fixed_err, c)
