@@ -158,7 +158,8 @@ def drift_phrase(d: dict | None) -> str:
             f"{d['odom_max_correction_deg']:.1f} deg)" if d.get("odom_regions_corrected") else
             "no tour moved by the mapper's localiser")
     return (f"drift correction: {odom}; registration moved {d['regions_corrected']} regions (max "
-            f"{d['max_correction_m']:.3f} m, {d['max_correction_deg']:.1f} deg), {d['regions_fallback']} kept their poses")
+            f"{d['max_correction_m']:.3f} m, {d['max_correction_deg']:.1f} deg), "
+            f"{d['regions_fallback']} kept their poses")
 
 
 def outcome_phrase(state: str, metrics: dict) -> str:

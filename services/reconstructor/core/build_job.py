@@ -23,7 +23,8 @@ import numpy as np
 from shared.geometry import wrap_angle
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import (
-    BuildMapRequest, DriftCorrection, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo, OdomCorrection, Pose, TourRecording,
+    BuildMapRequest, DriftCorrection, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo, OdomCorrection,
+    Pose, TourRecording,
 )
 
 from .frames import region_from_frames

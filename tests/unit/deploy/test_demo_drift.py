@@ -16,7 +16,8 @@ def test_drift_makes_the_stand_ins_odometry_drift_under_its_own_config():
     noise = StandInConfig.model_validate({**cfg, "scene": "generated:0"}).noise  # the stand-in takes it
     assert noise.odometry_drift_per_m == 0.01 and noise.heading_drift_per_rad == 0.005
     # Noise given in the JSON wins over the flag's; without the flag the config is as given.
-    assert ros2_standin_config('{"noise": {"odometry_drift_per_m": 0.1}}', True, 3)["noise"]["odometry_drift_per_m"] == 0.1
+    given = ros2_standin_config('{"noise": {"odometry_drift_per_m": 0.1}}', True, 3)["noise"]
+    assert given["odometry_drift_per_m"] == 0.1 and given["heading_drift_per_rad"] == 0.005
     assert ros2_standin_config('{"camera_rate_hz": 4}', False, 3) == {"camera_rate_hz": 4}
 
 
@@ -33,4 +34,5 @@ def test_the_drift_line_names_the_mappers_corrections_and_the_registrations():
     assert "3 of the tours moved by the mapper's localiser (median 0.041 m, max 0.120 m, 1.4 deg)" in line
     assert "registration moved 1 regions (max 0.020 m" in line
     assert "no tour moved" in drift_phrase({**d, "odom_regions_corrected": 0})
-    assert "none applied" in drift_phrase(DriftCorrection().model_dump(mode="json")) and "none applied" in drift_phrase(None)
+    assert "none applied" in drift_phrase(DriftCorrection().model_dump(mode="json"))
+    assert "none applied" in drift_phrase(None)
