@@ -7,6 +7,9 @@ ROBOT ?= sim
 ROS2_KEYS ?= bridge
 # ROS2_MOTION=nav2: move_to/turn/look_around as Nav2 goals (NavigateToPose, Spin) instead of cmd_vel.
 ROS2_MOTION ?= cmdvel
+# ROS2_DRIFT=1: the stand-in's odometry drifts (the noisy robot's drift) and it has no localiser; the
+# mapper's own localiser corrects the map (issue 33).
+ROS2_DRIFT ?=
 # ROBOTS=N: robot0..robotN-1 at once (a robot-io and a gateway each; planner, mapper, renderer and
 # reconstructor shared by all), for `make demo` (each robot in its own generated house) and `make eval`.
 ROBOTS ?= 1
@@ -17,7 +20,7 @@ setup:
 	@bash deploy/bootstrap.sh
 
 demo: setup
-	$(PY) -m deploy.demo --renderers $(RENDERERS) --robot $(ROBOT) --ros2-keys $(ROS2_KEYS) --ros2-motion $(ROS2_MOTION) --robots $(ROBOTS)
+	$(PY) -m deploy.demo --renderers $(RENDERERS) --robot $(ROBOT) --ros2-keys $(ROS2_KEYS) --ros2-motion $(ROS2_MOTION) --robots $(ROBOTS) $(if $(ROS2_DRIFT),--drift)
 
 # The whole system until Ctrl-C: prints the dashboard URL and the API token (PORT=8080 SCENE=generated:0).
 PORT ?= 8080

@@ -36,6 +36,10 @@ SIM_SCENE = "generated:0"
 # 25 panoramas at ~4.7 s each at time scale 8 (117 s), and the whole demo fits in 10 minutes.
 ROS2_SCENE = "generated:0:area=40"
 ROS2_TIME_SCALE = 8.0
+# ``--drift``: the stand-in's odometry drifts as the noisy robot's does (bench.agent_maps NOISY: 0.01 m
+# per sqrt(m) driven, 0.005 rad per sqrt(rad) turned), and the generic profile has no localiser
+# (no map -> odom): the mapper's own localiser is all that keeps the map straight (issue 33).
+ROS2_DRIFT = {"odometry_drift_per_m": 0.01, "heading_drift_per_rad": 0.005}
 
 
 def say(msg: str) -> None:
@@ -116,6 +120,7 @@ def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argpa
     info = http.get(f"/maps/{map_id}").json()
     say(f"{tag}  map {map_id} v{info['version']}: {info['point_count']:,} points, {info['regions']} regions, "
         f"scale factors {[round(x, 3) for x in info['scale_factors']]} ({time.time() - t0:.0f} s)")
+    say(f"{tag}  {drift_phrase(info.get('drift_correction'))}")
 
     ep = make_episode(scene, args.seed)
     say(f"{tag}2/2 navigating: \"{ep.instruction}\"")
@@ -132,6 +137,29 @@ def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argpa
         + ", ".join(f"{k}={m[k]:.2f}" if isinstance(m.get(k), float) else f"{k}={m.get(k)}"
                     for k in ("ne_m", "success", "oracle_success", "spl", "ndtw", "tl_m") if k in m))
     return rec["state"] in ("succeeded", "failed")
+
+
+def ros2_standin_config(text: str, drift: bool, seed: int) -> dict:
+    """The stand-in's config from ``--standin-config``; with ``--drift`` its odometry drifts as
+    :data:`ROS2_DRIFT` says (the episode seed seeds it), under any noise the JSON gives itself."""
+    config = json.loads(text)
+    if drift:
+        config["noise"] = {"seed": seed, **ROS2_DRIFT, **config.get("noise", {})}
+    return config
+
+
+def drift_phrase(d: dict | None) -> str:
+    """One line on how the map was corrected for drift: the mapper's map <- odom correction of its tours,
+    then the reconstructor's registration of the regions to each other."""
+    if not d or not d.get("applied"):
+        return "drift correction: none applied (the map is placed by the recorded poses alone)"
+    odom = (f"{d['odom_regions_corrected']} of the tours moved by the mapper's localiser (median "
+            f"{d['odom_median_correction_m']:.3f} m, max {d['odom_max_correction_m']:.3f} m, "
+            f"{d['odom_max_correction_deg']:.1f} deg)" if d.get("odom_regions_corrected") else
+            "no tour moved by the mapper's localiser")
+    return (f"drift correction: {odom}; registration moved {d['regions_corrected']} regions (max "
+            f"{d['max_correction_m']:.3f} m, {d['max_correction_deg']:.1f} deg), "
+            f"{d['regions_fallback']} kept their poses")
 
 
 def outcome_phrase(state: str, metrics: dict) -> str:
@@ -174,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-scale", type=float, default=ROS2_TIME_SCALE, help="the ROS 2 stand-in's simulated/real time")
     ap.add_argument("--max-steps", type=int, default=400, help="exploration budget (steps)")
     ap.add_argument("--standin-config", default="{}", help="JSON: the ROS 2 stand-in's config (camera, rates, faults)")
+    ap.add_argument("--drift", action="store_true",
+                    help="with --robot ros2: the stand-in's odometry drifts (the noisy robot's drift); no localiser")
     ap.add_argument("--mission-steps", type=int, default=30, help="navigation budget (steps)")
     ap.add_argument("--robots", type=int, default=1, help="robots at once (robot0..robotN-1), each in its own house")
     args = ap.parse_args(argv)
@@ -181,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         args.scene = ROS2_SCENE if args.robot == "ros2" else SIM_SCENE
     if args.robots < 1 or (args.robots > 1 and args.robot == "ros2"):
         ap.error("--robots must be >= 1, and the ROS 2 stand-in drives one robot")
+    if args.drift and args.robot != "ros2":
+        ap.error("--drift is the ROS 2 stand-in's (the simulator's noise is robot-io's ANT_ROBOT_CONFIG)")
     configure_logging("demo", "local", "WARNING")
     run_dir = Path(args.run_dir).resolve()
     t_start = time.time()
@@ -193,10 +225,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.robot == "ros2":
         with ROBOTS_sim(args.scene) as sim:
             labels = {int(k): v for k, v in sim.scene.label_names.items()}
+        standin_config = ros2_standin_config(args.standin_config, args.drift, args.seed)
         standin = StandIn(scene=args.scene, keys=args.ros2_keys, time_scale=args.time_scale, label_names=labels,
-                          standin_config=json.loads(args.standin_config), motion=args.ros2_motion)
+                          standin_config=standin_config, motion=args.ros2_motion)
         say(f"robot: the ROS 2 backend ('ros2', {args.ros2_keys} keys) with {args.ros2_motion} motion against the ROS 2 stand-in robot "
             f"(time scale {args.time_scale:g}); robot-io speaks only ROS 2 messages over zenoh")
+        if "noise" in standin_config:
+            say(f"robot: its odometry drifts ({standin_config['noise']}) and it runs no localiser (generic profile): "
+                "the mapper localises it")
     scenes = [nth_scene(args.scene, k) for k in range(args.robots)]
     if args.robots > 1:
         env.pop("ANT_ROBOT_CONFIG")  # each robot its own house (the launcher's scenes)

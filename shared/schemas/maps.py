@@ -83,6 +83,13 @@ class DriftCorrection(Message):
     max_correction_deg: float = Field(0.0, ge=0.0, le=180.0)
     loop_closures_accepted: int = Field(0, ge=0, le=100_000)
     loop_closures_rejected: int = Field(0, ge=0, le=100_000)
+    # The mapper's own map <- odom correction (its online localiser), applied to each tour's frames
+    # before any registration above: tours that carried a non-zero one, and how large it was per tour
+    # (the largest in effect during the tour). A robot without a localiser is corrected here first.
+    odom_regions_corrected: int = Field(0, ge=0, le=100_000)
+    odom_median_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
+    odom_max_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
+    odom_max_correction_deg: float = Field(0.0, ge=0.0, le=180.0)
     per_region: list[RegionDriftCorrection] = Field(default_factory=list, max_length=100_000)
 
 

@@ -82,7 +82,10 @@ async function refreshStatus() {
 function driftLabel(d) {
   if (!d) return "";
   if (!d.applied) return " · built without drift correction";
-  return ` · drift corrected: ${d.regions_corrected} regions moved (max ${(+d.max_correction_m).toFixed(2)} m, ` +
+  // The mapper's own localisation first: on a robot without a localiser it placed most of the map.
+  const odom = d.odom_regions_corrected ? `${d.odom_regions_corrected} tours localised (median ` +
+    `${(+d.odom_median_correction_m).toFixed(2)} m, max ${(+d.odom_max_correction_m).toFixed(2)} m), ` : "";
+  return ` · drift corrected: ${odom}${d.regions_corrected} regions moved (max ${(+d.max_correction_m).toFixed(2)} m, ` +
     `${(+d.max_correction_deg).toFixed(1)}°), ${d.regions_fallback} kept odometry`;
 }
 

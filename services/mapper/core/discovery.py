@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -16,6 +17,8 @@ from services.mapper.core.predictor import DEFAULT_PREDICTOR, PREDICTORS, Waypoi
 from services.mapper.core.regions import RegionConfig, SceneMap, analyse
 from services.mapper.core.tours import PlannedTour, TourConfig, TourPlanner
 
+
+log = logging.getLogger(__name__)
 
 #: Exploration's default predictor knobs (see DiscoveryConfig.predictor_config).
 WIDE_EXPLORATION = {"max_candidates": 10, "nms_angle_deg": 15.0}
@@ -122,6 +125,9 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
     scene = analyse(result, cfg.regions)
     if isinstance(robot, LocalisedRobot):
         scene.localiser = robot.localiser
+        # Whether the localiser placed anything is otherwise invisible until the map's drift record
+        # (a robot whose panoramas give it no scan, say, is quietly dead-reckoned).
+        log.info("localisation over the exploration: %s", robot.localiser.report())
     t2 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()

@@ -17,6 +17,7 @@ had already stored its map when the cancel reached it is whole: the job then end
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -122,6 +123,12 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
 
     execute_tours(robot, disc.tours, disc.scene, rate_hz=tour_rate_hz, on_recording=on_recording, on_skip=on_skip,
                   checkpoint=ctx.check_cancelled)
+    if disc.scene.localiser is not None:
+        # The correction the robot ends its tours with: against the robot's own truth, where one knows
+        # it (a simulator, the ROS 2 stand-in's log), what is left of the drift.
+        c = disc.scene.localiser.correction
+        log.info("localisation after the tours: map <- odom (%.3f, %.3f) m, %.2f deg", c.dx_m, c.dy_m,
+                 math.degrees(c.dyaw_rad))
     if not recordings:
         raise RuntimeError(f"no region tour could be recorded ({len(skipped)} skipped)")
     ctx.progress(ExplorationProgress(stage="reconstructing", progress=_BUILD_AT,

@@ -12,6 +12,7 @@ storing: a cancelled build stores nothing (the store's save is atomic, and is ne
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from typing import Protocol
@@ -22,7 +23,8 @@ import numpy as np
 from shared.geometry import wrap_angle
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import (
-    BuildMapRequest, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo, OdomCorrection, Pose, TourRecording,
+    BuildMapRequest, DriftCorrection, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo, OdomCorrection,
+    Pose, TourRecording,
 )
 
 from .frames import region_from_frames
@@ -81,7 +83,7 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
                           regions=len(built.regions), scale_factors=built.scale_factors,
                           timings_s=built.timings_s, details=built.details(), navigation=req.navigation,
                           frames={r: labeller_frames(f) for r, f in tour_frames.items()},
-                          drift_correction=built.drift_summary())
+                          drift_correction=with_odometry(built.drift_summary(), req.recordings))
     finally:
         for rec in req.recordings:
             frames.drop(rec.recording)
@@ -92,6 +94,22 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
 def _corrected_pose(pose: Pose, c: OdomCorrection) -> Pose:
     x, y, z = pose.position_m
     return Pose(position_m=(x + c.dx_m, y + c.dy_m, z), heading_rad=float(wrap_angle(pose.heading_rad + c.dyaw_rad)))
+
+
+def with_odometry(drift: DriftCorrection, recordings: list[TourRecording]) -> DriftCorrection:
+    """``drift`` with the mapper's map <- odom corrections that :func:`in_map_frame` applied to the
+    recordings: without this the map of a robot that has no localiser of its own would say nothing
+    of the correction that placed most of it (issue 33). Per tour, the largest correction in effect."""
+    tours = [rec.odom_corrections for rec in recordings
+             if any(c.dx_m or c.dy_m or c.dyaw_rad for c in rec.odom_corrections)]
+    if not tours:
+        return drift
+    metres = [max(math.hypot(c.dx_m, c.dy_m) for c in cs) for cs in tours]
+    degrees = [max(abs(math.degrees(c.dyaw_rad)) for c in cs) for cs in tours]
+    return DriftCorrection.model_validate({
+        **drift.model_dump(), "applied": True, "odom_regions_corrected": len(tours),
+        "odom_median_correction_m": float(np.median(metres)), "odom_max_correction_m": max(metres),
+        "odom_max_correction_deg": min(180.0, max(degrees))})
 
 
 def in_map_frame(rec: TourRecording, frames: list[Frame]) -> tuple[Pose, list[Frame]]:

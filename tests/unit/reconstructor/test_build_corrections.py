@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 
-from services.reconstructor.core.build_job import in_map_frame
-from shared.schemas import CameraIntrinsics, Frame, OdomCorrection, Pose, TourRecording
+from services.reconstructor.core.build_job import in_map_frame, with_odometry
+from shared.schemas import CameraIntrinsics, DriftCorrection, Frame, OdomCorrection, Pose, TourRecording
 
 CAM = CameraIntrinsics(width_px=8, height_px=8, hfov_deg=90.0)
 
@@ -49,3 +49,21 @@ def test_a_recording_without_corrections_is_built_exactly_as_it_came():
     rec = _recording([])
     start, same = in_map_frame(rec, frames)
     assert start is rec.start_pose and same is frames
+
+
+def test_the_map_records_the_mappers_corrections_per_tour():
+    """A robot without a localiser is corrected by the mapper's corrections first: the map's drift record
+    says how many tours they moved and how far (the largest in effect during each tour)."""
+    tours = [_recording([OdomCorrection(since_s=0.0, dx_m=0.3, dy_m=0.4, dyaw_rad=0.0),
+                         OdomCorrection(since_s=5.0, dx_m=0.06, dy_m=0.08, dyaw_rad=-0.1)]),
+             _recording([OdomCorrection(since_s=9.0, dx_m=0.0, dy_m=0.1, dyaw_rad=0.02)]),
+             _recording([OdomCorrection(since_s=0.0, dx_m=0.0, dy_m=0.0, dyaw_rad=0.0)]),  # exact: not moved
+             _recording([])]
+    base = DriftCorrection(applied=False, regions_corrected=2, max_correction_m=0.02)
+    d = with_odometry(base, tours)
+    assert d.applied and d.odom_regions_corrected == 2
+    assert math.isclose(d.odom_max_correction_m, 0.5) and math.isclose(d.odom_median_correction_m, 0.3)
+    assert math.isclose(d.odom_max_correction_deg, math.degrees(0.1))
+    assert d.regions_corrected == 2 and d.max_correction_m == 0.02  # the registration's record is kept
+    # No correction at all (an exact robot, or a mapper that localised nothing): the record as it was.
+    assert with_odometry(base, tours[2:]) is base

@@ -872,9 +872,11 @@ class Ros2Robot(Robot):
                 heads.append(self.pose.heading_rad)
             self._rotate_to(start.heading_rad, end)
         have_sem = with_semantic and all(s is not None for s in sems)
-        # Reported headings are the targets (like the simulator's): the closed loop holds them to
-        # within yaw_tolerance_deg, and the mapper's geometry assumes the 30-degree layout.
-        return Panorama(pose=start, camera=cam, headings_rad=np.asarray(targets, np.float64), rgb=np.stack(rgbs),
+        # Reported headings are where each view looked (odometry at rest after the settle), not the
+        # targets: the closed loop stops within yaw_tolerance_deg, short of the target in the turn's
+        # direction, and the mapper's scan matching read that bias as a pose error (2-4 cm of
+        # "correction" on a noise-free stand-in). Everything downstream takes each view's own heading.
+        return Panorama(pose=start, camera=cam, headings_rad=np.asarray(heads, np.float64), rgb=np.stack(rgbs),
                         depth_m=np.stack(depths).astype(np.float32), semantic=np.stack(sems) if have_sem else None,
                         timestamp_s=float(t_first or 0.0))
 

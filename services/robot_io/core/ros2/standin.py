@@ -212,6 +212,13 @@ class StandInRobot:
         if not all(map(math.isfinite, (x, y, th))):
             raise ValueError("non-finite teleport pose")
         with self._lock:
+            # A teleport starts the odometry afresh: what it had drifted until now is only known here.
+            odo, true = self.odometry_pose(), self.true_pose
+            dx, dy = odo.position_m[0] - true.position_m[0], odo.position_m[1] - true.position_m[1]
+            log.info("teleported; odometry was off the true pose by %.3f m, %.2f deg (odometry - true: "
+                     "(%.3f, %.3f) m, %.2f deg)", math.hypot(dx, dy), abs(math.degrees(math.remainder(
+                         odo.heading_rad - true.heading_rad, 2 * math.pi))), dx, dy,
+                     math.degrees(math.remainder(odo.heading_rad - true.heading_rad, 2 * math.pi)))
             self._end_motion_goal(GoalStatus.ABORTED, 0, "the robot was teleported")
             self.sim.reset(Pose(position_m=(x, y, float(self._pos[2])), heading_rad=th))
             self._pos = self.sim._pos.copy()

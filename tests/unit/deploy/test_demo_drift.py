@@ -1,0 +1,38 @@
+"""``make demo ROBOT=ros2 ROS2_DRIFT=1``: the stand-in's odometry drifts, and the demo says how the map
+was corrected (issue 33)."""
+
+from __future__ import annotations
+
+import pytest
+
+from deploy.demo import ROS2_DRIFT, drift_phrase, main, ros2_standin_config
+from services.robot_io.core.ros2.standin import StandInConfig
+from shared.schemas import DriftCorrection
+
+
+def test_drift_makes_the_stand_ins_odometry_drift_under_its_own_config():
+    cfg = ros2_standin_config('{"camera_rate_hz": 4}', True, 3)
+    assert cfg == {"camera_rate_hz": 4, "noise": {"seed": 3, **ROS2_DRIFT}}
+    noise = StandInConfig.model_validate({**cfg, "scene": "generated:0"}).noise  # the stand-in takes it
+    assert noise.odometry_drift_per_m == 0.01 and noise.heading_drift_per_rad == 0.005
+    # Noise given in the JSON wins over the flag's; without the flag the config is as given.
+    given = ros2_standin_config('{"noise": {"odometry_drift_per_m": 0.1}}', True, 3)["noise"]
+    assert given["odometry_drift_per_m"] == 0.1 and given["heading_drift_per_rad"] == 0.005
+    assert ros2_standin_config('{"camera_rate_hz": 4}', False, 3) == {"camera_rate_hz": 4}
+
+
+def test_drift_is_refused_without_the_ros2_stand_in():
+    with pytest.raises(SystemExit):
+        main(["--drift"])
+
+
+def test_the_drift_line_names_the_mappers_corrections_and_the_registrations():
+    d = DriftCorrection(applied=True, regions_corrected=1, max_correction_m=0.02, max_correction_deg=0.5,
+                        odom_regions_corrected=3, odom_median_correction_m=0.041, odom_max_correction_m=0.12,
+                        odom_max_correction_deg=1.4).model_dump(mode="json")
+    line = drift_phrase(d)
+    assert "3 of the tours moved by the mapper's localiser (median 0.041 m, max 0.120 m, 1.4 deg)" in line
+    assert "registration moved 1 regions (max 0.020 m" in line
+    assert "no tour moved" in drift_phrase({**d, "odom_regions_corrected": 0})
+    assert "none applied" in drift_phrase(DriftCorrection().model_dump(mode="json"))
+    assert "none applied" in drift_phrase(None)
