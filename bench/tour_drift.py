@@ -4,9 +4,10 @@ grouped by the odometry path driven since the last fix (a panorama or, with fram
 frame placed by registration).
 
     python -m bench.tour_drift                        # generated:0, the noisy row's drift x 1
-    python -m bench.tour_drift --frames off           # the same, tour frames not registered
+    python -m bench.tour_drift --frames on            # the same, tour frames registered
     python -m bench.tour_drift --drift-scale 0        # depth noise and holes alone (poses exact)
-    python -m bench.tour_drift --band pixel           # the scan's height band chosen pixel by pixel
+    python -m bench.tour_drift --drift-scale -1       # a noise-free robot (nothing may move)
+    python -m bench.tour_drift --band median          # the scan's height band by each column's median range
 
 Explores once and drives the tours (no reconstruction): about a minute of CPU on generated:0.
 """
@@ -25,13 +26,15 @@ BINS_M = (0.0, 0.25, 0.5, 1.0, 2.0, math.inf)
 
 
 def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz: float = 4.0,
-        band_from_median: bool = True) -> dict:
+        band_from_median: bool = False) -> dict:
     from services.mapper.core import discover, discovery_config, execute_tours
     from services.robot_io.core.robot import ROBOTS
     from shared.schemas import CameraIntrinsics
 
-    robot = ROBOTS.create("sim", {"scene": spec, "camera": CameraIntrinsics(width_px=size_px, height_px=size_px),
-                                  "noise": noise_config("noisy", drift_scale)})
+    robot_cfg = {"scene": spec, "camera": CameraIntrinsics(width_px=size_px, height_px=size_px)}
+    if drift_scale >= 0:  # negative: a noise-free robot (exact depth and poses)
+        robot_cfg["noise"] = noise_config("noisy", drift_scale)
+    robot = ROBOTS.create("sim", robot_cfg)
     truth = _recording_truth(robot)
     pano_truth: dict[float, object] = {}  # panorama timestamp -> the true pose it was taken at
     observe = robot.observe
@@ -130,8 +133,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="generated:0")
     ap.add_argument("--drift-scale", type=float, default=1.0)
-    ap.add_argument("--frames", choices=("on", "off"), default="on", help="register tour frames (issue 33)")
-    ap.add_argument("--band", choices=("median", "pixel"), default="median",
+    ap.add_argument("--frames", choices=("on", "off"), default="off", help="register tour frames (issue 33)")
+    ap.add_argument("--band", choices=("median", "pixel"), default="pixel",
                     help="scan height band chosen by each column's median range, or by each pixel's own depth")
     args = ap.parse_args()
     print(f"## {args.scene}, drift x{args.drift_scale:g}, frame registration {args.frames}, band by {args.band}")

@@ -12,13 +12,17 @@ from shared.geometry import PinholeCamera
 from shared.schemas import Pose
 
 from services.mapper.core.localise import (
-    Correction, LocalisedRobot, Localiser, LocaliserConfig, frame_scan,
+    Correction, FrameRegistrationConfig, LocalisedRobot, Localiser, LocaliserConfig, frame_scan,
 )
 from services.mapper.tools.boxworld import BoxWorldRobot, rooms_world
 from tests.unit.mapper.test_localise import DriftingRobot, _error, corridor_world
 
 
 CAMERA = PinholeCamera(128, 128, 90.0)  # the mapper's tour frames are 128 px wide
+
+
+def _frames_on() -> LocaliserConfig:
+    return LocaliserConfig(frames=FrameRegistrationConfig(enabled=True))  # off by default (see its config)
 
 
 def _level_frame(robot: DriftingRobot):
@@ -43,7 +47,7 @@ def test_a_frame_corrects_the_drift_since_the_last_panorama():
     frame facing a corner, not a panorama, puts the correction within 1 cm and 0.3 deg of the truth."""
     robot = DriftingRobot(BoxWorldRobot(rooms_world(), CAMERA))
     robot.robot.reset(Pose(position_m=(2.0, 2.0, 0.0), heading_rad=0.3))
-    loc = Localiser()
+    loc = Localiser(_frames_on())
     lr = LocalisedRobot(robot, loc)
     lr.observe()
     lr.move_to(1.2, 0.5)
@@ -66,7 +70,7 @@ def test_exact_frames_pass_through_unchanged():
     same object and the correction stays exactly zero."""
     robot = BoxWorldRobot(rooms_world(), CAMERA)
     robot.reset(Pose(position_m=(2.0, 2.0, 0.0), heading_rad=0.3))
-    loc = Localiser()
+    loc = Localiser(_frames_on())
     lr = LocalisedRobot(robot, loc)
     lr.observe()
     for dx, dy in ((0.5, 0.2), (0.7, 0.3), (0.0, 0.6), (-1.0, 0.2)):
@@ -83,7 +87,7 @@ def test_a_featureless_wall_does_not_fling_a_frame():
     30 cm drift along the wall is not 'corrected' (odometry kept along it), and a frame of the
     corridor's empty length moves nothing."""
     robot = DriftingRobot(BoxWorldRobot(corridor_world(), CAMERA))
-    loc = Localiser()
+    loc = Localiser(_frames_on())
     lr = LocalisedRobot(robot, loc)
     lr.observe()
     lr.move_to(1.0, 0.0)
@@ -101,7 +105,7 @@ def test_pitched_and_disabled_frames_only_take_the_correction():
     registration off are not registered: they take the correction in effect."""
     robot = DriftingRobot(BoxWorldRobot(rooms_world(), CAMERA))
     robot.robot.reset(Pose(position_m=(2.0, 2.0, 0.0), heading_rad=0.0))
-    cfg = LocaliserConfig()
+    cfg = _frames_on()
     loc = Localiser(cfg)
     LocalisedRobot(robot, loc).observe()
     robot.offset = (0.03, 0.0, 0.0)
@@ -111,3 +115,26 @@ def test_pitched_and_disabled_frames_only_take_the_correction():
     cfg.frames.enabled = False
     level = _level_frame(robot)
     assert loc.localise_frame(level) is level and not loc.frame_steps
+
+
+def test_a_band_chosen_by_the_column_reads_a_noisy_wall_without_bias():
+    """Depth noise of 1 % x range^2 on a wall 2.9 m ahead, near the 3 m range cut: pixels picked into the band and
+    the range cut by their own noisy depth read the wall short (the far-reading ones fall out at the
+    band's edges and the cut); picked by their column's median range they do not."""
+    robot = BoxWorldRobot(rooms_world(), CAMERA)
+    robot.reset(Pose(position_m=(3.05, 1.0, 0.0), heading_rad=0.0))  # facing x = 5.95, 2.9 m off
+    frame = robot.look_around()[0]
+    rng = np.random.default_rng(3)
+    bias = {}
+    for by_median in (False, True):
+        cfg = LocaliserConfig(band_from_median=by_median)
+        xs = []
+        for _ in range(20):
+            d = np.asarray(frame.depth_m, np.float64)
+            noisy = (d + rng.normal(0.0, 1.0, d.shape) * 0.01 * d**2).astype(np.float32)
+            scan = frame_scan(frame.model_copy(update={"depth_m": np.maximum(noisy, 0.0)}), cfg)
+            central = np.abs(scan[:, 1]) < 0.3  # the wall straight ahead (its door is further left)
+            xs.append(scan[central, 0])
+        bias[by_median] = float(np.mean(np.concatenate(xs)) - 2.9)
+    assert bias[False] < -0.01, bias  # the pixel-by-pixel band: short by over a centimetre
+    assert abs(bias[True]) < 0.4 * abs(bias[False]), bias
