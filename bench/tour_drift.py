@@ -104,29 +104,31 @@ def report(r: dict) -> None:
     a = r["errors"]
     print(f"   {r['frames']} tour frames; CPU explore {r['explore_cpu_s']:.1f} s, tours {r['tours_cpu_s']:.1f} s; "
           f"panoramas {r['panoramas']}; frames registered {r['frame_outcomes']}")
-    print("   | path since fix | frames | pos median / p90 / max (cm) | heading median / p90 (deg) | turn median (deg) |")
+    print("   | path since fix | frames | pos median / p90 / max (cm) | heading median / p90 (deg) "
+          "| turn median (deg) |")
     print("   |---|---|---|---|---|")
-    for lo, hi in zip(BINS_M[:-1], BINS_M[1:]):
-        m = (a[:, 0] >= lo) & (a[:, 0] < hi) if len(a) else np.zeros(0, bool)
+    rows = [(f"{lo:g}-{hi:g} m", (a[:, 0] >= lo) & (a[:, 0] < hi)) for lo, hi in zip(BINS_M[:-1], BINS_M[1:])]
+    for name, m in rows + [("all", np.ones(len(a), bool))]:
         if not m.any():
             continue
         e = a[m]
-        print(f"   | {lo:g}-{hi:g} m | {int(m.sum())} | {100 * np.median(e[:, 2]):.1f} / {100 * np.percentile(e[:, 2], 90):.1f}"
-              f" / {100 * e[:, 2].max():.1f} | {np.median(e[:, 3]):.2f} / {np.percentile(e[:, 3], 90):.2f} | {np.median(e[:, 1]):.0f} |")
+        pos = 100 * e[:, 2]
+        print(f"   | {name} | {int(m.sum())} | {np.median(pos):.1f} / {np.percentile(pos, 90):.1f} / {pos.max():.1f} | "
+              f"{np.median(e[:, 3]):.2f} / {np.percentile(e[:, 3], 90):.2f} | {np.median(e[:, 1]):.0f} |")
     p = r["pano_errors"]
     if len(p):
         print("   panoramas (the model's poses) by odometry path from the start:")
-        print("   | path from start | panoramas | placed | pos median / p90 (cm) | heading median (deg) | odometry pos median (cm) |")
+        print("   | path from start | panoramas | placed | pos median / p90 (cm) | heading median (deg) "
+              "| odometry pos median (cm) |")
         print("   |---|---|---|---|---|---|")
         edges = np.quantile(p[:, 0], [0, 0.25, 0.5, 0.75, 1.0])
         for lo, hi in zip(edges[:-1], edges[1:]):
-            m = (p[:, 0] >= lo) & (p[:, 0] <= hi)
-            e = p[m]
-            print(f"   | {lo:.0f}-{hi:.0f} m | {int(m.sum())} | {int(e[:, 4].sum())} | {100 * np.median(e[:, 1]):.1f} / "
-                  f"{100 * np.percentile(e[:, 1], 90):.1f} | {np.median(e[:, 2]):.2f} | {100 * np.median(e[:, 3]):.1f} |")
-    if len(a):
-        print(f"   | all | {len(a)} | {100 * np.median(a[:, 2]):.1f} / {100 * np.percentile(a[:, 2], 90):.1f} / "
-              f"{100 * a[:, 2].max():.1f} | {np.median(a[:, 3]):.2f} / {np.percentile(a[:, 3], 90):.2f} | |")
+            e = p[(p[:, 0] >= lo) & (p[:, 0] <= hi)]
+            if not len(e):
+                continue
+            print(f"   | {lo:.0f}-{hi:.0f} m | {len(e)} | {int(e[:, 4].sum())} | {100 * np.median(e[:, 1]):.1f} / "
+                  f"{100 * np.percentile(e[:, 1], 90):.1f} | {np.median(e[:, 2]):.2f} | "
+                  f"{100 * np.median(e[:, 3]):.1f} |")
 
 
 def main() -> None:

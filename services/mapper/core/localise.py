@@ -262,7 +262,8 @@ def depth_scan(depth: np.ndarray, camera: Any, rel_headings_rad: np.ndarray, cfg
     else:
         med, mad, count = column_median(in_band(depth, rng, cfg.max_range_m))
     with np.errstate(invalid="ignore"):
-        keep = (count >= cfg.min_column_px) & np.isfinite(med) & (mad <= cfg.column_spread_m + cfg.column_spread_rel * med**2)
+        spread_ok = mad <= cfg.column_spread_m + cfg.column_spread_rel * med**2
+        keep = (count >= cfg.min_column_px) & np.isfinite(med) & spread_ok
     # Column bearing relative to the panorama's heading (views look at headings_rad[i]; a column
     # right of the centre looks clockwise of it).
     az = np.asarray(rel_headings_rad, np.float64)[:, None] - np.arctan(xn)[None, :]
