@@ -88,7 +88,9 @@ class LocaliserConfig(BaseModel):
     # Pixels in the height band by their column's range, not their own (see depth_scan). Off for now:
     # it ends the depth-noise bias (exact poses, depth noise: tour frames 4.3 -> 0.3 cm off), but
     # at 1x drift one ladder run on generated:0 came out worse (tour starts 4.2 -> 15.3 cm, the model
-    # lost 11 cm at one unplaced panorama and kept it) while generated:1 improved (12.2 -> 9.6 cm).
+    # lost 11 cm at one unplaced panorama and kept it) while generated:1 improved (12.2 -> 9.6 cm);
+    # with exact odometry the ladder's tour starts went 4.3 -> 0.3 cm, its SSIM no higher (another
+    # trajectory, other tours: the depth noise in the map itself, not the pose, held it down).
     band_from_median: bool = False
     min_column_px: int = Field(8, ge=1, le=1000)  # band pixels a column needs to give a ray
     column_spread_m: float = Field(0.03, ge=0.0, le=1.0)  # a ray's median abs deviation may be
