@@ -368,12 +368,12 @@ class HeuristicPolicy(Policy):
         here = ctx.pose.xyz
         d_here = router.distance(g.field, here)
         obj_m = math.dist(here[:2], g.goal_m[:2])
-        same_floor = router.floor_of(here) == router.floor_of(g.goal.position_m)
-        where = f"route to {g.goal.object_id}"
+        same_floor = router.floor_of(here) == router.floor_of(g.goal_position_m)
+        where = f"route to {g.goal_id}"
         stop = ctx.stop_candidate
         # The stand point is one side of the object; the true goal may be on another side, up to the object's
         # length away (a bed): the larger the object, the closer to the stand point before stopping.
-        stop_m = min(cfg.graph_stop_m, max(0.5, cfg.graph_stop_m - max(g.goal.size_m[:2]) / 2))
+        stop_m = min(cfg.graph_stop_m, max(0.5, cfg.graph_stop_m - max(g.goal_size_m[:2]) / 2))
         if stop is not None and (d_here <= stop_m or (same_floor and obj_m <= min(stop_m, cfg.graph_object_stop_m))):
             return self._decision(ctx, stop.index, f"{where}: stop - at the grounded goal ({g.explained}; "
                                   f"{d_here:.1f} m by the route, {obj_m:.1f} m from it)")
