@@ -57,6 +57,12 @@ class Grounding:
         """The object's size; a room goal is a point (its stand cell), size 0."""
         return self.goal.size_m if isinstance(self.goal, SceneObject) else (0.0, 0.0, 0.0)
 
+    @property
+    def goal_extent_m(self) -> float:
+        """How far from its stand point the goal may be: 0 for an object; for a room goal its radius
+        (the unseen object stands somewhere in the room, not at its centre)."""
+        return 0.0 if isinstance(self.goal, SceneObject) else math.sqrt(self.goal.area_m2 / math.pi)
+
 
 # A reading that stops in the named room because the map holds no object of the named class there: it
 # explains the room (+3, as an object in it does) but not the object (an object of the class in that room

@@ -397,7 +397,10 @@ class HeuristicPolicy(Policy):
         # the robot try another way in; the demo's bed stand point was reached so, 0.4 m instead of 1.3 m).
         stuck_again = len(st.dead_ends) > 1 and min(
             math.dist(here[:2], p) for p in st.dead_ends[:-1]) < cfg.graph_dead_end_radius_m
-        if stop is not None and max(gains, default=-1.0) < cfg.graph_min_progress_m and d_here < 1.5 and (
+        # A room goal is an area: stuck within its radius of the stand point is in it (generated:8's demo
+        # reached its bedroom 2.2 m from the stand point and went back and forth there until the budget ran out).
+        near_m = 1.5 + g.goal_extent_m
+        if stop is not None and max(gains, default=-1.0) < cfg.graph_min_progress_m and d_here < near_m and (
                 stuck_again or d_here <= stop_m):
             return self._decision(ctx, stop.index, f"{where}: stop - no move gets closer and the goal is "
                                   f"{d_here:.1f} m away ({g.explained})")
