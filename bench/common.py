@@ -12,12 +12,15 @@ def percentiles_ms(samples_s, qs=(50, 95, 99)) -> dict[str, float]:
     return {f"p{q}": float(np.percentile(a, q)) for q in qs}
 
 
+def table_markdown(title: str, rows: list[tuple], header: tuple) -> str:
+    """The markdown of ``table`` (a bench that also writes its table to a file under runs/ uses this)."""
+    lines = [f"## {title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
 def table(title: str, rows: list[tuple], header: tuple) -> None:
-    print(f"\n## {title}\n")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "---|" * len(header))
-    for r in rows:
-        print("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r) + " |")
+    print("\n" + table_markdown(title, rows, header), end="")
 
 
 class Timer:

@@ -133,9 +133,7 @@ def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argpa
                                            "options": options}).json()
     rec = follow_mission(http, mission["id"], 900, tag)
     m = rec.get("metrics") or {}
-    say(f"{tag}RESULT: {outcome_phrase(rec['state'], m)} after {rec['step']} steps; "
-        + ", ".join(f"{k}={m[k]:.2f}" if isinstance(m.get(k), float) else f"{k}={m.get(k)}"
-                    for k in ("ne_m", "success", "oracle_success", "spl", "ndtw", "tl_m") if k in m))
+    say(f"{tag}{result_line(rec['state'], rec['step'], m)}")
     return rec["state"] in ("succeeded", "failed")
 
 
@@ -160,6 +158,13 @@ def drift_phrase(d: dict | None) -> str:
     return (f"drift correction: {odom}; registration moved {d['regions_corrected']} regions (max "
             f"{d['max_correction_m']:.3f} m, {d['max_correction_deg']:.1f} deg), "
             f"{d['regions_fallback']} kept their poses")
+
+
+def result_line(state: str, steps: int, metrics: dict) -> str:
+    """The demo's one-line verdict (bench.demo_houses parses it from the demo's stdout)."""
+    return (f"RESULT: {outcome_phrase(state, metrics)} after {steps} steps; "
+            + ", ".join(f"{k}={metrics[k]:.2f}" if isinstance(metrics.get(k), float) else f"{k}={metrics.get(k)}"
+                        for k in ("ne_m", "success", "oracle_success", "spl", "ndtw", "tl_m") if k in metrics))
 
 
 def outcome_phrase(state: str, metrics: dict) -> str:

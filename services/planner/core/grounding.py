@@ -33,7 +33,9 @@ label_matches = lru_cache(maxsize=16_384)(_label_matches)
 class Grounding:
     """The chosen reading: the goal object, where to stand, the rooms the route passes and the field."""
 
-    goal: SceneObject
+    # The object the instruction ends at, or the room it names when the map recorded no such object there
+    # (a plant hidden behind a wardrobe is in no map; "in the bedroom" still says where the route ends).
+    goal: SceneObject | SceneRoom
     goal_m: np.ndarray
     field: np.ndarray
     rooms: list[str]  # room ids along the route, in order
@@ -41,6 +43,47 @@ class Grounding:
     alternatives: int
     route_m: list[np.ndarray] = field(default_factory=list)
     readings: list[tuple[float, str, str]] = field(default_factory=list)  # (score, object id, why), best first
+
+    @property
+    def goal_id(self) -> str:
+        return self.goal.object_id if isinstance(self.goal, SceneObject) else self.goal.room_id
+
+    @property
+    def goal_position_m(self) -> tuple[float, float, float]:
+        return self.goal.position_m if isinstance(self.goal, SceneObject) else self.goal.centroid_m
+
+    @property
+    def goal_size_m(self) -> tuple[float, float, float]:
+        """The object's size; a room goal is a point (its stand cell), size 0."""
+        return self.goal.size_m if isinstance(self.goal, SceneObject) else (0.0, 0.0, 0.0)
+
+    @property
+    def goal_extent_m(self) -> float:
+        """How far from its stand point the goal may be: 0 for an object; for a room goal its radius
+        (the unseen object stands somewhere in the room, not at its centre)."""
+        return 0.0 if isinstance(self.goal, SceneObject) else math.sqrt(self.goal.area_m2 / math.pi)
+
+
+# A reading that stops in the named room because the map holds no object of the named class there: it
+# explains the room (+3, as an object in it does) but not the object (an object of the class in that room
+# scores at least +1 more for the class, and one in another room 3 + 2 less): the room wins only over
+# objects of the right class in the wrong room.
+ROOM_READING_PENALTY = 1.5
+
+
+def _room_stand_point(graph: SceneGraph, router: Router, room_index: int) -> np.ndarray | None:
+    """The walkable cell of a room nearest its centroid (the centroid of an L-shaped room may be outside it)."""
+    r = graph.rooms[room_index]
+    f = router.floor_of((r.centroid_m[0], r.centroid_m[1], r.floor_z_m))
+    if f < 0 or graph.free_space[f].rooms is None:
+        return None
+    g = graph.free_space[f]
+    ci, cj = np.nonzero((g.cells > 0) & (g.rooms == room_index))
+    if not len(ci):
+        return None
+    pts = np.c_[g.origin_m[0] + (ci + 0.5) * g.cell_m, g.origin_m[1] + (cj + 0.5) * g.cell_m]
+    k = int(np.argmin(np.hypot(pts[:, 0] - r.centroid_m[0], pts[:, 1] - r.centroid_m[1])))
+    return np.array([pts[k, 0], pts[k, 1], g.z_m])
 
 
 class GroundingError(Exception):
@@ -163,10 +206,10 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
             raise GroundingError("the instruction names no final landmark")
         target = final[-1]
         candidates = [o for o in graph.objects if label_matches(o.label, target)]
-    if not candidates:
+    final_room = stop_sg.rooms[-1] if stop_sg.rooms else None
+    if not candidates and final_room is None:
         raise GroundingError(f"no {target!r} in the map's scene graph")
     colour = _colour_before(stop_sg.text, LANDMARKS.get(target, (target,)))
-    final_room = stop_sg.rooms[-1] if stop_sg.rooms else None
     # The rooms the route should pass in order (rooms being left are where it starts); the stop clause's
     # room is the one entered last ("enter the office ... stop next to the desk in the office").
     wanted_rooms = [r for sg in parsed.subgoals if sg is not stop_sg or not any(
@@ -185,29 +228,16 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
         raise GroundingError("the robot's start is off the map's walkable space")
     cells_of: dict = {}
     room_ids = [r.room_id for r in graph.rooms]
-    scored = []
-    for o in candidates:
-        if o.points < 20:
-            continue
-        stand = _stand_point(graph, router, o, cells_of)
+
+    def route_reading(stand: np.ndarray):
+        """(score, rooms passed, path, why) of the route from the start to ``stand``; None if unreachable."""
         nodes = router.path_nodes(from_start, stand, snap_m=2.0)[::-1]  # start -> stand
         if not nodes:
-            continue
+            return None
         d = float(from_start[nodes[-1]])
         if not math.isfinite(d):
-            continue
+            return None
         score, why = 0.0, []
-        if re.search(rf"\b{re.escape(literal)}\b", o.label.lower()):
-            score += 1.0  # "cabinet" names a cabinet before a wardrobe (one canonical class)
-        if colour is not None:
-            ok = o.colour == colour
-            score += 1.0 if ok else 0.0
-            why.append(f"{o.colour}{'' if ok else ' (not ' + colour + ')'}")
-        room = rooms_by_id.get(o.room_id) if o.room_id else None
-        if final_room is not None and room is not None:
-            ok = label_matches(room.room_type, final_room)
-            score += 3.0 if ok else -2.0
-            why.append(f"in {room.room_id}" + ("" if ok else f" (not a {final_room})"))
         sampled = nodes[::2] + ([nodes[-1]] if (len(nodes) - 1) % 2 else [])
         path = list(router.positions(sampled))
         seen_rooms: list[str] = []
@@ -230,15 +260,54 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
                 score += 0.7 if near else -0.3
         score -= 0.01 * d  # between equal readings, the nearer
         why.append(f"route passes {hits}/{len(wanted_rooms)} named rooms in order, {d:.1f} m")
-        scored.append((score, o, stand, seen_rooms, path, ", ".join(why)))
+        return score, seen_rooms, path, why
+
+    scored = []
+    in_named_room = False
+    for o in candidates:
+        if o.points < 20:
+            continue
+        stand = _stand_point(graph, router, o, cells_of)
+        route = route_reading(stand)
+        if route is None:
+            continue
+        score, why = 0.0, []
+        if re.search(rf"\b{re.escape(literal)}\b", o.label.lower()):
+            score += 1.0  # "cabinet" names a cabinet before a wardrobe (one canonical class)
+        if colour is not None:
+            ok = o.colour == colour
+            score += 1.0 if ok else 0.0
+            why.append(f"{o.colour}{'' if ok else ' (not ' + colour + ')'}")
+        room = rooms_by_id.get(o.room_id) if o.room_id else None
+        if final_room is not None and room is not None:
+            ok = label_matches(room.room_type, final_room)
+            in_named_room |= ok
+            score += 3.0 if ok else -2.0
+            why.append(f"in {room.room_id}" + ("" if ok else f" (not a {final_room})"))
+        scored.append((score + route[0], o, stand, route[1], route[2], ", ".join(why + route[3])))
+    if final_room is not None and not in_named_room:
+        # No object of the class was recorded in a room of the named type: the room itself is a reading
+        # (which of the same-named rooms, the route's order, turns and landmarks decide, as for objects).
+        for k, r in enumerate(graph.rooms):
+            if not r.room_type or not label_matches(r.room_type, final_room):
+                continue
+            stand = _room_stand_point(graph, router, k)
+            route = None if stand is None else route_reading(stand)
+            if route is None:
+                continue
+            why = [f"{r.room_id}, no {target} recorded in a {final_room}"]
+            scored.append((3.0 - ROOM_READING_PENALTY + route[0], r, stand, route[1], route[2],
+                           ", ".join(why + route[3])))
     if not scored:
         raise GroundingError(f"no {target!r} of the map is reachable on its walkable space")
     scored.sort(key=lambda s: -s[0])
     best = scored[0]
     goal_node_m = best[2]
     fld = router.field(goal_node_m)
+    best_id = best[1].object_id if isinstance(best[1], SceneObject) else best[1].room_id
     if fld is None:
-        raise GroundingError(f"{best[1].object_id} is off the map's walkable space")
+        raise GroundingError(f"{best_id} is off the map's walkable space")
     return Grounding(goal=best[1], goal_m=goal_node_m, field=fld, rooms=best[3],
-                     explained=f"{best[1].object_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4],
-                     readings=[(round(x[0], 2), x[1].object_id, x[5]) for x in scored])
+                     explained=f"{best_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4],
+                     readings=[(round(x[0], 2), x[1].object_id if isinstance(x[1], SceneObject) else x[1].room_id,
+                                x[5]) for x in scored])

@@ -368,12 +368,12 @@ class HeuristicPolicy(Policy):
         here = ctx.pose.xyz
         d_here = router.distance(g.field, here)
         obj_m = math.dist(here[:2], g.goal_m[:2])
-        same_floor = router.floor_of(here) == router.floor_of(g.goal.position_m)
-        where = f"route to {g.goal.object_id}"
+        same_floor = router.floor_of(here) == router.floor_of(g.goal_position_m)
+        where = f"route to {g.goal_id}"
         stop = ctx.stop_candidate
         # The stand point is one side of the object; the true goal may be on another side, up to the object's
         # length away (a bed): the larger the object, the closer to the stand point before stopping.
-        stop_m = min(cfg.graph_stop_m, max(0.5, cfg.graph_stop_m - max(g.goal.size_m[:2]) / 2))
+        stop_m = min(cfg.graph_stop_m, max(0.5, cfg.graph_stop_m - max(g.goal_size_m[:2]) / 2))
         if stop is not None and (d_here <= stop_m or (same_floor and obj_m <= min(stop_m, cfg.graph_object_stop_m))):
             return self._decision(ctx, stop.index, f"{where}: stop - at the grounded goal ({g.explained}; "
                                   f"{d_here:.1f} m by the route, {obj_m:.1f} m from it)")
@@ -397,7 +397,10 @@ class HeuristicPolicy(Policy):
         # the robot try another way in; the demo's bed stand point was reached so, 0.4 m instead of 1.3 m).
         stuck_again = len(st.dead_ends) > 1 and min(
             math.dist(here[:2], p) for p in st.dead_ends[:-1]) < cfg.graph_dead_end_radius_m
-        if stop is not None and max(gains, default=-1.0) < cfg.graph_min_progress_m and d_here < 1.5 and (
+        # A room goal is an area: stuck within its radius of the stand point is in it (generated:8's demo
+        # reached its bedroom 2.2 m from the stand point and went back and forth there until the budget ran out).
+        near_m = 1.5 + g.goal_extent_m
+        if stop is not None and max(gains, default=-1.0) < cfg.graph_min_progress_m and d_here < near_m and (
                 stuck_again or d_here <= stop_m):
             return self._decision(ctx, stop.index, f"{where}: stop - no move gets closer and the goal is "
                                   f"{d_here:.1f} m away ({g.explained})")

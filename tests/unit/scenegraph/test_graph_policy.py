@@ -57,6 +57,27 @@ def test_grounding_fails_plainly_when_the_map_has_no_such_object():
         ground(parse_instruction("Stop next to the sofa."), g, Router(g), np.array([1.0, 2.0, 0.0]))
 
 
+def test_an_object_the_map_did_not_record_in_the_named_room_grounds_on_that_room():
+    """A plant hidden behind a wardrobe is in no map (generated:8's demo): the room the instruction names
+    still says where to stop, better than an object of the class in another room (it went to an office's
+    plant 5.4 m from the goal)."""
+    g = build_scene_graph(_two_rooms())
+    router = Router(g)
+    start = np.array([1.0, 2.0, 0.0])
+    got = ground(parse_instruction("Exit the kitchen. Stop next to the plant in the bedroom."), g, router, start)
+    assert g.room(got.goal_id).room_type == "bedroom" and got.goal_m[0] > 4.2, got.explained
+    assert got.goal_size_m == (0.0, 0.0, 0.0) and "no plant recorded" in got.explained
+    assert got.goal_extent_m == pytest.approx(np.sqrt(g.room(got.goal_id).area_m2 / np.pi)) and got.goal_extent_m > 1.0
+    # Beds exist, but none in a kitchen: the kitchen, not a bed in the bedroom.
+    got = ground(parse_instruction("Go to the kitchen. Stop next to the bed in the kitchen."), g, router,
+                 np.array([6.0, 2.0, 0.0]))
+    assert g.room(got.goal_id).room_type == "kitchen" and got.goal_m[0] < 4.0, got.explained
+    # A bed in the named room still beats the room.
+    got = ground(parse_instruction("Exit the kitchen. Stop next to the red bed in the bedroom."), g, router, start)
+    assert got.goal_id.startswith("bed") and got.goal.colour == "red", got.explained
+    assert got.goal_extent_m == 0.0
+
+
 def test_outcome_says_arrived_only_within_the_success_radius():
     assert outcome_phrase("succeeded", {"ne_m": 17.48, "success": False}).startswith("stopped short")
     assert "17.5 m" in outcome_phrase("succeeded", {"ne_m": 17.48, "success": False})
