@@ -12,13 +12,36 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ANT_SHARED_DATA") or REPO_ROOT.parent / "shared" / "data")
 
 
+# Under pytest-xdist (``make test``: ``-n 2 --dist loadgroup``) a worker runs whole groups, and a group is
+# built once per worker that runs any of it. By default a group is one file, so a module-scoped fixture (a
+# ROS 2 stand-in, a server) is never built twice; these session fixtures are costly enough that every test
+# using one shares a group, so one worker builds it: the first fixture a test uses in this table wins.
+SHARED_FIXTURE_GROUPS = {
+    "system": "system",  # the launched OS processes: one set, their tests one after another, as when serial
+    "live": "live",  # the reliability suite's in-process system (a router and every service)
+}
+
+
+def _xdist_group(item) -> str:
+    names = getattr(item, "fixturenames", ())
+    for fixture, group in SHARED_FIXTURE_GROUPS.items():
+        if fixture in names:
+            return group
+    if item.get_closest_marker("system"):  # starts OS processes: one after another, as in a serial run
+        return "system"
+    return item.nodeid.split("::", 1)[0]
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook turns the xdist_group marks into node id suffixes
 def pytest_collection_modifyitems(config, items):
     """A test that uses the launched system (the ``system`` fixture below: a router and every
     service as OS processes) is a ``system`` test wherever it lives, so ``-m "not system"`` keeps a tier
-    in-process without each file having to say so."""
+    in-process without each file having to say so. Every test also gets its xdist group (above); without
+    ``--dist loadgroup`` the mark changes nothing."""
     for item in items:
         if "system" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.system)
+        item.add_marker(pytest.mark.xdist_group(_xdist_group(item)))
 
 
 @pytest.fixture(scope="session")
