@@ -28,22 +28,32 @@ SCENE ?= generated:0
 up: setup
 	$(PY) -m deploy.up --port $(PORT) --scene $(SCENE) --renderers $(RENDERERS)
 
+# In-process tests run on XDIST's workers (pytest-xdist; `make test XDIST=` runs them in one process).
+# loadgroup keeps each file on one worker (its module fixtures are built once) and gives the costly session
+# fixtures one group each (tests/conftest.py). The `system` tests then run on their own, one at a time, as
+# before: they start the OS processes whose timeouts were sized for a machine they do not share with a worker.
+XDIST ?= -n 2 --dist loadgroup
+
 # The long variants (marked slow: more fuzz cases, repeated kills) run in `make reliability`.
+# Two runs, exactly the in-process tiers and then test-system; both always run, and either failing fails it.
 test: setup
-	$(PYTEST) -q -m "not slow" --durations=25 tests
+	@rc=0; \
+	$(PYTEST) -q -m "not slow and not system" $(XDIST) --durations=25 tests || rc=$$?; \
+	$(PYTEST) -q -m "system and not slow" --durations=25 tests || rc=$$?; \
+	exit $$rc
 
 # The tiers: unit (pure logic, in-process), contract (real zenoh peers in this process), e2e (real
 # HTTP servers, browsers, in-process services, the reliability suite's in-process system), system (tests
 # that start OS processes: a launcher, a router, services, a helper program; marked `system`, wherever they
 # live; one launched system is shared by the session). Together they are exactly `make test`.
 test-unit: setup
-	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/unit
+	$(PYTEST) -q -m "not slow and not system" $(XDIST) --durations=15 tests/unit
 
 test-contract: setup
-	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/contract
+	$(PYTEST) -q -m "not slow and not system" $(XDIST) --durations=15 tests/contract
 
 test-e2e: setup
-	$(PYTEST) -q -m "not slow and not system" --durations=15 tests/e2e tests/integration tests/reliability
+	$(PYTEST) -q -m "not slow and not system" $(XDIST) --durations=15 tests/e2e tests/integration tests/reliability
 
 test-system: setup
 	$(PYTEST) -q -m "system and not slow" --durations=15 tests

@@ -12,13 +12,56 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ANT_SHARED_DATA") or REPO_ROOT.parent / "shared" / "data")
 
 
+# Under pytest-xdist (``make test``: ``-n 2 --dist loadgroup``) a worker runs whole groups, and builds a
+# session fixture once per worker that uses it. A group is one file, so a module-scoped fixture (a ROS 2
+# stand-in, a server) is built once. The files that use one of these costly session fixtures share its group
+# instead, so one worker builds it (a file's group: the first of them that any of its tests uses, in this
+# order). The launched system is here too: its tests then run one after another, as in a serial run.
+SHARED_FIXTURE_GROUPS = {  # "<the directory of its conftest.py>::<fixture>": group
+    "tests::system": "system",  # the launched OS processes (tests/launched.py)
+    "tests/reliability::live": "live",  # the reliability suite's in-process system (a router and every service)
+    "tests/unit/reconstructor::house": "toured-house",  # the reconstructor tests' explored and toured house
+    "tests/unit/renderer::room_mesh": "built-flat",  # the renderer tests' flat, its 1e6-point cloud and index
+    "tests/unit::house_robot": "sim-houses",  # tests/unit's two simulated houses
+    "tests/unit::two_floor_robot": "sim-houses",
+}
+_RANK = {g: i for i, g in enumerate(dict.fromkeys(SHARED_FIXTURE_GROUPS.values()))}
+
+
+def _shared_fixtures(item) -> set[str]:
+    """The test's fixtures (those it asks for and theirs), each as ``<conftest directory>::<name>``."""
+    defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
+    found = {f"{d[-1].baseid}::{name}" for name, d in defs.items() if d}
+    if item.get_closest_marker("system"):  # starts OS processes: one after another, as in a serial run
+        found.add("tests::system")
+    return found
+
+
+def _file_groups(items) -> dict[str, str]:
+    """Each test file's xdist group (above)."""
+    groups: dict[str, str] = {}
+    for item in items:
+        path = item.nodeid.split("::", 1)[0]
+        groups.setdefault(path, path)
+        for fixture in _shared_fixtures(item) & SHARED_FIXTURE_GROUPS.keys():
+            group = SHARED_FIXTURE_GROUPS[fixture]
+            if groups[path] not in _RANK or _RANK[group] < _RANK[groups[path]]:
+                groups[path] = group
+    return groups
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook turns the xdist_group marks into node id suffixes
 def pytest_collection_modifyitems(config, items):
     """A test that uses the launched system (the ``system`` fixture below: a router and every
     service as OS processes) is a ``system`` test wherever it lives, so ``-m "not system"`` keeps a tier
-    in-process without each file having to say so."""
+    in-process without each file having to say so. Every test also gets its xdist group (above); without
+    ``--dist loadgroup`` the mark changes nothing."""
     for item in items:
         if "system" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.system)
+    groups = _file_groups(items)
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(groups[item.nodeid.split("::", 1)[0]]))
 
 
 @pytest.fixture(scope="session")

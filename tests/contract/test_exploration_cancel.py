@@ -14,7 +14,7 @@ from services.reconstructor.service import ReconstructorService, ReconstructorSe
 from services.robot_io.service import RobotIoService, RobotIoSettings
 from shared import keys
 from shared.bus.typed import TypedBus
-from shared.clients import MapClient, MapperClient
+from shared.clients import MapClient, MapperClient, RobotClient
 from shared.jobs import TERMINAL_STATES, Cancelled
 from shared.runner import RunningService
 from shared.schemas import (
@@ -56,6 +56,12 @@ def test_an_exploration_is_cancelled_over_zenoh_on_its_robots_key_only(peers):
     with RunningService(io, services_side), RunningService(mapper, services_side):
         bus = TypedBus(gateway_side)
         _alive(bus, "mapper", "map-z")
+        _alive(bus, "robot_io", "io-z")
+        # One panorama first, with a generous budget, as in tests/unit/mapper/test_exploration_cancel.py: on a
+        # fresh clone robot-io's first observe compiles its render kernels, which took longer than the mapper's
+        # 30 s request budget beside a second xdist worker on a loaded machine (the exploration failed, not
+        # cancelled). What this test checks starts after that.
+        RobotClient(bus, "robot0", timeout_s=300.0).observe()
         events = Events(bus, keys.EXPLORATION_EVENTS.pattern(robot="robot0"))
         try:
             client = MapperClient(bus, "robot0")
