@@ -46,7 +46,7 @@ class Grounding:
 
     @property
     def goal_id(self) -> str:
-        return self.goal.object_id if isinstance(self.goal, SceneObject) else self.goal.room_id
+        return node_id(self.goal)
 
     @property
     def goal_position_m(self) -> tuple[float, float, float]:
@@ -84,6 +84,11 @@ def _room_stand_point(graph: SceneGraph, router: Router, room_index: int) -> np.
     pts = np.c_[g.origin_m[0] + (ci + 0.5) * g.cell_m, g.origin_m[1] + (cj + 0.5) * g.cell_m]
     k = int(np.argmin(np.hypot(pts[:, 0] - r.centroid_m[0], pts[:, 1] - r.centroid_m[1])))
     return np.array([pts[k, 0], pts[k, 1], g.z_m])
+
+
+def node_id(node: SceneObject | SceneRoom) -> str:
+    """The graph id of a reading's goal: an object's, or a room's when the room is the goal."""
+    return node.object_id if isinstance(node, SceneObject) else node.room_id
 
 
 class GroundingError(Exception):
@@ -304,10 +309,9 @@ def ground(parsed: ParsedInstruction, graph: SceneGraph, router: Router, start_m
     best = scored[0]
     goal_node_m = best[2]
     fld = router.field(goal_node_m)
-    best_id = best[1].object_id if isinstance(best[1], SceneObject) else best[1].room_id
+    best_id = node_id(best[1])
     if fld is None:
         raise GroundingError(f"{best_id} is off the map's walkable space")
     return Grounding(goal=best[1], goal_m=goal_node_m, field=fld, rooms=best[3],
                      explained=f"{best_id}: {best[5]}", alternatives=len(scored) - 1, route_m=best[4],
-                     readings=[(round(x[0], 2), x[1].object_id if isinstance(x[1], SceneObject) else x[1].room_id,
-                                x[5]) for x in scored])
+                     readings=[(round(x[0], 2), node_id(x[1]), x[5]) for x in scored])
