@@ -9,7 +9,9 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable, Hashable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -145,18 +147,25 @@ def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128, dr
     return MAPS / name, profile
 
 
+def tap_true_poses(robot, method: str, key: Callable[[Any], Hashable]) -> dict:
+    """``key(what robot.<method> returns)`` -> (the simulator's true pose then, the pose it reports), filled
+    as the simulator runs ``method`` (``render_frame``: every recorded frame; ``observe``: every panorama).
+    Only the simulator knows the truth; the bench holds the robot's own poses against it."""
+    truth: dict = {}
+    call = getattr(robot, method)
+
+    def tapped(*a, **kw):
+        out = call(*a, **kw)
+        truth[key(out)] = (robot.true_pose, out.pose)
+        return out
+
+    setattr(robot, method, tapped)
+    return truth
+
+
 def _recording_truth(robot) -> dict[int, tuple]:
     """Frame index -> (true pose, the pose the frame reports), filled as the simulator renders frames."""
-    truth: dict[int, tuple] = {}
-    render = robot.render_frame
-
-    def recorded(*a, **kw):
-        frame = render(*a, **kw)
-        truth[frame.index] = (robot.true_pose, frame.pose)
-        return frame
-
-    robot.render_frame = recorded
-    return truth
+    return tap_true_poses(robot, "render_frame", lambda frame: frame.index)
 
 
 def _tour_start_drift(recs, truth: dict[int, tuple], shifts: dict | None = None) -> dict[str, list[float]]:

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from bench.agent_maps import NOISY
+from bench.agent_maps import NOISY, _recording_truth
 from shared.schemas import CameraIntrinsics
 
 DRIFT_KEYS = ("odometry_drift_per_m", "heading_drift_per_rad")
@@ -42,15 +42,7 @@ def run(spec: str, noise: dict | None, localise: bool, size_px: int = 128, rate_
     if noise:
         cfg["noise"] = noise
     robot = ROBOTS.create("sim", cfg)
-    truth: dict[int, object] = {}
-    render = robot.render_frame
-
-    def recorded(*a, **kw):
-        frame = render(*a, **kw)
-        truth[frame.index] = robot.true_pose
-        return frame
-
-    robot.render_frame = recorded
+    truth = _recording_truth(robot)
     dcfg = discovery_config("default", {"localisation": {**(localisation or {}), "enabled": localise}})
     t0 = time.perf_counter()
     d = discover(robot, dcfg)
@@ -62,7 +54,7 @@ def run(spec: str, noise: dict | None, localise: bool, size_px: int = 128, rate_
     for rec in recs:
         f = rec.frames[0] if rec.frames else None
         if f is not None and f.index in truth:
-            t = truth[f.index]
+            t = truth[f.index][0]
             pos.append(math.hypot(t.position_m[0] - f.pose.position_m[0], t.position_m[1] - f.pose.position_m[1]))
             head.append(abs(math.degrees(math.remainder(t.heading_rad - f.pose.heading_rad, 2 * math.pi))))
     digest = hashlib.sha256()

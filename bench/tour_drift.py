@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from bench.agent_maps import _recording_truth, noise_config
+from bench.agent_maps import _recording_truth, noise_config, tap_true_poses
 
 BINS_M = (0.0, 0.25, 0.5, 1.0, 2.0, math.inf)
 
@@ -36,15 +36,8 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
         robot_cfg["noise"] = noise_config("noisy", drift_scale)
     robot = ROBOTS.create("sim", robot_cfg)
     truth = _recording_truth(robot)
-    pano_truth: dict[float, object] = {}  # panorama timestamp -> the true pose it was taken at
-    observe = robot.observe
-
-    def observed(*a, **kw):
-        pano = observe(*a, **kw)
-        pano_truth[pano.timestamp_s] = robot.true_pose
-        return pano
-
-    robot.observe = observed
+    # panorama timestamp -> (the true pose it was taken at, its odometry pose)
+    pano_truth = tap_true_poses(robot, "observe", lambda pano: pano.timestamp_s)
     cfg = discovery_config("default")
     cfg.localisation.frames.enabled = frames
     cfg.localisation.band_from_median = band_from_median
@@ -83,7 +76,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
         if prev is not None:
             path_m += float(np.hypot(*np.subtract(st.odom.position_m[:2], prev.position_m[:2])))
         prev = st.odom
-        true = pano_truth.get(st.timestamp_s)
+        true = pano_truth.get(st.timestamp_s, (None,))[0]
         if true is not None:
             placed = st.correction.pose(st.odom)
             panos.append((path_m, float(np.hypot(*np.subtract(true.position_m[:2], placed.position_m[:2]))),
