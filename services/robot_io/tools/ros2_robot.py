@@ -88,10 +88,8 @@ def main(argv: list[str] | None = None) -> int:
                  robot.stats.cmd_received, robot.stats.collisions,
                  ", ".join(f"{k} {v}" for k, v in sorted(robot.stats.nav2_goals.items())) or "none")
         # Only the stand-in knows the truth: what its odometry had drifted by the end (a drifting run's figure).
-        odo, true = robot.odometry_pose(), robot.true_pose
-        log.info("odometry off the true pose at the end: %.3f m, %.2f deg", math.hypot(
-            odo.position_m[0] - true.position_m[0], odo.position_m[1] - true.position_m[1]),
-            abs(math.degrees(math.remainder(odo.heading_rad - true.heading_rad, 2 * math.pi))))
+        dx, dy, dyaw = robot.odometry_error()
+        log.info("odometry off the true pose at the end: %.3f m, %.2f deg", math.hypot(dx, dy), abs(math.degrees(dyaw)))
     return 0
 
 

@@ -213,12 +213,10 @@ class StandInRobot:
             raise ValueError("non-finite teleport pose")
         with self._lock:
             # A teleport starts the odometry afresh: what it had drifted until now is only known here.
-            odo, true = self.odometry_pose(), self.true_pose
-            dx, dy = odo.position_m[0] - true.position_m[0], odo.position_m[1] - true.position_m[1]
+            dx, dy, dyaw = self.odometry_error()
             log.info("teleported; odometry was off the true pose by %.3f m, %.2f deg (odometry - true: "
-                     "(%.3f, %.3f) m, %.2f deg)", math.hypot(dx, dy), abs(math.degrees(math.remainder(
-                         odo.heading_rad - true.heading_rad, 2 * math.pi))), dx, dy,
-                     math.degrees(math.remainder(odo.heading_rad - true.heading_rad, 2 * math.pi)))
+                     "(%.3f, %.3f) m, %.2f deg)", math.hypot(dx, dy), abs(math.degrees(dyaw)), dx, dy,
+                     math.degrees(dyaw))
             self._end_motion_goal(GoalStatus.ABORTED, 0, "the robot was teleported")
             self.sim.reset(Pose(position_m=(x, y, float(self._pos[2])), heading_rad=th))
             self._pos = self.sim._pos.copy()
@@ -467,6 +465,12 @@ class StandInRobot:
 
     def odometry_pose(self) -> Pose:
         return self.sim.noise.odometry(self.true_pose)
+
+    def odometry_error(self) -> tuple[float, float, float]:
+        """Odometry minus the true pose: (dx m, dy m, dyaw rad in [-pi, pi]); only the stand-in knows it."""
+        odo, true = self.odometry_pose(), self.true_pose
+        return (odo.position_m[0] - true.position_m[0], odo.position_m[1] - true.position_m[1],
+                math.remainder(odo.heading_rad - true.heading_rad, 2 * math.pi))
 
     def _map_from_odom(self, t: float, true: Pose, odo: Pose):
         """A perfect localiser's map -> odom transform: the one that takes the (drifting) odometry
