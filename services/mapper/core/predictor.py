@@ -97,7 +97,10 @@ class GeometricPredictorConfig(BackendConfig):
     # ``noise_median_rows`` rows of its column, but only where the two differ by at most
     # ``noise_gate_sigmas`` of the declared sigma: a wall's pixels share one range and the median pulls
     # the strays back, while an edge larger than the noise (a riser, a table's front) stays as seen.
-    # Exact depth (declared 0) is not touched, so noise-free rays are today's to the bit. 1: off.
+    # On generated:2 (8 panoramas, 256 px) rays > 0.3 m short went 9.5 % -> 0.8 % (3 rows: 2.2 %; a
+    # 2.5-sigma gate: 5 %). Exact depth (declared 0) is not touched: noise-free rays stay bit-identical,
+    # and the stairs of tests/unit/mapper/test_stairs.py with them (a plain 3-row median, applied to
+    # exact depth too, lost a 64 px camera's second floor). 1: off.
     noise_median_rows: int = Field(5, ge=1, le=9)
     noise_gate_sigmas: float = Field(4.0, gt=0.0, le=10.0)
     smoothing_deg: float = Field(9.0, ge=0.0, le=90.0)
