@@ -40,6 +40,9 @@ class Panorama(Message):
     depth_m: Array("float32", 3)  # (V, H, W), z-depth, 0 = no measurement
     semantic: Array("int32", 3) | None = None  # (V, H, W) class ids, -1 = unknown
     timestamp_s: Seconds = Field(default_factory=time.time)
+    # The depth sensor's noise as its robot declares it, as on a Frame: sigma = depth_noise_rel *
+    # depth^2. 0: exact, or not known. The waypoint predictor smooths depth only within that noise.
+    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)
 
     @model_validator(mode="after")
     def _shapes(self):

@@ -349,6 +349,8 @@ def test_the_stretch_profile_rotated_camera_mm_depth_nav_mode_and_run_stop():
         with s.backend(prof="stretch", overrides=over) as robot:
             assert s.robot.navigation_mode  # switch_to_navigation_mode was called on connect
             pano = robot.observe(with_semantic=False)
+            # The profile's declared depth noise travels with the panorama (the waypoint predictor reads it).
+            assert pano.depth_noise_rel == s.profile.depth_noise_rel > 0.0
             sim = s.robot.sim
             pos = s.robot.true_pose.position_m
             want = sim.renderer.render_views(pos, pano.headings_rad[:1], CAM.pinhole(), 0.0, s.profile.camera_height_m,

@@ -302,6 +302,7 @@ class SimRobot(Robot):
             depth_m=depth,
             semantic=out.semantic if with_semantic else None,
             timestamp_s=self._clock_s,
+            depth_noise_rel=self.noise.config.depth_noise_rel,
         )
 
     def scene_views(self, views: list[ViewPose], camera: CameraIntrinsics | None = None,

@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.mapper.core.predictor import GeometricPredictor, GeometricPredictorConfig
+from services.mapper.core.predictor import (GeometricPredictor, GeometricPredictorConfig, _column_median_kernel,
+                                            _column_median_within_noise)
 from services.robot_io.core.robot import ROBOTS
 from shared.jit import AVAILABLE
 from shared.schemas import CameraIntrinsics, Pose
@@ -78,6 +79,25 @@ def test_kernel_matches_array_walk_on_a_two_floor_house():
             flights += f
     # The rarer branches ran: unconfirmed climbs and confirmed flights.
     assert doubts > 0 and flights > 0
+
+
+def test_noise_median_kernel_matches_the_array_version():
+    # The noisy robot declares its depth noise, so the walks above ran on the smoothed depth; here the
+    # smoothed depth itself, at several window sizes, holes included.
+    robot = ROBOTS.create("sim", {"scene": "generated:1:floors=2:area=160",
+                                  "camera": CameraIntrinsics(width_px=64, height_px=64, hfov_deg=90.0),
+                                  "noise": {"depth_noise_rel": 0.01, "depth_hole_fraction": 0.05, "seed": 3}})
+    changed = 0
+    for pano in _panoramas(robot, 3, seed=5, stairs_first=1):
+        depth = np.asarray(pano.depth_m)[:, ::2, ::2]
+        for rows in (3, 5, 9):
+            array = _column_median_within_noise(depth, pano.depth_noise_rel, rows, 4.0)
+            compiled = np.empty(depth.shape, dtype=depth.dtype)
+            _column_median_kernel(depth, rows, 4.0 * pano.depth_noise_rel, compiled)
+            assert array.tobytes() == compiled.tobytes(), rows
+            assert np.array_equal(array > 0, depth > 0)  # holes stay holes, measurements stay
+            changed += int((array != depth).sum())
+    assert changed > 0
 
 
 @pytest.mark.skipif(not REPLICA.is_file(), reason="Replica office0 is not in the shared data")

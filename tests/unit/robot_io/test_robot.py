@@ -151,6 +151,7 @@ def test_noise_is_off_by_default_and_seeded_when_on():
     n1, n2 = SimRobot(SimConfig(**noisy_cfg)), SimRobot(SimConfig(**noisy_cfg))
     a, b, c = clean.observe(), n1.observe(), n2.observe()
     assert np.array_equal(b.depth_m, c.depth_m)
+    assert (a.depth_noise_rel, b.depth_noise_rel) == (0.0, 0.01)  # the panorama declares its noise
     holes = (b.depth_m == 0) & (a.depth_m > 0)
     assert 0.05 < holes.mean() < 0.15
     both = (b.depth_m > 0) & (a.depth_m > 0)

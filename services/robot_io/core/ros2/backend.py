@@ -878,7 +878,7 @@ class Ros2Robot(Robot):
         # "correction" on a noise-free stand-in). Everything downstream takes each view's own heading.
         return Panorama(pose=start, camera=cam, headings_rad=np.asarray(heads, np.float64), rgb=np.stack(rgbs),
                         depth_m=np.stack(depths).astype(np.float32), semantic=np.stack(sems) if have_sem else None,
-                        timestamp_s=float(t_first or 0.0))
+                        timestamp_s=float(t_first or 0.0), depth_noise_rel=self.profile.depth_noise_rel)
 
     def _frame(self, pitch_rad: float = 0.0) -> Frame | None:
         cam = self.config.camera
