@@ -187,6 +187,8 @@ def test_tours_record_the_correction_in_effect(rooms):
     # after 1 m, odometry's prior widening with the path) allow for.
     cfg.localisation.relocalise_after_m = 0.0
     cfg.localisation.prior_m = cfg.localisation.prior_max_m = 0.05
+    # ... and the pose graph's odometry edges, as wide as the jump (its own defaults widen with the path).
+    cfg.localisation.graph.odom_m, cfg.localisation.graph.odom_rad = 0.1, math.radians(3.0)
     d = discover(robot, cfg)
     robot.offset = (0.06, 0.04, math.radians(1.5))  # drift after the exploration: only the tours see it
     recs = execute_tours(robot, d.tours, d.scene, rate_hz=2.0)
@@ -265,6 +267,9 @@ def test_the_exploration_job_hands_the_corrections_to_the_reconstructor(drift):
         job.close()
     (req,) = maps.requests
     assert req.recordings
+    # The pose graph's record goes with the build: an exact robot's moved no panorama.
+    assert req.pose_graph is not None and req.pose_graph.panoramas >= 10
+    assert req.pose_graph.applied == drift and (req.pose_graph.panoramas_corrected > 0) == drift
     for rec in req.recordings:
         if not drift:
             assert rec.odom_corrections == []
