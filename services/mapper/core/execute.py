@@ -198,6 +198,11 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
                     # Some robots also emit look-around frames through the sink: keep one copy.
                     if f.index not in seen:
                         sink(f)
+                if relocalise is not None:
+                    # The look-around turned the robot some 480 deg: a panorama after it measures the
+                    # heading drift that the frames until the next hub would otherwise carry.
+                    relocalise(after_look_around=True)
+                    note_correction()
                 rec.hubs_visited += 1
     # The sink and the look-around return interleave: the reconstructor wants the video in time order.
     rec.frames = sorted(frames, key=lambda f: (f.timestamp_s, f.index))

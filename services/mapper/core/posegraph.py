@@ -13,7 +13,7 @@ graph spreads every error over all the evidence instead:
   registered to the other's (the localiser's scan, line normals and ICP, judged by its fitness,
   inlier and constraint tests). Pairs far apart along the path are the loop closures.
 
-It is solved by sparse least squares with a robust (Cauchy) loss; scan edges whose residual is
+It is solved by sparse least squares with a robust (Cauchy) loss (reweighted Gauss-Newton); scan edges whose residual is
 still implausible after the solve are rejected and the graph solved again. Exact poses stay
 exact: the solution replaces the placements only when some panorama disagrees with its current
 placement by more than the localiser's gate (a noise-free scan registers within millimetres).
@@ -63,6 +63,7 @@ class PoseGraphConfig(BaseModel):
     cauchy_scale: float = Field(3.0, gt=0.0)  # of the whitened residuals
     outlier_chi2: float = Field(16.27, gt=0.0)  # 3 degrees of freedom, 99.9 %
     outlier_rounds: int = Field(2, ge=0, le=10)
+    max_iterations: int = Field(30, ge=1, le=1000)  # of the reweighted Gauss-Newton
     loop_path_m: float = Field(5.0, ge=0.0)  # a pair this far apart along the path is a loop closure
 
 
@@ -260,8 +261,8 @@ class PoseGraph:
 
     def _optimise(self, edges: list[Edge]) -> np.ndarray:
         """Least squares over every node's pose but the first (the exact start)."""
-        from scipy.optimize import least_squares
-        from scipy.sparse import csr_matrix
+        from scipy.sparse import csr_matrix, identity
+        from scipy.sparse.linalg import spsolve
 
         cfg = self.config
         nodes = self.nodes
@@ -332,10 +333,21 @@ class PoseGraph:
             return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                               shape=(m_odo + m_scan, 3 * (n - 1)))
 
-        sol = least_squares(fun, x0[1:].ravel(), jac=jac, loss="cauchy", f_scale=cfg.cauchy_scale,
-                            method="trf", tr_solver="lsmr", x_scale="jac", max_nfev=100,
-                            xtol=1e-10, ftol=1e-10, gtol=1e-10)
-        x = full(sol.x)
+        # Gauss-Newton on the Cauchy loss by reweighting (each residual weighed 1 / (1 + (r / c)^2)),
+        # the normal equations solved sparse and exactly: a few iterations where least_squares' trust
+        # region with lsmr took ~70 Jacobians a solve (0.27 s each, 32 solves on generated:0).
+        v = x0[1:].ravel().copy()
+        eye = identity(len(v), format="csc") * 1e-9
+        for _ in range(cfg.max_iterations):
+            r = fun(v)
+            jm = jac(v)
+            w = 1.0 / (1.0 + (r / cfg.cauchy_scale) ** 2)
+            jw = jm.multiply(w[:, None]).tocsr()
+            step = spsolve((jw.T @ jm).tocsc() + eye, -(jw.T @ r))
+            v += step
+            if np.abs(step).max() < 1e-7:
+                break
+        x = full(v)
         x[:, 2] = wrap_angle(x[:, 2])
         return x
 
