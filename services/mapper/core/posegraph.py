@@ -21,6 +21,14 @@ placement by more than the localiser's gate (a noise-free scan registers within 
 The graph's scans pick their height band by each column's median range (``band_from_median``):
 a pixel chosen by its own noisy depth reads every wall short by centimetres, and between two
 panoramas at different ranges from a wall that bias is a relative pose error.
+
+Measured (bench.tour_drift, generated:0; tour frames' position error median / p90 against the
+truth): 1x drift 6.3 / 10.2 -> 1.0 / 2.6 cm; exact odometry with depth noise 4.3 / 7.7 -> 0.6 / 0.8 cm;
+noise-free 0.0 as before; CPU of exploring and touring 10 -> 27 s. What is left: scan edges tie the
+panoramas of a room to within millimetres, but rooms overlap too little through their doors for a
+scan edge (18 groups on generated:0), so odometry alone ties the rooms and they sit 1-3 cm apart.
+Submap edges between groups (a panorama to the other group's panoramas together), longer scans
+(5 m) and other edge/odometry weights were tried and did not help on both generated:0 and :1.
 """
 
 from __future__ import annotations
