@@ -8,6 +8,7 @@ frame placed by registration).
     python -m bench.tour_drift --drift-scale 0        # depth noise and holes alone (poses exact)
     python -m bench.tour_drift --drift-scale -1       # a noise-free robot (nothing may move)
     python -m bench.tour_drift --band median          # the scan's height band by each column's median range
+    python -m bench.tour_drift --graph off            # the sequential localiser alone (no pose graph)
 
 Explores once and drives the tours (no reconstruction): about a minute of CPU on generated:0.
 """
@@ -26,7 +27,7 @@ BINS_M = (0.0, 0.25, 0.5, 1.0, 2.0, math.inf)
 
 
 def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz: float = 4.0,
-        band_from_median: bool = False) -> dict:
+        band_from_median: bool = False, graph: bool = True) -> dict:
     from services.mapper.core import discover, discovery_config, execute_tours
     from services.robot_io.core.robot import ROBOTS
     from shared.schemas import CameraIntrinsics
@@ -41,6 +42,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     cfg = discovery_config("default")
     cfg.localisation.frames.enabled = frames
     cfg.localisation.band_from_median = band_from_median
+    cfg.localisation.graph.enabled = graph
     c0 = time.process_time()
     d = discover(robot, cfg)
     c1 = time.process_time()
@@ -89,7 +91,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
         outcomes[key] = outcomes.get(key, 0) + 1
     robot.close()
     return {"errors": a, "explore_cpu_s": c1 - c0, "tours_cpu_s": c2 - c1, "frame_outcomes": outcomes,
-            "panoramas": loc.report()["outcomes"], "frames": len(a),
+            "panoramas": loc.report()["outcomes"], "frames": len(a), "graph": loc.report().get("graph"),
             "pano_errors": np.array(panos) if panos else np.zeros((0, 5))}
 
 
@@ -97,6 +99,8 @@ def report(r: dict) -> None:
     a = r["errors"]
     print(f"   {r['frames']} tour frames; CPU explore {r['explore_cpu_s']:.1f} s, tours {r['tours_cpu_s']:.1f} s; "
           f"panoramas {r['panoramas']}; frames registered {r['frame_outcomes']}")
+    if r.get("graph"):
+        print(f"   pose graph (last solve): {r['graph']}")
     print("   | path since fix | frames | pos median / p90 / max (cm) | heading median / p90 (deg) "
           "| turn median (deg) |")
     print("   |---|---|---|---|---|")
@@ -129,11 +133,14 @@ def main() -> None:
     ap.add_argument("--scene", default="generated:0")
     ap.add_argument("--drift-scale", type=float, default=1.0)
     ap.add_argument("--frames", choices=("on", "off"), default="off", help="register tour frames (issue 33)")
+    ap.add_argument("--graph", choices=("on", "off"), default="on", help="the panoramas' pose graph (posegraph.py)")
     ap.add_argument("--band", choices=("median", "pixel"), default="pixel",
                     help="scan height band chosen by each column's median range, or by each pixel's own depth")
     args = ap.parse_args()
-    print(f"## {args.scene}, drift x{args.drift_scale:g}, frame registration {args.frames}, band by {args.band}")
-    report(run(args.scene, args.drift_scale, args.frames == "on", band_from_median=args.band == "median"))
+    print(f"## {args.scene}, drift x{args.drift_scale:g}, frame registration {args.frames}, band by {args.band}, "
+          f"pose graph {args.graph}")
+    report(run(args.scene, args.drift_scale, args.frames == "on", band_from_median=args.band == "median",
+               graph=args.graph == "on"))
 
 
 if __name__ == "__main__":

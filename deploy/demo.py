@@ -155,6 +155,10 @@ def drift_phrase(d: dict | None) -> str:
             f"{d['odom_median_correction_m']:.3f} m, max {d['odom_max_correction_m']:.3f} m, "
             f"{d['odom_max_correction_deg']:.1f} deg)" if d.get("odom_regions_corrected") else
             "no tour moved by the mapper's localiser")
+    g = d.get("pose_graph") or {}
+    if g.get("applied"):
+        odom += (f"; the pose graph placed {g['panoramas_corrected']} of {g['panoramas']} panoramas "
+                 f"({g['loop_closures_accepted']} loop closures, {g['loop_closures_rejected']} rejected)")
     return (f"drift correction: {odom}; registration moved {d['regions_corrected']} regions (max "
             f"{d['max_correction_m']:.3f} m, {d['max_correction_deg']:.1f} deg), "
             f"{d['regions_fallback']} kept their poses")

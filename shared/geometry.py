@@ -165,6 +165,22 @@ def wrap_angle(angle_rad):
     return (np.asarray(angle_rad) + math.pi) % (2.0 * math.pi) - math.pi
 
 
+def interpolate_offsets(times_s, offsets, at_s) -> np.ndarray:
+    """(len(at_s), 3) planar offsets ``(dx, dy, dyaw)`` at the times ``at_s``, linear in time between
+    the entries ``offsets`` (N, 3) given at ``times_s`` (N,) in time order: the first before them, the
+    last after them, the yaw along the shorter way between neighbours. A drifting robot's map <- odom
+    correction between two fixes (issue 33: the mapper's panoramas, the reconstructor's frames)."""
+    t = np.asarray(times_s, np.float64).reshape(-1)
+    o = np.asarray(offsets, np.float64).reshape(-1, 3)
+    a = np.atleast_1d(np.asarray(at_s, np.float64))
+    if len(t) == 0:
+        return np.zeros((len(a), 3))
+    if len(t) == 1:
+        return np.repeat(o, len(a), axis=0)
+    yaw = o[0, 2] + np.concatenate([[0.0], np.cumsum(wrap_angle(np.diff(o[:, 2])))])
+    return np.stack([np.interp(a, t, o[:, 0]), np.interp(a, t, o[:, 1]), wrap_angle(np.interp(a, t, yaw))], axis=1)
+
+
 def rot_z(theta_rad: float) -> np.ndarray:
     """3x3 rotation about +z by ``theta_rad`` (counter-clockwise seen from above)."""
     c, s = math.cos(theta_rad), math.sin(theta_rad)

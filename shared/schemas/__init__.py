@@ -87,6 +87,7 @@ from .navigation import (  # noqa: F401
 )
 from .maps import (  # noqa: F401
     DriftCorrection,
+    PoseGraphSummary,
     RegionDriftCorrection,
     MapInfo,
     MapLabelling,

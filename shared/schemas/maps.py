@@ -69,6 +69,23 @@ class RegionDriftCorrection(Message):
     frames_fallback: int = Field(0, ge=0, le=SEQ_LIMIT)
 
 
+class PoseGraphSummary(Message):
+    """The mapper's pose graph over its panoramas (issue 33), as its last solve before the build left
+    it: the scan-to-scan edges it used and rejected (loop closures: pairs far apart along the path),
+    and how far the panoramas' poses lie from odometry's."""
+
+    panoramas: int = Field(0, ge=0, le=SEQ_LIMIT)
+    scan_edges: int = Field(0, ge=0, le=SEQ_LIMIT)  # accepted
+    edges_rejected: int = Field(0, ge=0, le=SEQ_LIMIT)
+    loop_closures_accepted: int = Field(0, ge=0, le=SEQ_LIMIT)
+    loop_closures_rejected: int = Field(0, ge=0, le=SEQ_LIMIT)
+    applied: bool = False  # False: every panorama within the gate of its sequential placement
+    panoramas_corrected: int = Field(0, ge=0, le=SEQ_LIMIT)  # placed off their odometry pose
+    median_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
+    max_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
+    max_correction_deg: float = Field(0.0, ge=0.0, le=180.0)
+
+
 class DriftCorrection(Message):
     """Whether and how a built map was corrected for drift; ``applied`` False says plainly that the
     map is placed by the recorded poses alone."""
@@ -90,6 +107,7 @@ class DriftCorrection(Message):
     odom_median_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
     odom_max_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
     odom_max_correction_deg: float = Field(0.0, ge=0.0, le=180.0)
+    pose_graph: PoseGraphSummary | None = None  # the mapper's panoramas (None: no graph was solved)
     per_region: list[RegionDriftCorrection] = Field(default_factory=list, max_length=100_000)
 
 
@@ -179,6 +197,8 @@ class BuildMapRequest(Message):
     options: dict[str, Any] = Field(default_factory=dict)
     # The exploration's navigation graph: stored with the map, part of its scene graph (issue 32).
     navigation: NavGraph | None = None
+    # The mapper's pose graph that placed the recordings' corrections (issue 33); kept in the map's record.
+    pose_graph: PoseGraphSummary | None = None
 
     FREE_FORM: ClassVar[tuple[str, ...]] = ("options",)
 

@@ -89,3 +89,6 @@ class TourRecording(Message):
     # these corrections (in time order, each from its robot time on) put a frame, and ``start_pose``,
     # in the map frame that the exploration's graph and the other regions share. Empty: none known.
     odom_corrections: list[OdomCorrection] = Field(default_factory=list, max_length=10_000)
+    # True: a frame takes the correction interpolated in time between the entries around it (each
+    # entry a panorama placed by the mapper's pose graph), not the latest one.
+    odom_corrections_interpolated: bool = False

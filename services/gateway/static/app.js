@@ -85,7 +85,10 @@ function driftLabel(d) {
   // The mapper's own localisation first: on a robot without a localiser it placed most of the map.
   const odom = d.odom_regions_corrected ? `${d.odom_regions_corrected} tours localised (median ` +
     `${(+d.odom_median_correction_m).toFixed(2)} m, max ${(+d.odom_max_correction_m).toFixed(2)} m), ` : "";
-  return ` · drift corrected: ${odom}${d.regions_corrected} regions moved (max ${(+d.max_correction_m).toFixed(2)} m, ` +
+  const g = d.pose_graph;
+  const graph = g && g.applied ? `pose graph over ${g.panoramas} panoramas (${g.loop_closures_accepted} loop closures, ` +
+    `${g.loop_closures_rejected} rejected), ` : "";
+  return ` · drift corrected: ${odom}${graph}${d.regions_corrected} regions moved (max ${(+d.max_correction_m).toFixed(2)} m, ` +
     `${(+d.max_correction_deg).toFixed(1)}°), ${d.regions_fallback} kept odometry`;
 }
 

@@ -119,6 +119,9 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
     if cfg.localisation.enabled and not isinstance(robot, LocalisedRobot):
         robot = LocalisedRobot(robot, Localiser(cfg.localisation))
     result = Explorer(pred, cfg.exploration).explore(robot, checkpoint, on_step)
+    if isinstance(robot, LocalisedRobot):
+        # The panoramas' poses made globally consistent (loop closures) before the tours start from them.
+        robot.localiser.optimise()
     t1 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()

@@ -18,7 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 import networkx as nx
 import numpy as np
 
-from shared.geometry import wrap_angle
+from shared.geometry import interpolate_offsets, wrap_angle
 from shared.schemas import Frame, MoveResult, MoveStatus, Panorama, Pose
 
 from services.mapper.core.errors import TourExecutionError
@@ -60,6 +60,9 @@ class RegionRecording:
     # the frames above already carry it; a robot that publishes its frames itself (robot-io over the
     # bus) sends odometry poses, and these say how to correct them.
     corrections: list[tuple[float, Correction]] = field(default_factory=list)
+    # True once the pose graph re-placed the recording (replace_recordings): a frame's correction is
+    # interpolated in time between the entries around it.
+    interpolated: bool = False
 
 
 def execute_tours(
@@ -94,7 +97,46 @@ def execute_tours(
             on_recording(rec)
     if tours and not out:
         raise TourExecutionError(f"none of the {len(tours)} tours could be driven")
+    localiser = getattr(robot, "localiser", None)
+    if localiser is not None and out:
+        replace_recordings(out, localiser)
     return out
+
+
+def replace_recordings(recs: list[RegionRecording], localiser: Any) -> None:
+    """Every recorded frame re-placed by the final pose graph (posegraph.py): solved once more over
+    all the panoramas (the tours' own among them), each frame takes the map <- odom correction
+    interpolated in time between the panoramas around it, and each recording's corrections become
+    that schedule (for a robot that publishes its frames itself: the reconstructor interpolates the
+    same way). Without a graph, with frames registered one by one (their corrections are not in the
+    schedule), or when the graph changed nothing, the recordings stay as they are."""
+    if localiser.graph is None or localiser.config.frames.enabled or not localiser.steps:
+        return
+    rep = localiser.optimise()
+    if not any(not s.correction.identity for s in localiser.steps):
+        return  # an exact robot: nothing was ever corrected, the recordings stay bit for bit
+    log.info("pose graph before the build: %s", None if rep is None else rep.summary())
+    times, offsets = localiser.schedule()
+    for rec in recs:
+        if not rec.corrections:
+            continue
+        t0 = rec.corrections[0][0]
+        first = max(0, int(np.searchsorted(times, t0, side="right")) - 1)
+        last = len(times)
+        if rec.frames:  # up to the first panorama after the last frame
+            last = min(len(times), int(np.searchsorted(times, rec.frames[-1].timestamp_s, side="left")) + 1)
+        t, o = times[first:last], offsets[first:last]
+        applied_t = np.array([c[0] for c in rec.corrections])
+        if rec.frames:
+            ts = np.array([f.timestamp_s for f in rec.frames])
+            new = interpolate_offsets(t, o, ts)
+            old_k = np.maximum(np.searchsorted(applied_t, ts, side="right") - 1, 0)
+            rec.frames = [Correction(*new[k]).frame(rec.corrections[old_k[k]][1].odom_frame(f))
+                          for k, f in enumerate(rec.frames)]
+        start_odom = rec.corrections[0][1].odom(rec.start_pose)
+        rec.corrections = [(float(tk), Correction(*map(float, ok))) for tk, ok in zip(t, o)]
+        rec.start_pose = rec.corrections[0][1].pose(start_odom)
+        rec.interpolated = True
 
 
 def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = None, rate_hz: float = 5.0,
@@ -156,6 +198,11 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
                     # Some robots also emit look-around frames through the sink: keep one copy.
                     if f.index not in seen:
                         sink(f)
+                if relocalise is not None:
+                    # The look-around turned the robot some 480 deg: a panorama after it measures the
+                    # heading drift that the frames until the next hub would otherwise carry.
+                    relocalise(after_look_around=True)
+                    note_correction()
                 rec.hubs_visited += 1
     # The sink and the look-around return interleave: the reconstructor wants the video in time order.
     rec.frames = sorted(frames, key=lambda f: (f.timestamp_s, f.index))

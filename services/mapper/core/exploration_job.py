@@ -21,7 +21,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import (
@@ -99,18 +99,24 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     def tours_progress() -> float:
         return _TOURS_AT + (_BUILD_AT - _TOURS_AT) * (len(recordings) + len(skipped)) / n_tours
 
-    def on_recording(rec: RegionRecording) -> None:
-        last = robot.last_recording
-        if last is None:
-            raise RuntimeError(f"region {rec.region}: the robot reported no recording")
+    recorded: list[tuple[RegionRecording, Any]] = []
+
+    def tour_recording(rec: RegionRecording, last: Any) -> TourRecording:
         # Robot-io publishes the frames with its odometry poses: the start pose goes with them, and
         # the mapper's corrections beside them, for the reconstructor to apply (issue 33).
         start = rec.corrections[0][1].odom(rec.start_pose) if rec.corrections else rec.start_pose
         corrections = [OdomCorrection(since_s=t, dx_m=c.dx_m, dy_m=c.dy_m, dyaw_rad=c.dyaw_rad)
                        for t, c in rec.corrections if not c.identity or len(rec.corrections) > 1]
-        recordings.append(TourRecording(exploration_id=req.exploration_id, recording=last.recording,
-                                        region=rec.region, start_pose=start, frame_count=last.frame_count,
-                                        odom_corrections=corrections))
+        return TourRecording(exploration_id=req.exploration_id, recording=last.recording, region=rec.region,
+                             start_pose=start, frame_count=last.frame_count, odom_corrections=corrections,
+                             odom_corrections_interpolated=rec.interpolated and bool(corrections))
+
+    def on_recording(rec: RegionRecording) -> None:
+        last = robot.last_recording
+        if last is None:
+            raise RuntimeError(f"region {rec.region}: the robot reported no recording")
+        recorded.append((rec, last))
+        recordings.append(tour_recording(rec, last))
         ctx.progress(ExplorationProgress(
             stage="touring", progress=tours_progress(), region=rec.region, frames=last.frame_count,
             message=f"region {rec.region}: {last.frame_count} frames ({len(recordings)}/{len(disc.tours)})"))
@@ -123,6 +129,9 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
 
     execute_tours(robot, disc.tours, disc.scene, rate_hz=tour_rate_hz, on_recording=on_recording, on_skip=on_skip,
                   checkpoint=ctx.check_cancelled)
+    # The pose graph re-placed the recordings once all tours were in (execute.replace_recordings):
+    # their corrections are the final ones.
+    recordings[:] = [tour_recording(rec, last) for rec, last in recorded]
     if disc.scene.localiser is not None:
         # The correction the robot ends its tours with: against the robot's own truth, where one knows
         # it (a simulator, the ROS 2 stand-in's log), what is left of the drift.
@@ -145,7 +154,8 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     info = maps.build(BuildMapRequest(
         build_id=req.exploration_id, exploration_id=req.exploration_id, map_id=req.map_id, recordings=recordings,
         reconstruction=req.reconstruction, options=req.options.get("reconstruction", {}),
-        label_names=scene.label_names, navigation=nav_graph, source=f"exploration {req.exploration_id} of {scene.scene} ({ended})"),
+        label_names=scene.label_names, navigation=nav_graph,
+        pose_graph=None if disc.scene.localiser is None else disc.scene.localiser.graph_summary(), source=f"exploration {req.exploration_id} of {scene.scene} ({ended})"),
         on_event=on_build_event, cancel=ctx.cancel)
     return JobEnd(JobState.SUCCEEDED, ExplorationFinished(
         map_id=info.map_id, version=info.version, points=info.point_count, regions=len(recordings),

@@ -50,8 +50,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from services.mapper.core.posegraph import GraphReport, PoseGraph, PoseGraphConfig
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, wrap_angle
-from shared.schemas import Frame, MoveResult, Panorama, Pose
+from shared.schemas import Frame, MoveResult, Panorama, Pose, PoseGraphSummary
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,9 @@ class LocaliserConfig(BaseModel):
 
     enabled: bool = True
     frames: FrameRegistrationConfig = Field(default_factory=FrameRegistrationConfig)
+    # Globally consistent panorama poses (posegraph.py): solved when the exploration ends, at every
+    # tour panorama, and once more before the recordings go to the reconstructor.
+    graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
     camera_height_m: float = Field(DEFAULT_CAMERA_HEIGHT_M, gt=0.0, le=3.0)
     min_height_m: float = Field(1.0, ge=0.0, le=3.0)  # above the floor: over tables, beds and sofas
     max_height_m: float = Field(2.0, gt=0.0, le=4.0)  # under most ceilings
@@ -127,6 +131,11 @@ class LocaliserConfig(BaseModel):
     min_gain: float = Field(0.05, ge=0.0, lt=1.0)  # a correction must lower the fit cost by this share
     new_territory_m: float = Field(0.15, gt=0.0)  # an unplaced scan adds only points this far from the model
     relocalise_after_m: float = Field(1.0, ge=0.0)  # tours re-register after driving this far
+    # ... and after every hub's look-around (with the pose graph): its ~480 deg of turns drift the heading
+    # by ~0.8 deg at 1x, which the frames to the next hub carried (bench.tour_drift, generated:0, 1x:
+    # tour-frame heading p90 1.04 -> 0.66 deg; ladder 1x mapped 77.1/81.6/83.2 -> 78.1/82.6/83.8 %,
+    # SSIM .736/.733/.739 -> .760/.737/.753), for a panorama per hub.
+    relocalise_after_look_around: bool = True
     gate_m: float = Field(0.015, ge=0.0)  # disagreement below these leaves the correction alone
     gate_rad: float = Field(math.radians(0.3), ge=0.0)
 
@@ -160,6 +169,10 @@ class Correction:
             return frame
         return frame.model_copy(update={"pose": self.pose(frame.pose), "imu_heading_rad": float(
             wrap_angle(frame.imu_heading_rad + self.dyaw_rad))})
+
+    def odom_frame(self, frame: Frame) -> Frame:
+        """The odometry frame of a map frame (the inverse of :meth:`frame`)."""
+        return Correction(-self.dx_m, -self.dy_m, -self.dyaw_rad).frame(frame)
 
     def panorama(self, pano: Panorama) -> Panorama:
         if self.identity:
@@ -451,12 +464,18 @@ class Localiser:
         self._since_pano_m = 0.0  # ... since the last placed panorama (what a tour's re-localisation waits for)
         self._level_frames = 0
         self._lines: tuple | None = None  # (model version, centre xy, z, points, normals, tree) for frames
+        self._path_m = 0.0  # odometry path and moves since the start (the pose graph's odometry edges)
+        self._moves = 0
+        self._scans: list[np.ndarray] = []  # each panorama's scan (the model is rebuilt from them)
+        self.graph = PoseGraph(self.config.graph, self.config) if self.config.graph.enabled else None
 
     def on_motion(self, travelled_m: float) -> None:
         """One move of the robot (each turns it towards its goal, too): the odometry prior widens."""
         self._since_fix_m += max(0.0, float(travelled_m))
         self._since_pano_m += max(0.0, float(travelled_m))
         self._since_fix_moves += 1
+        self._path_m += max(0.0, float(travelled_m))
+        self._moves += 1
 
     @property
     def since_fix_m(self) -> float:
@@ -511,7 +530,72 @@ class Localiser:
                     pts, wgt = pts[~np.isfinite(d)], wgt[~np.isfinite(d)]
             if len(pts):
                 self.model.add(pts, origin, z, wgt)
+        self._scans.append(scan)
+        if self.graph is not None:
+            gscan = scan if cfg.graph.band_from_median == cfg.band_from_median else panorama_scan(
+                pano, cfg.model_copy(update={"band_from_median": cfg.graph.band_from_median}))
+            self.graph.add(pano.timestamp_s, (odom.position_m[0], odom.position_m[1], odom.heading_rad), z, gscan,
+                           self._path_m, self._moves, (p.position_m[0], p.position_m[1], p.heading_rad))
         return out
+
+    def optimise(self) -> GraphReport | None:
+        """Solve the panoramas' pose graph (posegraph.py) and, where it moved them past the gate,
+        re-place every panorama, rebuild the model from the scans at their new poses and take the
+        latest panorama's correction as the robot's. None without a graph."""
+        if self.graph is None or not self.steps:
+            return None
+        rep = self.graph.solve()
+        if not rep.applied:
+            return rep
+        cfg = self.config
+        for st, n in zip(self.steps, self.graph.nodes):
+            st.correction = Correction.between(st.odom, n.pose[:2], float(n.pose[2]))
+        self.correction = self.steps[-1].correction
+        # Nodes that no scan edge ties to the others are dead-reckoned: as in localise(), they add
+        # only what the model has not seen, never a second copy of a known wall.
+        tied = {k for e in self.graph.edges.values() if e is not None and e.accepted for k in (e.i, e.j)}
+        tied.add(0)
+        self.model = _Model(cfg.model_cell_m)
+        self._lines = None
+        order = sorted(range(len(self.steps)), key=lambda k: k not in tied)
+        for k in order:
+            scan, n = self._scans[k], self.graph.nodes[k]
+            if not len(scan):
+                continue
+            origin = n.pose[:2].copy()
+            pts = scan[:, :2] @ _rot(float(n.pose[2])).T + origin
+            if k not in tied:
+                known, _ = self.model.near(origin, n.z_m, cfg.max_range_m + 1.0, cfg.same_level_m)
+                if len(known):
+                    d, _ = cKDTree(known).query(pts, distance_upper_bound=cfg.new_territory_m)
+                    pts = pts[~np.isfinite(d)]
+            if len(pts):
+                self.model.add(pts, origin, n.z_m, np.ones(len(pts)))
+        return rep
+
+    def graph_summary(self) -> PoseGraphSummary | None:
+        """The map metadata's record of the pose graph (None without one, or before any panorama)."""
+        if self.graph is None or not self.steps:
+            return None
+        r = self.graph.report
+        m = np.array([math.hypot(s.correction.dx_m, s.correction.dy_m) for s in self.steps])
+        deg = np.array([abs(math.degrees(s.correction.dyaw_rad)) for s in self.steps])
+        return PoseGraphSummary(
+            panoramas=len(self.steps), scan_edges=r.scan_edges, edges_rejected=r.edges_rejected,
+            loop_closures_accepted=r.loop_closures_accepted, loop_closures_rejected=r.loop_closures_rejected,
+            applied=any(not s.correction.identity for s in self.steps),
+            panoramas_corrected=sum(not s.correction.identity for s in self.steps),
+            median_correction_m=float(np.median(m)), max_correction_m=float(m.max()),
+            max_correction_deg=float(min(180.0, deg.max())))
+
+    def schedule(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times (N,), corrections (N, 3) as dx, dy, dyaw) of the panoramas in time order: the map
+        <- odom correction at each, for recordings re-placed between them (interpolated)."""
+        t = np.array([s.timestamp_s for s in self.steps], np.float64)
+        c = np.array([(s.correction.dx_m, s.correction.dy_m, s.correction.dyaw_rad) for s in self.steps],
+                     np.float64).reshape(-1, 3)
+        order = np.argsort(t, kind="stable")
+        return t[order], c[order]
 
     def localise_frame(self, frame: Frame) -> Frame:
         """Register a recorded tour frame (odometry pose) against the model of the panoramas, update
@@ -601,11 +685,12 @@ class Localiser:
             key = s.outcome.split(":")[0] if s.outcome.startswith("odometry") else s.outcome
             out[key] = out.get(key, 0) + 1
         c = self.correction
+        graph = {} if self.graph is None else {"graph": self.graph.report.summary()}
         weak = sum(1 for s in self.steps if s.outcome in ("corrected", "agrees") and s.constraint < self.config.min_constraint)
         return {"panoramas": len(self.steps), "outcomes": out, "odometry_along_one_direction": weak,
                 "final_correction_m": round(math.hypot(c.dx_m, c.dy_m), 4),
                 "final_correction_deg": round(math.degrees(c.dyaw_rad), 3),
-                "max_step_m": round(max((s.step_m for s in self.steps), default=0.0), 4)}
+                "max_step_m": round(max((s.step_m for s in self.steps), default=0.0), 4), **graph}
 
 
 class LocalisedRobot:
@@ -628,13 +713,18 @@ class LocalisedRobot:
     def observe(self, *args: Any, **kwargs: Any) -> Panorama:
         return self.localiser.localise(self._robot.observe(*args, **kwargs))
 
-    def relocalise(self) -> None:
+    def relocalise(self, after_look_around: bool = False) -> None:
         """Take a panorama only to re-register (at a tour's start and its hubs), once the robot has
         driven ``relocalise_after_m`` since the last placed panorama: a panorama and its registration
-        cost about what a step of exploration does, and a few decimetres drift only millimetres."""
+        cost about what a step of exploration does, and a few decimetres drift only millimetres.
+        ``after_look_around``: right after a hub's look-around, whatever the path, with the pose graph
+        on and ``relocalise_after_look_around`` (its turns drift the heading)."""
         loc = self.localiser
-        if loc.config.enabled and loc.since_fix_m >= loc.config.relocalise_after_m:
+        after = after_look_around and loc.graph is not None and loc.config.relocalise_after_look_around
+        if loc.config.enabled and (after or (not after_look_around and loc.since_fix_m >= loc.config.relocalise_after_m)):
             self.observe()
+            # The new panorama joins the pose graph: the tour starts where all the evidence puts it.
+            loc.optimise()
 
     def move_to(self, dx_m: float, dy_m: float) -> MoveResult:
         res = self._robot.move_to(dx_m, dy_m)

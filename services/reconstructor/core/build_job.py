@@ -20,11 +20,11 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from shared.geometry import wrap_angle
+from shared.geometry import interpolate_offsets, wrap_angle
 from shared.jobs import JobContext, JobEnd
 from shared.schemas import (
     BuildMapRequest, DriftCorrection, Frame, JobState, MapBuildFinished, MapBuildProgress, MapInfo, OdomCorrection,
-    Pose, TourRecording,
+    Pose, PoseGraphSummary, TourRecording,
 )
 
 from .frames import region_from_frames
@@ -83,7 +83,7 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
                           regions=len(built.regions), scale_factors=built.scale_factors,
                           timings_s=built.timings_s, details=built.details(), navigation=req.navigation,
                           frames={r: labeller_frames(f) for r, f in tour_frames.items()},
-                          drift_correction=with_odometry(built.drift_summary(), req.recordings))
+                          drift_correction=with_odometry(built.drift_summary(), req.recordings, req.pose_graph))
     finally:
         for rec in req.recordings:
             frames.drop(rec.recording)
@@ -96,12 +96,16 @@ def _corrected_pose(pose: Pose, c: OdomCorrection) -> Pose:
     return Pose(position_m=(x + c.dx_m, y + c.dy_m, z), heading_rad=float(wrap_angle(pose.heading_rad + c.dyaw_rad)))
 
 
-def with_odometry(drift: DriftCorrection, recordings: list[TourRecording]) -> DriftCorrection:
+def with_odometry(drift: DriftCorrection, recordings: list[TourRecording],
+                  pose_graph: PoseGraphSummary | None = None) -> DriftCorrection:
     """``drift`` with the mapper's map <- odom corrections that :func:`in_map_frame` applied to the
     recordings: without this the map of a robot that has no localiser of its own would say nothing
-    of the correction that placed most of it (issue 33). Per tour, the largest correction in effect."""
+    of the correction that placed most of it (issue 33). Per tour, the largest correction in effect;
+    and the mapper's pose graph that placed them (its loop closures), when it sent one."""
     tours = [rec.odom_corrections for rec in recordings
              if any(c.dx_m or c.dy_m or c.dyaw_rad for c in rec.odom_corrections)]
+    if pose_graph is not None:
+        drift = drift.model_copy(update={"pose_graph": pose_graph})
     if not tours:
         return drift
     metres = [max(math.hypot(c.dx_m, c.dy_m) for c in cs) for cs in tours]
@@ -117,15 +121,22 @@ def in_map_frame(rec: TourRecording, frames: list[Frame]) -> tuple[Pose, list[Fr
     poses; the mapper localised the robot meanwhile (issue 33) and sent its map <- odom corrections
     beside the recording, each from a robot time on (``map = odom + (dx, dy)``, heading + dyaw, as the
     mapper's own ``Correction``). A frame takes the latest correction at or before its timestamp (the
-    first one before any). No corrections: the recording exactly as it came (an exact robot, or an
-    uncorrected mapper)."""
+    first one before any), or with ``odom_corrections_interpolated`` the one interpolated in time
+    between its neighbours (the mapper's pose graph placed each entry's panorama, and the drift between
+    two of them grows along the way). No corrections: the recording exactly as it came (an exact robot,
+    or an uncorrected mapper)."""
     if not rec.odom_corrections:
         return rec.start_pose, frames
     cs = sorted(rec.odom_corrections, key=lambda c: c.since_s)
     since = np.array([c.since_s for c in cs])
+    if rec.odom_corrections_interpolated:
+        at = interpolate_offsets(since, [(c.dx_m, c.dy_m, c.dyaw_rad) for c in cs], [f.timestamp_s for f in frames])
     out = []
-    for f in frames:
-        c = cs[max(0, int(np.searchsorted(since, f.timestamp_s, side="right")) - 1)]
+    for k, f in enumerate(frames):
+        if rec.odom_corrections_interpolated:
+            c = OdomCorrection(since_s=f.timestamp_s, dx_m=at[k, 0], dy_m=at[k, 1], dyaw_rad=at[k, 2])
+        else:
+            c = cs[max(0, int(np.searchsorted(since, f.timestamp_s, side="right")) - 1)]
         out.append(f.model_copy(update={"pose": _corrected_pose(f.pose, c),
                                         "imu_heading_rad": float(wrap_angle(f.imu_heading_rad + c.dyaw_rad))}))
     return _corrected_pose(rec.start_pose, cs[0]), out

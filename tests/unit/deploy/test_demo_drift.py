@@ -7,7 +7,7 @@ import pytest
 
 from deploy.demo import ROS2_DRIFT, drift_phrase, main, ros2_standin_config
 from services.robot_io.core.ros2.standin import StandInConfig
-from shared.schemas import DriftCorrection
+from shared.schemas import DriftCorrection, PoseGraphSummary
 
 
 def test_drift_makes_the_stand_ins_odometry_drift_under_its_own_config():
@@ -34,5 +34,10 @@ def test_the_drift_line_names_the_mappers_corrections_and_the_registrations():
     assert "3 of the tours moved by the mapper's localiser (median 0.041 m, max 0.120 m, 1.4 deg)" in line
     assert "registration moved 1 regions (max 0.020 m" in line
     assert "no tour moved" in drift_phrase({**d, "odom_regions_corrected": 0})
+    assert "pose graph" not in line
+    g = PoseGraphSummary(panoramas=160, scan_edges=500, loop_closures_accepted=440, loop_closures_rejected=2,
+                         applied=True, panoramas_corrected=120).model_dump(mode="json")
+    assert "the pose graph placed 120 of 160 panoramas (440 loop closures, 2 rejected)" in drift_phrase(
+        {**d, "pose_graph": g})
     assert "none applied" in drift_phrase(DriftCorrection().model_dump(mode="json"))
     assert "none applied" in drift_phrase(None)

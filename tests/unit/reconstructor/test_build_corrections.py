@@ -9,7 +9,9 @@ import math
 import numpy as np
 
 from services.reconstructor.core.build_job import in_map_frame, with_odometry
-from shared.schemas import CameraIntrinsics, DriftCorrection, Frame, OdomCorrection, Pose, TourRecording
+from shared.schemas import (
+    CameraIntrinsics, DriftCorrection, Frame, OdomCorrection, Pose, PoseGraphSummary, TourRecording,
+)
 
 CAM = CameraIntrinsics(width_px=8, height_px=8, hfov_deg=90.0)
 
@@ -67,3 +69,24 @@ def test_the_map_records_the_mappers_corrections_per_tour():
     assert d.regions_corrected == 2 and d.max_correction_m == 0.02  # the registration's record is kept
     # No correction at all (an exact robot, or a mapper that localised nothing): the record as it was.
     assert with_odometry(base, tours[2:]) is base
+    # The mapper's pose graph goes into the record as it came (an exact robot's says it moved nothing).
+    g = PoseGraphSummary(panoramas=12, scan_edges=30, loop_closures_accepted=20, loop_closures_rejected=1,
+                         applied=True, panoramas_corrected=11, max_correction_m=0.2)
+    assert with_odometry(base, tours, g).pose_graph == g
+    assert with_odometry(base, tours[2:], g).pose_graph == g and not with_odometry(base, tours[2:], g).applied
+
+
+def test_interpolated_corrections_grow_between_their_panoramas():
+    """The mapper's pose graph placed each correction's panorama: a frame between two takes the
+    correction interpolated in time (the drift grows on the way), one outside them the nearest."""
+    first = OdomCorrection(since_s=1.0, dx_m=0.1, dy_m=-0.2, dyaw_rad=0.05)
+    second = OdomCorrection(since_s=3.0, dx_m=-0.3, dy_m=0.0, dyaw_rad=-0.1)
+    rec = _recording([second, first]).model_copy(update={"odom_corrections_interpolated": True})
+    frames = [_frame(0, 0.5, 0.0, 0.0), _frame(1, 2.0, 1.0, 0.0), _frame(2, 2.5, 2.0, 0.0), _frame(3, 3.5, 3.0, 0.0)]
+    start, fixed = in_map_frame(rec, frames)
+    want = [(0.1, -0.2, 0.05), (-0.1, -0.1, -0.025), (-0.2, -0.05, -0.0625), (-0.3, 0.0, -0.1)]
+    for f, g, (dx, dy, dyaw) in zip(frames, fixed, want):
+        assert np.allclose(g.pose.position_m, (f.pose.position_m[0] + dx, f.pose.position_m[1] + dy, 0.0))
+        assert math.isclose(g.pose.heading_rad, dyaw, abs_tol=1e-12)
+        assert math.isclose(g.imu_heading_rad, dyaw, abs_tol=1e-12)
+    assert start.position_m == (0.1, 0.8, 0.0)  # the start pose takes the first, as before
