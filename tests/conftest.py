@@ -61,7 +61,24 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.system)
     groups = _file_groups(items)
     for item in items:
-        item.add_marker(pytest.mark.xdist_group(groups[item.nodeid.split("::", 1)[0]]))
+        group = groups[item.nodeid.split("::", 1)[0]]
+        item.add_marker(pytest.mark.xdist_group(group))
+        if getattr(config.option, "loadgroup", False):  # set on an xdist worker under --dist loadgroup
+            _suffix_group(item, group)
+
+
+def _suffix_group(item, group: str) -> None:
+    """The ``@group`` node id suffix that xdist's scheduler groups by, written where pytest reads it.
+
+    pytest-xdist 3.8 writes it to ``item._nodeid``, which pytest 9 no longer reads (a node's id is the
+    ``NodeId`` in ``item._id``): the marks were ignored, every test was its own unit, and the two workers
+    each built the costly session fixtures and the module fixtures of files whose tests they shared
+    (tests/unit/mapper/test_sim_end_to_end.py's 200 m2 exploration twice, one per worker). This is xdist's own
+    suffix (``<node id>@<group>``), so its scheduler and reports read it as with an older pytest."""
+    if hasattr(item, "_id") and "@" not in item.nodeid.rpartition("]")[2]:
+        from _pytest.nodeid import NodeId
+
+        item._id = NodeId.parse(f"{item.nodeid}@{group}")
 
 
 @pytest.fixture(scope="session")

@@ -17,11 +17,15 @@ from services.planner.tools.llm_standin import StandinConfig, StandinServer
 pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 CALLS_PER_EPISODE = 4  # the stand-in's ``straight`` policy answers stop at this step
+# Small houses: the budget and the resume do not depend on a house's size, and each robot's scene switch and
+# curated cloud (built, uploaded, indexed) cost seconds more for the default house (call 48 -> 22 s at load
+# average 4.4; CPU of the file, the session system included, 53 -> 34 s).
+AREA_M2 = 60.0
 
 
 def test_a_budget_cancels_the_missions_in_flight_and_the_resumed_run_reruns_them(tmp_path, capsys,
                                                                                  system_on_scene):
-    ds, gt = generate_set(SetSpec(houses=2, per_house=1, floors=(1,), seed=3), with_gt=True)
+    ds, gt = generate_set(SetSpec(houses=2, per_house=1, floors=(1,), seed=3, area_m2=AREA_M2), with_gt=True)
     episodes = write_set(ds, gt, tmp_path / "set.json.gz")[0]
     out = tmp_path / "out"
     # The session's launched system (tests/conftest.py: two robots); the runner switches both robots'

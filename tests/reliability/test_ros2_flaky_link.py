@@ -30,6 +30,9 @@ from tests.waiting import wait_until
 
 pytestmark = pytest.mark.system  # the stand-in as its own process, in a network namespace
 
+# A small house: the link's faults do not depend on the scene, and the stand-in starts (builds its house,
+# nav grid and kernels) for every test.
+SCENE = "generated:3:area=50"
 TAG = f"ant{os.getpid() % 100000}"
 NS, VH, VR = f"{TAG}ns", f"{TAG}h", f"{TAG}r"
 HOST_IP, ROBOT_IP = "10.213.7.1", "10.213.7.2"
@@ -90,7 +93,7 @@ def standin(link):
     endpoint = f"tcp/{ROBOT_IP}:{port}"
     cfg = {"time_scale": 4.0, "camera": {"width_px": 32, "height_px": 32}}
     proc = subprocess.Popen(
-        ["ip", "netns", "exec", NS, sys.executable, "-m", "services.robot_io.tools.ros2_robot", "--scene", "generated:0",
+        ["ip", "netns", "exec", NS, sys.executable, "-m", "services.robot_io.tools.ros2_robot", "--scene", SCENE,
          "--keys", "bridge", "--listen", endpoint, "--profile-overrides", json.dumps(STANDIN_PROFILE_OVERRIDES),
          "--config", json.dumps(cfg)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -123,10 +126,16 @@ def _heading(robot: Ros2Robot) -> float:
     return wait_until(lambda: robot.pose.heading_rad, 30, "a fresh pose", ignore=(Ros2Error,))
 
 
-def test_delay_and_loss_leave_commands_complete_or_typed(standin):
+@pytest.fixture
+def netem(link):
+    """The kernel's netem qdisc, or a skip: asked before ``standin`` so that a kernel without it does not
+    start a stand-in for nothing."""
     why = _netem_missing()
     if why:
         pytest.skip(why)
+
+
+def test_delay_and_loss_leave_commands_complete_or_typed(netem, standin):
     _sh("tc", "qdisc", "add", "dev", VH, "root", "netem", "delay", "100ms", "loss", "5%")
     with _backend(standin) as robot:
         outcomes = []
