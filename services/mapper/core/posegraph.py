@@ -40,6 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from services.mapper.core.scanmatch import ScanModel, facing, fit_cost, line_normals, register, rot
 from shared.geometry import wrap_angle
 
 
@@ -200,16 +201,14 @@ class PoseGraph:
                     self.edges[(i, j)] = self._register(i, j)
 
     def _lines(self, k: int) -> tuple:
-        from services.mapper.core.localise import _line_normals, _Model
-
         n = self.nodes[k]
         if n.lines is None:
             lc = self.localiser_config
-            m = _Model(lc.model_cell_m)
+            m = ScanModel(lc.model_cell_m)
             if len(n.scan):
                 m.add(n.scan[:, :2].copy(), np.zeros(2), n.z_m, np.ones(len(n.scan)))
             pts, view = m.near(np.zeros(2), n.z_m, math.inf, lc.same_level_m)
-            mp, mn = _line_normals(pts, view, lc.normal_radius_m, lc.max_line_ratio)
+            mp, mn = line_normals(pts, view, lc.normal_radius_m, lc.max_line_ratio)
             n.lines = (mp, mn, cKDTree(mp) if len(mp) else None)
         return n.lines
 
@@ -249,8 +248,6 @@ class PoseGraph:
     def _match(self, i: int, j: int, z0: np.ndarray) -> tuple | None:
         """Node j's scan registered to node i's line model from ``z0`` (j in i's frame), judged as the
         localiser judges a panorama: (z, match, information) or None."""
-        from services.mapper.core.localise import fit_cost, register
-
         cfg, lc = self.config, self.localiser_config
         mp, mn, tree = self._lines(i)
         scan = self.nodes[j].scan
@@ -384,12 +381,10 @@ def _icp_information(scan: np.ndarray, mp: np.ndarray, mn: np.ndarray, tree: cKD
                      heading: float, lc) -> np.ndarray | None:
     """The point-to-line information (x, y, heading) of ``scan`` at the pose it registered to: the
     inliers' normals and levers, each ray ``lc.ray_sigma_m`` uncertain."""
-    from services.mapper.core.localise import _facing, _rot
-
-    p = scan[:, :2] @ _rot(heading).T + xy
+    p = scan[:, :2] @ rot(heading).T + xy
     d, j = tree.query(p, distance_upper_bound=lc.match_m[1])
     m = np.isfinite(d)
-    m[m] = _facing(mp[j[m]], mn[j[m]], xy)
+    m[m] = facing(mp[j[m]], mn[j[m]], xy)
     if not m.any():
         return None
     n = mn[j[m]]
