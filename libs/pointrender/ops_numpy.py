@@ -54,6 +54,24 @@ def point_normals_of(index: IndexedCloud, neighbours: int, spacing_neighbours: i
     return index.cache[key]
 
 
+# The cached arrays that follow from the points' positions alone (not their colours, labels or view
+# directions): another index of the same points in the same order may take them as they are.
+_GEOMETRY_KEYS = frozenset({"point-spacing", "point-normals"})
+
+
+def share_point_geometry(source: IndexedCloud, target: IndexedCloud) -> int:
+    """Give ``target`` the spacing and normals already cached on ``source`` (those it lacks), when
+    both index the same points in the same order (the same positions, block size and shuffle seed,
+    e.g. the same map with view directions added): a neighbour query and eigen-solve per point is
+    then paid once for both. Returns how many arrays were shared; ValueError for other points."""
+    if not (np.array_equal(source.cloud.xyz, target.cloud.xyz) and np.array_equal(source.starts, target.starts)):
+        raise ValueError("share_point_geometry: the two indexes do not hold the same points in the same order")
+    shared = {k: v for k, v in source.cache.items()
+              if isinstance(k, tuple) and k and k[0] in _GEOMETRY_KEYS and k not in target.cache}
+    target.cache.update(shared)
+    return len(shared)
+
+
 def point_sides_of(index: IndexedCloud, neighbours: int, spacing_neighbours: int | None,
                    min_agreement: float) -> tuple[np.ndarray, np.ndarray]:
     """(normals float32 (N, 3), sided uint8 (N,)) of the index's points, cached: the normals of

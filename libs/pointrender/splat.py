@@ -57,9 +57,10 @@ installed, bit-identical to its array code and ~5x faster, and renders the views
 """
 
 from libs.pointrender.config import LOD_CELL_PX, RenderedViews, SplatConfig, TorchSplatConfig
-from libs.pointrender.ops_numpy import point_normals_of, point_sides_of, point_spacing_of
+from libs.pointrender.ops_numpy import point_normals_of, point_sides_of, point_spacing_of, share_point_geometry
 from libs.pointrender.renderer import RENDERERS, SplatRenderer
 
 __all__ = [
     "LOD_CELL_PX", "RENDERERS", "RenderedViews", "SplatConfig", "SplatRenderer", "TorchSplatConfig", "point_normals_of", "point_sides_of", "point_spacing_of",
+    "share_point_geometry",
 ]

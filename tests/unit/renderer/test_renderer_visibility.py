@@ -10,6 +10,7 @@ from services.renderer.tools import scenes
 from shared.cloud import PointCloud, quantise_view_dirs
 from shared.geometry import PinholeCamera
 from libs.pointrender import RENDERERS, IndexedCloud, visibility
+from libs.pointrender.splat import point_normals_of, point_spacing_of, share_point_geometry
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(256, 256, 90.0)
@@ -176,6 +177,24 @@ def test_spacing_and_normals_from_one_query_match_the_separate_ones():
     inner = (np.abs(xyz[:, 2] - 0.5) < 0.4) & (np.abs(xyz[:, 1] - 0.5) < 0.4)
     assert np.quantile(np.abs(normals[: len(wall)][inner[: len(wall)], 0]), 0.01) > 0.95  # the wall faces x
     assert np.quantile(np.abs(normals[len(wall) :, 2]), 0.01) > 0.95  # the floor faces z
+
+
+def test_an_index_of_the_same_points_with_view_dirs_shares_their_spacing_and_normals():
+    wall = _lattice(1.0, (0.0, 1.0), (0.0, 1.0), 0.02, (0, 0, 0), 0)
+    plain = IndexedCloud(wall)
+    dirs = quantise_view_dirs(np.tile([[-1.0, 0.0, 0.0]], (len(wall), 1)))
+    sided = IndexedCloud(PointCloud(wall.xyz, wall.rgb, wall.labels, wall.label_names, dirs))
+    assert share_point_geometry(plain, sided) == 0  # nothing computed yet, nothing shared
+    normals = point_normals_of(plain, 10, 4)
+    assert share_point_geometry(plain, sided) == 2
+    assert point_normals_of(sided, 10, 4) is normals and point_spacing_of(sided, 4) is point_spacing_of(plain, 4)
+    # ... and they are what the sided index would have computed itself.
+    alone = IndexedCloud(PointCloud(wall.xyz, wall.rgb, wall.labels, wall.label_names, dirs))
+    assert np.array_equal(point_normals_of(alone, 10, 4), normals)
+    assert np.array_equal(point_spacing_of(alone, 4), point_spacing_of(plain, 4))
+    # Other points, or the same ones in another order, get nothing.
+    with pytest.raises(ValueError, match="same points"):
+        share_point_geometry(plain, IndexedCloud(wall, seed=1))
 
 
 @pytest.mark.parametrize("n", [1, 2, 3])
