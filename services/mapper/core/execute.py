@@ -109,12 +109,11 @@ def replace_recordings(recs: list[RegionRecording], localiser: Any) -> None:
     interpolated in time between the panoramas around it, and each recording's corrections become
     that schedule (for a robot that publishes its frames itself: the reconstructor interpolates the
     same way). Without a graph, with frames registered one by one (their corrections are not in the
-    schedule), or when the graph changed nothing, the recordings stay as they are."""
-    if localiser.graph is None or localiser.config.frames.enabled or not localiser.steps:
+    schedule), or for a robot the localiser never corrected (an exact one: bit for bit), the
+    recordings stay as they are."""
+    if localiser.graph is None or localiser.config.frames.enabled or not localiser.drift_seen:
         return
     rep = localiser.optimise()
-    if not any(not s.correction.identity for s in localiser.steps):
-        return  # an exact robot: nothing was ever corrected, the recordings stay bit for bit
     log.info("pose graph before the build: %s", None if rep is None else rep.summary())
     times, offsets = localiser.schedule()
     for rec in recs:
