@@ -360,19 +360,7 @@ class Localiser:
             self._since_fix_m, self._since_fix_moves, self._since_pano_m = 0.0, 0, 0.0
         out = self.correction.panorama(pano)
         p = out.pose
-        if len(scan):
-            origin = np.asarray(p.position_m[:2], np.float64)
-            pts = scan[:, :2] @ rot(p.heading_rad).T + origin
-            wgt = np.ones(len(pts))
-            if not placed:
-                # Dead-reckoned: only what the model has not seen yet (a new room), never a second
-                # copy of a known wall a few cm off, which later matches would average with the first.
-                known, _ = self.model.near(origin, z, cfg.max_range_m + 1.0, cfg.same_level_m)
-                if len(known):
-                    d, _ = cKDTree(known).query(pts, distance_upper_bound=cfg.new_territory_m)
-                    pts, wgt = pts[~np.isfinite(d)], wgt[~np.isfinite(d)]
-            if len(pts):
-                self.model.add(pts, origin, z, wgt)
+        self._add_to_model(scan, np.asarray(p.position_m[:2], np.float64), p.heading_rad, z, placed)
         self._scans.append(scan)
         if self.graph is not None:
             gscan = scan if cfg.graph.band_from_median == cfg.band_from_median else panorama_scan(
@@ -396,27 +384,32 @@ class Localiser:
         for st, n in zip(self.steps, self.graph.nodes):
             st.correction = Correction.between(st.odom, n.pose[:2], float(n.pose[2]))
         self.correction = self.steps[-1].correction
-        # Nodes that no scan edge ties to the others are dead-reckoned: as in localise(), they add
-        # only what the model has not seen, never a second copy of a known wall.
+        # Nodes that no scan edge ties to the others are dead-reckoned (see _add_to_model); the tied go first.
         tied = {k for e in self.graph.edges.values() if e is not None and e.accepted for k in (e.i, e.j)}
         tied.add(0)
         self.model = ScanModel(cfg.model_cell_m)
         self._lines = None
-        order = sorted(range(len(self.steps)), key=lambda k: k not in tied)
-        for k in order:
-            scan, n = self._scans[k], self.graph.nodes[k]
-            if not len(scan):
-                continue
-            origin = n.pose[:2].copy()
-            pts = scan[:, :2] @ rot(float(n.pose[2])).T + origin
-            if k not in tied:
-                known, _ = self.model.near(origin, n.z_m, cfg.max_range_m + 1.0, cfg.same_level_m)
-                if len(known):
-                    d, _ = cKDTree(known).query(pts, distance_upper_bound=cfg.new_territory_m)
-                    pts = pts[~np.isfinite(d)]
-            if len(pts):
-                self.model.add(pts, origin, n.z_m, np.ones(len(pts)))
+        for k in sorted(range(len(self.steps)), key=lambda k: k not in tied):
+            n = self.graph.nodes[k]
+            self._add_to_model(self._scans[k], n.pose[:2].copy(), float(n.pose[2]), n.z_m, k in tied)
         return rep
+
+    def _add_to_model(self, scan: np.ndarray, origin_xy: np.ndarray, heading_rad: float, z_m: float,
+                      placed: bool) -> None:
+        """A scan into the model at its pose. Dead-reckoned (``placed`` False): only what the model has
+        not seen yet (a new room), never a second copy of a known wall a few cm off, which later
+        matches would average with the first."""
+        if not len(scan):
+            return
+        cfg = self.config
+        pts = scan[:, :2] @ rot(heading_rad).T + origin_xy
+        if not placed:
+            known, _ = self.model.near(origin_xy, z_m, cfg.max_range_m + 1.0, cfg.same_level_m)
+            if len(known):
+                d, _ = cKDTree(known).query(pts, distance_upper_bound=cfg.new_territory_m)
+                pts = pts[~np.isfinite(d)]
+        if len(pts):
+            self.model.add(pts, origin_xy, z_m, np.ones(len(pts)))
 
     def graph_summary(self) -> PoseGraphSummary | None:
         """The map metadata's record of the pose graph (None without one, or before any panorama)."""

@@ -34,6 +34,7 @@ Submap edges between groups (a panorama to the other group's panoramas together)
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -139,8 +140,6 @@ class PoseGraph:
     def solve(self) -> GraphReport:
         """Register the new pairs, solve, reject outliers, solve again; moves the nodes' poses when the
         solution disagrees with them past the gate. Returns (and keeps) the report."""
-        import time
-
         c0 = time.process_time()
         rep = GraphReport(nodes=len(self.nodes))
         if len(self.nodes) < 2:
