@@ -86,9 +86,12 @@ def test_token_and_wall_time_budgets(world, gateway, tmp_path):
         tok = _runner(gw, world, tmp_path / "tokens", budget_tokens=300).run(_eps(2))
         assert [r.status for r in tok.results] == ["stopped"] and "budget of 300 tokens was reached" in tok.stopped
         assert 330 <= tok.spent.tokens < 17 * 110
-        world.planner.interval_s = 0.2  # an episode takes 1 s; the run may take 0.3 s
-        wall = _runner(gw, world, tmp_path / "wall", budget_wall_s=0.3).run(_eps(2))
-    assert [r.status for r in wall.results] == ["stopped"] and "wall-time budget of 0.3 s" in wall.stopped
+        # An episode takes about 7 s; the run may take 1.5 s. The budget counts from the run's start, so
+        # it must outlast the first mission's submission on a busy machine (a 0.3 s budget once ran out
+        # before the first episode began: no result at all), and still end the first episode midway.
+        world.planner.interval_s = 0.4
+        wall = _runner(gw, world, tmp_path / "wall", budget_wall_s=1.5).run(_eps(2))
+    assert [r.status for r in wall.results] == ["stopped"] and "wall-time budget of 1.5 s" in wall.stopped
 
 
 def _ctx(step, n_waypoints):
