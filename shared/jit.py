@@ -4,6 +4,8 @@ Every kernel module imports ``numba`` and ``AVAILABLE`` from here and keeps a nu
 identical results for when it is absent.
 """
 
+import threading
+
 try:  # pragma: no cover - which branch runs depends on the environment
     import numba
 
@@ -12,4 +14,36 @@ except ImportError:  # pragma: no cover
     numba = None
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "numba"]
+__all__ = ["AVAILABLE", "numba", "one_signature"]
+
+
+class one_signature:  # noqa: N801 - used like numba's own decorators
+    """A jitted kernel compiled for one signature only: the types of its first call, with every array
+    argument taken as any layout (numba's ``'A'``). numba otherwise compiles a new machine code for each
+    layout an argument arrives in: a strided column view and a contiguous array of the same dtype are two
+    signatures. ``visibility_kernels.finish`` was compiled four times (3.5 s of CPU each on a cold cache:
+    a fresh clone's first test run, in every process that renders) for one call site whose renderer paths
+    pass views or copies. Later calls of the same dtypes and ranks run that code (numba converts any layout
+    to ``'A'``, and a writable array to a read-only one). Any other dtype or rank, or a read-only array
+    where the first call's was writable, is a ``TypeError``, not a silent recompile: the caller keeps
+    them fixed."""
+
+    def __init__(self, dispatcher):
+        self._dispatcher = dispatcher
+        self._lock = threading.Lock()
+        self._typed = False
+
+    @property
+    def signatures(self):
+        return self._dispatcher.signatures
+
+    def __call__(self, *args):
+        if not self._typed:
+            with self._lock:  # render threads may make the first call together
+                if not self._typed:
+                    types = tuple(t.copy(layout="A") if isinstance(t, numba.types.Array) else t
+                                  for t in map(numba.typeof, args))
+                    self._dispatcher.compile(types)  # or loaded from numba's cache (cache=True)
+                    self._dispatcher.disable_compile()
+                    self._typed = True
+        return self._dispatcher(*args)

@@ -517,8 +517,12 @@ def compose_compiled(front: FrontLayer, p: VisibilityParams, h: int, w: int, nea
     reach = present[-1] if present else 0
     lab_direct = front.label is not None
     with_labels = lab_direct or nearest is not None
-    lab_ids = front.label if lab_direct else (nearest if with_labels else np.full((1, 1), -1, np.int64))
-    lab_table = point_labels if (with_labels and not lab_direct) else np.zeros(1, np.int64)
+    # int32 ids and labels whatever the path (the kernel's nearest-point image is int32, the array code's
+    # int64; a point id and a label fit): vk.finish has one signature (shared.jit.one_signature).
+    i32 = np.int32
+    lab_ids = front.label if lab_direct else (nearest if with_labels else np.full((1, 1), -1, i32))
+    lab_ids = lab_ids if lab_ids.dtype == i32 else lab_ids.astype(i32)
+    lab_table = np.asarray(point_labels, i32) if (with_labels and not lab_direct) else np.zeros(1, i32)
     with_slope = front.sum_slope is not None
     cells = int(plan.offs[-1])
     pyr = np.empty((cells, 8), f32)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.jit import AVAILABLE, numba
+from shared.jit import AVAILABLE, numba, one_signature
 from libs.pointrender.cover_codes import COVER_MAX_CODE, COVER_NONE
 
 _INF = np.float32(np.inf)
@@ -449,7 +449,8 @@ if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
     _mirrored_min = numba.njit(nogil=True, cache=True, inline="always")(_mirrored_min)
     classes, bucket, add_sources, add_codes = _jit(_classes), _jit(_bucket), _jit(_add_sources), _jit(_add_codes)
-    enclosing, finish = _jit(_enclosing), _jit(_finish)
+    # finish: one signature for its one call site, whose front layer is strided views or copies.
+    enclosing, finish = _jit(_enclosing), one_signature(_jit(_finish))
     colour_filter, rgb8 = _jit(_colour_filter), _jit(_rgb8)
 else:  # pragma: no cover
     classes = bucket = add_sources = add_codes = enclosing = finish = colour_filter = rgb8 = None

@@ -9,7 +9,7 @@ import pytest
 from services.renderer.tools import scenes
 from shared.cloud import PointCloud, quantise_view_dirs
 from shared.geometry import PinholeCamera
-from libs.pointrender import RENDERERS, IndexedCloud, visibility
+from libs.pointrender import RENDERERS, IndexedCloud, visibility, visibility_kernels
 from libs.pointrender.splat import point_normals_of, point_spacing_of, share_point_geometry
 from shared.schemas import ViewPose
 
@@ -389,3 +389,25 @@ def test_a_mapped_near_face_and_a_surface_seen_from_both_sides_keep_their_colour
     out = _render("visibility", IndexedCloud(both))
     seen = ~out.hole_mask[0]
     assert seen.mean() > 0.2 and (out.rgb[0][seen][:, 0] == 200).mean() >= 0.99
+
+
+@pytest.mark.skipif(not visibility_kernels.AVAILABLE, reason="needs numba")
+def test_the_compiled_visibility_pass_has_one_signature_for_every_path_into_it():
+    # The renderer's front layer (strided views of the kernel's rows, an int32 nearest-point image), with
+    # and without labels and the slope term, and contiguous arrays with an int64 label image (the array
+    # code's): one machine code for all, not one per layout and dtype (each 3.5 s of CPU to compile).
+    index = _wall_and_room(1.0)
+    for cfg in ({}, {"visibility_slope_px": 0.0}):
+        r = RENDERERS.create("numpy", {"mode": "visibility", **cfg})
+        for labelled in (True, False):
+            out = r.render(index, [ViewPose(position_m=(0.0, 0.0, 0.0))], PinholeCamera(64, 64, 90.0),
+                         with_labels=labelled)
+            assert (~out.hole_mask[0]).mean() > 0.99
+    h = w = 32
+    front, on, _ = _grazing_plane(h, w, 32.0)
+    front.label = np.where(np.isfinite(front.zmin), 1, -1).astype(np.int64)
+    params = visibility.VisibilityParams(focal_px=32.0, footprint_scale=2.0, max_radius_px=8, min_radius_px=1,
+                                         gap_levels=3, fill_levels=3, gap_max_m=0.08, tol_rel1=1.005, tol_abs_m=0.02)
+    _, _, hole, labels = visibility.compose_compiled(front, params, h, w)
+    assert (labels[on & ~hole] == 1).all()
+    assert len(visibility_kernels.finish.signatures) == 1, visibility_kernels.finish.signatures

@@ -1,0 +1,32 @@
+"""shared.jit.one_signature: a kernel compiled once for the layouts its callers pass."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shared.jit import AVAILABLE, numba, one_signature
+
+pytestmark = pytest.mark.skipif(not AVAILABLE, reason="needs numba")
+
+
+def _corner_sum(a, ids):  # the same result for any layout
+    return a[0, 0] + a[-1, -1] + ids[0]
+
+
+def test_strided_and_contiguous_arrays_share_one_signature():
+    kernel = one_signature(numba.njit(_corner_sum))
+    grid = np.arange(24, dtype=np.float32).reshape(4, 6)
+    ids = np.array([5, 6], np.int32)
+    for a, expected in ((grid[:, ::2], 0 + 22 + 5), (grid, 0 + 23 + 5), (grid.T, 0 + 23 + 5)):
+        assert kernel(a, ids) == expected
+    assert len(kernel.signatures) == 1
+    assert kernel.signatures[0][0].layout == "A"
+
+
+def test_another_dtype_is_refused_not_compiled_again():
+    kernel = one_signature(numba.njit(_corner_sum))
+    kernel(np.zeros((2, 2), np.float32), np.zeros(1, np.int32))
+    with pytest.raises(TypeError):
+        kernel(np.zeros((2, 2), np.float32), np.zeros(1, np.int64))
+    assert len(kernel.signatures) == 1
