@@ -60,8 +60,17 @@ ROWS = {
 _RECORDINGS: dict[tuple, tuple] = {}  # one exploration serves the ladder's corrected and uncorrected builds
 
 
+# Decomposition of a noisy map's error (issue 33): the same recordings with one of its two causes taken
+# out by the simulator's truth (bench-only oracles). "true-poses": every frame at its true pose, its
+# noisy, holed depth kept (what the depth alone costs, on the very trajectory the robot drove);
+# "exact-depth": every frame's depth ray-cast again without noise or holes at its true pose, declared
+# exact, the frame left at the pose the mapper gave it (what the pose error alone costs).
+FRAME_ORACLES = ("true-poses", "exact-depth")
+
+
 def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0,
-              drift_scale: float = 1.0, correction: str | None = None, oracle_starts: bool = False):
+              drift_scale: float = 1.0, correction: str | None = None, oracle_starts: bool = False,
+              frame_oracle: str | None = None):
     """(robot, cloud): the simulator of ``spec`` and the map the system builds of it (cached).
 
     ``size_px`` and ``rate_hz`` are the mapper service's defaults (tour_frame_px, tour_rate_hz);
@@ -75,7 +84,9 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
     robot_cfg = {"scene": spec, "camera": cam}
     if noise:
         robot_cfg["noise"] = noise_config(noise, drift_scale)
-    path, profile = _map_path(spec, backend, noise, size_px, drift_scale, correction, oracle_starts)
+    if frame_oracle is not None and (frame_oracle not in FRAME_ORACLES or not noise):
+        raise ValueError(f"frame oracle {frame_oracle!r}: one of {FRAME_ORACLES}, for a noisy robot only")
+    path, profile = _map_path(spec, backend, noise, size_px, drift_scale, correction, oracle_starts, frame_oracle)
     name = path.name
     robot = ROBOTS.create("sim", robot_cfg)
     if backend == "curated":
@@ -105,6 +116,8 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
         _RECORDINGS[key] = (recs, truth, skipped)
     if oracle_starts:
         recs = _oracle_tour_starts(recs, truth)
+    if frame_oracle is not None:
+        recs = _oracle_frames(recs, truth, frame_oracle, robot)
     reg = {} if correction is None else {"registration": CORRECTIONS[correction]}
     t1 = time.perf_counter()
     with Reconstructor(ReconstructionConfig(backend=backend, **reg)) as r:
@@ -131,7 +144,8 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
 
 
 def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128, drift_scale: float = 1.0,
-              correction: str | None = None, oracle_starts: bool = False) -> tuple[Path, str]:
+              correction: str | None = None, oracle_starts: bool = False,
+              frame_oracle: str | None = None) -> tuple[Path, str]:
     """(the cached map's path, the exploration profile it is built with)."""
     from libs.world.scene import is_generated_spec
 
@@ -143,6 +157,7 @@ def _map_path(spec: str, backend: str, noise: str | None, size_px: int = 128, dr
     # the cache beside the mesh, inside the team's reference data).
     stem = f"{Path(spec).parent.name}_{Path(spec).stem}" if not is_generated_spec(spec) else spec
     ladder = (f"_x{drift_scale:g}" if drift_scale != 1.0 else "") + (f"_corr-{correction.replace('+', '-')}" if correction else "") + ("_oracle" if oracle_starts else "")
+    ladder += f"_{frame_oracle}" if frame_oracle else ""
     name = f"{stem.replace(':', '_').replace('=', '-')}_{backend}{f'_{noise}' if noise else ''}{tag}{ladder}_{size_px}.ply"
     return MAPS / name, profile
 
@@ -214,15 +229,41 @@ def _oracle_tour_starts(recs, truth: dict[int, tuple]) -> list:
     return out
 
 
+def _oracle_frames(recs, truth: dict[int, tuple], oracle: str, robot) -> list:
+    """The recordings with one error source taken out (FRAME_ORACLES); frames the truth does not know
+    (none on the simulator) stay as recorded."""
+    from dataclasses import replace
+
+    cfg = robot.config
+    out = []
+    for rec in recs:
+        frames = []
+        for f in rec.frames:
+            if f.index not in truth:
+                frames.append(f)
+                continue
+            true = truth[f.index][0]
+            if oracle == "true-poses":
+                frames.append(f.model_copy(update={"pose": true}))
+                continue
+            view = robot.renderer.render_views(np.asarray(true.position_m), np.array([true.heading_rad]),
+                                               f.camera.pinhole(), f.pitch_rad, cfg.camera_height_m,
+                                               with_semantic=False)
+            frames.append(f.model_copy(update={"depth_m": view.depth_m[0], "depth_noise_rel": 0.0}))
+        start = frames[0].pose if oracle == "true-poses" and frames else rec.start_pose
+        out.append(replace(rec, frames=frames, start_pose=start))
+    return out
+
+
 def _drift_path(map_path: Path) -> Path:
     return map_path.with_suffix(".drift.json")
 
 
 def build_record(spec: str, backend: str, noise: str | None, drift_scale: float = 1.0,
-                 correction: str | None = None, oracle_starts: bool = False) -> dict:
+                 correction: str | None = None, oracle_starts: bool = False, frame_oracle: str | None = None) -> dict:
     """What was measured when the map was built: tour-start error, regions skipped, build time,
     the drift correction's record (empty for a map cached before these were recorded)."""
-    path = _drift_path(_map_path(spec, backend, noise, 128, drift_scale, correction, oracle_starts)[0])
+    path = _drift_path(_map_path(spec, backend, noise, 128, drift_scale, correction, oracle_starts, frame_oracle)[0])
     return json.loads(path.read_text()) if path.exists() else {}
 
 

@@ -12,6 +12,9 @@ simulator's ray-cast view at the same camera pose, for each renderer mode.
                                             # noisy robot's drift x 0.5 / 1 / 2 (--drift-scales), each
                                             # map built uncorrected and corrected (--corrections), on
                                             # generated:0 and a two-floor house, side by side
+    python -m bench.anticipation --ladder --decompose ...   # + each noisy map at the true poses (its
+                                            # noisy depth) and with exact depth (its poses): which of
+                                            # the two the map's loss comes from
 
 Maps are built the way the system builds them: explore (frontier DFS, hubs, tours), recorded tours,
 then the reconstructor (``rgbd``, ``mono-sim``, or ``rgbd`` on a robot with sensor noise on: all of it,
@@ -68,7 +71,7 @@ from libs.pointrender import RENDERERS, IndexedCloud, SplatConfig
 from shared.schemas import CameraIntrinsics
 
 from bench.agent_maps import (  # noqa: F401
-    CORRECTIONS, MAPS, NOISE, NOISY, ROWS, build_map, build_record, candidate_poses, drift_line, free_poses,
+    CORRECTIONS, FRAME_ORACLES, MAPS, NOISE, NOISY, ROWS, build_map, build_record, candidate_poses, drift_line, free_poses,
 )
 
 # The colour the renderer draws a surface's unseen side in (SplatConfig.unseen_side_rgb's default).
@@ -290,24 +293,31 @@ LADDER_SCENES = ("generated:0", "generated:3:floors=2")
 
 
 def ladder(scenes, scales: list[float], corrections: list[str], n_views: int, mode: str, seed: int = 7,
-           mapped_m: float = MAPPED_M, config: dict | None = None, oracle_starts: bool = False) -> None:
+           mapped_m: float = MAPPED_M, config: dict | None = None, oracle_starts: bool = False,
+           decompose: bool = False) -> None:
     """Issue 33's drift ladder: every map of a scene scored at the same free poses, all pixels, one
     renderer mode; per band mapped within ``mapped_m``, SSIM, labels, leak; per map the tour-start
-    error (the recorded poses, and where the corrected map put them), regions skipped, build time."""
+    error (the recorded poses, and where the corrected map put them), regions skipped, build time.
+    With ``decompose``, each noisy map is followed by the same recordings with one error source taken
+    out (agent_maps.FRAME_ORACLES: "true-poses" keeps the noisy depth, "exact-depth" the poses), so
+    the rows say which of the two the map's loss comes from."""
     cam = PinholeCamera(256, 256, 90.0)
     renderer = RENDERERS.create("numpy", {**(config or {}), "mode": mode})
     renderer.warm_up()
     for spec in scenes:
-        # (label, noise, drift scale, correction): the noise-free map built both ways shows the
+        # (label, noise, drift scale, correction, frame oracle): the noise-free map built both ways shows the
         # correction leaves exact poses alone; then the ladder.
-        maps = [("exact", None, 1.0, c) for c in corrections]
-        maps += [(f"{k:g}x", "noisy", k, c) for k in scales for c in corrections]
+        maps = [("exact", None, 1.0, c, None) for c in corrections]
+        for k in scales:
+            for c in corrections:
+                maps += [(f"{k:g}x", "noisy", k, c, f) for f in (None, *(FRAME_ORACLES if decompose else ()))]
         # The oracle tours (started at their true pose) only exist for a noisy robot: exact is exact.
-        ora = [oracle_starts and noise is not None for _, noise, _, _ in maps]
+        ora = [oracle_starts and noise is not None for _, noise, _, _, _ in maps]
         rows = []
         robot0 = None
-        for (label, noise, k, corr), o in zip(maps, ora):
-            robot, cloud = build_map(spec, "rgbd", noise, drift_scale=k, correction=corr, oracle_starts=o)
+        for (label, noise, k, corr, fo), o in zip(maps, ora):
+            robot, cloud = build_map(spec, "rgbd", noise, drift_scale=k, correction=corr, oracle_starts=o,
+                                     frame_oracle=fo)
             if robot0 is None:
                 robot0 = robot  # noise-free: its ray cast and free poses score every map of the scene
                 poses = free_poses(robot0, n_views, seed)
@@ -315,8 +325,10 @@ def ladder(scenes, scales: list[float], corrections: list[str], n_views: int, mo
                 robot.close()
             gt = GroundTruth(robot0, cloud, poses, cam, mapped_m)
             bands = score(renderer, IndexedCloud(cloud), gt, poses, cam, mapped_only=False)
-            rows.append((label, corr, bands, build_record(spec, "rgbd", noise, k, corr, o), len(cloud)))
-            print(f"   scored {label} {corr}", flush=True)  # each map takes minutes: say where the run is
+            # An oracle row is told apart in the correction column (and is no ladder row for the targets).
+            rows.append((label, corr if fo is None else f"{corr}:{fo}", bands,
+                         build_record(spec, "rgbd", noise, k, corr, o, fo), len(cloud)))
+            print(f"   scored {label} {corr}{f' ({fo})' if fo else ''}", flush=True)  # each map takes minutes: say where the run is
         _ladder_report(spec + (" (oracle tour starts: each tour started at its true pose)" if oracle_starts else ""),
                        mode, n_views, mapped_m, rows)
         robot0.close()
@@ -325,7 +337,7 @@ def ladder(scenes, scales: list[float], corrections: list[str], n_views: int, mo
 def _ladder_report(spec: str, mode: str, n_views: int, mapped_m: float, rows) -> None:
     print(f"\n== drift ladder: {spec}, {n_views} free poses, {mode} renderer, all pixels; mapped = true surface "
           f"within {100 * mapped_m:.0f} cm of a map point ==")
-    print(f"{'drift':<6} {'corr':<15} {'band':<6} {'views':>5} {'mapped%':>7} {'SSIM':>6} {'label%':>7} {'leak%':>6}"
+    print(f"{'drift':<6} {'corr':<22} {'band':<6} {'views':>5} {'mapped%':>7} {'SSIM':>6} {'label%':>7} {'leak%':>6}"
           f"   {'start m (rec/corr, median)':>26} {'skipped':>7} {'build s':>7} {'moved/fb':>8}")
     ref = {}
     for label, corr, bands, rec, _n in rows:
@@ -344,7 +356,7 @@ def _ladder_report(spec: str, mode: str, n_views: int, mapped_m: float, rows) ->
             tail = (f"   {start:>26} {rec.get('regions_skipped', '-'):>7} {rec.get('build_s', math.nan):>7.1f} {moved:>8}"
                     if first else "")
             first = False
-            print(f"{label:<6} {corr:<15} {band:<6} {len(s.coverage):>5} {100 * vals[0]:>7.1f} {vals[1]:>6.3f} "
+            print(f"{label:<6} {corr:<22} {band:<6} {len(s.coverage):>5} {100 * vals[0]:>7.1f} {vals[1]:>6.3f} "
                   f"{100 * vals[2]:>7.1f} {100 * vals[3]:>6.1f}{tail}")
     # Targets (issue 33, at 1x, every band) against the noise-free map built the same way.
     for label, corr, bands, rec, _n in rows:
@@ -384,11 +396,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--corrections", nargs="+", choices=list(CORRECTIONS), default=["off", "frames+regions"])
     ap.add_argument("--oracle-starts", action="store_true",
                     help="ladder: each tour starts at its true pose (stands in for the mapper's re-localisation)")
+    ap.add_argument("--decompose", action="store_true",
+                    help="ladder: each noisy map again at the true poses (noisy depth) and with exact depth "
+                         "(the mapper's poses): which error source the map's loss comes from")
     args = ap.parse_args(argv)
     if args.ladder:
         logging.basicConfig(level=logging.WARNING)
         ladder(args.ladder_scenes, args.drift_scales, args.corrections, args.views or 24,
-               args.modes[-1], mapped_m=args.mapped_m, oracle_starts=args.oracle_starts)
+               args.modes[-1], mapped_m=args.mapped_m, oracle_starts=args.oracle_starts, decompose=args.decompose)
         return
     logging.basicConfig(level=logging.WARNING)
     views = args.views or (96 if args.full else 48)

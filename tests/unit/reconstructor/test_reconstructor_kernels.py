@@ -166,7 +166,8 @@ def test_a_frame_that_declares_depth_noise_is_fused_only_as_far_as_it_is_good(ke
     # is left out (samples scattered ~10 cm at 3 m smear a wall a nearer look mapped cleanly); an exact
     # sensor (rel 0) keeps max_depth_m. Both paths agree bit for bit, as without noise.
     region = _region(5, seed=2)
-    cfg = {"kernel": kernel, "remove_outliers": False, "pixel_stride": 1}
+    # Raw depth (not denoised): its sigma is the declared one (denoised frames: test_depth_denoise.py).
+    cfg = {"kernel": kernel, "remove_outliers": False, "pixel_stride": 1, "denoise_window_px": 1}
     rgbd = RECONSTRUCTORS.create("rgbd", cfg)
     exact = rgbd.reconstruct(region)
     for im in region.images:
