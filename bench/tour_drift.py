@@ -77,6 +77,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     # the odometry path from the start: an error that grows with it is the model's own drift.
     panos, path_m, prev = [], 0.0, None
     pano_xy = []  # (true x, y, heading, placed x, y, heading, true z) for the per-level rigid fit
+    outcomes_ = []  # each of those panoramas' localisation outcome
     for st in loc.steps:
         if prev is not None:
             path_m += float(np.hypot(*np.subtract(st.odom.position_m[:2], prev.position_m[:2])))
@@ -88,6 +89,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
                           abs(math.degrees(math.remainder(true.heading_rad - placed.heading_rad, 2 * math.pi))),
                           float(np.hypot(*np.subtract(true.position_m[:2], st.odom.position_m[:2]))),
                           not st.outcome.startswith("odometry")))
+            outcomes_.append(st.outcome)
             pano_xy.append((true.position_m[0], true.position_m[1], true.heading_rad,
                             placed.position_m[0], placed.position_m[1], placed.heading_rad, true.position_m[2]))
     outcomes: dict[str, int] = {}
@@ -98,7 +100,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     return {"errors": a, "explore_cpu_s": c1 - c0, "tours_cpu_s": c2 - c1, "frame_outcomes": outcomes,
             "panoramas": loc.report()["outcomes"], "frames": len(a), "graph": loc.report().get("graph"),
             "pano_errors": np.array(panos) if panos else np.zeros((0, 5)), "frame_z": frame_z,
-            "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7))}
+            "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7)), "pano_outcomes": outcomes_}
 
 
 def levels(z_m: np.ndarray, share: float = 0.1) -> np.ndarray:
