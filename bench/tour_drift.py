@@ -9,6 +9,7 @@ frame placed by registration).
     python -m bench.tour_drift --drift-scale -1       # a noise-free robot (nothing may move)
     python -m bench.tour_drift --band median          # the scan's height band by each column's median range
     python -m bench.tour_drift --graph off            # the sequential localiser alone (no pose graph)
+    python -m bench.tour_drift --scene generated:3:floors=2   # a two-floor house: the errors split by level
 
 Explores once and drives the tours (no reconstruction): about a minute of CPU on generated:0.
 """
@@ -69,11 +70,14 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
             rows.append((path_m - base[0], math.degrees(turn_rad - base[1]),
                          float(np.hypot(*np.subtract(true.position_m[:2], f.pose.position_m[:2]))),
                          abs(math.degrees(math.remainder(true.heading_rad - f.pose.heading_rad, 2 * math.pi))),
-                         last, rec.region))
+                         last, rec.region, float(true.position_m[2])))
     a = np.array([r[:4] for r in rows]) if rows else np.zeros((0, 4))
+    frame_z = np.array([r[6] for r in rows])
     # Each panorama's pose after its own step (what the model took it at) against the truth, with
     # the odometry path from the start: an error that grows with it is the model's own drift.
     panos, path_m, prev = [], 0.0, None
+    pano_xy = []  # (true x, y, heading, placed x, y, heading, true z) for the per-level rigid fit
+    outcomes_ = []  # each of those panoramas' localisation outcome
     for st in loc.steps:
         if prev is not None:
             path_m += float(np.hypot(*np.subtract(st.odom.position_m[:2], prev.position_m[:2])))
@@ -85,6 +89,9 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
                           abs(math.degrees(math.remainder(true.heading_rad - placed.heading_rad, 2 * math.pi))),
                           float(np.hypot(*np.subtract(true.position_m[:2], st.odom.position_m[:2]))),
                           not st.outcome.startswith("odometry")))
+            outcomes_.append(st.outcome)
+            pano_xy.append((true.position_m[0], true.position_m[1], true.heading_rad,
+                            placed.position_m[0], placed.position_m[1], placed.heading_rad, true.position_m[2]))
     outcomes: dict[str, int] = {}
     for s in loc.frame_steps:
         key = s.outcome.split(":")[0]
@@ -92,7 +99,62 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     robot.close()
     return {"errors": a, "explore_cpu_s": c1 - c0, "tours_cpu_s": c2 - c1, "frame_outcomes": outcomes,
             "panoramas": loc.report()["outcomes"], "frames": len(a), "graph": loc.report().get("graph"),
-            "pano_errors": np.array(panos) if panos else np.zeros((0, 5))}
+            "pano_errors": np.array(panos) if panos else np.zeros((0, 5)), "frame_z": frame_z,
+            "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7)), "pano_outcomes": outcomes_}
+
+
+def levels(z_m: np.ndarray, share: float = 0.1) -> np.ndarray:
+    """The floor heights among the panoramas' true heights: heights (to 5 cm) that hold at least
+    ``share`` of the panoramas. The stairs' panoramas (every step of a climb) are each at their own."""
+    if not len(z_m):
+        return np.zeros(0)
+    h, n = np.unique(np.round(z_m / 0.05).astype(int), return_counts=True)
+    return np.sort(0.05 * h[n >= share * len(z_m)].astype(float))
+
+
+def rigid_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """The planar rigid transform (Kabsch) taking ``src`` (N, 2) onto ``dst``: (x, y), yaw, and the
+    residual of each point after it. Small residuals under a large error: the level is internally
+    consistent and sits rigidly off (a floor hanging on the stairs' odometry)."""
+    cs, cd = src.mean(0), dst.mean(0)
+    h = (src - cs).T @ (dst - cd)
+    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    r = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    t = cd - cs @ r.T
+    return t, yaw, np.hypot(*(src @ r.T + t - dst).T)
+
+
+def report_levels(r: dict) -> None:
+    """The errors split by floor (the true height): which floor's frames and panoramas are off, and
+    whether a floor's panoramas are off rigidly (one offset for the floor) or each its own way."""
+    pp = r["pano_poses"]
+    lv = levels(pp[:, 6]) if len(pp) else np.zeros(0)
+    if len(lv) < 2:
+        return
+    print("   by level (true height): tour frames' and panoramas' error; panoramas after the level's best rigid fit")
+    print("   | level z | frames | frame pos median / p90 (cm) | frame heading median / p90 (deg) | panoramas "
+          "| pano pos median / p90 (cm) | pano heading median (deg) | rigid fit (cm, deg) | after fit median / p90 (cm) |")
+    print("   |---|---|---|---|---|---|---|---|---|")
+    a, fz = r["errors"], r["frame_z"]
+    for z in lv:
+        fm = np.abs(fz - z) < 0.3 if len(fz) else np.zeros(0, bool)
+        pm = np.abs(pp[:, 6] - z) < 0.3
+        e, p = a[fm], pp[pm]
+        fr = (f"{100 * np.median(e[:, 2]):.1f} / {100 * np.percentile(e[:, 2], 90):.1f} | "
+              f"{np.median(e[:, 3]):.2f} / {np.percentile(e[:, 3], 90):.2f}") if len(e) else "- | -"
+        dpos = np.hypot(*(p[:, :2] - p[:, 3:5]).T)
+        dh = np.abs(np.degrees([math.remainder(t - q, 2 * math.pi) for t, q in zip(p[:, 2], p[:, 5])]))
+        if len(p) >= 2:
+            t, yaw, res = rigid_fit(p[:, 3:5], p[:, :2])
+            fit = f"{100 * math.hypot(*t):.1f}, {math.degrees(yaw):.2f} | {100 * np.median(res):.1f} / {100 * np.percentile(res, 90):.1f}"
+        else:
+            fit = "- | -"
+        print(f"   | {z:.2f} m | {int(fm.sum())} | {fr} | {len(p)} | {100 * np.median(dpos):.1f} / "
+              f"{100 * np.percentile(dpos, 90):.1f} | {np.median(dh):.2f} | {fit} |")
+    stairs = ~np.any(np.abs(fz[:, None] - lv[None]) < 0.3, axis=1) if len(fz) else np.zeros(0, bool)
+    if stairs.any():
+        e = a[stairs]
+        print(f"   frames on the stairs (no level): {int(stairs.sum())}, pos median {100 * np.median(e[:, 2]):.1f} cm")
 
 
 def report(r: dict) -> None:
@@ -139,8 +201,10 @@ def main() -> None:
     args = ap.parse_args()
     print(f"## {args.scene}, drift x{args.drift_scale:g}, frame registration {args.frames}, band by {args.band}, "
           f"pose graph {args.graph}")
-    report(run(args.scene, args.drift_scale, args.frames == "on", band_from_median=args.band == "median",
-               graph=args.graph == "on"))
+    r = run(args.scene, args.drift_scale, args.frames == "on", band_from_median=args.band == "median",
+            graph=args.graph == "on")
+    report(r)
+    report_levels(r)
 
 
 if __name__ == "__main__":

@@ -117,7 +117,7 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
     pred = predictor or PREDICTORS.create(cfg.predictor, cfg.predictor_config or None)
     t0 = time.perf_counter()
     if cfg.localisation.enabled and not isinstance(robot, LocalisedRobot):
-        robot = LocalisedRobot(robot, Localiser(cfg.localisation))
+        robot = LocalisedRobot(robot, Localiser(cfg.localisation), bridge=True)
     result = Explorer(pred, cfg.exploration).explore(robot, checkpoint, on_step)
     if isinstance(robot, LocalisedRobot):
         # The panoramas' poses made globally consistent (loop closures) before the tours start from them.

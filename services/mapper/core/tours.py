@@ -423,17 +423,23 @@ class TourPlanner:
         main = np.bincount(comp[seeds]).argmax()
         # Hubs stand in the region's own cells (walking slightly into a doorway is fine): the
         # region's cells dilated by two, in a window around the region rather than the whole floor.
-        grow = 2
-        lo = np.maximum(targets.min(axis=0) - grow, 0)
-        hi = np.minimum(targets.max(axis=0) + grow + 1, free.shape)
-        window = np.zeros(hi - lo, dtype=bool)
-        window[targets[:, 0] - lo[0], targets[:, 1] - lo[1]] = True
-        window = ndimage.binary_dilation(window, iterations=grow)
+        # Where none of them has the clearance (a room too narrow for the robot, or drawn so by a
+        # drifting robot's scans: generated:3:floors=2 at 1x lost a region's tour so), a standpoint
+        # as far outside it as a node may snap (its door, looking in) stands in; the visibility
+        # below still decides whether it sees the region at all.
         rc = fg_.rcells
-        inside = np.all((rc >= lo) & (rc < hi), axis=1)
-        in_region = np.zeros(len(rflat), dtype=bool)
-        in_region[inside] = window[rc[inside, 0] - lo[0], rc[inside, 1] - lo[1]]
-        cand_nodes = np.nonzero((comp == main) & in_region)[0]
+        for grow in (2, max(2, int(math.ceil(snap_m / occ.cell_m)))):
+            lo = np.maximum(targets.min(axis=0) - grow, 0)
+            hi = np.minimum(targets.max(axis=0) + grow + 1, free.shape)
+            window = np.zeros(hi - lo, dtype=bool)
+            window[targets[:, 0] - lo[0], targets[:, 1] - lo[1]] = True
+            window = ndimage.binary_dilation(window, iterations=grow)
+            inside = np.all((rc >= lo) & (rc < hi), axis=1)
+            in_region = np.zeros(len(rflat), dtype=bool)
+            in_region[inside] = window[rc[inside, 0] - lo[0], rc[inside, 1] - lo[1]]
+            cand_nodes = np.nonzero((comp == main) & in_region)[0]
+            if len(cand_nodes):
+                break
         if len(cand_nodes) == 0:
             raise PlanningError("no reachable cell inside the region")
         cand_idx = rc[cand_nodes]
