@@ -16,8 +16,8 @@ What is left is spent where the size of things does not matter to what this test
 (robot motion in simulated time), fusing its frames, and the renderer indexing the map before the first
 step. The camera records at 2 Hz instead of 4 (half the frames to render, send and fuse), the time scale is
 12 (the tour's wall time; the stand-in slows its simulated clock when it falls behind, it never skips), and
-the map is stored on a 6 cm voxel grid instead of 3 cm (a quarter of the points to index). Same run, load
-average 8.5 on 2 cores: the demo 103 s -> 72 s, its CPU 58 -> 44 s; the renderer's index 15.8 -> 3.8 s.
+the map is stored on a 6 cm voxel grid instead of 3 cm (a quarter of the points to index). This test alone,
+load average 8 on 2 cores: 99 s -> 69 s; the reconstruction 14.5 -> 7.6 s, the renderer's index 15.8 -> 2.6 s.
 """
 
 from __future__ import annotations
