@@ -30,7 +30,8 @@ SHARED_DATA = Path(os.environ.get("ANT_SHARED_DATA") or REPO_ROOT.parent / "shar
 # session fixture once per worker that uses it. A group is one file, so a module-scoped fixture (a ROS 2
 # stand-in, a server) is built once. The files that use one of these costly session fixtures share its group
 # instead, so one worker builds it (a file's group: the first of them that any of its tests uses, in this
-# order). The launched system is here too: its tests then run one after another, as in a serial run.
+# order). The launched system is here too: the tests that use it run one after another on one worker, while
+# the other worker runs the `system` tests that start processes of their own (``make test``'s second run).
 SHARED_FIXTURE_GROUPS = {  # "<the directory of its conftest.py>::<fixture>": group
     "tests::system": "system",  # the launched OS processes (tests/launched.py)
     "tests/reliability::live": "live",  # the reliability suite's in-process system (a router and every service)
@@ -45,10 +46,7 @@ _RANK = {g: i for i, g in enumerate(dict.fromkeys(SHARED_FIXTURE_GROUPS.values()
 def _shared_fixtures(item) -> set[str]:
     """The test's fixtures (those it asks for and theirs), each as ``<conftest directory>::<name>``."""
     defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
-    found = {f"{d[-1].baseid}::{name}" for name, d in defs.items() if d}
-    if item.get_closest_marker("system"):  # starts OS processes: one after another, as in a serial run
-        found.add("tests::system")
-    return found
+    return {f"{d[-1].baseid}::{name}" for name, d in defs.items() if d}
 
 
 def _file_groups(items) -> dict[str, str]:

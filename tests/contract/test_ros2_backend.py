@@ -310,8 +310,12 @@ def test_the_stand_in_killed_mid_move_gives_a_typed_error_and_a_zero_twist():
              "--config", '{"time_scale": 2.0, "camera_rate_hz": 2.0, "camera": {"width_px": 64, "height_px": 64}}'],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "PYTHONPATH": os.getcwd()})
         log = CmdLog(endpoint, "rmw_zenoh", "/cmd_vel")
+        # Odometry may be 2 s of robot time old (1 s of wall time at scale 2; the default 0.5 s is a quarter
+        # second of wall time, tight on a machine whose two cores are busy: this wait for the turn's Twists
+        # once ran out). The kill does not depend on it: with the stand-in gone no /clock arrives, robot
+        # time stands still, and the turn ends on the clock's silence (clock_timeout_s, wall time).
         config = Ros2Config(keys="rmw_zenoh", profile_overrides={"clock": "/clock"}, connect_timeout_s=60,
-                            transport_config={"zenoh": {"connect": [endpoint]}})
+                            max_data_age_s=2.0, transport_config={"zenoh": {"connect": [endpoint]}})
         with Ros2Robot(config) as robot:
             err: list[BaseException] = []
 
@@ -323,7 +327,10 @@ def test_the_stand_in_killed_mid_move_gives_a_typed_error_and_a_zero_twist():
 
             th = threading.Thread(target=turn)
             th.start()
-            wait_until(lambda: len([t for t in log.twists if t[1] != 0]) > 5, what="turning")
+            # Bounded; a turn that ended before the kill says why (its error) instead of a bare timeout.
+            wait_until(lambda: len([t for t in log.twists if t[1] != 0]) > 5 or not th.is_alive(), 30,
+                       what="turning")
+            assert th.is_alive(), f"the turn ended before the stand-in was killed: {err}"
             proc.send_signal(signal.SIGKILL)
             th.join(30)
             assert not th.is_alive()
