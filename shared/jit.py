@@ -14,7 +14,7 @@ except ImportError:  # pragma: no cover
     numba = None
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "numba", "one_signature"]
+__all__ = ["AVAILABLE", "insert_sorted", "numba", "one_signature"]
 
 
 class one_signature:  # noqa: N801 - used like numba's own decorators
@@ -47,3 +47,21 @@ class one_signature:  # noqa: N801 - used like numba's own decorators
                     self._dispatcher.disable_compile()
                     self._typed = True
         return self._dispatcher(*args)
+
+
+def insert_sorted(buf, n, x):  # pragma: no cover - called from compiled kernels
+    """``x`` inserted into ``buf[:n]``, kept ascending (an insertion sort's step); returns the new count.
+
+    The gated depth medians of a sensor that declares its noise (the waypoint predictor's column
+    median, the reconstructor's denoising) sort a handful of neighbours per pixel: a few compares,
+    where a call to a general sort would cost more than the sorting."""
+    j = n
+    while j > 0 and buf[j - 1] > x:
+        buf[j] = buf[j - 1]
+        j -= 1
+    buf[j] = x
+    return n + 1
+
+
+if AVAILABLE:  # pragma: no cover - which branch runs depends on the environment
+    insert_sorted = numba.njit(nogil=True, cache=True)(insert_sorted)

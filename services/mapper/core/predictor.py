@@ -20,7 +20,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, wrap_angle
-from shared.jit import AVAILABLE, numba
+from shared.jit import AVAILABLE, insert_sorted, numba
 from shared.registry import BackendConfig, Registry
 from shared.schemas import Candidate, CandidateKind, Panorama
 
@@ -183,12 +183,7 @@ def _column_median_kernel(depth, rows, gate_scale, out):  # pragma: no cover - c
                     x = depth[v, k, c]
                     if not x > 0.0:
                         continue
-                    j = n
-                    while j > 0 and buf[j - 1] > x:
-                        buf[j] = buf[j - 1]
-                        j -= 1
-                    buf[j] = x
-                    n += 1
+                    n = insert_sorted(buf, n, x)
                 med = (buf[(n - 1) // 2] + buf[n // 2]) * half_f
                 m64 = np.float64(med)
                 if abs(m64 - np.float64(d)) <= gate_scale * m64 * m64:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.jit import AVAILABLE, numba
+from shared.jit import AVAILABLE, insert_sorted, numba
 
 
 def denoise_depth(depth: np.ndarray, noise_rel: float, window_px: int = 5, gate_sigmas: float = 2.5,
@@ -97,13 +97,7 @@ def _denoise_loop(d, rel, r, g, e, out):  # pragma: no cover - compiled; the arr
                     if 0 <= a < h and 0 <= b < w:
                         v = d[a, b]
                         if v > 0 and np.isfinite(v):
-                            # insertion sort of the valid neighbours
-                            p = n
-                            while p > 0 and buf[p - 1] > v:
-                                buf[p] = buf[p - 1]
-                                p -= 1
-                            buf[p] = v
-                            n += 1
+                            n = insert_sorted(buf, n, v)  # the valid neighbours, ascending
             med = np.float32(0.5) * (buf[(n - 1) // 2] + buf[n // 2])
             ref = med if abs(c - med) <= e * rel * med * med else c
             gate = g * rel * ref * ref
