@@ -130,7 +130,8 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
         scene.localiser = robot.localiser
         # Whether the localiser placed anything is otherwise invisible until the map's drift record
         # (a robot whose panoramas give it no scan, say, is quietly dead-reckoned).
-        log.info("localisation over the exploration: %s", robot.localiser.report())
+        log.info("localisation over the exploration: %s; %d bridge panoramas (%.1f m driven for them)",
+                 robot.localiser.report(), robot.bridges, robot.bridge_m)
     t2 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()

@@ -598,7 +598,10 @@ class LocalisedRobot:
         # are recorded, and its panoramas come after transits, not one straight move.
         self._bridge = bridge
         self._last_move: tuple[float, float, MoveResult] | None = None  # since the last panorama
+        # What the bridges cost a robot (logged with the exploration's localisation): a real one
+        # drives these metres back and forth on top of its exploration.
         self.bridges = 0
+        self.bridge_m = 0.0
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._robot, name)
@@ -628,12 +631,15 @@ class LocalisedRobot:
         here = np.asarray(self._robot.pose.position_m[:2], np.float64)
         back = self._robot.move_to(-0.5 * dx, -0.5 * dy)
         loc.on_motion(back.travelled_m)
+        self.bridge_m += back.travelled_m
         if back.status == MoveStatus.REACHED:
             loc.bridge(self._robot.observe(*args, **kwargs))
             self.bridges += 1
         d = here - np.asarray(self._robot.pose.position_m[:2], np.float64)
         if np.hypot(*d) > 1e-6:
-            loc.on_motion(self._robot.move_to(float(d[0]), float(d[1])).travelled_m)
+            ahead = self._robot.move_to(float(d[0]), float(d[1])).travelled_m
+            loc.on_motion(ahead)
+            self.bridge_m += ahead
         loc.replace_bridged()
 
     def relocalise(self, after_look_around: bool = False) -> None:

@@ -325,5 +325,6 @@ def test_a_panorama_past_a_door_is_bridged_to_the_room_behind(rooms, bridge):
         assert len(loc.steps) == 3 and far.outcome.startswith("odometry") and pos > 0.045
         return
     assert lr.bridges == 1 and len(loc.steps) == 4 and loc.steps[3].outcome == "corrected", loc.steps
+    assert lr.bridge_m == pytest.approx(2.6, abs=0.05)  # half the move back and forward again
     assert pos < 0.01, (pos, far)
     assert len(loc.graph.nodes) == 4 and np.allclose(loc.graph.nodes[2].pose[:2], far.correction.pose(far.odom).position_m[:2])
