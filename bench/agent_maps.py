@@ -22,6 +22,14 @@ from shared.schemas import CameraIntrinsics
 
 ROOT = Path(__file__).resolve().parents[1]
 MAPS = ROOT / "runs" / "anticipation" / "maps"
+# The code a cached map depends on: the simulated robot (its sensor and noise), the mapper's exploration,
+# localisation and tours, the reconstructor, and the types between them. A map built by another version
+# of any of them is rebuilt, not scored: issue 33's denoising changed every noisy map while the cache
+# kept serving the old ones under the same name, and the figures of a stale map would be reported as
+# today's. (Hashing sources, not behaviour: an edit that changes no map also rebuilds, which costs
+# minutes, never a wrong figure.)
+MAP_CODE = ("libs/world", "services/robot_io/core", "services/mapper/core", "services/reconstructor/core",
+            "shared/schemas", "shared/geometry.py", "shared/cloud.py")
 # Sensor noise of the robot that builds a map, by name: "noisy" is the reality gap of the robot's
 # sensors (depth noise and holes, odometry and heading drift); "depth-noise" its depth camera alone
 # (poses exact), which tells what the depth costs from what the drift costs.
@@ -93,12 +101,17 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
         from evaluation.clouds import sample_scene_cloud
 
         return robot, sample_scene_cloud(robot.scene)
+    code = map_code_version()
     if path.exists():
+        built_by = build_record_at(path).get("code")
         cached = PointCloud.load(path)
-        if cached.view_dirs is not None:
+        if built_by != code:
+            print(f"   {name} was built by other mapping code ({built_by or 'unrecorded'}): rebuilding it")
+        elif cached.view_dirs is not None:
             return robot, cached
-        # Built before maps recorded where their points were seen from: what the renderer now reads.
-        print(f"   {name} has no view directions: rebuilding it")
+        else:
+            # Built before maps recorded where their points were seen from: what the renderer now reads.
+            print(f"   {name} has no view directions: rebuilding it")
     from services.mapper.core import discover, discovery_config, execute_tours
     from services.reconstructor.core import ReconstructionConfig, Reconstructor
 
@@ -132,7 +145,7 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
         if "shift_m" in rg:
             shifts[rep.region] = (*rg["shift_m"], math.radians(rg["turn_deg"]))
     register_s = sum(v for k, v in built.timings_s.items() if k.startswith("register"))
-    side = {**_tour_start_drift(recs, truth, shifts), "regions_skipped": skipped, "build_s": build_s,
+    side = {"code": code, **_tour_start_drift(recs, truth, shifts), "regions_skipped": skipped, "build_s": build_s,
             "register_s": register_s,
             "drift_correction": built.drift_summary().model_dump(mode="json")}
     _drift_path(path).write_text(json.dumps(side))
@@ -259,12 +272,35 @@ def _drift_path(map_path: Path) -> Path:
     return map_path.with_suffix(".drift.json")
 
 
+def build_record_at(map_path: Path) -> dict:
+    """The record written beside a cached map when it was built ({} if there is none)."""
+    path = _drift_path(map_path)
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def map_code_version() -> str:
+    """A short digest of the sources in MAP_CODE (their paths and bytes), computed once per process."""
+    global _CODE_VERSION
+    if _CODE_VERSION is None:
+        import hashlib
+
+        h = hashlib.sha256()
+        for entry in MAP_CODE:
+            base = ROOT / entry
+            for f in sorted([base] if base.is_file() else base.rglob("*.py")):
+                h.update(str(f.relative_to(ROOT)).encode() + b"\0" + f.read_bytes() + b"\0")
+        _CODE_VERSION = h.hexdigest()[:12]
+    return _CODE_VERSION
+
+
+_CODE_VERSION: str | None = None
+
+
 def build_record(spec: str, backend: str, noise: str | None, drift_scale: float = 1.0,
                  correction: str | None = None, oracle_starts: bool = False, frame_oracle: str | None = None) -> dict:
     """What was measured when the map was built: tour-start error, regions skipped, build time,
     the drift correction's record (empty for a map cached before these were recorded)."""
-    path = _drift_path(_map_path(spec, backend, noise, 128, drift_scale, correction, oracle_starts, frame_oracle)[0])
-    return json.loads(path.read_text()) if path.exists() else {}
+    return build_record_at(_map_path(spec, backend, noise, 128, drift_scale, correction, oracle_starts, frame_oracle)[0])
 
 
 def drift_line(spec: str, backend: str, noise: str | None, drift_scale: float = 1.0,

@@ -45,6 +45,7 @@ def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
     assert modes == {"paper"}
     assert (root / "table.md").read_text().count("| SR |") == 3  # three variants against the first
     assert len(list((tmp_path / "maps").glob("*.ply"))) == 1  # one rgbd map, built once for every variant
+    _a_map_of_other_code_is_rebuilt(tmp_path / "maps", monkeypatch)
     ablation.main(argv)  # resumes: nothing left to run, nothing appended
     for name, rows in runs.items():
         assert len((root / name / "results.jsonl").read_text().splitlines()) == len(rows)
@@ -54,3 +55,19 @@ def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
     assert len((root / "true-scene_views" / "results.jsonl").read_text().splitlines()) == 2
     with pytest.raises(SystemExit):
         ablation.main(argv + ["--variants", "hfov 45"])
+
+
+def _a_map_of_other_code_is_rebuilt(maps, monkeypatch):
+    """The cached map records the mapping code that built it; served while that code is today's, rebuilt
+    (from the exploration still held in memory) once it is not."""
+    (ply,) = maps.glob("*.ply")
+    assert agent_maps.build_record_at(ply)["code"] == agent_maps.map_code_version()
+    (spec, noise, *_), = agent_maps._RECORDINGS  # the exploration the map was built from
+    stamp = ply.stat().st_mtime_ns
+    robot, _ = agent_maps.build_map(spec, "rgbd", noise)
+    robot.close()
+    assert ply.stat().st_mtime_ns == stamp  # same code: the cache
+    monkeypatch.setattr(agent_maps, "_CODE_VERSION", "0123456789ab")  # as if the mapper had changed since
+    robot, _ = agent_maps.build_map(spec, "rgbd", noise)
+    robot.close()
+    assert ply.stat().st_mtime_ns != stamp and agent_maps.build_record_at(ply)["code"] == "0123456789ab"
