@@ -84,6 +84,11 @@ class PoseGraphSummary(Message):
     median_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
     max_correction_m: float = Field(0.0, ge=0.0, le=1000.0)
     max_correction_deg: float = Field(0.0, ge=0.0, le=180.0)
+    # The exploration's graph nodes moved with the panoramas when the exploration ended (so the
+    # regions, hubs, tours and scene graph agree with the map): how many, and how far.
+    nodes_moved: int = Field(0, ge=0, le=SEQ_LIMIT)
+    median_node_shift_m: float = Field(0.0, ge=0.0, le=1000.0)
+    max_node_shift_m: float = Field(0.0, ge=0.0, le=1000.0)
 
 
 class DriftCorrection(Message):

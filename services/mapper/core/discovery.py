@@ -15,6 +15,7 @@ from services.mapper.core.explorer import ExplorationConfig, ExplorationResult, 
 from services.mapper.core.localise import LocalisedRobot, Localiser, LocaliserConfig
 from services.mapper.core.predictor import DEFAULT_PREDICTOR, PREDICTORS, WaypointPredictor
 from services.mapper.core.regions import RegionConfig, SceneMap, analyse
+from services.mapper.core.replace import replace_exploration
 from services.mapper.core.tours import PlannedTour, TourConfig, TourPlanner
 
 
@@ -120,8 +121,12 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
         robot = LocalisedRobot(robot, Localiser(cfg.localisation), bridge=True)
     result = Explorer(pred, cfg.exploration).explore(robot, checkpoint, on_step)
     if isinstance(robot, LocalisedRobot):
-        # The panoramas' poses made globally consistent (loop closures) before the tours start from them.
+        # The panoramas' poses made globally consistent (loop closures) before the tours start from
+        # them, and the graph, scans and trajectory moved with them: the regions, hubs, tours and the
+        # scene graph are all derived from those, and stayed dead-reckoned otherwise.
+        before = [s.correction for s in robot.localiser.steps]
         robot.localiser.optimise()
+        replace_exploration(result, robot.localiser, before)
     t1 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()
@@ -130,8 +135,10 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
         scene.localiser = robot.localiser
         # Whether the localiser placed anything is otherwise invisible until the map's drift record
         # (a robot whose panoramas give it no scan, say, is quietly dead-reckoned).
-        log.info("localisation over the exploration: %s; %d bridge panoramas (%.1f m driven for them)",
-                 robot.localiser.report(), robot.bridges, robot.bridge_m)
+        ns = robot.localiser.node_shift
+        log.info("localisation over the exploration: %s; %d bridge panoramas (%.1f m driven for them); "
+                 "%d graph nodes moved with the panoramas (median %.3f m, max %.3f m)",
+                 robot.localiser.report(), robot.bridges, robot.bridge_m, ns.nodes_moved, ns.median_m, ns.max_m)
     t2 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()

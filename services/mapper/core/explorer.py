@@ -97,6 +97,10 @@ class Scan:
     heading_rad: float
     obstacle_m: np.ndarray  # (scan_angle_bins,), relative angles k * 2pi/n; inf none, nan unseen
     node: str
+    # The panorama's robot time and its entry in the trajectory: the pose graph re-places the
+    # exploration by them after it ends (replace.py).
+    timestamp_s: float = math.nan
+    trajectory_index: int = -1
 
 
 @dataclass(frozen=True)
@@ -357,6 +361,7 @@ class _Run:
         self.steps += 1
         self.pose = pano.pose
         pos = pano.pose.xyz
+        at = len(self.trajectory)
         self.trajectory.append(pos.copy())
         nid = self.graph.add_visited(pos, order=self.steps)
         self.cells.add(self._cell(pos))
@@ -365,7 +370,7 @@ class _Run:
             self.graph.connect(previous, nid, max(travelled_m, 1e-3))
         self.here = nid
         obstacle = self.ex.scanner.obstacle_distance(pano)
-        scan = Scan(pos.copy(), pano.pose.heading_rad, obstacle, nid)
+        scan = Scan(pos.copy(), pano.pose.heading_rad, obstacle, nid, float(pano.timestamp_s), at)
         self.scans.append(scan)
         self.node_scan[nid] = scan
         if previous is None or abs(pos[2] - self.graph.pos(previous)[2]) < self.cfg.stair_rise_m:

@@ -197,6 +197,15 @@ class Correction:
 
 
 @dataclass
+class NodeShift:
+    """How far the pose graph moved the exploration's nodes with its panoramas (replace.py)."""
+
+    nodes_moved: int = 0
+    median_m: float = 0.0  # over every node of the graph, the unmoved among them
+    max_m: float = 0.0
+
+
+@dataclass
 class LocalisationStep:
     """What one panorama did to the correction (the map metadata's per-panorama record)."""
 
@@ -322,6 +331,7 @@ class Localiser:
         self.drift_seen = False
         self._before_last: tuple[np.ndarray, np.ndarray] | None = None  # the model before the last scan
         self._bridged: int | None = None  # the panorama a bridge is being taken for (its step's index)
+        self.node_shift = NodeShift()  # the exploration's nodes re-placed with the panoramas (replace.py)
 
     def on_motion(self, travelled_m: float) -> None:
         """One move of the robot (each turns it towards its goal, too): the odometry prior widens."""
@@ -477,7 +487,8 @@ class Localiser:
             applied=any(not s.correction.identity for s in self.steps),
             panoramas_corrected=sum(not s.correction.identity for s in self.steps),
             median_correction_m=float(np.median(m)), max_correction_m=float(m.max()),
-            max_correction_deg=float(min(180.0, deg.max())))
+            max_correction_deg=float(min(180.0, deg.max())), nodes_moved=self.node_shift.nodes_moved,
+            median_node_shift_m=self.node_shift.median_m, max_node_shift_m=self.node_shift.max_m)
 
     def schedule(self) -> tuple[np.ndarray, np.ndarray]:
         """(times (N,), corrections (N, 3) as dx, dy, dyaw) of the panoramas in time order: the map

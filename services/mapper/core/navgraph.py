@@ -170,6 +170,15 @@ class GridGraph:
         if self._walked.has_edge(a, b):
             self._walked.remove_edge(a, b)
 
+    def move(self, positions_m: dict[str, np.ndarray]) -> None:
+        """Re-place nodes (the pose graph's correction of a drifting exploration, replace.py). The ids
+        stay: they name the nodes in edges, tours, regions and parents, and a node is where its
+        panorama was taken, not a voxel lookup; the spatial index follows the new positions."""
+        for nid, p in positions_m.items():
+            self._unindex(nid)
+            self.g.nodes[nid]["pos"] = np.asarray(p, dtype=np.float64)
+            self._index(nid)
+
     def pos(self, nid: str) -> np.ndarray:
         return self.g.nodes[nid]["pos"]
 
