@@ -44,8 +44,23 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     cfg.localisation.frames.enabled = frames
     cfg.localisation.band_from_median = band_from_median
     cfg.localisation.graph.enabled = graph
+    # The graph's visited nodes as the exploration left them, before the pose graph re-placed them
+    # (replace.py): the same nodes, before and after, on one trajectory.
+    import services.mapper.core.discovery as discovery
+
+    before_nodes: dict[str, np.ndarray] = {}
+    real = discovery.replace_exploration
+
+    def spy(result, localiser, before):
+        before_nodes.update((n, result.graph.pos(n).copy()) for n in result.graph.g)
+        return real(result, localiser, before)
+
+    discovery.replace_exploration = spy
     c0 = time.process_time()
-    d = discover(robot, cfg)
+    try:
+        d = discover(robot, cfg)
+    finally:
+        discovery.replace_exploration = real
     c1 = time.process_time()
     recs = execute_tours(robot, d.tours, d.scene, rate_hz=rate_hz)
     c2 = time.process_time()
@@ -92,6 +107,24 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
             outcomes_.append(st.outcome)
             pano_xy.append((true.position_m[0], true.position_m[1], true.heading_rad,
                             placed.position_m[0], placed.position_m[1], placed.heading_rad, true.position_m[2]))
+    # Each visited node against the true pose of the panorama that made it, before and after the
+    # re-placement; each tour's planned start against where the robot truly began recording.
+    from services.mapper.core import NodeStatus
+
+    g = d.result.graph
+    nodes = []  # (error before m, error after m, true z)
+    for n in g.nodes_with(NodeStatus.VISITED):
+        sc = d.result.scans[g.g.nodes[n]["order"] - 1]
+        true = pano_truth.get(sc.timestamp_s, (None,))[0]
+        if true is None:
+            continue
+        p0 = before_nodes.get(n, g.pos(n))
+        nodes.append((float(np.hypot(*np.subtract(true.position_m[:2], p0[:2]))),
+                      float(np.hypot(*np.subtract(true.position_m[:2], g.pos(n)[:2]))), float(true.position_m[2])))
+    planned = {t.tour.region: t.tour.start_pose for t in d.tours}
+    starts = [float(np.hypot(*np.subtract(truth[r.frames[0].index][0].position_m[:2],
+                                          planned[r.region].position_m[:2])))
+              for r in recs if r.frames and r.frames[0].index in truth and r.region in planned]
     outcomes: dict[str, int] = {}
     for s in loc.frame_steps:
         key = s.outcome.split(":")[0]
@@ -100,7 +133,9 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     return {"errors": a, "explore_cpu_s": c1 - c0, "tours_cpu_s": c2 - c1, "frame_outcomes": outcomes,
             "panoramas": loc.report()["outcomes"], "frames": len(a), "graph": loc.report().get("graph"),
             "pano_errors": np.array(panos) if panos else np.zeros((0, 5)), "frame_z": frame_z,
-            "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7)), "pano_outcomes": outcomes_}
+            "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7)), "pano_outcomes": outcomes_,
+            "node_errors": np.array(nodes) if nodes else np.zeros((0, 3)), "node_shift": loc.node_shift,
+            "tour_start_vs_plan_m": np.array(starts)}
 
 
 def levels(z_m: np.ndarray, share: float = 0.1) -> np.ndarray:
@@ -174,6 +209,16 @@ def report(r: dict) -> None:
         pos = 100 * e[:, 2]
         print(f"   | {name} | {int(m.sum())} | {np.median(pos):.1f} / {np.percentile(pos, 90):.1f} / {pos.max():.1f} | "
               f"{np.median(e[:, 3]):.2f} / {np.percentile(e[:, 3], 90):.2f} | {np.median(e[:, 1]):.0f} |")
+    ne, ns = r["node_errors"], r["node_shift"]
+    if len(ne):
+        print(f"   graph: {len(ne)} visited nodes against the truth of their panoramas, median / p90 (cm): before "
+              f"the re-placement {100 * np.median(ne[:, 0]):.1f} / {100 * np.percentile(ne[:, 0], 90):.1f}, after "
+              f"{100 * np.median(ne[:, 1]):.1f} / {100 * np.percentile(ne[:, 1], 90):.1f}; {ns.nodes_moved} nodes moved "
+              f"(median {100 * ns.median_m:.1f} cm, max {100 * ns.max_m:.1f} cm)")
+    ts = r["tour_start_vs_plan_m"]
+    if len(ts):
+        print(f"   tours: {len(ts)} true starts against the planned start, median / max (cm): "
+              f"{100 * np.median(ts):.1f} / {100 * ts.max():.1f}")
     p = r["pano_errors"]
     if len(p):
         print("   panoramas (the model's poses) by odometry path from the start:")
