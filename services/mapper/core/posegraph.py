@@ -30,10 +30,13 @@ own thresholds (fitness 0.3, both directions pinned) odometry alone tied the roo
 house (generated:3:floors=2, 1x) the upper floor's rooms stepped 1.3 -> 2.7 -> 5.2 cm off, room by
 room, away from the stairs (whose chain of panoramas was within 0.4 cm of the ground floor: not the
 cause), which read as one rigid ~4 cm offset of the floor. Pairs are therefore edges from fitness 0.2
-(``min_fitness``) and, pinned one way only, along that way (``weak_edges``: seen through a door, a
-pair's match along the door's axis was within 2 mm of the truth, median); the upper floor's panoramas
-4.9 -> 2.3 cm (median, after the exploration's solve). Submap edges between groups, longer scans (5 m)
-and other edge/odometry weights were tried earlier and did not help on both generated:0 and :1.
+(``min_fitness``): the upper floor's panoramas 3.7 / 4.8 -> 2.5 / 3.9 cm after the tours (tour_drift),
+the two-floor ladder's SSIM at 1x .820 / .824 / .806 -> .853 / .835 / .819. A pair pinned one way only
+can be an edge along that way (``weak_edges``; seen through a door, such a match was within 2 mm of the
+truth along its axis, median): it took the upper floor to 1.3 / 2.2 cm, but generated:0's ladder fell
+(SSIM .816 / .837 / .776 without it, .763 / .813 / .759 with it), so it is off. Submap edges between
+groups, longer scans (5 m) and other edge/odometry weights were tried earlier and did not help on both
+generated:0 and :1.
 """
 
 from __future__ import annotations
@@ -81,10 +84,12 @@ class PoseGraphConfig(BaseModel):
     max_iterations: int = Field(30, ge=1, le=1000)  # of the reweighted Gauss-Newton
     loop_path_m: float = Field(5.0, ge=0.0)  # a pair this far apart along the path is a loop closure
     # A pair whose scans pin one direction only (rooms seen through a door, a corridor) gives an edge
-    # along that direction, the other kept where the placements put it (as the localiser keeps
-    # odometry along a corridor): without them rooms were tied by odometry alone.
-    weak_edges: bool = True
-    min_fitness: float | None = Field(0.2, ge=0.0, le=1.0)  # None: the localiser's
+    # along that direction, nothing along the other (as the localiser keeps odometry along a
+    # corridor). Off: it helped the two-floor house and cost generated:0 (see the module docstring).
+    weak_edges: bool = False
+    # Share of a pair's scan on the other's: a room seen through a door is a quarter or so (None: the
+    # localiser's 0.3, which a panorama placed against the whole model can afford).
+    min_fitness: float | None = Field(0.2, ge=0.0, le=1.0)
 
 
 @dataclass

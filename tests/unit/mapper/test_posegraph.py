@@ -133,7 +133,7 @@ def test_a_pair_that_pins_one_direction_ties_it_and_leaves_the_other():
     truth = np.array(truth)
     drift = np.array([0.02, 0.05, math.radians(0.3)])
     # Odometry as uncertain as this drift (the defaults allow 2x the noisy row's, 2.7 cm a step).
-    wide = PoseGraphConfig(odom_m_per_sqrt_m=0.1, odom_rad_per_sqrt_move=0.02)
+    wide = PoseGraphConfig(odom_m_per_sqrt_m=0.1, odom_rad_per_sqrt_move=0.02, weak_edges=True)
     off = _graph(truth, scans, drift, wide.model_copy(update={"weak_edges": False}))
     assert not off.solve().applied and not [e for e in off.edges.values() if e is not None]
     g = _graph(truth, scans, drift, wide)
