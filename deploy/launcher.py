@@ -400,7 +400,13 @@ class Launcher:
                             self.run_dir / "logs" / f"{proc_name}.log")
                 self.procs.append(proc)
                 proc.start()
-        self.bus = ZenohBus(self.client_settings())
+        # Shielded like a fork: a stop signal that comes while zenoh.open runs (native code: the handler
+        # runs when it returns, still inside ZenohBus()) would raise before the session is ``self.bus``,
+        # and stop() could not close it. Suspected (not reproduced alone) in one parallel system tier run:
+        # SIGTERM to a starting ``bench.replicas`` (two children: the signal comes right here), its
+        # router "did not stop in time", and the launcher had not ended 90 s after the signal.
+        with LIFECYCLE.shield():
+            self.bus = ZenohBus(self.client_settings())
         self.wait_alive(deadline_s)
         if self.restart:
             self._monitor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
