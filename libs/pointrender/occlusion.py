@@ -165,8 +165,10 @@ def _occluder_depths(x, y, z, spacing, starts, counts, scale, proj, near, far, w
     uv_of = np.empty(1, np.int32)
     for r in range(counts.shape[0]):
         s, m, sc = starts[r], counts[r], scale[r]
-        _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h, q_of[:m], z_of[:m], uv_of, False,
-                     pad)
+        # np.bool_(False), not the constant False: numba would compile _project_run again for a constant
+        # argument (Literal[bool]) beside the front pass's runtime flag, for the same code.
+        _project_run(x[s : s + m], y[s : s + m], z[s : s + m], proj, near, far, w, h, q_of[:m], z_of[:m], uv_of,
+                     np.bool_(False), pad)
         for i in range(m):
             q = q_of[i]
             zbuf[q] = min(zbuf[q], z_of[i])
