@@ -26,10 +26,15 @@ class one_signature:  # noqa: N801 - used like numba's own decorators
     pass views or copies. Later calls of the same dtypes and ranks run that code (numba converts any layout
     to ``'A'``, and a writable array to a read-only one). Any other dtype or rank, or a read-only array
     where the first call's was writable, is a ``TypeError``, not a silent recompile: the caller keeps
-    them fixed."""
+    them fixed.
 
-    def __init__(self, dispatcher):
+    ``read_only``: the positions of array arguments the kernel only reads, typed read-only whatever the
+    first call passes, so that a caller with a read-only array (a panorama's depth) and one with a
+    writable copy share the signature, whichever of them comes first."""
+
+    def __init__(self, dispatcher, read_only: tuple[int, ...] = ()):
         self._dispatcher = dispatcher
+        self._read_only = frozenset(read_only)
         self._lock = threading.Lock()
         self._typed = False
 
@@ -41,12 +46,16 @@ class one_signature:  # noqa: N801 - used like numba's own decorators
         if not self._typed:
             with self._lock:  # render threads may make the first call together
                 if not self._typed:
-                    types = tuple(t.copy(layout="A") if isinstance(t, numba.types.Array) else t
-                                  for t in map(numba.typeof, args))
+                    types = tuple(self._any_layout(i, numba.typeof(a)) for i, a in enumerate(args))
                     self._dispatcher.compile(types)  # or loaded from numba's cache (cache=True)
                     self._dispatcher.disable_compile()
                     self._typed = True
         return self._dispatcher(*args)
+
+    def _any_layout(self, i, t):
+        if not isinstance(t, numba.types.Array):
+            return t
+        return t.copy(layout="A", readonly=not t.mutable or i in self._read_only)
 
 
 def insert_sorted(buf, n, x):  # pragma: no cover - called from compiled kernels

@@ -448,7 +448,10 @@ def _rgb8(rgb):
 if AVAILABLE:
     _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
     _mirrored_min = numba.njit(nogil=True, cache=True, inline="always")(_mirrored_min)
-    classes, bucket, add_sources, add_codes = _jit(_classes), _jit(_bucket), _jit(_add_sources), _jit(_add_codes)
+    # classes: one signature too; the front layer's count and spacing arrive as strided views or copies,
+    # and numba compiled it for each (the inputs typed read-only, as callers may pass read-only arrays).
+    classes = one_signature(_jit(_classes), read_only=(0, 1, 2, 6))
+    bucket, add_sources, add_codes = _jit(_bucket), _jit(_add_sources), _jit(_add_codes)
     # finish: one signature for its one call site, whose front layer is strided views or copies.
     enclosing, finish = _jit(_enclosing), one_signature(_jit(_finish))
     colour_filter, rgb8 = _jit(_colour_filter), _jit(_rgb8)

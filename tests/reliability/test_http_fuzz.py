@@ -3,19 +3,26 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import httpx
 import pytest
 
-schemathesis = pytest.importorskip("schemathesis")
-from hypothesis import HealthCheck, settings  # noqa: E402
+from tests.reliability.http_server import live_gateway
 
-from tests.reliability.http_server import live_gateway  # noqa: E402
+# Imported where the requests are generated, not here: schemathesis and hypothesis cost ~2 s to import,
+# and under xdist every worker imports every test module to collect it, while one worker runs this file.
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("schemathesis") is None,
+                                reason="could not import 'schemathesis'")
 
 # SSE streams stay open while a job runs; schemathesis reads them whole, so give each call a bound.
 TIMEOUT_S = 5.0
 
 
 def run_schemathesis(url: str, tally, max_examples: int) -> tuple[int, list]:
+    import schemathesis
+    from hypothesis import HealthCheck, given, settings
+
     spec = httpx.get(f"{url}/openapi.json", timeout=5).json()
     schema = schemathesis.openapi.from_dict(spec)
     cases = 0
@@ -34,8 +41,6 @@ def run_schemathesis(url: str, tally, max_examples: int) -> tuple[int, list]:
                                  str(case.body)[:200], response.status_code, response.text[:300]))
 
         strategy = operation.as_strategy()
-        from hypothesis import given
-
         given(strategy)(check)()
     tally.add("http_cases_generated", cases)
     tally.add("http_5xx", len(failures))

@@ -246,8 +246,11 @@ def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, f
         for oi in range(n_vis):
             c = chunk_order[order[oi]]
             zc = chunk_key[order[oi]]
+            # np.bool_(False), not the constant False: numba compiles a constant argument as a
+            # signature of its own (Literal[bool]), a second compile of _occluded beside the one for
+            # the triangles' runtime flag below, for the same code.
             if zc >= near_m and _occluded(_w_bound(zc), crect[c, 0], crect[c, 1], crect[c, 2], crect[c, 3],
-                                          wbuf, w, h, tile_far, tile_dirty, tx, False):
+                                          wbuf, w, h, tile_far, tile_dirty, tx, np.bool_(False)):
                 continue
             v0 = chunk_lo[c] * 3
             nv = chunk_lo[c + 1] * 3 - v0

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from services.mapper.core.predictor import (GeometricPredictor, GeometricPredictorConfig, _column_median_kernel,
-                                            _column_median_within_noise)
+                                            _column_median_within_noise, _profiles_kernel)
 from services.robot_io.core.robot import ROBOTS
 from shared.jit import AVAILABLE
 from shared.schemas import CameraIntrinsics, Pose
@@ -79,6 +79,10 @@ def test_kernel_matches_array_walk_on_a_two_floor_house():
             flights += f
     # The rarer branches ran: unconfirmed climbs and confirmed flights.
     assert doubts > 0 and flights > 0
+    # Both strides' depth (a strided view, a contiguous array), the panoramas' read-only depth and the
+    # writable smoothed copies ran one machine code per kernel, not one per layout (shared.jit.one_signature).
+    assert len(_profiles_kernel.signatures) == 1, _profiles_kernel.signatures
+    assert len(_column_median_kernel.signatures) == 1, _column_median_kernel.signatures
 
 
 def test_noise_median_kernel_matches_the_array_version():

@@ -39,6 +39,10 @@ def test_culling_changes_no_pixel_of_the_built_flat(room_index, near_m):
     assert _identical(on, off)
     # ... and it did cull (a few blocks: this flat's two rooms are small, most blocks are seen).
     assert sum(on.visible_points) < sum(off.visible_points), (on.visible_points, off.visible_points)
+    # The occluder's classes and the visibility pass's were bucketed by one compiled signature.
+    from libs.pointrender import visibility_kernels
+
+    assert len(visibility_kernels.bucket.signatures) == 1, visibility_kernels.bucket.signatures
 
 
 @needs_numba

@@ -411,3 +411,4 @@ def test_the_compiled_visibility_pass_has_one_signature_for_every_path_into_it()
     _, _, hole, labels = visibility.compose_compiled(front, params, h, w)
     assert (labels[on & ~hole] == 1).all()
     assert len(visibility_kernels.finish.signatures) == 1, visibility_kernels.finish.signatures
+    assert len(visibility_kernels.classes.signatures) == 1, visibility_kernels.classes.signatures

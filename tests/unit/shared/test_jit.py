@@ -30,3 +30,19 @@ def test_another_dtype_is_refused_not_compiled_again():
     with pytest.raises(TypeError):
         kernel(np.zeros((2, 2), np.float32), np.zeros(1, np.int64))
     assert len(kernel.signatures) == 1
+
+
+def test_an_argument_declared_read_only_takes_writable_and_read_only_arrays_in_either_order():
+    ro = np.zeros((2, 2), np.float32)
+    ro.flags.writeable = False
+    ids = np.zeros(1, np.int32)
+    for first, then in ((np.ones((2, 2), np.float32), ro), (ro, np.ones((2, 2), np.float32))):
+        kernel = one_signature(numba.njit(_corner_sum), read_only=(0,))
+        assert kernel(first, ids) == first[0, 0] + first[-1, -1]
+        assert kernel(then, ids) == then[0, 0] + then[-1, -1]
+        assert len(kernel.signatures) == 1 and not kernel.signatures[0][0].mutable
+    # Without it, a read-only array after a writable first call is refused, not compiled again.
+    kernel = one_signature(numba.njit(_corner_sum))
+    kernel(np.ones((2, 2), np.float32), ids)
+    with pytest.raises(TypeError):
+        kernel(ro, ids)
