@@ -113,7 +113,14 @@ class Case:
         except TimeoutError as exc:
             raise AssertionError(f"{exc}; output:\n{self.output()}") from None
         assert proc.poll() is None, f"{self.name} ended before the signal ({proc.returncode}):\n{self.output()}"
-        assert len(self.marked()) >= self.children
+        # Counted again, and waited for: a short-lived helper process that inherits the marker (a library
+        # shelling out while a service starts) can make up the count for a moment and then be gone, and
+        # the signal must not come before every child the launcher starts is there.
+        try:
+            wait_until(lambda: len(self.marked()) >= self.children, 180,
+                       f"{self.name}'s {self.children} processes all alive at once", interval_s=0.1)
+        except TimeoutError as exc:
+            raise AssertionError(f"{exc}; output:\n{self.output()}") from None
 
     def check_stopped(self) -> None:
         """The launcher ends, and every process it started with it, in bounded time."""
