@@ -124,14 +124,14 @@ class RgbdConfig(BackendConfig):
     # ``near_depth_noise_m``, then the farther ones, kept only where no near point lies within
     # ``near_cover_m`` (seen from the same side). Every surface is seen by many frames from many
     # distances, and a voxel's centroid and mean colour averaged a near look's centimetre with a far
-    # look's several: the far
-    # draws scattered a slab of points in front of and behind each wall, speckled near views with
-    # stray points and bled colour across edges (a bookshelf's spines). A far look now only adds
-    # what no near look saw. 0: one tier. bench.anticipation --ladder, 1x drift, uncorrected, SSIM per
-    # band: generated:0 .820 / .834 / .831 -> .848 / .850 / .818, two-floor house .820 / .824 / .806 ->
-    # .890 / .834 / .811 (1.5 cm, 10 cm; at 1 cm generated:0's near views' mapped share fell to 76 %).
-    # The house's "mapped" at 1-2 m fell 82.8 -> 74.8 %: the far scatter had covered the drift's offset
-    # by chance (exact depth at the same drifted poses maps 73.8 %).
+    # look's several: the far draws scattered a slab of points in front of and behind each wall,
+    # speckled near views with stray points and bled colour across edges (a bookshelf's spines). A far
+    # look now only adds what no near look saw. 0: one tier. bench.anticipation --ladder, 1x drift,
+    # uncorrected, SSIM per band, on the same explorations (before the pose graph re-placed them):
+    # generated:0 .820 / .834 / .831 -> .848 / .850 / .818, two-floor house .820 / .824 / .806 -> .890 /
+    # .834 / .811 (1.5 cm, 10 cm; at 1 cm generated:0's near views' mapped share fell to 76 %). The
+    # house's "mapped" at 1-2 m fell 82.8 -> 74.8 %: the far scatter had covered the drift's offset by
+    # chance (exact depth at the same drifted poses maps 73.8 %).
     near_depth_noise_m: float = Field(0.015, ge=0.0, le=1.0)
     near_cover_m: float = Field(0.1, gt=0.0, le=0.5)
     # Every n-th pixel in each direction: 2 quarters the work; the voxel grid still fills up close by.
@@ -254,8 +254,7 @@ class RgbdReconstructor(RegionalReconstructor):
         cfg = self.config
         if im.depth_noise_rel <= 0 or cfg.near_depth_noise_m <= 0:
             return self.depth_limit_m(im)
-        rel = im.depth_noise_rel / cfg.denoise_window_px
-        return min(self.depth_limit_m(im), math.sqrt(cfg.near_depth_noise_m / rel))
+        return min(self.depth_limit_m(im), self._depth_at_sigma_m(im, cfg.near_depth_noise_m))
 
     def _tier_depth(self, im: PosedImage, tier: str | None) -> tuple[np.ndarray, float]:
         """(the depth fused of this frame, how far) for ``tier``: the far tier's near pixels are holes."""
@@ -271,9 +270,15 @@ class RgbdReconstructor(RegionalReconstructor):
         cfg = self.config
         if im.depth_noise_rel <= 0:
             return cfg.max_depth_m
+        return self._depth_at_sigma_m(im, cfg.max_depth_noise_m)
+
+    def _depth_at_sigma_m(self, im: PosedImage, sigma_m: float) -> float:
+        """Where a noisy frame's denoised sigma (``depth_noise_rel`` * depth^2 / window) reaches ``sigma_m``,
+        at most ``max_depth_m``: the end of both its fused range and its near tier."""
+        cfg = self.config
         # Denoised, a pixel is the mean of about a window's worth of independent draws: sigma / window_px.
         rel = im.depth_noise_rel / cfg.denoise_window_px
-        return min(cfg.max_depth_m, math.sqrt(cfg.max_depth_noise_m / rel))
+        return min(cfg.max_depth_m, math.sqrt(sigma_m / rel))
 
     def frame_depth(self, im: PosedImage) -> np.ndarray:
         """The float32 depth that is fused: denoised where the frame declares its noise, else as recorded."""
