@@ -198,11 +198,10 @@ class RgbdReconstructor(RegionalReconstructor):
         labelled = cfg.keep_labels and all(im.semantic is not None for im in with_depth)
         local = region.local_from_world()
         if cfg.near_depth_noise_m > 0 and any(im.depth_noise_rel > 0 for im in with_depth):
-            near, n_near = self._fuse(with_depth, local, labelled, label_names, "near")
-            far, n_far = self._fuse(with_depth, local, labelled, label_names, "far")
+            (near, n_near), (far, n_far) = self._fuse(with_depth, local, labelled, label_names, ("near", "far"))
             cloud, points_in = _fill_from_far(near, far, cfg.near_cover_m, cfg.threads), n_near + n_far
         else:
-            cloud, points_in = self._fuse(with_depth, local, labelled, label_names, None)
+            [(cloud, points_in)] = self._fuse(with_depth, local, labelled, label_names, (None,))
         t1 = time.perf_counter()
         if len(cloud) == 0:
             raise EmptyRecordingError(f"region {region.region}: no valid depth in {len(with_depth)} frames")
@@ -225,11 +224,13 @@ class RgbdReconstructor(RegionalReconstructor):
             timings_s={"fuse": t1 - t0, "outliers": t2 - t1},  # fuse: back-projection and voxels
         )
 
-    def _fuse(self, frames: list[PosedImage], local: np.ndarray, labelled: bool, label_names, tier: str | None):
-        """(the voxel-fused cloud of ``frames``, the points fused): every valid pixel (``tier`` None), or
-        only those nearer (``"near"``) or not nearer (``"far"``) than each frame's ``near_limit_m``."""
+    def _fuse(self, frames: list[PosedImage], local: np.ndarray, labelled: bool, label_names,
+              tiers: tuple[str | None, ...]) -> list[tuple[PointCloud, int]]:
+        """Per tier, (the voxel-fused cloud of ``frames``, the points fused): every valid pixel (None), or
+        only those nearer (``"near"``) or not nearer (``"far"``) than each frame's ``near_limit_m``. One
+        pass over the frames for all the tiers, so each frame is denoised once."""
         cfg = self.config
-        acc = VoxelAccumulator(cfg.voxel_m, cfg.min_points_per_voxel)
+        accs = [VoxelAccumulator(cfg.voxel_m, cfg.min_points_per_voxel) for _ in tiers]
         nb = -(-len(frames) // cfg.batch_frames)
         batches = [frames[i * len(frames) // nb : (i + 1) * len(frames) // nb] for i in range(nb)]
         if self._use_kernel:
@@ -238,15 +239,18 @@ class RgbdReconstructor(RegionalReconstructor):
             threads = min(cfg.threads, len(batches))
             if threads > 1:
                 with ThreadPoolExecutor(threads) as pool:
-                    for part, votes, pts in pool.map(lambda b: self._fuse_compiled(b, local, labelled, tier), batches):
-                        acc.add_reduced(part, votes, pts)
+                    for parts in pool.map(lambda b: self._fuse_compiled(b, local, labelled, tiers), batches):
+                        for acc, part in zip(accs, parts, strict=True):
+                            acc.add_reduced(*part)
             else:
                 for b in batches:
-                    acc.add_reduced(*self._fuse_compiled(b, local, labelled, tier))
+                    for acc, part in zip(accs, self._fuse_compiled(b, local, labelled, tiers), strict=True):
+                        acc.add_reduced(*part)
         else:
             for b in batches:
-                acc.add(*self._backproject(b, local, labelled, tier))
-        return acc.cloud(label_names), acc.points_in
+                for acc, part in zip(accs, self._backproject(b, local, labelled, tiers), strict=True):
+                    acc.add(*part)
+        return [(acc.cloud(label_names), acc.points_in) for acc in accs]
 
     def near_limit_m(self, im: PosedImage) -> float:
         """Where this frame's near tier ends: the depth at which its denoised sigma reaches
@@ -256,14 +260,19 @@ class RgbdReconstructor(RegionalReconstructor):
             return self.depth_limit_m(im)
         return min(self.depth_limit_m(im), self._depth_at_sigma_m(im, cfg.near_depth_noise_m))
 
-    def _tier_depth(self, im: PosedImage, tier: str | None) -> tuple[np.ndarray, float]:
-        """(the depth fused of this frame, how far) for ``tier``: the far tier's near pixels are holes."""
+    def _tier_depths(self, im: PosedImage, tiers: tuple[str | None, ...]) -> list[tuple[np.ndarray, float]]:
+        """Per tier, (the depth fused of this frame, how far): the far tier's near pixels are holes. The
+        frame is denoised once for all of them."""
         d, limit = self.frame_depth(im), self.depth_limit_m(im)
-        if tier == "near":
-            return d, self.near_limit_m(im)
-        if tier == "far":
-            return np.where(d >= np.float32(self.near_limit_m(im)), d, np.float32(np.nan)), limit
-        return d, limit
+        out = []
+        for tier in tiers:
+            if tier == "near":
+                out.append((d, self.near_limit_m(im)))
+            elif tier == "far":
+                out.append((np.where(d >= np.float32(self.near_limit_m(im)), d, np.float32(np.nan)), limit))
+            else:
+                out.append((d, limit))
+        return out
 
     def depth_limit_m(self, im: PosedImage) -> float:
         """How far this frame's depth is fused: ``max_depth_m``, nearer for a noisy sensor."""
@@ -300,31 +309,38 @@ class RgbdReconstructor(RegionalReconstructor):
             self._rays[key] = (np.ascontiguousarray(rays, dtype=np.float32), np.ascontiguousarray(backs, np.float32))
         return self._rays[key]
 
-    def _fuse_compiled(self, images: list[PosedImage], local: np.ndarray, labelled: bool, tier: str | None = None):
-        """One batch through :class:`kernels.FrameFuser`: the voxels of ``_backproject`` + ``_reduce_dense``."""
+    def _fuse_compiled(self, images: list[PosedImage], local: np.ndarray, labelled: bool,
+                       tiers: tuple[str | None, ...] = (None,)):
+        """One batch through a :class:`kernels.FrameFuser` per tier: per tier, the voxels of
+        ``_backproject`` + ``_reduce_dense`` and the points fused."""
         cfg, s = self.config, self.config.pixel_stride
-        fuser = kernels.FrameFuser(cfg.voxel_m, cfg.min_depth_m, cfg.max_depth_m, labelled)
+        fusers = [kernels.FrameFuser(cfg.voxel_m, cfg.min_depth_m, cfg.max_depth_m, labelled) for _ in tiers]
         for im in images:
             m = np.ascontiguousarray((local @ im.world_from_camera)[:3], np.float32)
             rays, backs = self._pixel_rays(im.camera)
-            depth, limit = self._tier_depth(im, tier)
-            ok = fuser.add(depth, np.asarray(im.rgb, np.uint8), im.semantic if labelled else None, m, rays, backs, s,
-                           limit)
-            if not ok:
-                raise InputError(
-                    f"frame {im.index}: points span more than +-{kernels.AXIS_HALF * cfg.voxel_m:.0f} m "
-                    f"from the origin at voxel {cfg.voxel_m} m"
-                )
-        part, votes = fuser.result()
-        return part, votes, fuser.points
+            rgb, sem = np.asarray(im.rgb, np.uint8), im.semantic if labelled else None
+            for fuser, (depth, limit) in zip(fusers, self._tier_depths(im, tiers), strict=True):
+                if not fuser.add(depth, rgb, sem, m, rays, backs, s, limit):
+                    raise InputError(
+                        f"frame {im.index}: points span more than +-{kernels.AXIS_HALF * cfg.voxel_m:.0f} m "
+                        f"from the origin at voxel {cfg.voxel_m} m"
+                    )
+        return [(*fuser.result(), fuser.points) for fuser in fusers]
 
-    def _backproject(self, images: list[PosedImage], local: np.ndarray, labelled: bool, tier: str | None = None):
-        """The batch's points, colours, labels (or None) and unit vectors towards the camera."""
+    def _backproject(self, images: list[PosedImage], local: np.ndarray, labelled: bool,
+                     tiers: tuple[str | None, ...] = (None,)):
+        """Per tier, the batch's points, colours, labels (or None) and unit vectors towards the camera."""
+        frames = [(im, self._tier_depths(im, tiers)) for im in images]  # one batch: each frame denoised once
+        return [self._backproject_tier([(im, *depths[t]) for im, depths in frames], local, labelled)
+                for t in range(len(tiers))]
+
+    def _backproject_tier(self, frames: list[tuple[PosedImage, np.ndarray, float]], local: np.ndarray,
+                          labelled: bool):
+        """The points, colours, labels (or None) and view vectors of ``frames`` (each with its depth and limit)."""
         cfg, s = self.config, self.config.pixel_stride
         xyz_parts, rgb_parts, lab_parts, view_parts = [], [], [], []
-        for im in images:
+        for im, depth, limit in frames:
             rays, backs = self._pixel_rays(im.camera)
-            depth, limit = self._tier_depth(im, tier)
             d = depth[::s, ::s].reshape(-1)
             ok = np.flatnonzero((d > cfg.min_depth_m) & (d < np.float32(limit)))  # NaN compares False
             if len(ok) == 0:

@@ -64,8 +64,8 @@ def test_compiled_and_array_voxel_sums_are_bit_identical(stride, voxel):
     region = _region(5, seed=4)
     local = region.local_from_world()
     backend = RECONSTRUCTORS.create("rgbd", {"pixel_stride": stride, "voxel_m": voxel, "kernel": "numba"})
-    fused, _, _ = backend._fuse_compiled(region.images, local, True)
-    xyz, rgb, lab, views = backend._backproject(region.images, local, True)
+    [(fused, _, _)] = backend._fuse_compiled(region.images, local, True)
+    [(xyz, rgb, lab, views)] = backend._backproject(region.images, local, True)
     reduced, _ = _reduce_dense(xyz, rgb, lab, voxel, views)
     assert len(fused[0]) == len(reduced[0]) > 100
     for got, want in zip(fused, reduced, strict=True):
