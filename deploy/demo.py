@@ -159,6 +159,9 @@ def drift_phrase(d: dict | None) -> str:
     if g.get("applied"):
         odom += (f"; the pose graph placed {g['panoramas_corrected']} of {g['panoramas']} panoramas "
                  f"({g['loop_closures_accepted']} loop closures, {g['loop_closures_rejected']} rejected)")
+        if g.get("nodes_moved"):
+            odom += (f" and moved {g['nodes_moved']} exploration graph nodes with them (median "
+                     f"{g['median_node_shift_m']:.3f} m, max {g['max_node_shift_m']:.3f} m)")
     return (f"drift correction: {odom}; registration moved {d['regions_corrected']} regions (max "
             f"{d['max_correction_m']:.3f} m, {d['max_correction_deg']:.1f} deg), "
             f"{d['regions_fallback']} kept their poses")

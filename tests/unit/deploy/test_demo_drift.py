@@ -39,5 +39,9 @@ def test_the_drift_line_names_the_mappers_corrections_and_the_registrations():
                          applied=True, panoramas_corrected=120).model_dump(mode="json")
     assert "the pose graph placed 120 of 160 panoramas (440 loop closures, 2 rejected)" in drift_phrase(
         {**d, "pose_graph": g})
+    assert "graph nodes" not in drift_phrase({**d, "pose_graph": g})
+    moved = {**g, "nodes_moved": 37, "median_node_shift_m": 0.024, "max_node_shift_m": 0.081}
+    assert ("(440 loop closures, 2 rejected) and moved 37 exploration graph nodes with them (median 0.024 m, "
+            "max 0.081 m)") in drift_phrase({**d, "pose_graph": moved})
     assert "none applied" in drift_phrase(DriftCorrection().model_dump(mode="json"))
     assert "none applied" in drift_phrase(None)
