@@ -17,6 +17,7 @@ Explores once and drives the tours (no reconstruction): about a minute of CPU on
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 
@@ -28,7 +29,7 @@ BINS_M = (0.0, 0.25, 0.5, 1.0, 2.0, math.inf)
 
 
 def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz: float = 4.0,
-        band_from_median: bool = False, graph: bool = True) -> dict:
+        band_from_median: bool = False, graph: bool = True, graph_set: dict | None = None) -> dict:
     from services.mapper.core import discover, discovery_config, execute_tours
     from services.robot_io.core.robot import ROBOTS
     from shared.schemas import CameraIntrinsics
@@ -44,6 +45,8 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     cfg.localisation.frames.enabled = frames
     cfg.localisation.band_from_median = band_from_median
     cfg.localisation.graph.enabled = graph
+    for k, v in (graph_set or {}).items():
+        setattr(cfg.localisation.graph, k, v)
     # The graph's visited nodes as the exploration left them, before the pose graph re-placed them
     # (replace.py): the same nodes, before and after, on one trajectory.
     import services.mapper.core.discovery as discovery
@@ -125,6 +128,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     starts = [float(np.hypot(*np.subtract(truth[r.frames[0].index][0].position_m[:2],
                                           planned[r.region].position_m[:2])))
               for r in recs if r.frames and r.frames[0].index in truth and r.region in planned]
+    between = _between_panoramas(recs, truth, pano_truth, loc)
     outcomes: dict[str, int] = {}
     for s in loc.frame_steps:
         key = s.outcome.split(":")[0]
@@ -135,7 +139,61 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
             "pano_errors": np.array(panos) if panos else np.zeros((0, 5)), "frame_z": frame_z,
             "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7)), "pano_outcomes": outcomes_,
             "node_errors": np.array(nodes) if nodes else np.zeros((0, 3)), "node_shift": loc.node_shift,
-            "tour_start_vs_plan_m": np.array(starts)}
+            "tour_start_vs_plan_m": np.array(starts), "between": between}
+
+
+def _between_panoramas(recs, truth: dict, pano_truth: dict, loc) -> np.ndarray:
+    """Where a tour frame's pose error sits: (N, 4) per frame, position error (m) of its pose as
+    recorded, of the pose the localiser's panorama corrections interpolated in time give it, of the
+    one the panoramas' TRUE corrections (truth - odometry at each panorama) interpolated in time give
+    it, and its heading error (deg) under the latter. The third is what exact panoramas would leave
+    between them (the drift along the way); the second minus it is the panoramas' share."""
+    from services.mapper.core.localise import Correction
+    from shared.geometry import interpolate_offsets
+
+    t_est, c_est = loc.schedule()
+    pts = [(s.timestamp_s, pano_truth[s.timestamp_s]) for s in loc.steps if s.timestamp_s in pano_truth]
+    if not pts:
+        return np.zeros((0, 6))
+    pts.sort(key=lambda p: p[0])
+    t_true = np.array([p[0] for p in pts])
+    c_true = np.array([[c.dx_m, c.dy_m, c.dyaw_rad] for c in (
+        Correction.between(odo, np.asarray(tr.position_m[:2]), tr.heading_rad) for _, (tr, odo) in pts)])
+    odo_true = [odo for _, (_, odo) in pts]
+    out = []
+    for rec in recs:
+        fr = [f for f in rec.frames if f.index in truth]
+        if not fr:
+            continue
+        ts = np.array([f.timestamp_s for f in fr])
+        est, tru = interpolate_offsets(t_est, c_est, ts), interpolate_offsets(t_true, c_true, ts)
+        # The same true corrections interpolated along the odometry path (position) and the turns
+        # (heading) instead of time: the drift's own clocks.
+        ev = sorted([(t, 0, o) for t, o in zip(t_true, odo_true)] + [(f.timestamp_s, 1, truth[f.index][1]) for f in fr],
+                    key=lambda e: (e[0], e[1]))
+        path, turn, prev = [], [], None
+        for t, _, o in ev:
+            if prev is None:
+                path.append(0.0), turn.append(0.0)
+            else:
+                path.append(path[-1] + float(np.hypot(*np.subtract(o.position_m[:2], prev.position_m[:2]))))
+                turn.append(turn[-1] + abs(math.remainder(o.heading_rad - prev.heading_rad, 2 * math.pi)))
+            prev = o
+        tt = np.array([e[0] for e in ev])
+        kp, kt = np.array(path) + 1e-6 * tt, np.array(turn) + 1e-6 * tt
+        isp = np.array([e[1] == 0 for e in ev])
+        pathc = np.stack([np.interp(kp[~isp], kp[isp], c_true[:, 0]), np.interp(kp[~isp], kp[isp], c_true[:, 1]),
+                          np.interp(kt[~isp], kt[isp], c_true[:, 2])], axis=1)
+        for f, ce, ct, cp in zip(fr, est, tru, pathc):
+            true, odo = truth[f.index]
+            pe, pt_, pp = Correction(*ce).pose(odo), Correction(*ct).pose(odo), Correction(*cp).pose(odo)
+            out.append((float(np.hypot(*np.subtract(true.position_m[:2], f.pose.position_m[:2]))),
+                        float(np.hypot(*np.subtract(true.position_m[:2], pe.position_m[:2]))),
+                        float(np.hypot(*np.subtract(true.position_m[:2], pt_.position_m[:2]))),
+                        abs(math.degrees(math.remainder(true.heading_rad - pt_.heading_rad, 2 * math.pi))),
+                        float(np.hypot(*np.subtract(true.position_m[:2], pp.position_m[:2]))),
+                        abs(math.degrees(math.remainder(true.heading_rad - pp.heading_rad, 2 * math.pi)))))
+    return np.array(out).reshape(-1, 6)
 
 
 def levels(z_m: np.ndarray, share: float = 0.1) -> np.ndarray:
@@ -209,6 +267,14 @@ def report(r: dict) -> None:
         pos = 100 * e[:, 2]
         print(f"   | {name} | {int(m.sum())} | {np.median(pos):.1f} / {np.percentile(pos, 90):.1f} / {pos.max():.1f} | "
               f"{np.median(e[:, 3]):.2f} / {np.percentile(e[:, 3], 90):.2f} | {np.median(e[:, 1]):.0f} |")
+    b = r.get("between")
+    if b is not None and len(b):
+        q = lambda v: f"{100 * np.median(v):.1f} / {100 * np.percentile(v, 90):.1f}"  # noqa: E731
+        print(f"   tour frames' position error median / p90 (cm): as recorded {q(b[:, 0])}; under the panoramas' "
+              f"corrections interpolated in time {q(b[:, 1])}; under the panoramas' true corrections interpolated "
+              f"in time {q(b[:, 2])} (heading {np.median(b[:, 3]):.2f} / {np.percentile(b[:, 3], 90):.2f} deg): "
+              f"the last is the drift between exact panoramas; true corrections along the path and turns "
+              f"{q(b[:, 4])} (heading {np.median(b[:, 5]):.2f} / {np.percentile(b[:, 5], 90):.2f} deg)")
     ne, ns = r["node_errors"], r["node_shift"]
     if len(ne):
         print(f"   graph: {len(ne)} visited nodes against the truth of their panoramas, median / p90 (cm): before "
@@ -243,11 +309,13 @@ def main() -> None:
     ap.add_argument("--graph", choices=("on", "off"), default="on", help="the panoramas' pose graph (posegraph.py)")
     ap.add_argument("--band", choices=("median", "pixel"), default="pixel",
                     help="scan height band chosen by each column's median range, or by each pixel's own depth")
+    ap.add_argument("--graph-set", nargs="+", default=[], metavar="FIELD=JSON",
+                    help="PoseGraphConfig fields, e.g. weak_edges=true")
     args = ap.parse_args()
     print(f"## {args.scene}, drift x{args.drift_scale:g}, frame registration {args.frames}, band by {args.band}, "
-          f"pose graph {args.graph}")
+          f"pose graph {args.graph} {' '.join(args.graph_set)}")
     r = run(args.scene, args.drift_scale, args.frames == "on", band_from_median=args.band == "median",
-            graph=args.graph == "on")
+            graph=args.graph == "on", graph_set={k: json.loads(v) for k, v in (a.split("=", 1) for a in args.graph_set)})
     report(r)
     report_levels(r)
 
