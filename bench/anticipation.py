@@ -102,6 +102,7 @@ class Scores:
     label: list[float] = field(default_factory=list)
     shown_near: list[float] = field(default_factory=list)
     unseen: list[float] = field(default_factory=list)
+    view: list[int] = field(default_factory=list)  # the pose index of each entry of coverage
 
 
 def depth_ahead(depth: np.ndarray) -> float:
@@ -147,6 +148,7 @@ def score(renderer, index: IndexedCloud, gt: GroundTruth, poses, cam: PinholeCam
         band = next(b[0] for b in BANDS if b[1] <= ahead < b[2])
         s = bands[band]
         s.coverage.append(float(gt.mapped[i].sum()) / max(int(g_valid.sum()), 1))
+        s.view.append(i)
         region = gt.mapped[i] if mapped_only else g_valid
         if not region.any():  # nothing of the region in view: no score (not a perfect or a zero one)
             continue
@@ -294,7 +296,7 @@ LADDER_SCENES = ("generated:0", "generated:3:floors=2")
 
 def ladder(scenes, scales: list[float], corrections: list[str], n_views: int, mode: str, seed: int = 7,
            mapped_m: float = MAPPED_M, config: dict | None = None, oracle_starts: bool = False,
-           decompose: bool = False) -> None:
+           decompose: bool = False, per_view: bool = False) -> None:
     """Issue 33's drift ladder: every map of a scene scored at the same free poses, all pixels, one
     renderer mode; per band mapped within ``mapped_m``, SSIM, labels, leak; per map the tour-start
     error (the recorded poses, and where the corrected map put them), regions skipped, build time.
@@ -329,6 +331,12 @@ def ladder(scenes, scales: list[float], corrections: list[str], n_views: int, mo
             rows.append((label, corr if fo is None else f"{corr}:{fo}", bands,
                          build_record(spec, "rgbd", noise, k, corr, o, fo), len(cloud)))
             print(f"   scored {label} {corr}{f' ({fo})' if fo else ''}", flush=True)  # each map takes minutes: say where the run is
+            if per_view:  # which views a map loses (the < 1 m band is 3 views at 24: one moves it by .03)
+                for band, s in bands.items():
+                    for i, cov, ssim in zip(s.view, s.coverage, s.ssim):
+                        xyz = np.asarray(poses[i])[:3, 3]
+                        print(f"     view {i:>3} {band:<6} at ({xyz[0]:.2f}, {xyz[1]:.2f}, {xyz[2]:.2f}): "
+                              f"mapped {100 * cov:.1f} %, SSIM {ssim:.3f}")
         _ladder_report(spec + (" (oracle tour starts: each tour started at its true pose)" if oracle_starts else ""),
                        mode, n_views, mapped_m, rows)
         robot0.close()
@@ -399,11 +407,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--decompose", action="store_true",
                     help="ladder: each noisy map again at the true poses (noisy depth) and with exact depth "
                          "(the mapper's poses): which error source the map's loss comes from")
+    ap.add_argument("--per-view", action="store_true", help="ladder: each view's place, mapped share and SSIM")
     args = ap.parse_args(argv)
     if args.ladder:
         logging.basicConfig(level=logging.WARNING)
         ladder(args.ladder_scenes, args.drift_scales, args.corrections, args.views or 24,
-               args.modes[-1], mapped_m=args.mapped_m, oracle_starts=args.oracle_starts, decompose=args.decompose)
+               args.modes[-1], mapped_m=args.mapped_m, oracle_starts=args.oracle_starts, decompose=args.decompose,
+               per_view=args.per_view)
         return
     logging.basicConfig(level=logging.WARNING)
     views = args.views or (96 if args.full else 48)
