@@ -44,7 +44,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -85,11 +84,9 @@ class PoseGraphConfig(BaseModel):
     max_iterations: int = Field(30, ge=1, le=1000)  # of the reweighted Gauss-Newton
     loop_path_m: float = Field(5.0, ge=0.0)  # a pair this far apart along the path is a loop closure
     # A pair whose scans pin one direction only (rooms seen through a door, a corridor) gives an edge
-    # across that direction, nothing along it (as the localiser keeps odometry along a corridor):
-    # "off"; "all" such edges (it helped the two-floor house and cost generated:0, see the module
-    # docstring); "bridging": only those between panoramas that no chain of fully pinned scan edges
-    # ties together (rooms whose only scan evidence is seen through a door).
-    weak_edges: Literal["off", "all", "bridging"] = "off"
+    # along that direction, nothing along the other (as the localiser keeps odometry along a
+    # corridor). Off: it helped the two-floor house and cost generated:0 (see the module docstring).
+    weak_edges: bool = False
     # Share of a pair's scan on the other's: a room seen through a door is a quarter or so (None: the
     # localiser's 0.3, which a panorama placed against the whole model can afford).
     min_fitness: float | None = Field(0.2, ge=0.0, le=1.0)
@@ -117,7 +114,6 @@ class Edge:
     fitness: float
     rmse_m: float
     accepted: bool = True
-    weak: bool = False  # one registration pinned one direction only (PoseGraphConfig.weak_edges)
 
 
 @dataclass
@@ -165,7 +161,7 @@ class PoseGraph:
             self.report = rep
             return rep
         self._register_pairs()
-        edges = self._edges_used()
+        edges = [e for e in self.edges.values() if e is not None]
         for e in edges:
             e.accepted = True
         x = self._optimise(edges)
@@ -204,26 +200,6 @@ class PoseGraph:
         return rep
 
     # -- pairs ---------------------------------------------------------------------------------
-
-    def _edges_used(self) -> list[Edge]:
-        """The registered pairs the solve uses: every fully pinned one; the weak ones as
-        ``weak_edges`` says ("bridging": those whose two panoramas lie in different components of the
-        fully pinned edges' graph)."""
-        found = [e for e in self.edges.values() if e is not None]
-        if self.config.weak_edges != "bridging":
-            return found
-        root = list(range(len(self.nodes)))
-
-        def find(k: int) -> int:
-            while root[k] != k:
-                root[k] = root[root[k]]
-                k = root[k]
-            return k
-
-        for e in found:
-            if not e.weak:
-                root[find(e.i)] = find(e.j)
-        return [e for e in found if not e.weak or find(e.i) != find(e.j)]
 
     def _register_pairs(self) -> None:
         cfg = self.config
@@ -266,7 +242,6 @@ class PoseGraph:
         bwd = self._match(j, i, _invert(z0))
         if bwd is None:
             return None
-        weak = fwd[3] or bwd[3]
         z_b = _invert(bwd[0])
         gap = z_b - fwd[0]
         gap[2] = float(wrap_angle(gap[2]))
@@ -282,11 +257,11 @@ class PoseGraph:
                 cfg.edge_sigma_rad**2 / max(cov[2, 2], 1e-300))
         sqrt_info = np.linalg.cholesky(info / f).T  # info / f = U^T U
         loop = abs(b.path_m - a.path_m) > cfg.loop_path_m
-        return Edge(i, j, z, sqrt_info, loop, m.fitness, m.rmse_m, weak=weak)
+        return Edge(i, j, z, sqrt_info, loop, m.fitness, m.rmse_m)
 
     def _match(self, i: int, j: int, z0: np.ndarray) -> tuple | None:
         """Node j's scan registered to node i's line model from ``z0`` (j in i's frame), judged as the
-        localiser judges a panorama: (z, match, information, pinned one direction only) or None."""
+        localiser judges a panorama: (z, match, information) or None."""
         cfg, lc = self.config, self.localiser_config
         mp, mn, tree = self._lines(i)
         scan = self.nodes[j].scan
@@ -297,9 +272,8 @@ class PoseGraph:
         if m is None or m.inliers < lc.min_inliers or m.fitness < (
                 lc.min_fitness if cfg.min_fitness is None else cfg.min_fitness):
             return None
-        weak = m.constraint < lc.min_constraint
-        if weak:
-            if cfg.weak_edges == "off":
+        if m.constraint < lc.min_constraint:
+            if not cfg.weak_edges:
                 return None
             e = m.weak_dir  # the match across, the placements along (its ICP information is small there)
             m.xy_m[:] = m.xy_m - e * float(e @ (m.xy_m - xy0))
@@ -310,14 +284,14 @@ class PoseGraph:
         info = _icp_information(scan, mp, mn, tree, m.xy_m, m.heading_rad, lc)
         if info is None:
             return None
-        if weak:
+        if m.constraint < lc.min_constraint:
             # Nothing along the weak direction: its measurement is only the seed (the placements,
             # centimetres off under drift), and the ICP's little information there still tied it to
             # them as tightly as odometry. A trace of it keeps the edge's whitening defined.
             v = np.array([m.weak_dir[0], m.weak_dir[1], 0.0])
             keep = np.eye(3) - np.outer(v, v)
             info = keep @ info @ keep + 1e-9 * np.trace(info) * np.outer(v, v)
-        return np.array([m.xy_m[0], m.xy_m[1], m.heading_rad]), m, info, weak
+        return np.array([m.xy_m[0], m.xy_m[1], m.heading_rad]), m, info
 
     # -- the solve -----------------------------------------------------------------------------
 
