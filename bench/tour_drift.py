@@ -9,7 +9,7 @@ frame placed by registration).
     python -m bench.tour_drift --drift-scale -1       # a noise-free robot (nothing may move)
     python -m bench.tour_drift --band median          # the scan's height band by each column's median range
     python -m bench.tour_drift --graph off            # the sequential localiser alone (no pose graph)
-    python -m bench.tour_drift --graph-set weak_edges=bridging   # PoseGraphConfig fields
+    python -m bench.tour_drift --graph-set weak_edges=true   # PoseGraphConfig fields
     python -m bench.tour_drift --scene generated:3:floors=2   # a two-floor house: the errors split by level
 
 Explores once and drives the tours (no reconstruction): about a minute of CPU on generated:0.
@@ -303,7 +303,7 @@ def report(r: dict) -> None:
 
 
 def _value(text: str):
-    """A --graph-set value: JSON where it parses (numbers, true), else the word itself (an option's name)."""
+    """A --graph-set value: JSON where it parses (numbers, true), else the word itself."""
     try:
         return json.loads(text)
     except json.JSONDecodeError:
@@ -319,7 +319,7 @@ def main() -> None:
     ap.add_argument("--band", choices=("median", "pixel"), default="pixel",
                     help="scan height band chosen by each column's median range, or by each pixel's own depth")
     ap.add_argument("--graph-set", nargs="+", default=[], metavar="FIELD=JSON",
-                    help="PoseGraphConfig fields, e.g. weak_edges=bridging min_fitness=0.25")
+                    help="PoseGraphConfig fields, e.g. weak_edges=true min_fitness=0.25")
     args = ap.parse_args()
     print(f"## {args.scene}, drift x{args.drift_scale:g}, frame registration {args.frames}, band by {args.band}, "
           f"pose graph {args.graph} {' '.join(args.graph_set)}")

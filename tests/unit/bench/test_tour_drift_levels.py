@@ -30,3 +30,32 @@ def test_rigid_fit_recovers_a_floor_offset_and_leaves_each_panorama_its_own_erro
     own[0] += [0.04, 0.0]  # one panorama off its floor by 4 cm: the residual says which
     _, _, res = rigid_fit(own, truth)
     assert res.argmax() == 0 and res[0] > 0.03
+
+
+def test_a_frames_error_is_split_between_the_panoramas_and_the_drift_between_them():
+    """bench.tour_drift's split of a tour frame's error: odometry drifts 4 cm in x between two
+    panoramas, linearly in time; the graph placed the second panorama 2 cm short. Under the panoramas'
+    true corrections the frames are exact (the drift between was linear); under the graph's they carry
+    its 2 cm, growing along the way; as recorded, what the recording says."""
+    from types import SimpleNamespace
+
+    from bench.tour_drift import _between_panoramas
+    from shared.schemas import Pose
+
+    def pose(x: float) -> Pose:
+        return Pose(position_m=(x, 0.0, 0.0), heading_rad=0.0)
+
+    drift = lambda t: 0.04 * t / 10.0  # noqa: E731 - odometry's x error at time t
+    pano_truth = {0.0: (pose(0.0), pose(0.0)), 10.0: (pose(2.0), pose(2.0 + drift(10.0)))}
+    steps = [SimpleNamespace(timestamp_s=0.0), SimpleNamespace(timestamp_s=10.0)]
+    # the graph's corrections (map = odom + dx): exact at the first, 2 cm short of -4 cm at the second
+    loc = SimpleNamespace(steps=steps, schedule=lambda: (np.array([0.0, 10.0]),
+                                                         np.array([[0.0, 0.0, 0.0], [-0.02, 0.0, 0.0]])))
+    ts = [2.5, 5.0, 7.5]
+    truth = {k: (pose(0.2 * t), pose(0.2 * t + drift(t))) for k, t in enumerate(ts)}
+    frames = [SimpleNamespace(index=k, timestamp_s=t, pose=pose(0.2 * t + 0.01)) for k, t in enumerate(ts)]
+    b = _between_panoramas([SimpleNamespace(frames=frames)], truth, pano_truth, loc)
+    assert b.shape == (3, 6)
+    assert np.allclose(b[:, 0], 0.01)  # as recorded
+    assert np.allclose(b[:, 1], [0.005, 0.01, 0.015])  # the graph's 2 cm, interpolated
+    assert np.allclose(b[:, 2], 0.0, atol=1e-12) and np.allclose(b[:, 4], 0.0, atol=1e-12)
