@@ -137,6 +137,14 @@ class VoxelAccumulator:
         self._compact()
         return len(self._parts[0][0])
 
+    def counts(self) -> np.ndarray:
+        """The number of points fused into each voxel of ``cloud`` (same order)."""
+        if not self._parts:
+            return np.zeros(0)
+        self._compact()
+        cnt = self._parts[0][3]
+        return cnt[cnt >= self.min_points]
+
     def cloud(self, label_names: dict[int, str] | None = None) -> PointCloud:
         """The fused cloud: one point per voxel with at least ``min_points`` points."""
         if not self._parts:
