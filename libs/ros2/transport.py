@@ -47,8 +47,10 @@ class Ros2Transport(ABC):
     @abstractmethod
     def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 8,
                   transient_local: bool = False) -> Closeable:
-        """Deliver samples on ``key``; when the handler falls behind by ``max_queue`` samples the
-        newest are dropped (sensor streams: a late image is worth less than a free worker).
+        """Deliver samples on ``key``, in order, on a thread of the subscription's own; when the handler
+        falls behind by ``max_queue`` samples the oldest waiting one is dropped, as a ROS 2 keep-last
+        queue of that depth does. Transient-local subscriptions (a latched map, a sample or two) drop
+        the newest instead: the zenoh adapter's advanced subscriber only takes a callback.
         ``transient_local``: on joining (and whenever a publisher appears later) ask the
         publishers for the samples they keep, so a latched topic (/map) arrives at once."""
 

@@ -123,6 +123,8 @@ class ZenohRos2Transport(Ros2Transport):
         return _Pub(self.session.declare_publisher(key, **qos))
 
     def subscribe(self, key: str, handler: SampleHandler, *, max_queue: int = 8, transient_local: bool = False):
+        if not transient_local:
+            return self._pumped(key, handler, max_queue)
         disp = Dispatcher(f"ros2:{key}", 1, max_queue)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -133,14 +135,42 @@ class ZenohRos2Transport(Ros2Transport):
             except Overloaded:
                 pass  # sensor streams: the newest sample is dropped while the worker is behind
 
-        if transient_local:
-            # rmw_zenoh's transient-local subscription: an advanced subscriber that queries the
-            # publishers' caches on joining, and again for each publisher detected later.
-            sub = zenoh.ext.declare_advanced_subscriber(
-                self.session, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
-        else:
-            sub = self.session.declare_subscriber(key, on_sample)
+        # rmw_zenoh's transient-local subscription: an advanced subscriber that queries the
+        # publishers' caches on joining, and again for each publisher detected later.
+        sub = zenoh.ext.declare_advanced_subscriber(
+            self.session, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
         return _Closer(sub.undeclare, disp.close)
+
+    def _pumped(self, key: str, handler: SampleHandler, max_queue: int):
+        """A subscription whose samples wait in zenoh's own ring buffer (the oldest is overwritten when
+        full, as a ROS 2 keep-last queue does) for one thread that takes them out and handles them.
+
+        A callback handing each sample to a worker queue woke two threads per sample (zenoh's, to take
+        the GIL, and the worker): at a stand-in's 1,200 messages a second that was most of robot-io's
+        CPU while it only listened. Here zenoh's thread never takes the GIL and one thread wakes."""
+        sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(max(1, max_queue)))
+        rx = sub.handler
+
+        def pump(_keep=sub) -> None:  # a channel subscriber dropped is undeclared: the thread holds it
+            while True:
+                try:
+                    sample = rx.recv()  # releases the GIL while it waits
+                except zenoh.ZError:
+                    return  # undeclared: the channel is closed and empty
+                att = sample.attachment.to_bytes() if sample.attachment is not None else None
+                try:
+                    handler(sample.payload.to_bytes(), att)
+                except Exception:  # a handler bug must not end the subscription
+                    log.exception("handler for %s failed", key)
+
+        thread = threading.Thread(target=pump, name=f"ros2:{key}", daemon=True)
+        thread.start()
+
+        def join() -> None:
+            if thread is not threading.current_thread():
+                thread.join(2.0)
+
+        return _Closer(sub.undeclare, join)
 
     def query(self, key: str, payload: bytes, attachment: bytes | None, timeout_s: float):
         kwargs = {"payload": payload, "timeout": timeout_s, "target": zenoh.QueryTarget.ALL_COMPLETE}

@@ -29,7 +29,8 @@ from deploy.demo import main as demo_main
 pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 SCENE = "generated:3:area=50"
-# A small camera at a low rate: the stand-in renders every frame it publishes, on a shared CPU.
+# A small camera at a low rate: the stand-in renders every frame it publishes while the robot moves (a still
+# robot's frames reuse its last render), on a shared CPU.
 STANDIN = '{"camera": {"width_px": 128, "height_px": 128}, "camera_rate_hz": 2, "control_rate_hz": 20}'
 TIME_SCALE = "12"
 # The reconstructor's merge voxel (ANT_MERGE_VOXEL_M, default 3 cm): the stored map's density, which only

@@ -184,6 +184,12 @@ class StandInRobot:
                                                  on_cancel=lambda _g: True, now_s=lambda: self.stamp_s)
         self._next_cam = 0.0
         self._next_scan = 0.0
+        # The last camera render and scan ranges, keyed by the pose they were taken from: a base that
+        # stands still (reconstructing, planning, a test between commands) would render the same
+        # images at the camera rate for as long as it stands. Rendering is a pure function of the pose;
+        # the noise (depth) is drawn per message after it, so every message is what it was before.
+        self._view: tuple[bytes, object] | None = None
+        self._ranges: tuple[bytes, np.ndarray] | None = None
         self._next_map = 0.0
         self._next_runstop = 0.0
         self._grid = self._occupancy() if p.map else None
@@ -508,10 +514,22 @@ class StandInRobot:
             self._pub_runstop.publish(m.boolean(self.run_stopped))
         self._flush_delayed()
 
+    def _pose_key(self) -> bytes:
+        return self._pos.tobytes() + np.float64(self._heading).tobytes()
+
+    def _render(self):
+        """The camera's view from the current pose (rendered again only when the pose has changed)."""
+        key = self._pose_key()
+        if self._view is None or self._view[0] != key:
+            p, cam = self.profile, self.config.camera
+            out = self.sim.renderer.render_views(self._pos, np.array([self._heading]), cam.pinhole(), 0.0,
+                                                 p.camera_height_m, with_semantic=p.semantic is not None)
+            self._view = (key, out)
+        return self._view[1]
+
     def _publish_camera(self, t: float) -> None:
         p, cam = self.profile, self.config.camera
-        out = self.sim.renderer.render_views(self._pos, np.array([self._heading]), cam.pinhole(), 0.0,
-                                             p.camera_height_m, with_semantic=p.semantic is not None)
+        out = self._render()
         k = p.camera_rotation_quarters
         # The mounting rotates what the sensor sees: undo "upright" by the inverse quarter turns.
         rot = (lambda a: np.ascontiguousarray(np.rot90(a, -k))) if k else (lambda a: a)
@@ -548,11 +566,14 @@ class StandInRobot:
         n = c.scan_beams
         inc = 2 * math.pi / n
         ang = -math.pi + inc * np.arange(n)
-        world = self._heading + ang
-        dirs = np.stack([np.cos(world), np.sin(world), np.zeros(n)], axis=1)
-        origin = self._pos + np.array([0.0, 0.0, c.scan_height_m])
-        r = np.asarray(self.sim.renderer.first_hit_distance(origin, dirs), np.float64)
-        r = np.where(r > c.scan_range_max_m, np.inf, r).astype(np.float32)
+        key = self._pose_key()
+        if self._ranges is None or self._ranges[0] != key:  # as the camera: cast again only after a move
+            world = self._heading + ang
+            dirs = np.stack([np.cos(world), np.sin(world), np.zeros(n)], axis=1)
+            origin = self._pos + np.array([0.0, 0.0, c.scan_height_m])
+            r = np.asarray(self.sim.renderer.first_hit_distance(origin, dirs), np.float64)
+            self._ranges = (key, np.where(r > c.scan_range_max_m, np.inf, r).astype(np.float32))
+        r = self._ranges[1]
         return m.laser_scan(t, "laser", r, -math.pi, inc, 0.05, c.scan_range_max_m, 1.0 / c.scan_rate_hz)
 
     def _occupancy(self):
