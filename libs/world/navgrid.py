@@ -40,6 +40,10 @@ from .scene import Scene
 
 log = logging.getLogger(__name__)
 
+# Obstacle sample points generated at a time (see NavGrid._prune_obstacles): a chunk's temporaries
+# are a few MB, not hundreds.
+_SAMPLE_CHUNK = 1 << 16
+
 
 @dataclass(frozen=True)
 class AgentShape:
@@ -213,12 +217,22 @@ class NavGrid:
         idx = np.repeat(np.arange(len(tris)), counts)
         r1 = np.sqrt(rng.random(len(idx)))
         r2 = rng.random(len(idx))
-        t = tris[idx]
-        pts = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
-        c = np.floor((pts[:, :2] - self.origin) / self.cell_m).astype(np.int64)
-        inside = (c[:, 0] >= 0) & (c[:, 0] < self.shape[0]) & (c[:, 1] >= 0) & (c[:, 1] < self.shape[1])
-        c, pz = c[inside], pts[inside, 2]
-        colid = c[:, 0] * self.shape[1] + c[:, 1]
+        # The points in chunks, each with the same arithmetic as all at once (the same bits): a 500 m2
+        # house samples 5.1e6 points, and its (N, 3, 3) corners and (N, 3) points whole were 370 and
+        # 120 MB of temporaries that the arithmetic streamed through memory (2.3 s of its 4.5 s build).
+        colid = np.empty(len(idx), np.int64)
+        pz = np.empty(len(idx))
+        inside = np.empty(len(idx), bool)
+        for s in range(0, len(idx), _SAMPLE_CHUNK):
+            a, b = r1[s : s + _SAMPLE_CHUNK], r2[s : s + _SAMPLE_CHUNK]
+            t = tris[idx[s : s + _SAMPLE_CHUNK]]
+            pts = (1 - a)[:, None] * t[:, 0] + (a * (1 - b))[:, None] * t[:, 1] + (a * b)[:, None] * t[:, 2]
+            c = np.floor((pts[:, :2] - self.origin) / self.cell_m).astype(np.int64)
+            inside[s : s + _SAMPLE_CHUNK] = ((c[:, 0] >= 0) & (c[:, 0] < self.shape[0])
+                                             & (c[:, 1] >= 0) & (c[:, 1] < self.shape[1]))
+            colid[s : s + _SAMPLE_CHUNK] = c[:, 0] * self.shape[1] + c[:, 1]
+            pz[s : s + _SAMPLE_CHUNK] = pts[:, 2]
+        colid, pz = colid[inside], pz[inside]
         zmin = float(pz.min()) - 1.0
         span = float(pz.max()) - zmin + 10.0
         keys = np.sort(colid * span + (pz - zmin))

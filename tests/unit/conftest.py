@@ -3,16 +3,28 @@ the services' unit tests share them)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pytest
 
-from services.robot_io.core.robot import SimConfig, SimRobot
+if TYPE_CHECKING:
+    from services.robot_io.core.robot import SimRobot
+
+# The simulator is imported in the fixtures, not here: ``make test-unit`` names tests/unit, so the xdist
+# controller loads this file before it starts its workers, and the simulator's imports (open3d, numba,
+# scipy: 1.8 s of CPU with warm bytecode, more in a fresh clone) held back both workers' start. The
+# workers import it anyway, with the tests that use it.
 
 
 @pytest.fixture(scope="session")
 def house_robot() -> SimRobot:
+    from services.robot_io.core.robot import SimConfig, SimRobot
+
     return SimRobot(SimConfig(scene="generated:0", camera={"width_px": 64, "height_px": 64}))
 
 
 @pytest.fixture(scope="session")
 def two_floor_robot() -> SimRobot:
+    from services.robot_io.core.robot import SimConfig, SimRobot
+
     return SimRobot(SimConfig(scene="generated:1:floors=2:area=160", camera={"width_px": 64, "height_px": 64}))

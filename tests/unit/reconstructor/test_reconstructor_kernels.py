@@ -160,6 +160,20 @@ def test_knn_mean_distances_are_exact():
     assert np.allclose(few, cKDTree(xyz[:5]).query(xyz[:5], k=5)[0].mean(axis=1))
 
 
+@needs_numba
+def test_knn_cells_capped_per_point_give_the_same_bits():
+    # Scattered far points stretch the bounding box: at 5 cm cells it needs 1.6e6 cells, 765 per point,
+    # and the default caps it at 8 per point (cells 5 times as wide). The same means to the bit.
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(4)
+    xyz = np.concatenate([rng.uniform(0, 1, (2000, 3)), rng.uniform(-1, 5, (40, 3))])
+    fine = kernels.knn_mean_distances(xyz, 8, 0.05, cells_per_point=10**6)
+    capped = kernels.knn_mean_distances(xyz, 8, 0.05)
+    assert np.array_equal(fine, capped)
+    assert np.allclose(capped, cKDTree(xyz).query(xyz, k=8)[0].mean(axis=1), rtol=1e-12, atol=0)
+
+
 @pytest.mark.parametrize("kernel", [pytest.param("numba", marks=needs_numba), "numpy"])
 def test_a_frame_that_declares_depth_noise_is_fused_only_as_far_as_it_is_good(kernel):
     # sigma = rel * z^2 reaches max_depth_noise_m (4 cm) at 2 m for rel 0.01: the frames' depth past 2 m
