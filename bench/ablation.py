@@ -153,6 +153,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--policy-config", default="{}", help="JSON: the heuristic's config for every variant")
     ap.add_argument("--max-steps", type=int, default=40)
     ap.add_argument("--limit", type=int, default=None, help="only the first N episodes of the set")
+    ap.add_argument("--scenes", default=None, type=lambda t: [x for x in t.split(",") if x],
+                    help="only the episodes of these scenes (comma-separated ids, e.g. generated:10): a bisection "
+                         "re-runs the houses where two codes differ, not all fifteen")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--variants", nargs="+", default=None, metavar="LABEL",
                     help="only these of the preset's variants (labels, e.g. 'hfov 120'): a confirmation on "
@@ -182,6 +185,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     dataset, _ = generate_set(SetSpec(houses=args.houses, per_house=args.per_house, area_m2=args.area_m2,
                                       floors=parse_floors(args.floors), seed=args.seed), with_gt=False)
     episodes = dataset.episodes[: args.limit] if args.limit else dataset.episodes
+    if args.scenes:
+        known = {e.scene_id for e in dataset.episodes}
+        if unknown := [x for x in args.scenes if x not in known]:
+            ap.error(f"the set has no scene {', '.join(map(repr, unknown))}; it has {sorted(known)}")
+        episodes = [e for e in episodes if e.scene_id in args.scenes]
     t0, ran = time.perf_counter(), 0
     scenes = list(dict.fromkeys(e.scene_id for e in episodes))
     for scene in scenes:

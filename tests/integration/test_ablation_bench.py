@@ -55,6 +55,12 @@ def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
     assert len((root / "true-scene_views" / "results.jsonl").read_text().splitlines()) == 2
     with pytest.raises(SystemExit):
         ablation.main(argv + ["--variants", "hfov 45"])
+    # Only some scenes (a bisection re-runs the houses where two codes differ): a scene the set has not is
+    # refused by name; the house's own scene keeps its episodes.
+    scene = runs["true-scene_views"][0]["scene_id"]
+    assert ablation.main(argv + ["--scenes", scene])["n"] == 2
+    with pytest.raises(SystemExit):
+        ablation.main(argv + ["--scenes", "generated:99"])
 
 
 def _a_map_of_other_code_is_rebuilt(maps, monkeypatch):
