@@ -122,11 +122,12 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
     result = Explorer(pred, cfg.exploration).explore(robot, checkpoint, on_step)
     if isinstance(robot, LocalisedRobot):
         # The panoramas' poses made globally consistent (loop closures) before the tours start from
-        # them, and the graph, scans and trajectory moved with them: the regions, hubs, tours and the
-        # scene graph are all derived from those, and stayed dead-reckoned otherwise.
+        # them; the graph, scans and trajectory move with them only where the localiser's config says
+        # (off by default: see LocaliserConfig.replace_exploration).
         before = [s.correction for s in robot.localiser.steps]
         robot.localiser.optimise()
-        replace_exploration(result, robot.localiser, before)
+        if robot.localiser.config.replace_exploration:  # the localiser's own config (it may come wrapped)
+            replace_exploration(result, robot.localiser, before)
     t1 = time.perf_counter()
     if checkpoint is not None:
         checkpoint()

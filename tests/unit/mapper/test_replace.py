@@ -13,6 +13,7 @@ from shared.schemas import MoveResult, Panorama
 
 import services.mapper.core.discovery as discovery
 from services.mapper.core import DiscoveryConfig, ExplorationConfig, NodeStatus, discover
+from services.mapper.core.localise import LocaliserConfig
 from services.mapper.tools.boxworld import BoxWorldRobot, rooms_world
 from tests.unit.mapper.test_localise import DriftingRobot
 
@@ -45,7 +46,8 @@ class PathDriftingRobot(DriftingRobot):
 def drifted():
     """One drifting exploration; the graph's visited positions as they were before the re-placement."""
     robot = PathDriftingRobot(BoxWorldRobot(rooms_world(), PinholeCamera(48, 48, 90.0)))
-    cfg = DiscoveryConfig(exploration=ExplorationConfig(max_steps=14))
+    cfg = DiscoveryConfig(exploration=ExplorationConfig(max_steps=14),
+                          localisation=LocaliserConfig(replace_exploration=True))
     seen = {}
     real = discovery.replace_exploration
 
@@ -112,3 +114,14 @@ def test_observed_nodes_keep_their_place_seen_from_their_parent(drifted):
     # The trajectory's moves: each between its panoramas' new places, none left where it was.
     assert d.result.trajectory_m.shape == seen["trajectory"].shape
     assert np.any(d.result.trajectory_m != seen["trajectory"])
+
+
+def test_off_by_default_the_graph_stays_where_dead_reckoning_put_it(monkeypatch):
+    """Off by default (LocaliserConfig.replace_exploration: the maps built from the tours it plans
+    navigated worse): the exploration-end solve still runs, the graph is not moved."""
+    calls = []
+    monkeypatch.setattr(discovery, "replace_exploration", lambda *a: calls.append(a))
+    robot = PathDriftingRobot(BoxWorldRobot(rooms_world(), PinholeCamera(48, 48, 90.0)))
+    d = discover(robot, DiscoveryConfig(exploration=ExplorationConfig(max_steps=4)))
+    assert calls == [] and d.scene.localiser is not None
+    assert d.scene.localiser.graph_summary().nodes_moved == 0
