@@ -124,9 +124,10 @@ def discover(robot: ExplorerRobot, config: DiscoveryConfig | None = None,
         # The panoramas' poses made globally consistent (loop closures) before the tours start from
         # them; the graph, scans and trajectory move with them only where the localiser's config says
         # (off by default: see LocaliserConfig.replace_exploration).
-        before = [s.correction for s in robot.localiser.steps]
+        replace = robot.localiser.config.replace_exploration  # the localiser's own config (it may come wrapped)
+        before = [s.correction for s in robot.localiser.steps] if replace else []
         robot.localiser.optimise()
-        if robot.localiser.config.replace_exploration:  # the localiser's own config (it may come wrapped)
+        if replace:
             replace_exploration(result, robot.localiser, before)
     t1 = time.perf_counter()
     if checkpoint is not None:
