@@ -88,7 +88,7 @@ class RunConfig(BaseModel):
     exploration_timeout_s: float = Field(7200.0, gt=0)
     exploration_max_steps: int = Field(400, ge=1, le=10_000)
     reconstruction: str = Field("rgbd", description="regional reconstruction backend of explorations")
-    curated_density_per_m2: float = Field(CURATED_DENSITY_PER_M2, gt=0)
+    curated_density_per_m2: float = Field(CURATED_DENSITY_PER_M2, gt=0, allow_inf_nan=False)
     curated_max_points: int = Field(1_000_000, ge=1000)
     poll_s: float = Field(0.5, gt=0, le=30)
     retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")

@@ -19,6 +19,10 @@ AREA_M2 = 60.0
 # robot-io starts in another small house, so the runner's scene switch is a real one; robot-io's default
 # house would cost two nav-grid builds (the run and the resume each start the system) for nothing.
 START_SCENE = "generated:3:area=50"
+# A sparse curated cloud (a tenth of the runner's default 1000 per m2): the oracle follows the ground truth,
+# and what this test proves (scene switch, curated map, missions, resume) does not depend on the map's
+# density; building, uploading and indexing the default one was most of the run's CPU.
+CURATED_DENSITY_PER_M2 = "100"
 
 
 def test_make_eval_path_on_a_generated_house(tmp_path, capsys, monkeypatch, system_on_scene):
@@ -29,7 +33,8 @@ def test_make_eval_path_on_a_generated_house(tmp_path, capsys, monkeypatch, syst
     out = tmp_path / "out"
     # 15 steps: the oracle reaches the nearer goal in 9; the other episode may use them all (it did use 25).
     argv = ["run", "--episodes", str(episodes), "--out", str(out), "--policy", "oracle", "--map-source", "curated",
-            "--max-steps", "15", "--mission-timeout-s", "240", "--no-progress"]
+            "--max-steps", "15", "--mission-timeout-s", "240", "--no-progress",
+            "--curated-density-per-m2", CURATED_DENSITY_PER_M2]
     assert main(argv) == 0
     results = ResultsLog(out / "results.jsonl").load()
     assert sorted(results) == ["1", "2"]

@@ -13,6 +13,7 @@ from evaluation.cli import main
 from evaluation.dataset import SetSpec, generate_set, write_set
 from evaluation.results import ResultsLog
 from services.planner.tools.llm_standin import StandinConfig, StandinServer
+from tests.e2e.test_eval import CURATED_DENSITY_PER_M2  # sparse: the maps' density is not what is tested
 
 pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
@@ -38,6 +39,7 @@ def test_a_budget_cancels_the_missions_in_flight_and_the_resumed_run_reruns_them
         argv = ["run", "--episodes", str(episodes), "--out", str(out), "--policy", "openai",
                 "--policy-config", json.dumps(policy), "--map-source", "curated", "--max-steps", "8",
                 "--no-anticipation", "--no-spatial-map", "--mission-timeout-s", "240", "--no-progress",
+                "--curated-density-per-m2", CURATED_DENSITY_PER_M2,
                 *[x for url in launcher.gateway_urls for x in ("--gateway", url)]]
         # One token: the first step of any robot reaches it.
         assert main([*argv, "--budget-tokens", "1"]) == 0

@@ -14,6 +14,7 @@ from evaluation.cli import main
 from evaluation.dataset import SetSpec, generate_set, write_set
 from evaluation.results import ResultsLog
 from services.planner.tools.llm_standin import StandinConfig, StandinServer
+from tests.e2e.test_eval import CURATED_DENSITY_PER_M2  # sparse: the maps' density is not what is tested
 
 pytestmark = [pytest.mark.e2e, pytest.mark.system, pytest.mark.timeout(600)]
 
@@ -42,7 +43,7 @@ def _run(tmp_path, launcher, episodes, maps, name: str, limits: dict, policy: di
         argv = ["run", "--episodes", str(episodes), "--out", str(out), "--policy", "openai",
                 "--policy-config", json.dumps(cfg), "--map-source", "curated", "--max-steps", "6",
                 "--mission-timeout-s", "240", "--no-progress", "--gateway", launcher.gateway_urls[0],
-                "--maps", str(maps)]
+                "--maps", str(maps), "--curated-density-per-m2", CURATED_DENSITY_PER_M2]
         assert main(argv) == 0
     return ResultsLog(out / "results.jsonl").load(), llm
 
