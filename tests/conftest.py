@@ -116,11 +116,22 @@ def system(tmp_path_factory):
 @pytest.fixture
 def system_on_scene(system):
     """``system`` for a test that switches its robots' scenes (the evaluation runner does) or leaves work
-    behind: afterwards every robot is back on the shared scene with nothing running."""
-    from tests.launched import put_back
+    behind: afterwards nothing is running, and the robots are put back on the shared scene before the next
+    test that uses ``system`` itself (below), not after each of these tests (they run one after another:
+    each switches its robots away again, and a reload of the shared house costs seconds)."""
+    from tests.launched import cancel_left_running
 
     yield system
-    put_back(system)
+    cancel_left_running(system)
+
+
+@pytest.fixture(autouse=True)
+def _system_on_its_scene(request):
+    """A test that uses ``system`` (not ``system_on_scene``) finds every robot on the shared scene."""
+    if "system" in request.fixturenames and "system_on_scene" not in request.fixturenames:
+        from tests.launched import put_back
+
+        put_back(request.getfixturevalue("system"))
 
 
 @pytest.fixture

@@ -5,8 +5,9 @@ Starting it costs tens of seconds of CPU (seven interpreters, robot-io's house a
 import), and tests/e2e and tests/reliability used to start about a dozen of them; one per session is
 started by the ``system`` fixture (tests/conftest.py) for every test that does not need a system of a
 different shape. Tests that kill a process rely on the supervisor bringing it back; tests that switch a
-robot's scene (the evaluation runner does) use ``system_on_scene`` (tests/conftest.py), which puts every
-robot back on ``SCENE`` afterwards, so the next test finds the system as the fixture made it.
+robot's scene (the evaluation runner does) use ``system_on_scene`` (tests/conftest.py), which leaves nothing
+running, and every robot is put back on ``SCENE`` before a test that uses ``system`` itself, so such a test
+finds the system as the fixture made it.
 """
 
 from __future__ import annotations
@@ -75,9 +76,9 @@ def import_map(launcher) -> None:
         assert r.status_code == 201, r.text
 
 
-def put_back(launcher, scene: str = SCENE) -> None:
-    """Every robot of the shared system back on ``scene``, with nothing left running (a test that left a
-    mission running, or a robot elsewhere, would change what the next test finds)."""
+def cancel_left_running(launcher) -> None:
+    """Nothing left running on any robot of the shared system (a mission a test left running would
+    change what the next test finds)."""
     for url in launcher.gateway_urls:
         with httpx.Client(base_url=url, timeout=180) as http:
             wait_until(lambda: http.get("/health").status_code == 200, 60, f"gateway {url} up")
@@ -86,6 +87,13 @@ def put_back(launcher, scene: str = SCENE) -> None:
                 http.post(f"/missions/{m['id']}/cancel")
             wait_until(lambda: http.get("/missions", params={"state": ["running", "queued"]}).json()["total"] == 0,
                        120, f"no mission left running on {url}")
+
+
+def put_back(launcher, scene: str = SCENE) -> None:
+    """Every robot of the shared system on ``scene``, with nothing left running."""
+    cancel_left_running(launcher)
+    for url in launcher.gateway_urls:
+        with httpx.Client(base_url=url, timeout=180) as http:
             # A robot already on it is left as it stands (a reload rebuilds the house and its nav grids:
             # seconds of CPU, and the tests that follow never relied on a robot's pose).
             if http.get("/robot/scene").json()["scene"] != scene:
