@@ -12,6 +12,7 @@ finds the system as the fixture made it.
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import json
 from pathlib import Path
@@ -65,13 +66,18 @@ def launch(run_dir: Path):
     }
     launcher = Launcher(run_dir, extra_env=env, restart=True, robots=ROBOTS)
     launcher.run_dir_path = run_dir
+    # The map's cloud is sampled here (the house, its nav grids and viewpoints: seconds) while the
+    # launcher's processes start, rather than after they are all up; import_map waits for it.
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="map-ply")
+    launcher.map_ply = pool.submit(scene_ply)
+    pool.shutdown(wait=False)  # the one job still runs; its thread ends with it
     return launcher
 
 
 def import_map(launcher) -> None:
     with httpx.Client(base_url=launcher.gateway_url, timeout=120) as http:
         wait_until(lambda: http.get("/maps").status_code == 200, 60, "gateway reaches the reconstructor")
-        r = http.post("/maps", params={"map_id": MAP_ID, "filename": "scene.ply"}, content=scene_ply(),
+        r = http.post("/maps", params={"map_id": MAP_ID, "filename": "scene.ply"}, content=launcher.map_ply.result(),
                       headers={"Content-Type": "application/octet-stream"})
         assert r.status_code == 201, r.text
 
