@@ -21,7 +21,6 @@ from typing import Any
 
 from evaluation.errors import ConfigError
 from libs.world import EpisodeDataset, GroundTruth, generate_episodes, ground_truth_for, write_episodes, write_ground_truth
-from services.robot_io.core import SimConfig, SimRobot
 from libs.world.episodes import build_vocab, tokens_for
 from libs.world.house import HouseSpec
 
@@ -77,6 +76,10 @@ def generate_set(spec: SetSpec, *, with_gt: bool = True,
     The nav grid is the simulator's own (a :class:`SimRobot` with ``spec.sim``), so start, goal and
     geodesic distances are the ones robot-io will measure when the episodes run.
     """
+    # The simulator (and its renderer's open3d) only for generating: `run` reads subsets and ground truth
+    # through this module and should start in a fraction of a second.
+    from services.robot_io.core import SimConfig, SimRobot
+
     episodes, gt = [], {}
     scenes = spec.scene_specs()
     for i, scene in enumerate(scenes):

@@ -19,9 +19,7 @@ import logging
 import math
 from dataclasses import dataclass
 
-import networkx as nx
 import numpy as np
-from scipy import ndimage
 
 from shared.schemas import Pose
 
@@ -248,6 +246,8 @@ class _RoomRaster:
         trial = self.free & ~inflated
         if (self.door_zone & ~trial).any():
             return False
+        from scipy import ndimage  # here, not at module level: scipy.ndimage is ~0.4 s at every process start
+
         _, n = ndimage.label(trial)
         return n == 1
 
@@ -461,6 +461,8 @@ def _chairs_around(rng, mb, room, raster, flo, fhi, objects) -> None:
 
 
 def _doors_for(rng, rooms: list[Room], floor: int) -> list[_Door]:
+    import networkx as nx  # here, not at module level: a third of a second at every process start
+
     g = nx.Graph()
     g.add_nodes_from(range(len(rooms)))
     edges = {}

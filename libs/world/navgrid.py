@@ -26,17 +26,17 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
-from scipy import sparse
-from scipy.sparse import csgraph
-from scipy.spatial import cKDTree
 
 from shared.jit import AVAILABLE, numba
 
 from .errors import NavigationError
 from .scene import Scene
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,8 @@ class NavGrid:
         self._z_top = float(hi[2]) + 1.0
         rc = raycasting_scene
         if rc is None:
+            import open3d as o3d  # here, not at module level: open3d (and its dash import) costs seconds at every process start
+
             rc = o3d.t.geometry.RaycastingScene()
             rc.add_triangles(
                 o3d.t.geometry.TriangleMesh(
@@ -120,6 +122,7 @@ class NavGrid:
         rays[:, :2] = xy
         rays[:, 2] = self._z_top
         rays[:, 5] = -1.0
+        import open3d as o3d  # only binds the name: rc is a RaycastingScene, so open3d is loaded already
         hits = rc.list_intersections(o3d.core.Tensor(rays))
         ray_ids = hits["ray_ids"].numpy().astype(np.int64)
         z = self._z_top - hits["t_hit"].numpy().astype(np.float64)
@@ -250,6 +253,11 @@ class NavGrid:
         self._zgrid[ix[blocked], iy[blocked], k[blocked]] = np.nan
 
     def _build_graph(self) -> None:
+        # scipy's graph and tree modules load here, with open3d: importing libs.world stays cheap for the CLIs
+        from scipy import sparse
+        from scipy.sparse import csgraph
+        from scipy.spatial import cKDTree
+
         ix, iy, k, z = self._node_arrays()
         self.nodes_m = np.column_stack([self.origin[0] + (ix + 0.5) * self.cell_m, self.origin[1] + (iy + 0.5) * self.cell_m, z])
         self._ijk = np.column_stack([ix, iy, k])
@@ -378,6 +386,8 @@ class NavGrid:
         if node in self._fields:
             self._fields.move_to_end(node)
             return self._fields[node]
+        from scipy.sparse import csgraph  # loaded already by _build_graph; this binds the name
+
         dist, pred = csgraph.dijkstra(self.graph, directed=False, indices=node, return_predecessors=True)
         self._fields[node] = (dist, pred)
         if len(self._fields) > 16:

@@ -18,16 +18,18 @@ import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import open3d as o3d
 
 from shared.schemas import Pose
 
 from .errors import SceneFormatError, SceneNotFoundError
 from .scene_layout import Room, SceneObject
 from .scene_files import SceneFrame, read_mesh_file, resolve_frame, scan_name, split_scene_spec
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +112,8 @@ class Scene:
         raise KeyError(name)
 
     def to_legacy_mesh(self) -> o3d.geometry.TriangleMesh:
+        import open3d as o3d  # here, not at module level: open3d (and its dash import) costs seconds at every process start
+
         mesh = o3d.geometry.TriangleMesh(
             o3d.utility.Vector3dVector(self.vertices), o3d.utility.Vector3iVector(self.triangles)
         )
@@ -118,6 +122,8 @@ class Scene:
 
     def export_ply(self, path: Path | str) -> Path:
         """Write the mesh (vertices, triangles, vertex colours) as a binary .ply."""
+        import open3d as o3d  # here, not at module level (see to_legacy_mesh)
+
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         if not o3d.io.write_triangle_mesh(str(path), self.to_legacy_mesh(), write_ascii=False):

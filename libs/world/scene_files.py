@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from shared.geometry import habitat_alignment, scene_file_to_world
@@ -348,6 +347,8 @@ def read_mesh_file(path: Path | str) -> MeshData:
             raise SceneFormatError(f"{path} holds no triangles")
         return _assemble(path, parts, materials)
     if suffix in MODEL_SUFFIXES:
+        import open3d as o3d  # here, not at module level: seconds at every process start
+
         model = o3d.io.read_triangle_model(str(path))
         parts = [_o3d_part(model, m) for m in model.meshes if len(m.mesh.triangles) > 0]
         if parts:
@@ -356,6 +357,8 @@ def read_mesh_file(path: Path | str) -> MeshData:
 
 
 def _read_plain(path: Path) -> MeshData:
+    import open3d as o3d  # here, not at module level: open3d (and its dash import) costs seconds at every process start
+
     mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False)
     if not mesh.has_triangles():
         # read_triangle_mesh returns an empty mesh rather than raising on unreadable files

@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 from .errors import SceneFormatError
 from .scene_layout import Room, SceneObject
@@ -275,6 +274,8 @@ def _objects_from_triangles(vw, tris, obj_ids, category) -> list[SceneObject]:
 
 def transfer_labels(sem_vertices_w, sem_triangles, sem_labels, points_w) -> np.ndarray:
     """The label of the semantic triangle nearest each point (Embree closest-point queries)."""
+    import open3d as o3d  # here, not at module level: open3d (and its dash import) costs seconds at every process start
+
     rc = o3d.t.geometry.RaycastingScene()
     m = o3d.t.geometry.TriangleMesh()
     m.vertex.positions = o3d.core.Tensor(np.ascontiguousarray(sem_vertices_w, dtype=np.float32))
