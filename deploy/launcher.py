@@ -1,8 +1,8 @@
 """Local launcher: a zenoh router plus every service as its own OS process.
 
 Used by ``make demo`` and the end-to-end tests. It waits for every service's liveliness token with a
-deadline, restarts a service that crashes (exponential backoff), and stops everything cleanly -
-SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C.
+deadline, restarts a service that crashes (exponential backoff, started over once the child has run
+healthy: :class:`RestartPolicy`), and stops everything cleanly - SIGTERM first, SIGKILL for a process that does not stop in time - also on Ctrl-C.
 
 The bus is authenticated by default, as in production (it costs nothing on loopback): credentials
 are generated in ``<run_dir>/zenoh`` at first start (:mod:`deploy.credentials`), the router applies
@@ -26,6 +26,7 @@ import atexit
 import ctypes
 import json
 import logging
+import math
 import os
 import signal
 import socket
@@ -228,6 +229,31 @@ def wait_tcp(port: int, deadline_s: float) -> None:
     raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {deadline_s:.0f} s")
 
 
+@dataclass(frozen=True)
+class RestartPolicy:
+    """How the supervisor restarts a child that exits: after ``first_backoff_s``, doubling per restart up
+    to ``max_backoff_s`` while it keeps crashing; a child that stayed up ``healthy_after_s`` counts as
+    healthy again, so its next crash starts over at ``first_backoff_s`` (supervisord's ``startsecs``,
+    systemd's ``StartLimitIntervalSec``). Without that, a service that crashed a few times early in a long
+    session waited up to ``max_backoff_s`` after every later crash."""
+
+    first_backoff_s: float = 0.5
+    max_backoff_s: float = 30.0
+    healthy_after_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name in ("first_backoff_s", "max_backoff_s", "healthy_after_s"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"{name} must be a finite number of seconds, got {v!r}")
+        if not 0.01 <= self.first_backoff_s <= 60.0:
+            raise ValueError(f"first_backoff_s must be in [0.01, 60], got {self.first_backoff_s}")
+        if not self.first_backoff_s <= self.max_backoff_s <= 3600.0:
+            raise ValueError(f"max_backoff_s must be in [first_backoff_s, 3600], got {self.max_backoff_s}")
+        if not 0.1 <= self.healthy_after_s <= 3600.0:
+            raise ValueError(f"healthy_after_s must be in [0.1, 3600], got {self.healthy_after_s}")
+
+
 @dataclass
 class Proc:
     name: str
@@ -239,6 +265,7 @@ class Proc:
     next_backoff_s: float = 0.5
     stopping: bool = False
     history: list[int] = field(default_factory=list)  # exit codes of crashes
+    started_monotonic_s: float = 0.0  # when start() last ran: the supervisor's uptime reference
 
     def start(self) -> None:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -248,6 +275,7 @@ class Proc:
         # child's life to the launcher's (parent-death signal).
         try:
             with LIFECYCLE.shield():
+                self.started_monotonic_s = time.monotonic()
                 self.popen = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
                                               start_new_session=True, preexec_fn=_child_preexec(os.getpid()))
         finally:
@@ -259,7 +287,8 @@ class Launcher:
                  router_port: int | None = None, gateway_port: int | None = None,
                  extra_env: dict[str, str] | None = None, restart: bool = True,
                  services: list[str] | None = None, standin: StandIn | None = None,
-                 auth: bool | None = None, robots: int = 1, scenes: list[str] | None = None):
+                 auth: bool | None = None, robots: int = 1, scenes: list[str] | None = None,
+                 restart_policy: RestartPolicy = RestartPolicy()):
         if robots < 1:
             raise ValueError(f"robots must be >= 1, got {robots}")
         if standin is not None and robots != 1:
@@ -275,6 +304,7 @@ class Launcher:
         self.replicas = replicas or {}
         self.extra_env = extra_env or {}
         self.restart = restart
+        self.restart_policy = restart_policy
         self.services = services or SERVICES
         self.standin = standin
         self.procs: list[Proc] = []
@@ -446,13 +476,17 @@ class Launcher:
                     continue
                 code = p.popen.returncode
                 p.history.append(code)
+                policy = self.restart_policy
+                # Up long enough to count as healthy (or never restarted): this crash starts the backoff over.
+                if p.restarts == 0 or time.monotonic() - p.started_monotonic_s >= policy.healthy_after_s:
+                    p.next_backoff_s = policy.first_backoff_s
                 log.warning("%s exited with %s; restarting in %.1f s", p.name, code, p.next_backoff_s)
                 if self._stop.wait(p.next_backoff_s):
                     return
                 with self._lock:
                     if p.stopping:
                         continue
-                    p.next_backoff_s = min(p.next_backoff_s * 2, 30.0)
+                    p.next_backoff_s = min(p.next_backoff_s * 2, policy.max_backoff_s)
                     p.restarts += 1
                     p.start()
 
