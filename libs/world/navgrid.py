@@ -24,13 +24,12 @@ shortened by line-of-sight on the same grid. ``segment_clear`` is the collision 
 from __future__ import annotations
 
 import logging
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from shared.jit import AVAILABLE, numba
 
 from .errors import NavigationError
 from .scene import Scene
@@ -462,10 +461,11 @@ class NavGrid:
         # The sample count from numpy's hypot, as the array version computes it (math.hypot may
         # round the last bit differently, and a count on an integer boundary would then differ).
         length = float(np.hypot(b[0] - a[0], b[1] - a[1]))
-        if not (self.use_kernel and AVAILABLE):
+        kernel = _compiled_walk() if self.use_kernel else None
+        if kernel is None:
             return self._walk_numpy(a, b, length)
         out = np.empty(3)
-        status = _walk_kernel(a, b, length, self.origin, self.cell_m, self._zgrid, self._nid, self.nodes_m,
+        status = kernel(a, b, length, self.origin, self.cell_m, self._zgrid, self._nid, self.nodes_m,
                                   self.agent.max_climb_m, self.agent.max_climb_m + 0.01, out)
         if status < 0:
             return a.copy(), False
@@ -543,7 +543,23 @@ def _walk_kernel(a, b, length, origin, cell, zgrid, nid, nodes, climb, locate_to
     return 1
 
 
-if AVAILABLE:
-    # Compiled on first use (and kept in numba's disk cache): importing the module stays cheap.
-    _nearest_level = numba.njit(nogil=True, cache=True)(_nearest_level)
-    _walk_kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_walk_kernel)
+_JIT_LOCK = threading.Lock()
+_JIT: list = []  # [the compiled walk kernel, or None without numba], filled by the first walk
+
+
+def _compiled_walk():
+    """The walk kernel as numba's dispatcher (compiled on its first call, kept in numba's disk cache), or
+    None without numba. numba itself is imported here, on the first walk, not with the module: it is ~0.4 s
+    of CPU at the start of every process that imports libs.world (the evaluation CLI) and never walks."""
+    if not _JIT:
+        with _JIT_LOCK:
+            if not _JIT:
+                from shared.jit import AVAILABLE, numba
+
+                kernel = None
+                if AVAILABLE:
+                    global _nearest_level  # the kernel calls it: numba resolves the global when it compiles
+                    _nearest_level = numba.njit(nogil=True, cache=True)(_nearest_level)
+                    kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_walk_kernel)
+                _JIT.append(kernel)
+    return _JIT[0]

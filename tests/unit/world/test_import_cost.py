@@ -1,5 +1,5 @@
 """Process start stays cheap: the world library, the evaluation CLI and the launchers import without open3d,
-networkx or scipy's image and graph modules (seconds of CPU per process at every start, most of it open3d's
+networkx, numba or scipy's image and graph modules (seconds of CPU per process at every start, most of it open3d's
 dash import). They load where a code path needs them: building a nav grid, reading a mesh, generating a set.
 
 Each case imports in a fresh interpreter, since this test process has those libraries loaded already."""
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[3]
-HEAVY = ("open3d", "networkx", "scipy.ndimage", "scipy.sparse.csgraph", "scipy.spatial")
+HEAVY = ("open3d", "networkx", "numba", "scipy.ndimage", "scipy.sparse.csgraph", "scipy.spatial")
 
 PROBE = """
 import importlib, json, sys
