@@ -84,10 +84,9 @@ class TruthTap:
 
 
 def test_without_a_localiser_the_mapper_corrects_the_drifting_ros2_odometry():
-    # The robot-time tolerances this test has always run with (StandIn would scale them with the clock).
-    s = StandIn(scene=SCENE, time_scale=8.0, noise=DRIFT, cmd_timeout_s=0.5, progress_timeout_s=10.0)
+    s = StandIn(scene=SCENE, time_scale=8.0, noise=DRIFT)
     try:
-        with s.backend(overrides=SIM_OVERRIDES, max_data_age_s=4.0, stall_s=1.5) as backend:
+        with s.backend(overrides=SIM_OVERRIDES, max_data_age_s=4.0) as backend:
             assert backend.profile.map_frame is None  # generic: poses are odometry, nobody corrects them
             robot = TruthTap(backend, s)
             # The localiser the job would make itself (its default discovery config), made here so that
