@@ -39,6 +39,7 @@ SHARED_FIXTURE_GROUPS = {  # "<the directory of its conftest.py>::<fixture>": gr
     "tests/unit/renderer::room_mesh": "built-flat",  # the renderer tests' flat, its 1e6-point cloud and index
     "tests/unit::house_robot": "sim-houses",  # tests/unit's two simulated houses
     "tests/unit::two_floor_robot": "sim-houses",
+    "tests/unit/mapper::rooms_discovery": "rooms-discovery",  # the box-room world explored (mapper tests)
 }
 _RANK = {g: i for i, g in enumerate(dict.fromkeys(SHARED_FIXTURE_GROUPS.values()))}
 

@@ -63,13 +63,33 @@ class CmdLog:
         self.t.close()
 
 
+# These tests wait on robot time (turns at 45 deg/s, the settle before each view, camera periods), not on
+# the CPU: at time scale 4 this file used 26 s of CPU in 117 s of wall time. A stand-in made with
+# ``fast=True`` runs its clock at FAST. The stand-in never skips time when it falls behind (its clock slows,
+# as a simulator's does), so a faster clock asks no more CPU per robot second; what a busy machine could
+# break is a tolerance counted in robot time, which a faster clock shrinks in wall time. A fast stand-in
+# sets those from wall time (StandIn.robot_s), so each keeps the wall-time slack it had at scale 4.
+# Without ``fast`` (the files that import StandIn and do not ask for it) nothing changes.
+FAST = 8.0
+# Wall-time slack, each robot-time tolerance's value at scale 4 divided by 4:
+DATA_AGE_WALL_S = 0.75  # the backend's allowed data age (3 s at scale 4; a real robot keeps 0.5 s)
+STALL_WALL_S = 0.375  # the backend's no-progress-while-driving limit (its default, 1.5 s, at scale 4)
+WATCHDOG_WALL_S = 0.125  # the stand-in base's cmd_vel watchdog (its default, 0.5 s, at scale 4)
+NAV2_PROGRESS_WALL_S = 2.5  # the stand-in Nav2's progress checker (its default, 10 s, at scale 4)
+
+
 class StandIn:
-    def __init__(self, keys="bridge", prof="generic", overrides=SIM_OVERRIDES, **cfg):
+    def __init__(self, keys="bridge", prof="generic", overrides=SIM_OVERRIDES, fast=False, **cfg):
         self.port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.t = transport(listen=[self.endpoint])
         self.profile = profile(prof, overrides)
-        cfg = {"scene": SCENE, "time_scale": 4.0, "camera_rate_hz": 5.0, "camera": CAM.model_dump(), **cfg}
+        self.fast = fast
+        clock = {"time_scale": 4.0}
+        if fast:
+            clock = {"time_scale": FAST, "cmd_timeout_s": self.robot_s(WATCHDOG_WALL_S),
+                     "progress_timeout_s": self.robot_s(NAV2_PROGRESS_WALL_S)}
+        cfg = {"scene": SCENE, **clock, "camera_rate_hz": 5.0, "camera": CAM.model_dump(), **cfg}
         self.robot = StandInRobot(StandInConfig.model_validate(cfg), self.profile, self.t, key_style(keys))
         self.home = self.robot.true_pose  # where reset() teleports it back to
         self.thread = threading.Thread(target=self.robot.run, daemon=True)
@@ -78,11 +98,19 @@ class StandIn:
         # in robot time): wait for them here, so a test's deadlines measure the robot, not a cold start.
         wait_until(lambda: self.robot.stats.images >= 2, 120, "the stand-in's first images")
 
+    def robot_s(self, wall_s: float) -> float:
+        """Robot seconds that pass in ``wall_s`` of wall time on a fast stand-in's clock."""
+        return wall_s * FAST
+
     def backend(self, keys="bridge", prof="generic", overrides=SIM_OVERRIDES, **cfg) -> Ros2Robot:
         # Allowed data age 3 s of robot time: at time scale 4 that is 0.75 s of wall time, which a
-        # loaded test machine needs (a real robot keeps the 0.5 s default).
+        # loaded test machine needs (a real robot keeps the 0.5 s default); a fast stand-in keeps the
+        # wall time, and the stall limit's too.
         # The stand-in shares this process (and its GIL): allow it 10 s without a clock message.
-        cfg = {"max_data_age_s": 3.0, "clock_timeout_s": 10.0, **cfg}
+        slack = {"max_data_age_s": 3.0}
+        if self.fast:
+            slack = {"max_data_age_s": self.robot_s(DATA_AGE_WALL_S), "stall_s": self.robot_s(STALL_WALL_S)}
+        cfg = {**slack, "clock_timeout_s": 10.0, **cfg}
         config = Ros2Config(profile=prof, profile_overrides=overrides, keys=keys, camera=CAM,
                             transport_config={"zenoh": {"connect": [self.endpoint]}}, **cfg)
         return Ros2Robot(config)
@@ -113,7 +141,7 @@ def standins():
 
     def get(keys: str = "bridge") -> StandIn:
         if keys not in made:
-            made[keys] = StandIn(keys=keys)
+            made[keys] = StandIn(keys=keys, fast=True)
             made[keys].keys = keys
         made[keys].reset()
         return made[keys]
@@ -213,7 +241,7 @@ def test_stale_odometry_is_a_typed_error_and_no_motion_is_left_commanded():
 
 
 def test_reset_without_a_teleport_service_is_refused_and_geodesic_without_a_map_is_not_implemented():
-    s = StandIn(overrides={"clock": "/clock"})
+    s = StandIn(overrides={"clock": "/clock"}, fast=True)
     try:
         with s.backend(overrides={"clock": "/clock"}) as robot:
             with pytest.raises(ResetUnsupportedError):
@@ -355,7 +383,7 @@ def _connectable(port: int) -> bool:
 
 def test_the_stretch_profile_rotated_camera_mm_depth_nav_mode_and_run_stop():
     over = {"clock": "/clock"}  # the stand-in runs on simulated time; the rest is Stretch's
-    s = StandIn(prof="stretch", overrides=over)
+    s = StandIn(prof="stretch", overrides=over, fast=True)
     try:
         with s.backend(prof="stretch", overrides=over) as robot:
             assert s.robot.navigation_mode  # switch_to_navigation_mode was called on connect
@@ -384,7 +412,7 @@ def test_the_stretch_profile_rotated_camera_mm_depth_nav_mode_and_run_stop():
 
 def test_a_robot_without_depth_gives_views_without_depth_and_jpeg_colour_works():
     over = {**SIM_OVERRIDES, "depth": None, "color_encoding": "jpeg"}
-    s = StandIn(overrides=over)
+    s = StandIn(overrides=over, fast=True)
     try:
         with s.backend(overrides=over) as robot:
             pano = robot.observe(with_semantic=False)
@@ -398,7 +426,7 @@ def test_frames_recorded_during_a_look_around_have_unique_indices_and_depth():
     """The recording thread and look_around both make frames while the robot turns: an index given twice
     was dropped downstream as a repeat (the reconstructor then waited its whole frame timeout for it), and a
     colour image whose depth had not arrived yet became a frame without depth (the map build failed)."""
-    s = StandIn(camera_rate_hz=10.0)
+    s = StandIn(camera_rate_hz=10.0, fast=True)
     robot = s.backend()
     frames = []
     try:
@@ -422,7 +450,7 @@ def test_png_colour_and_compressed_depth_from_the_stand_in_match_raw(keys):
     over = {**SIM_OVERRIDES, "color_encoding": "png", "depth_encoding": "compressedDepth"}
     got = {}
     for name, o in (("raw", raw_over), ("compressed", over)):
-        s = StandIn(keys=keys, overrides=o)
+        s = StandIn(keys=keys, overrides=o, fast=True)
         try:
             with s.backend(keys=keys, overrides=o) as robot:
                 got[name] = robot.observe(with_semantic=False)

@@ -160,7 +160,7 @@ def test_a_halt_cancels_the_goal(standins):
 
 
 def test_without_an_action_server_motion_falls_back_to_cmd_vel():
-    s = StandIn(keys="bridge", nav2_actions=False)
+    s = StandIn(keys="bridge", nav2_actions=False, fast=True)
     try:
         off = goal_offset(s, 0.8, 1.2)
         with s.backend(keys="bridge", overrides=NAV2, nav2_probe_timeout_s=1.0) as robot:

@@ -12,14 +12,12 @@ from services.mapper.core import (
     discover,
     execute_tours,
 )
-from services.mapper.tools.boxworld import BoxWorldRobot, rooms_world
+from services.mapper.tools.boxworld import BoxWorldRobot
 
 
 @pytest.fixture(scope="module")
-def run():
-    world = rooms_world()
-    robot = BoxWorldRobot(world, PinholeCamera(48, 48, 90.0))
-    return world, robot, discover(robot)
+def run(rooms_discovery):
+    return rooms_discovery
 
 
 def test_exploration_covers_the_house(run):

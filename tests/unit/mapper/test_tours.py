@@ -148,13 +148,10 @@ def test_the_walk_graph_is_the_robots_own_moves():
     assert len(xy2) == 2 and g2.nnz == 2
 
 
-def test_walked_tours_stand_and_move_only_where_the_robot_did():
-    from services.mapper.core import discover
+def test_walked_tours_stand_and_move_only_where_the_robot_did(rooms_discovery):
     from services.mapper.core.tours import TourConfig, TourPlanner
-    from services.mapper.tools.boxworld import BoxWorldRobot, rooms_world
-    from shared.geometry import PinholeCamera
 
-    d = discover(BoxWorldRobot(rooms_world(), PinholeCamera(48, 48, 90.0)))
+    _, _, d = rooms_discovery  # the box-room world's exploration at 48 px (reads it, moves no robot)
     traj = d.result.trajectory_m
     tours = TourPlanner(TourConfig(paths_on="walked")).plan(d.scene)
     assert len(tours) == len(d.tours)
