@@ -14,6 +14,12 @@ ROS2_DRIFT ?=
 # reconstructor shared by all), for `make demo` (each robot in its own generated house) and `make eval`.
 ROBOTS ?= 1
 
+# Every interpreter these targets start (the xdist workers, each service, each launcher) keeps the
+# bytecode it compiles, in the clone's git-ignored __pycache__, even where the environment says not to
+# (PYTHONDONTWRITEBYTECODE=1 on the CI machines): otherwise each one compiles the repo's modules again
+# and pytest rewrites every test module's asserts again in each worker of each tier (~4 s CPU a worker).
+unexport PYTHONDONTWRITEBYTECODE
+
 .PHONY: setup demo up test test-unit test-contract test-e2e test-system bench reliability clean eval eval-set eval-presets eval-preset-cloud eval-preset-anticipation eval-preset-hfov eval-preset-policies
 
 setup:
