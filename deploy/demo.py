@@ -48,11 +48,15 @@ def say(msg: str) -> None:
 
 def make_episode(scene: str, seed: int):
     """A generated R2R-style episode in the scene robot-io simulates (same generator, same seed)."""
-    from libs.world import generate_episodes
-    from services.robot_io.core import ROBOTS
+    with ROBOTS_sim(scene) as robot:
+        return episode_in(robot, seed)
 
-    with ROBOTS.create("sim", {"scene": scene}) as robot:
-        return generate_episodes(robot.scene, robot.nav, 1, seed=seed).episodes[0]
+
+def episode_in(robot, seed: int):
+    """:func:`make_episode` on a simulator already built for the scene (building one costs seconds)."""
+    from libs.world import generate_episodes
+
+    return generate_episodes(robot.scene, robot.nav, 1, seed=seed).episodes[0]
 
 
 def ROBOTS_sim(scene: str):
@@ -106,8 +110,10 @@ def nth_scene(scene: str, k: int) -> str:
     return f"generated:{int(m.group(1)) + k}{m.group(2)}" if m and k else scene
 
 
-def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argparse.Namespace) -> bool:
-    """Explore and reconstruct ``scene``, then follow one generated instruction in it, through one gateway."""
+def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argparse.Namespace,
+              episode=None) -> bool:
+    """Explore and reconstruct ``scene``, then follow one generated instruction in it (``episode``, or
+    :func:`make_episode`'s), through one gateway."""
     say(f"{tag}1/2 pre-exploring and reconstructing {scene} ...")
     t0 = time.time()
     job = http.post("/explorations", json={"map_id": map_id, "max_steps": args.max_steps}).json()
@@ -122,7 +128,7 @@ def run_robot(http: httpx.Client, tag: str, scene: str, map_id: str, args: argpa
         f"scale factors {[round(x, 3) for x in info['scale_factors']]} ({time.time() - t0:.0f} s)")
     say(f"{tag}  {drift_phrase(info.get('drift_correction'))}")
 
-    ep = make_episode(scene, args.seed)
+    ep = episode if episode is not None else make_episode(scene, args.seed)
     say(f"{tag}2/2 navigating: \"{ep.instruction}\"")
     options = {
         "policy": args.policy, "max_steps": args.mission_steps, "start_pose": ep.start_pose.model_dump(),
@@ -234,9 +240,13 @@ def main(argv: list[str] | None = None) -> int:
         "ANT_DB_PATH": str(run_dir / "gateway.sqlite3"),
     }
     standin = None
+    episode = None
     if args.robot == "ros2":
+        # The stand-in's label names and the instruction's episode from one build of the house (each
+        # build is seconds: the scene and its nav grid).
         with ROBOTS_sim(args.scene) as sim:
             labels = {int(k): v for k, v in sim.scene.label_names.items()}
+            episode = episode_in(sim, args.seed)
         standin_config = ros2_standin_config(args.standin_config, args.drift, args.seed)
         standin = StandIn(scene=args.scene, keys=args.ros2_keys, time_scale=args.time_scale, label_names=labels,
                           standin_config=standin_config, motion=args.ros2_motion)
@@ -267,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
 
             results: dict[str, bool] = {}
             if len(robots) == 1:
-                results[robots[0][0]] = run_robot(http, "", scenes[0], "demo-house", args)
+                results[robots[0][0]] = run_robot(http, "", scenes[0], "demo-house", args, episode)
             else:
                 threads = [threading.Thread(target=lambda k=k, url=url: results.__setitem__(
                     robots[k][0], _run_other(url, robots[k][0], scenes[k], args)), name=robots[k][0])
