@@ -18,6 +18,14 @@ step. The camera records at 2 Hz instead of 4 (half the frames to render, send a
 12 (the tour's wall time; the stand-in slows its simulated clock when it falls behind, it never skips), and
 the map is stored on a 6 cm voxel grid instead of 3 cm (a quarter of the points to index). This test alone,
 load average 8 on 2 cores: 99 s -> 69 s; the reconstruction 14.5 -> 7.6 s, the renderer's index 15.8 -> 2.6 s.
+
+The camera then records at 1 Hz instead of 2: the tour's frames are the reconstruction's input (579 -> 303
+frames, its build 11.6 -> 7.5 s). The look-arounds and panoramas wait longer for a frame taken after they
+settle (the tour took 26 s of wall time in both runs, with 3 hubs at 1 Hz against 4 at 2 Hz: explorations
+differ run to run). With deploy.demo building the house once instead of twice, the demo alone at load
+average 5 on 2 cores: 65 -> 61 s of wall time, 40.8 -> 35.7 s of CPU (all its processes). A faster clock
+was tried and not taken: at scale 16, on a fresh clone, robot-io's first panorama came while the other
+services still compiled, and it ran out of robot time in 2 of 2 runs (a turn, then a frame after settling).
 """
 
 from __future__ import annotations
@@ -29,9 +37,10 @@ from deploy.demo import main as demo_main
 pytestmark = [pytest.mark.e2e, pytest.mark.system]
 
 SCENE = "generated:3:area=50"
-# A small camera at a low rate: the stand-in renders every frame it publishes while the robot moves (a still
-# robot's frames reuse its last render), on a shared CPU.
-STANDIN = '{"camera": {"width_px": 128, "height_px": 128}, "camera_rate_hz": 2, "control_rate_hz": 20}'
+# A small camera at a low rate (1 Hz; a real one runs at 15-30): the stand-in renders every frame it publishes
+# while the robot moves (a still robot's frames reuse its last render), on a shared CPU, and every frame of the
+# tour is fused. The base's state (odometry, IMU, tf, clock) comes at 20 Hz of robot time, a real base's rate.
+STANDIN = '{"camera": {"width_px": 128, "height_px": 128}, "camera_rate_hz": 1, "control_rate_hz": 20}'
 TIME_SCALE = "12"
 # The reconstructor's merge voxel (ANT_MERGE_VOXEL_M, default 3 cm): the stored map's density, which only
 # the renderer's index (before the first step) and the planner's views depend on.
