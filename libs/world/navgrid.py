@@ -56,6 +56,10 @@ class AgentShape:
 class NavGrid:
     """Walkable nodes on a regular xy grid with per-column floor levels."""
 
+    # The obstacle pass and walk() as compiled loops when numba is installed (False, on the class or
+    # an instance: the array versions, the same results).
+    use_kernel = True
+
     def __init__(
         self,
         scene: Scene,
@@ -68,8 +72,6 @@ class NavGrid:
         min_region_area_m2: float = 1.0,
     ):
         self.agent = agent
-        # walk() as one compiled loop when numba is installed (False: the array version, same result).
-        self.use_kernel = True
         self.cell_m = float(cell_m)
         lo, hi = scene.bounds_m
         self.origin = np.floor(lo[:2] / cell_m) * cell_m
@@ -219,6 +221,22 @@ class NavGrid:
         idx = np.repeat(np.arange(len(tris)), counts)
         r1 = np.sqrt(rng.random(len(idx)))
         r2 = rng.random(len(idx))
+        ix, iy, k, z = self._node_arrays()
+        # Conservative disk: a point anywhere in a column whose centre is within r + half a cell.
+        offsets = self._offsets(self.agent.radius_m + 0.5 * self.cell_m * np.sqrt(2))
+        blocked = None
+        kernel = _compiled("obstacles") if self.use_kernel else None
+        if kernel is not None:
+            blocked = np.zeros(len(z), dtype=bool)
+            if kernel(tris, idx, r1, r2, self.origin, self.cell_m, self.shape[0], self.shape[1], ix, iy, z, offsets,
+                      self.agent.max_climb_m, self.agent.height_m, blocked) < 0:
+                blocked = None  # a case the kernel does not decide (see _obstacle_kernel): the array code does
+        if blocked is None:
+            blocked = self._blocked_numpy(tris, idx, r1, r2, ix, iy, z, offsets)
+        self._zgrid[ix[blocked], iy[blocked], k[blocked]] = np.nan
+
+    def _blocked_numpy(self, tris, idx, r1, r2, ix, iy, z, offsets) -> np.ndarray:
+        """The nodes that an obstacle point blocks, as arrays (the reference :func:`_obstacle_kernel` equals)."""
         # The points in chunks, each with the same arithmetic as all at once (the same bits): a 500 m2
         # house samples 5.1e6 points, and its (N, 3, 3) corners and (N, 3) points whole were 370 and
         # 120 MB of temporaries that the arithmetic streamed through memory (2.3 s of its 4.5 s build).
@@ -238,10 +256,8 @@ class NavGrid:
         zmin = float(pz.min()) - 1.0
         span = float(pz.max()) - zmin + 10.0
         keys = np.sort(colid * span + (pz - zmin))
-        ix, iy, k, z = self._node_arrays()
         blocked = np.zeros(len(z), dtype=bool)
-        # Conservative disk: a point anywhere in a column whose centre is within r + half a cell.
-        for dx, dy in self._offsets(self.agent.radius_m + 0.5 * self.cell_m * np.sqrt(2)):
+        for dx, dy in offsets:
             jx, jy = ix + dx, iy + dy
             inside = (jx >= 0) & (jx < self.shape[0]) & (jy >= 0) & (jy < self.shape[1])
             col = (jx * self.shape[1] + jy).astype(np.float64)
@@ -249,7 +265,7 @@ class NavGrid:
             hi = col * span + (z + self.agent.height_m - zmin)
             cnt = np.searchsorted(keys, hi) - np.searchsorted(keys, lo)
             blocked |= inside & (cnt > 0)
-        self._zgrid[ix[blocked], iy[blocked], k[blocked]] = np.nan
+        return blocked
 
     def _build_graph(self) -> None:
         # scipy's graph and tree modules load here, with open3d: importing libs.world stays cheap for the CLIs
@@ -461,7 +477,7 @@ class NavGrid:
         # The sample count from numpy's hypot, as the array version computes it (math.hypot may
         # round the last bit differently, and a count on an integer boundary would then differ).
         length = float(np.hypot(b[0] - a[0], b[1] - a[1]))
-        kernel = _compiled_walk() if self.use_kernel else None
+        kernel = _compiled("walk") if self.use_kernel else None
         if kernel is None:
             return self._walk_numpy(a, b, length)
         out = np.empty(3)
@@ -543,23 +559,107 @@ def _walk_kernel(a, b, length, origin, cell, zgrid, nid, nodes, climb, locate_to
     return 1
 
 
+def _obstacle_kernel(tris, idx, r1, r2, origin, cell, nx, ny, ix, iy, z, offsets, climb, height,
+                     blocked):  # pragma: no cover - compiled
+    """:meth:`NavGrid._blocked_numpy` as loops: the same points and keys to the bit, grouped by column
+    (a counting sort) and searched column by column, instead of one sort of every key and a search of
+    all of them (a 500 m2 house samples 5.1e6 points; that sort and the (N, 3, 3) gathers were most of
+    the array code's 2.5 s). A node is blocked when a key of a column within reach lies in its band
+    [lo, hi): what the array code's two searches count. Writes ``blocked`` and returns
+    1, or returns -1 where the array code must decide: no point on the grid, or a node whose height
+    band is not well inside its column's run of keys (then a key of a neighbouring column could fall in
+    it, which the array code's one sorted array would count and a per-column search would not)."""
+    n = idx.shape[0]
+    colid = np.empty(n, np.int64)
+    pz = np.empty(n)
+    m = 0
+    for i in range(n):
+        a = r1[i]
+        b = r2[i]
+        t = idx[i]
+        wa = 1 - a
+        wb = a * (1 - b)
+        wc = a * b
+        x = wa * tris[t, 0, 0] + wb * tris[t, 1, 0] + wc * tris[t, 2, 0]
+        y = wa * tris[t, 0, 1] + wb * tris[t, 1, 1] + wc * tris[t, 2, 1]
+        cx = np.int64(np.floor((x - origin[0]) / cell))
+        cy = np.int64(np.floor((y - origin[1]) / cell))
+        if cx >= 0 and cx < nx and cy >= 0 and cy < ny:
+            colid[m] = cx * ny + cy
+            pz[m] = wa * tris[t, 0, 2] + wb * tris[t, 1, 2] + wc * tris[t, 2, 2]
+            m += 1
+    if m == 0:
+        return -1
+    lo_z = pz[0]
+    hi_z = pz[0]
+    for i in range(1, m):
+        lo_z = min(lo_z, pz[i])
+        hi_z = max(hi_z, pz[i])
+    zmin = lo_z - 1.0
+    span = hi_z - zmin + 10.0
+    # A column's keys lie in [c span + 1, c span + span - 10]: a node's band [lo, hi) within
+    # (c span - 9, c span + span) meets no other column's keys (rounding is ~1e-9 m here).
+    for q in range(z.shape[0]):
+        if not ((z[q] + climb) - zmin > -9.0 and (z[q] + height) - zmin < span):
+            return -1
+    start = np.zeros(nx * ny + 1, np.int64)
+    for i in range(m):
+        start[colid[i] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    keys = np.empty(m)
+    for i in range(m):
+        c = colid[i]
+        keys[fill[c]] = c * span + (pz[i] - zmin)
+        fill[c] += 1
+    for q in range(z.shape[0]):
+        lo_rel = (z[q] + climb) - zmin
+        hi_rel = (z[q] + height) - zmin
+        for o in range(offsets.shape[0]):
+            jx = ix[q] + offsets[o, 0]
+            jy = iy[q] + offsets[o, 1]
+            if jx < 0 or jx >= nx or jy < 0 or jy >= ny:
+                continue
+            c = jx * ny + jy
+            s0 = start[c]
+            s1 = start[c + 1]
+            if s0 == s1:
+                continue
+            col = np.float64(c)
+            lo = col * span + lo_rel
+            hi = col * span + hi_rel
+            hit = False
+            for i in range(s0, s1):  # a column holds a few hundred points at most: a scan, no sort
+                if lo <= keys[i] and keys[i] < hi:
+                    hit = True
+                    break
+            if hit:
+                blocked[q] = True
+                break
+    return 1
+
+
 _JIT_LOCK = threading.Lock()
-_JIT: list = []  # [the compiled walk kernel, or None without numba], filled by the first walk
+_JIT: dict | None = None  # name -> the compiled kernel (None without numba), made on first use
 
 
-def _compiled_walk():
-    """The walk kernel as numba's dispatcher (compiled on its first call, kept in numba's disk cache), or
-    None without numba. numba itself is imported here, on the first walk, not with the module: it is ~0.4 s
-    of CPU at the start of every process that imports libs.world (the evaluation CLI) and never walks."""
-    if not _JIT:
+def _compiled(name: str):
+    """Kernel ``name`` ("walk", "obstacles") as numba's dispatcher (compiled on its first call, kept in
+    numba's disk cache), or None without numba. numba itself is imported here, on first use, not with
+    the module: it is ~0.4 s of CPU at the start of every process that imports libs.world (the
+    evaluation CLI) and never builds a grid or walks."""
+    global _JIT
+    if _JIT is None:
         with _JIT_LOCK:
-            if not _JIT:
+            if _JIT is None:
                 from shared.jit import AVAILABLE, numba
 
-                kernel = None
+                kernels = {"walk": None, "obstacles": None}
                 if AVAILABLE:
                     global _nearest_level  # the kernel calls it: numba resolves the global when it compiles
                     _nearest_level = numba.njit(nogil=True, cache=True)(_nearest_level)
-                    kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_walk_kernel)
-                _JIT.append(kernel)
-    return _JIT[0]
+                    jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+                    kernels = {"walk": jit(_walk_kernel), "obstacles": jit(_obstacle_kernel)}
+                _JIT = kernels
+    return _JIT[name]

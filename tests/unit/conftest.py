@@ -28,3 +28,13 @@ def two_floor_robot() -> SimRobot:
     from services.robot_io.core.robot import SimConfig, SimRobot
 
     return SimRobot(SimConfig(scene="generated:1:floors=2:area=160", camera={"width_px": 64, "height_px": 64}))
+
+
+@pytest.fixture(scope="session")
+def house_map_cloud(house_robot):
+    """generated:0's visible surfaces at 60 points per m2 (57.5k points): the map cloud that the planner's
+    and the scene graph's mission tests render and read. Sampled once (a navigation grid and 1.6e6 visibility
+    rays, ~1.3 s of CPU) instead of once per file; it depends on the scene alone, and no test changes it."""
+    from evaluation.clouds import sample_scene_cloud
+
+    return sample_scene_cloud(house_robot.scene, density_per_m2=60.0, max_points=100_000)

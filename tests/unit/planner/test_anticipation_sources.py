@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.clouds import sample_scene_cloud
 from services.mapper.core import PREDICTORS
 from services.planner.core import POLICIES
 from services.planner.core.mission import AnticipationError, MissionLoop, TrueSceneViews
@@ -24,9 +23,9 @@ CAM = {"width_px": 64, "height_px": 64, "hfov_deg": 90.0}
 
 
 @pytest.fixture(scope="module")
-def world():
+def world(house_map_cloud):
     robot = ROBOTS.create("sim", {"scene": "generated:0", "camera": CAM})
-    c = sample_scene_cloud(robot.scene, density_per_m2=60.0, max_points=100_000)
+    c = house_map_cloud  # the same scene's cloud, sampled once for the session
     port = MapRenderer(IndexedCloud(c), RENDERERS.create("numpy"), SpatialMapper())
     yield robot, port, c.label_names
     robot.close()

@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.clouds import sample_scene_cloud
 from services.mapper.core import PREDICTORS
 from services.planner.core import POLICIES, OpenAIConfig
 from services.planner.core.mission import MissionLoop, MissionOutcome
@@ -24,10 +23,10 @@ CAM = {"width_px": 64, "height_px": 64, "hfov_deg": 90.0}
 
 
 @pytest.fixture(scope="module")
-def world():
+def world(house_map_cloud):
     """The real SimRobot in a generated house and a MapRenderer over a cloud sampled from its mesh."""
     robot = ROBOTS.create("sim", {"scene": "generated:0", "camera": CAM})
-    c = sample_scene_cloud(robot.scene, density_per_m2=60.0, max_points=100_000)
+    c = house_map_cloud  # the same scene's cloud, sampled once for the session
     renderer = RENDERERS.create("numpy")
     port = MapRenderer(IndexedCloud(c), renderer, SpatialMapper())
     yield robot, port, c.label_names

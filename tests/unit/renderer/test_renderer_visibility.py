@@ -174,6 +174,9 @@ def test_spacing_and_normals_from_one_query_match_the_separate_ones():
     spacing, normals = visibility.point_spacing_and_normals(xyz, 4, 10)
     assert np.array_equal(spacing, visibility.point_spacing(xyz, 4))
     assert np.array_equal(normals, visibility.point_normals(xyz, 10))
+    # Solved a few points at a time or all at once: each point's normal is its own, to the bit.
+    for chunk in (7, len(xyz)):
+        assert visibility.point_spacing_and_normals(xyz, 4, 10, chunk=chunk)[1].tobytes() == normals.tobytes()
     inner = (np.abs(xyz[:, 2] - 0.5) < 0.4) & (np.abs(xyz[:, 1] - 0.5) < 0.4)
     assert np.quantile(np.abs(normals[: len(wall)][inner[: len(wall)], 0]), 0.01) > 0.95  # the wall faces x
     assert np.quantile(np.abs(normals[len(wall) :, 2]), 0.01) > 0.95  # the floor faces z

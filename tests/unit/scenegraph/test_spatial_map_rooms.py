@@ -69,12 +69,10 @@ class First(Policy):
         return self._decision(ctx, ctx.candidates[0].index, "first")
 
 
-def test_the_mission_loop_hands_the_graphs_room_names_to_the_renderer():
+def test_the_mission_loop_hands_the_graphs_room_names_to_the_renderer(house_map_cloud):
     robot = ROBOTS.create("sim", {"scene": "generated:0", "camera": {"width_px": 64, "height_px": 64, "hfov_deg": 90.0}})
     try:
-        from evaluation.clouds import sample_scene_cloud
-
-        cloud = sample_scene_cloud(robot.scene, density_per_m2=60.0, max_points=100_000)
+        cloud = house_map_cloud  # generated:0's, sampled once for the session
         graph = build_scene_graph(cloud)
         renderer = Recording(MapRenderer(IndexedCloud(cloud), RENDERERS.create("numpy"), SpatialMapper()))
         for g, want in ((graph, True), (None, False)):

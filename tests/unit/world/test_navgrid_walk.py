@@ -1,10 +1,13 @@
-"""The compiled ``NavGrid.walk`` gives exactly the array version's points, on one floor and on stairs."""
+"""The compiled ``NavGrid.walk`` gives exactly the array version's points, on one floor and on stairs; the
+compiled obstacle pass builds exactly the array version's grid."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from libs.world.navgrid import NavGrid, _compiled
+from libs.world.scene import load_scene
 from shared.jit import AVAILABLE
 
 pytestmark = pytest.mark.skipif(not AVAILABLE, reason="numba is not installed: only the array version runs")
@@ -56,3 +59,50 @@ def test_compiled_walk_matches_the_array_version_bit_for_bit(robot, request):
     assert outcomes[True] > 100 and outcomes[False] > 100
     if robot == "two_floor_robot":
         assert climbed > 0
+
+
+class _Counting(NavGrid):
+    """A grid that counts the nodes its obstacle pass blocked."""
+
+    def _prune_obstacles(self, *args):
+        before = int(np.isfinite(self._zgrid).sum())
+        super()._prune_obstacles(*args)
+        self.blocked = before - int(np.isfinite(self._zgrid).sum())
+
+
+class _ArrayCounting(_Counting):
+    use_kernel = False  # every pass as arrays, from the constructor on
+
+
+def test_compiled_obstacle_pass_builds_the_array_versions_grid_bit_for_bit():
+    # Three floors joined by two flights, furniture in every room: walls, stair sides and furniture
+    # block nodes on each floor.
+    scene = load_scene("generated:1:area=100:floors=3")
+    fast, slow = _Counting(scene), _ArrayCounting(scene)
+    assert fast._zgrid.tobytes() == slow._zgrid.tobytes()
+    assert fast.nodes_m.tobytes() == slow.nodes_m.tobytes()
+    assert (fast.graph != slow.graph).nnz == 0
+    assert fast.blocked == slow.blocked > 1000, (fast.blocked, slow.blocked)  # else it proves little
+
+
+def test_the_compiled_obstacle_pass_leaves_to_the_arrays_what_it_cannot_decide():
+    # A wall's points (x 0..1, z 0..2), one node in the next column at floor height: blocked. With no
+    # point on the grid, or a node so high above the points that its height band could reach a
+    # neighbouring column's keys in the array version's one sorted array, the kernel declines (-1).
+    kernel = _compiled("obstacles")
+    tris = np.array([[[0.0, 0.5, 0.0], [1.0, 0.5, 0.0], [1.0, 0.5, 2.0]]])
+    idx = np.zeros(2000, np.int64)
+    rng = np.random.default_rng(0)
+    r1, r2 = np.sqrt(rng.random(2000)), rng.random(2000)
+    offsets = np.array([[0, 0], [0, 1], [0, -1]])
+
+    def run(z_node, origin=(0.0, 0.0)):
+        blocked = np.zeros(1, bool)
+        status = kernel(tris, idx, r1, r2, np.array(origin), 0.5, 4, 4, np.array([1]), np.array([0]),
+                        np.array([z_node]), offsets, 0.2, 1.5, blocked)
+        return status, bool(blocked[0])
+
+    assert run(0.0) == (1, True)
+    assert run(5.0) == (1, False)  # above the wall: nothing in its band
+    assert run(50.0)[0] == -1
+    assert run(0.0, origin=(100.0, 100.0))[0] == -1  # every point off the grid
