@@ -95,11 +95,15 @@ def walkable_viewpoints(scene, eye_heights_m=(0.6, 1.25), grid_m: float = 0.5) -
 
 
 def visible_from(scene, xyz: np.ndarray, viewpoints_m: np.ndarray, nearest: int = 12,
-                 clearance_m: float = 0.02, chunk: int = 200_000, with_dirs: bool = False):
+                 clearance_m: float = 0.02, chunk: int = 16_384, with_dirs: bool = False):
     """Boolean mask of the points (on the scene's surfaces) that one of their ``nearest``
     viewpoints sees: the segment from the viewpoint stops ``clearance_m`` short of the point
     without hitting the mesh. ``with_dirs``: also the mean of the unit vectors from each point
-    towards the viewpoints that see it (float (N, 3); zero where none does)."""
+    towards the viewpoints that see it (float (N, 3); zero where none does).
+
+    Points go ``chunk`` at a time (each point's answer is its own, so the chunk changes no bit): 16k
+    points make ~5 MB temporaries, 200k made ~57 MB ones whose fresh pages the kernel had to fault in
+    (300k points on generated:0: 4.4 s of system CPU on the first call, against 0.02 s at 16k)."""
     import open3d as o3d
     from scipy.spatial import cKDTree
 

@@ -9,7 +9,7 @@ import open3d as o3d
 import pytest
 
 from tests.unit.evaluation.conftest import box_scene
-from evaluation.clouds import sample_scene_cloud
+from evaluation.clouds import sample_scene_cloud, visible_from
 from shared.cloud import encode, view_dirs_unit
 from evaluation.dataset import SetSpec, generate_set, gt_path_for, parse_floors, write_set
 from evaluation.errors import ConfigError
@@ -140,3 +140,18 @@ def test_curated_cloud_keeps_only_surfaces_seen_from_walkable_space():
     assert west_wall.sum() > 100 and (towards[west_wall, 0] > 0.2).all()
     everything = sample_scene_cloud(scene, density_per_m2=400.0, seed=2, visible_only=False)
     assert len(cloud) < 0.85 * len(everything)  # 16.8 of 91.8 m2 are hidden
+
+
+def test_visible_from_gives_the_same_answer_whatever_its_chunk():
+    # visible_from goes through the points a chunk at a time (16k: small temporaries); each point's answer
+    # is its own, so a chunk that cuts the points anywhere, or none, changes no bit of the mask or the
+    # directions.
+    scene = box_scene()
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform([-1.0, -1.0, -0.5], [5.0, 4.0, 3.0], (5000, 3))  # inside the room (seen) and outside (hidden)
+    eyes = np.array([[x, y, 1.2] for x in (0.5, 2.0, 3.5) for y in (0.5, 2.5)])
+    whole, whole_dirs = visible_from(scene, xyz, eyes, nearest=4, chunk=len(xyz), with_dirs=True)
+    assert 0 < whole.sum() < len(xyz)
+    for chunk in (1, 7, 1000, 4999):
+        seen, dirs = visible_from(scene, xyz, eyes, nearest=4, chunk=chunk, with_dirs=True)
+        assert np.array_equal(seen, whole) and np.array_equal(dirs, whole_dirs)
