@@ -45,7 +45,10 @@ def serve_gateway(tmp_path, maps=None, **overrides):
     recon.add_random("demo-house", 20_000)
     if maps is not None:
         maps(recon)
-    planner = ScriptedPlanner(typed, steps=6, step_interval_s=0.6, candidates=3, image_px=128)
+    # A step every 0.3 s (was 0.6): the page must see the first step while the mission still runs, and
+    # five steps after it leave it 1.5 s of wall time to be read as running; each mission of this file
+    # (two tests) waited 3.6 s for its six steps, 1.8 s now.
+    planner = ScriptedPlanner(typed, steps=6, step_interval_s=0.3, candidates=3, image_px=128)
     mapper = ScriptedMapper(typed, stages=3, stage_interval_s=0.5, reconstructor=recon)
     settings = GatewaySettings(instance="gw-e2e", host="127.0.0.1", port=hport, db_path=tmp_path / "gw.sqlite3",
                                zenoh=ZenohSettings(connect=[f"tcp/127.0.0.1:{zport}"]), request_timeout_s=5.0,
