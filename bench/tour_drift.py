@@ -89,9 +89,12 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
             rows.append((path_m - base[0], math.degrees(turn_rad - base[1]),
                          float(np.hypot(*np.subtract(true.position_m[:2], f.pose.position_m[:2]))),
                          abs(math.degrees(math.remainder(true.heading_rad - f.pose.heading_rad, 2 * math.pi))),
-                         last, rec.region, float(true.position_m[2])))
+                         last, rec.region, float(true.position_m[2]), float(true.position_m[0]),
+                         float(true.position_m[1])))
     a = np.array([r[:4] for r in rows]) if rows else np.zeros((0, 4))
     frame_z = np.array([r[6] for r in rows])
+    frame_region = np.array([r[5] for r in rows], np.int64)
+    frame_xyz = np.array([(r[7], r[8], r[6]) for r in rows]).reshape(-1, 3)
     # Each panorama's pose after its own step (what the model took it at) against the truth, with
     # the odometry path from the start: an error that grows with it is the model's own drift.
     panos, path_m, prev = [], 0.0, None
@@ -138,6 +141,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
     return {"errors": a, "explore_cpu_s": c1 - c0, "tours_cpu_s": c2 - c1, "frame_outcomes": outcomes,
             "panoramas": loc.report()["outcomes"], "frames": len(a), "graph": loc.report().get("graph"),
             "pano_errors": np.array(panos) if panos else np.zeros((0, 5)), "frame_z": frame_z,
+            "frame_region": frame_region, "frame_xyz": frame_xyz,
             "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7)), "pano_outcomes": outcomes_,
             "node_errors": np.array(nodes) if nodes else np.zeros((0, 3)), "node_shift": loc.node_shift,
             "tour_start_vs_plan_m": np.array(starts), "between": between}
@@ -251,6 +255,26 @@ def report_levels(r: dict) -> None:
         print(f"   frames on the stairs (no level): {int(stairs.sum())}, pos median {100 * np.median(e[:, 2]):.1f} cm")
 
 
+def report_tours(r: dict) -> None:
+    """The error per tour (its region): a drifting robot's frames inherit their tour's panoramas' offset,
+    every frame alike (median near p90), so the tours, not the frames, are what the map is placed by."""
+    a, reg = r["errors"], r["frame_region"]
+    if not len(a):
+        return
+    print("   per tour: | region | frames | where (true x, y, z mean, m) | pos median / p90 (cm) "
+          "| heading median / p90 (deg) |")
+    print("   |---|---|---|---|---|")
+    med = []
+    for k in np.unique(reg):
+        e = a[reg == k]
+        med.append(np.median(e[:, 2]))
+        w = r["frame_xyz"][reg == k].mean(axis=0)
+        print(f"   | {k} | {len(e)} | {w[0]:.1f}, {w[1]:.1f}, {w[2]:.1f} | "
+              f"{100 * np.median(e[:, 2]):.1f} / {100 * np.percentile(e[:, 2], 90):.1f} | "
+              f"{np.median(e[:, 3]):.2f} / {np.percentile(e[:, 3], 90):.2f} |")
+    print(f"   tours' median position error: median {100 * np.median(med):.1f} cm, worst {100 * max(med):.1f} cm")
+
+
 def report(r: dict) -> None:
     a = r["errors"]
     print(f"   {r['frames']} tour frames; CPU explore {r['explore_cpu_s']:.1f} s, tours {r['tours_cpu_s']:.1f} s; "
@@ -327,6 +351,7 @@ def main() -> None:
             graph=args.graph == "on", graph_set={k: _value(v) for k, v in (a.split("=", 1) for a in args.graph_set)})
     report(r)
     report_levels(r)
+    report_tours(r)
 
 
 if __name__ == "__main__":

@@ -114,7 +114,7 @@ def replace_recordings(recs: list[RegionRecording], localiser: Any) -> None:
     recordings stay as they are."""
     if localiser.graph is None or localiser.config.frames.enabled or not localiser.drift_seen:
         return
-    rep = localiser.optimise()
+    rep = localiser.optimise(final=True)
     log.info("pose graph before the build: %s", None if rep is None else rep.summary())
     times, offsets = localiser.schedule()
     for rec in recs:

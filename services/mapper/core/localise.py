@@ -445,15 +445,16 @@ class Localiser:
         if self.graph is not None:
             self.graph.nodes[k].pose = np.array([p.position_m[0], p.position_m[1], p.heading_rad])
 
-    def optimise(self) -> GraphReport | None:
+    def optimise(self, final: bool = False) -> GraphReport | None:
         """Solve the panoramas' pose graph (posegraph.py) and, where it moved them past the gate,
         re-place every panorama, rebuild the model from the scans at their new poses and take the
-        latest panorama's correction as the robot's. None without a graph."""
+        latest panorama's correction as the robot's. None without a graph. ``final``: the solve before
+        the recordings are re-placed, after which the robot drives no more (PoseGraph.solve)."""
         if self.graph is None or not self.steps:
             return None
         if not self.drift_seen:
             return self.graph.report  # nothing to correct yet (see drift_seen)
-        rep = self.graph.solve()
+        rep = self.graph.solve(final)
         if not rep.applied:
             return rep
         cfg = self.config

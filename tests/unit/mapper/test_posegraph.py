@@ -90,11 +90,11 @@ def test_a_wrong_loop_closure_is_rejected(walk):
     # The wrong closure claims a well-pinned edge's information (not a pair's through the door,
     # pinned one way only: that one says nothing about a slide along it).
     good = max((e for e in g.edges.values() if e is not None),
-               key=lambda e: np.linalg.eigvalsh(e.sqrt_info.T @ e.sqrt_info)[0])
+               key=lambda e: np.linalg.eigvalsh(e.info)[0])
     c, s = math.cos(truth[0][2]), math.sin(truth[0][2])
     d = truth[last][:2] - truth[0][:2] + (0.4, 0.0)
     z = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap_angle(truth[last][2] - truth[0][2]))])
-    g.edges[(0, last)] = Edge(0, last, z, good.sqrt_info.copy(), True, 0.9, 0.01)
+    g.edges[(0, last)] = Edge(0, last, z, good.info.copy(), True, 0.9, 0.01)
     rep = g.solve()
     assert not g.edges[(0, last)].accepted and rep.loop_closures_rejected >= 1, rep
     pos, head = _errors(g, truth)
@@ -113,12 +113,8 @@ def test_offsets_are_interpolated_in_time():
     assert np.allclose(interpolate_offsets([3.0], [(1.0, 2.0, 0.5)], [0.0, 9.0]), [(1.0, 2.0, 0.5)] * 2)
 
 
-def test_a_pair_that_pins_one_direction_ties_it_and_leaves_the_other():
-    """A corridor (the localiser's featureless one): each pair of panoramas along it pins the robot
-    across it and in heading, not along it. Such pairs are edges across only (the rooms of a house
-    seen through their doors were tied by odometry alone without them, and the two-floor house's
-    upper floor drifted room by room): the drift across is taken out, the one along kept as odometry
-    has it, never pulled to wherever the matcher slid."""
+def _corridor_walk() -> tuple[np.ndarray, list]:
+    """(true poses, scans) of six panoramas along the localiser's featureless corridor."""
     from tests.unit.mapper.test_localise import corridor_world
 
     robot = BoxWorldRobot(corridor_world(), PinholeCamera(64, 64, 90.0))
@@ -130,20 +126,50 @@ def test_a_pair_that_pins_one_direction_ties_it_and_leaves_the_other():
         pano = robot.observe()
         truth.append(np.array([x, 0.8, pano.pose.heading_rad]))
         scans.append(panorama_scan(pano, cfg))
-    truth = np.array(truth)
-    drift = np.array([0.02, 0.05, math.radians(0.3)])
-    # Odometry as uncertain as this drift (the defaults allow 2x the noisy row's, 2.7 cm a step).
-    wide = PoseGraphConfig(odom_m_per_sqrt_m=0.1, odom_rad_per_sqrt_move=0.02, weak_edges=True)
-    off = _graph(truth, scans, drift, wide.model_copy(update={"weak_edges": False}))
-    assert not off.solve().applied and not [e for e in off.edges.values() if e is not None]
-    g = _graph(truth, scans, drift, wide)
-    rep = g.solve()
-    assert rep.applied and rep.scan_edges >= 5, rep
+    return np.array(truth), scans
+
+
+CORRIDOR_DRIFT = np.array([0.02, 0.05, math.radians(0.3)])
+# Odometry as uncertain as this drift (the defaults allow 2x the noisy row's, 2.7 cm a step).
+WIDE = PoseGraphConfig(odom_m_per_sqrt_m=0.1, odom_rad_per_sqrt_move=0.02)
+
+
+def _across_only(g: PoseGraph, truth: np.ndarray) -> None:
+    """The corridor's drift across it and in heading taken out, the one along it kept as odometry has it."""
     x = np.array([n.pose for n in g.nodes])
-    odom = truth + np.arange(6)[:, None] * drift
+    odom = truth + np.arange(len(truth))[:, None] * CORRIDOR_DRIFT
     assert np.abs(x[:, 1] - truth[:, 1]).max() < 0.01, x[:, 1] - truth[:, 1]  # across: 25 cm of drift gone
     assert np.degrees(np.abs(wrap_angle(x[:, 2] - truth[:, 2]))).max() < 0.15
     assert np.abs(x[:, 0] - odom[:, 0]).max() < 0.01, x[:, 0] - odom[:, 0]  # along: odometry's
+
+
+def test_a_pair_that_pins_one_direction_ties_it_and_leaves_the_other():
+    """A corridor (the localiser's featureless one): each pair of panoramas along it pins the robot
+    across it and in heading, not along it. Such pairs are edges across only (the rooms of a house
+    seen through their doors were tied by odometry alone without them, and the two-floor house's
+    upper floor drifted room by room): the drift across is taken out, the one along kept as odometry
+    has it, never pulled to wherever the matcher slid."""
+    truth, scans = _corridor_walk()
+    off = _graph(truth, scans, CORRIDOR_DRIFT, WIDE)
+    assert not off.solve().applied and not [e for e in off.edges.values() if e is not None]
+    g = _graph(truth, scans, CORRIDOR_DRIFT, WIDE.model_copy(update={"weak_edges": True}))
+    rep = g.solve()
+    assert rep.applied and rep.scan_edges >= 5, rep
+    _across_only(g, truth)
+
+
+def test_the_final_solve_takes_the_pairs_pinned_one_way():
+    """The solve before the recordings are re-placed (nothing is driven after it) takes the pairs
+    pinned one way only as edges along that way, which the solves that drive the route leave out
+    (PoseGraphConfig.final_weak_edges)."""
+    truth, scans = _corridor_walk()
+    g = _graph(truth, scans, CORRIDOR_DRIFT, WIDE)
+    assert not g.solve().applied and not [e for e in g.edges.values() if e is not None]
+    rep = g.solve(final=True)
+    assert rep.applied and rep.scan_edges >= 5 and rep.weak_edges == rep.scan_edges, rep
+    _across_only(g, truth)
+    off = _graph(truth, scans, CORRIDOR_DRIFT, WIDE.model_copy(update={"final_weak_edges": False}))
+    assert not off.solve(final=True).applied
 
 
 def _wall_scan(pose: np.ndarray, walls: list[tuple[tuple[float, float], tuple[float, float]]]) -> np.ndarray:
@@ -182,3 +208,27 @@ def test_two_rooms_seen_through_a_door_are_tied():
     d = b[:2] - a[:2]
     true_z = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], b[2] - a[2]])
     assert np.hypot(*(e.z[:2] - true_z[:2])) < 0.005 and abs(e.z[2] - true_z[2]) < math.radians(0.1), (e.z, true_z)
+
+
+def test_the_final_solve_trusts_the_scans_as_far_as_they_go():
+    """Two rooms whose only tie is one pair seen through the door, the second panorama dead-reckoned
+    3.6 cm and 0.5 deg off: a route-driving solve holds the pair no surer than 1 cm and 0.3 deg, so
+    odometry keeps millimetres of its error; the final solve holds it as sure as the registration
+    (PoseGraphConfig.final_edge_sigma_*: on the two-floor house the edges were 10 times surer than
+    1 cm) and recovers the offset to a millimetre and 0.02 deg. Exact poses stay exact under it."""
+    corner = [((0.0, 0.0), (2.0, 0.0)), ((0.0, 0.0), (0.0, 1.5))]
+    a, b = np.array([1.0, 0.8, 0.3]), np.array([1.6, 2.6, -0.4])
+    scans = [_wall_scan(a, corner + [((2.0, -1.0), (2.0, 1.0))]),
+             _wall_scan(b, corner + [((-2.0, 3.6), (5.0, 3.6)), ((5.0, 1.0), (5.0, 3.6))])]
+    truth = np.array([a, b])
+    drift = np.array([0.03, -0.02, math.radians(0.5)])
+    g, f = _graph(truth, scans, drift), _graph(truth, scans, drift)
+    assert g.solve().applied and f.solve(final=True).applied
+    pos_g, head_g = _errors(g, truth)
+    pos_f, head_f = _errors(f, truth)
+    assert pos_g[1] > 0.002, pos_g
+    assert pos_f[1] < 0.001 and head_f[1] < 0.02, (pos_f, head_f)
+    exact = _graph(truth, scans, np.zeros(3))
+    assert not exact.solve(final=True).applied
+    for n, t in zip(exact.nodes, truth):
+        assert np.array_equal(n.pose, t)
