@@ -72,8 +72,12 @@ _RECORDINGS: dict[tuple, tuple] = {}  # one exploration serves the ladder's corr
 # out by the simulator's truth (bench-only oracles). "true-poses": every frame at its true pose, its
 # noisy, holed depth kept (what the depth alone costs, on the very trajectory the robot drove);
 # "exact-depth": every frame's depth ray-cast again without noise or holes at its true pose, declared
-# exact, the frame left at the pose the mapper gave it (what the pose error alone costs).
-FRAME_ORACLES = ("true-poses", "exact-depth")
+# exact, the frame left at the pose the mapper gave it (what the pose error alone costs); "route": both
+# out, every frame exact at its true pose (what the noisy robot's route alone costs: a drifting robot
+# explores and tours another way, so "true-poses" against the noise-free map holds the route's loss and the
+# depth's together; on the two-floor house at 1x the route row scores as the noise-free map, so the
+# true-poses row's loss is the depth's).
+FRAME_ORACLES = ("true-poses", "exact-depth", "route")
 
 
 def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 128, rate_hz: float = 4.0,
@@ -256,14 +260,16 @@ def _oracle_frames(recs, truth: dict[int, tuple], oracle: str, robot) -> list:
                 frames.append(f)
                 continue
             true = truth[f.index][0]
+            if oracle != "exact-depth":
+                f = f.model_copy(update={"pose": true})
             if oracle == "true-poses":
-                frames.append(f.model_copy(update={"pose": true}))
+                frames.append(f)
                 continue
             view = robot.renderer.render_views(np.asarray(true.position_m), np.array([true.heading_rad]),
                                                f.camera.pinhole(), f.pitch_rad, cfg.camera_height_m,
                                                with_semantic=False)
             frames.append(f.model_copy(update={"depth_m": view.depth_m[0], "depth_noise_rel": 0.0}))
-        start = frames[0].pose if oracle == "true-poses" and frames else rec.start_pose
+        start = frames[0].pose if oracle != "exact-depth" and frames else rec.start_pose
         out.append(replace(rec, frames=frames, start_pose=start))
     return out
 

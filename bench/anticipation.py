@@ -13,8 +13,8 @@ simulator's ray-cast view at the same camera pose, for each renderer mode.
                                             # map built uncorrected and corrected (--corrections), on
                                             # generated:0 and a two-floor house, side by side
     python -m bench.anticipation --ladder --decompose ...   # + each noisy map at the true poses (its
-                                            # noisy depth) and with exact depth (its poses): which of
-                                            # the two the map's loss comes from
+                                            # noisy depth), with exact depth (its poses), and with
+                                            # both (its route): which the map's loss comes from
 
 Maps are built the way the system builds them: explore (frontier DFS, hubs, tours), recorded tours,
 then the reconstructor (``rgbd``, ``mono-sim``, or ``rgbd`` on a robot with sensor noise on: all of it,
@@ -301,8 +301,9 @@ def ladder(scenes, scales: list[float], corrections: list[str], n_views: int, mo
     renderer mode; per band mapped within ``mapped_m``, SSIM, labels, leak; per map the tour-start
     error (the recorded poses, and where the corrected map put them), regions skipped, build time.
     With ``decompose``, each noisy map is followed by the same recordings with one error source taken
-    out (agent_maps.FRAME_ORACLES: "true-poses" keeps the noisy depth, "exact-depth" the poses), so
-    the rows say which of the two the map's loss comes from."""
+    out (agent_maps.FRAME_ORACLES: "true-poses" keeps the noisy depth, "exact-depth" the poses), and
+    with both out ("route": what the noisy robot's other route alone costs), so the rows say which of
+    the three the map's loss comes from."""
     cam = PinholeCamera(256, 256, 90.0)
     renderer = RENDERERS.create("numpy", {**(config or {}), "mode": mode})
     renderer.warm_up()
@@ -405,8 +406,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--oracle-starts", action="store_true",
                     help="ladder: each tour starts at its true pose (stands in for the mapper's re-localisation)")
     ap.add_argument("--decompose", action="store_true",
-                    help="ladder: each noisy map again at the true poses (noisy depth) and with exact depth "
-                         "(the mapper's poses): which error source the map's loss comes from")
+                    help="ladder: each noisy map again at the true poses (noisy depth), with exact depth "
+                         "(the mapper's poses) and with both (the route): which error source the map's loss "
+                         "comes from")
     ap.add_argument("--per-view", action="store_true", help="ladder: each view's place, mapped share and SSIM")
     args = ap.parse_args(argv)
     if args.ladder:

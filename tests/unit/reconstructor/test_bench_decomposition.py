@@ -58,6 +58,16 @@ def test_exact_depth_is_what_an_exact_robot_sees_at_the_true_pose_and_the_frame_
     assert out.start_pose == rec.start_pose
 
 
+def test_the_route_oracle_takes_out_both_the_depth_noise_and_the_pose_error(recorded):
+    robot, truth, rec = recorded
+    out = agent_maps._oracle_frames([rec], truth, "route", robot)[0]
+    depth = agent_maps._oracle_frames([rec], truth, "exact-depth", robot)[0]
+    for f, g, e in zip(rec.frames, out.frames, depth.frames):
+        assert g.pose == truth[f.index][0] and g.depth_noise_rel == 0.0
+        assert np.array_equal(g.depth_m, e.depth_m) and np.array_equal(g.rgb, f.rgb)
+    assert out.start_pose == out.frames[0].pose != rec.start_pose
+
+
 def test_an_oracle_is_refused_for_an_exact_robot_or_by_an_unknown_name():
     with pytest.raises(ValueError):
         agent_maps.build_map(SCENE, "rgbd", None, frame_oracle="true-poses")
