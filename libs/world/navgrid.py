@@ -662,7 +662,7 @@ def _compiled(name: str):
                     jit = numba.njit(nogil=True, cache=True, error_model="numpy")
                     # The obstacle pass gets its node columns as strided views (np.nonzero's), a caller
                     # with fresh arrays (the kernel's own test) as contiguous ones: two machine codes of the
-                    # same kernel, 1.5-3 s of CPU each on a cold cache, where one signature does for both.
+                    # same kernel, 0.6-1 s of CPU each on a cold cache, where one signature does for both.
                     kernels = {"walk": jit(_walk_kernel), "obstacles": one_signature(jit(_obstacle_kernel))}
                 _JIT = kernels
     return _JIT[name]
