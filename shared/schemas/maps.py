@@ -76,6 +76,9 @@ class PoseGraphSummary(Message):
 
     panoramas: int = Field(0, ge=0, le=SEQ_LIMIT)
     scan_edges: int = Field(0, ge=0, le=SEQ_LIMIT)  # accepted
+    # Of the accepted edges, those pinned one way only (through a door, along a corridor), which only the
+    # final solve before the build takes (the mapper's PoseGraphConfig.final_weak_edges).
+    weak_edges: int = Field(0, ge=0, le=SEQ_LIMIT)
     edges_rejected: int = Field(0, ge=0, le=SEQ_LIMIT)
     loop_closures_accepted: int = Field(0, ge=0, le=SEQ_LIMIT)
     loop_closures_rejected: int = Field(0, ge=0, le=SEQ_LIMIT)

@@ -87,7 +87,9 @@ function driftLabel(d) {
     `${(+d.odom_median_correction_m).toFixed(2)} m, max ${(+d.odom_max_correction_m).toFixed(2)} m), ` : "";
   const g = d.pose_graph;
   const graph = g && g.applied ? `pose graph over ${g.panoramas} panoramas (${g.loop_closures_accepted} loop closures, ` +
-    `${g.loop_closures_rejected} rejected` + (g.nodes_moved ? `; ${g.nodes_moved} graph nodes moved with them, max ` +
+    `${g.loop_closures_rejected} rejected` +
+    (g.weak_edges ? `; ${g.weak_edges} of ${g.scan_edges} edges pinned one way` : "") +
+    (g.nodes_moved ? `; ${g.nodes_moved} graph nodes moved with them, max ` +
     `${(+g.max_node_shift_m).toFixed(2)} m` : "") + "), " : "";
   return ` · drift corrected: ${odom}${graph}${d.regions_corrected} regions moved (max ${(+d.max_correction_m).toFixed(2)} m, ` +
     `${(+d.max_correction_deg).toFixed(1)}°), ${d.regions_fallback} kept odometry`;

@@ -496,8 +496,9 @@ class Localiser:
         m = np.array([math.hypot(s.correction.dx_m, s.correction.dy_m) for s in self.steps])
         deg = np.array([abs(math.degrees(s.correction.dyaw_rad)) for s in self.steps])
         return PoseGraphSummary(
-            panoramas=len(self.steps), scan_edges=r.scan_edges, edges_rejected=r.edges_rejected,
-            loop_closures_accepted=r.loop_closures_accepted, loop_closures_rejected=r.loop_closures_rejected,
+            panoramas=len(self.steps), scan_edges=r.scan_edges, weak_edges=r.weak_edges,
+            edges_rejected=r.edges_rejected, loop_closures_accepted=r.loop_closures_accepted,
+            loop_closures_rejected=r.loop_closures_rejected,
             applied=any(not s.correction.identity for s in self.steps),
             panoramas_corrected=sum(not s.correction.identity for s in self.steps),
             median_correction_m=float(np.median(m)), max_correction_m=float(m.max()),

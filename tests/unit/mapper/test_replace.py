@@ -90,6 +90,7 @@ def test_the_graph_follows_the_corrected_panoramas(drifted):
     # The record of it goes with the map's pose graph summary.
     s = loc.graph_summary()
     assert s.nodes_moved > 0 and 0.0 < s.median_node_shift_m <= s.max_node_shift_m < 0.2, s
+    assert s.weak_edges == loc.graph.report.weak_edges <= s.scan_edges, s
     # Node ids stay, and the spatial index answers at the new positions.
     assert set(seen["before"]) == set(g.g)
     for n in g.nodes_with(NodeStatus.VISITED):
