@@ -183,18 +183,24 @@ def _wall_scan(pose: np.ndarray, walls: list[tuple[tuple[float, float], tuple[fl
     return np.stack([c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1], np.full(len(p), 0.005)], axis=1)
 
 
+def _two_rooms() -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """(true poses (2, 3), scans, the second's dead-reckoning error): two panoramas on either side of a
+    door sharing one corner of walls; a sees the corner and its own room's far walls, b the corner and a
+    long wall of its room."""
+    corner = [((0.0, 0.0), (2.0, 0.0)), ((0.0, 0.0), (0.0, 1.5))]
+    a, b = np.array([1.0, 0.8, 0.3]), np.array([1.6, 2.6, -0.4])
+    scans = [_wall_scan(a, corner + [((2.0, -1.0), (2.0, 1.0))]),
+             _wall_scan(b, corner + [((-2.0, 3.6), (5.0, 3.6)), ((5.0, 1.0), (5.0, 3.6))])]
+    return np.array([a, b]), scans, np.array([0.03, -0.02, math.radians(0.5)])
+
+
 def test_two_rooms_seen_through_a_door_are_tied():
     """Two panoramas on either side of a door share one corner of walls: a quarter of one's scan lies
     on the other's. That is under the localiser's 0.3 (a panorama placed against its model needs more),
     but both directions are pinned and the two registrations agree, so the pair is an edge
     (PoseGraphConfig.min_fitness 0.2): without it the rooms were tied by odometry alone."""
-    corner = [((0.0, 0.0), (2.0, 0.0)), ((0.0, 0.0), (0.0, 1.5))]
-    a, b = np.array([1.0, 0.8, 0.3]), np.array([1.6, 2.6, -0.4])
-    # a sees the corner and its own room's far walls; b the corner and a long wall of its room
-    scans = [_wall_scan(a, corner + [((2.0, -1.0), (2.0, 1.0))]),
-             _wall_scan(b, corner + [((-2.0, 3.6), (5.0, 3.6)), ((5.0, 1.0), (5.0, 3.6))])]
-    truth = np.array([a, b])
-    drift = np.array([0.03, -0.02, math.radians(0.5)])
+    truth, scans, drift = _two_rooms()
+    a, b = truth
 
     def edge(cfg: PoseGraphConfig):
         g = _graph(truth, scans, drift, cfg)
@@ -216,12 +222,7 @@ def test_the_final_solve_trusts_the_scans_as_far_as_they_go():
     odometry keeps millimetres of its error; the final solve holds it as sure as the registration
     (PoseGraphConfig.final_edge_sigma_*: on the two-floor house the edges were 10 times surer than
     1 cm) and recovers the offset to a millimetre and 0.02 deg. Exact poses stay exact under it."""
-    corner = [((0.0, 0.0), (2.0, 0.0)), ((0.0, 0.0), (0.0, 1.5))]
-    a, b = np.array([1.0, 0.8, 0.3]), np.array([1.6, 2.6, -0.4])
-    scans = [_wall_scan(a, corner + [((2.0, -1.0), (2.0, 1.0))]),
-             _wall_scan(b, corner + [((-2.0, 3.6), (5.0, 3.6)), ((5.0, 1.0), (5.0, 3.6))])]
-    truth = np.array([a, b])
-    drift = np.array([0.03, -0.02, math.radians(0.5)])
+    truth, scans, drift = _two_rooms()
     g, f = _graph(truth, scans, drift), _graph(truth, scans, drift)
     assert g.solve().applied and f.solve(final=True).applied
     pos_g, head_g = _errors(g, truth)
