@@ -421,12 +421,15 @@ def vote_sides(xyz: np.ndarray, normals: np.ndarray, sided: np.ndarray, neighbou
         return np.asarray(normals, np.float32), np.asarray(sided, np.uint8)
     from scipy.spatial import cKDTree
 
-    _, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
+    tree = cKDTree(xyz)
     votes = np.where(np.asarray(sided, bool)[:, None], normals, np.float32(0.0)).astype(np.float32)
     out_n = np.asarray(normals, np.float32).copy()
     out_s = np.zeros(len(xyz), np.uint8)
     for lo in range(0, len(xyz), chunk):
-        mean = votes[nbr[lo : lo + chunk]].mean(axis=1)  # (c, 3)
+        # Queried a chunk at a time: all the neighbours at once were (N, k) int64, 200 MB for a
+        # 1.6 M-point map, for no gain (each point's neighbours are its own).
+        _, nbr = tree.query(xyz[lo : lo + chunk], k=k, workers=-1)
+        mean = votes[nbr].mean(axis=1)  # (c, 3)
         length = np.sqrt(np.einsum("ij,ij->i", mean, mean))
         known = length >= min_vote
         out_n[lo : lo + chunk][known] = mean[known] / length[known, None]
