@@ -105,6 +105,18 @@ class SplatConfig(BackendConfig):
     side_min_agreement: float = Field(0.5, ge=0.0, le=1.0)
     unseen_side_cos: float = Field(0.3, ge=0.0, le=1.0)
     unseen_side_rgb: tuple[_Channel8, _Channel8, _Channel8] = (128, 128, 128)
+    # A point's side is the vote of its side_vote_neighbours nearest points (the mean of their
+    # oriented normals, known where it is at least side_min_vote long: visibility.vote_sides); 0 or
+    # 1: its own normal's. On a depth-noise map a face is a slab a few cm thick whose points'
+    # normals tilt anywhere, and a wall's unmapped face drew as a mottle of grey and the next room's
+    # paint (issue 33). bench.anticipation, 24 free poses, all-pixel SSIM < 1 / 1-2 / > 2 m, scored
+    # on the same cached maps, own normal -> vote of 16 (0.3): two-floor house 1x .898/.855/.814 ->
+    # .902/.864/.828 (true poses .916/.875/.835 -> .921/.881/.846; its noise-free map .931/.922/.890
+    # -> .931/.920/.890); generated:0 1x .822/.841/.818 -> .821/.846/.827 (noise-free .880/.881/.793
+    # -> .880/.879/.794); two-floor house 2x .872/.758/.786 -> .867/.799/.794. 32 neighbours: as
+    # 16; min vote 0.5: .899/.864/.823; 0.2: as 0.3.
+    side_vote_neighbours: int = Field(16, ge=0, le=64)
+    side_min_vote: float = Field(0.3, ge=0.0, le=1.0)
     # visibility mode: the points a pixel's surfel averages lie this close behind its nearest one
     # (tighter still: a far wall's two faces, 0.1 m apart, must not average their colours).
     front_tolerance_m: float = Field(0.02, ge=0.0)

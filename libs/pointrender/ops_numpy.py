@@ -73,14 +73,20 @@ def share_point_geometry(source: IndexedCloud, target: IndexedCloud) -> int:
 
 
 def point_sides_of(index: IndexedCloud, neighbours: int, spacing_neighbours: int | None,
-                   min_agreement: float) -> tuple[np.ndarray, np.ndarray]:
+                   min_agreement: float, vote_neighbours: int = 0,
+                   min_vote: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """(normals float32 (N, 3), sided uint8 (N,)) of the index's points, cached: the normals of
     :func:`point_normals_of`, turned towards the side each point was seen from where the map
-    records it (:func:`visibility.orient_normals`); ``sided`` 0 where that side is not known."""
-    key = ("point-sides", neighbours, min_agreement)
+    records it (:func:`visibility.orient_normals`); ``sided`` 0 where that side is not known.
+    ``vote_neighbours`` > 1: each point's side is then its neighbourhood's vote
+    (:func:`visibility.vote_sides`, ``min_vote``)."""
+    key = ("point-sides", neighbours, min_agreement, vote_neighbours, min_vote if vote_neighbours > 1 else None)
     if key not in index.cache:
         normals = point_normals_of(index, neighbours, spacing_neighbours)
-        index.cache[key] = visibility.orient_normals(normals, index.cloud.view_dirs, min_agreement)
+        sides = visibility.orient_normals(normals, index.cloud.view_dirs, min_agreement)
+        if vote_neighbours > 1:
+            sides = visibility.vote_sides(index.cloud.xyz, *sides, vote_neighbours, min_vote)
+        index.cache[key] = sides
     return index.cache[key]
 
 

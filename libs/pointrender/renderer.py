@@ -101,11 +101,18 @@ class SplatRenderer:
         cfg = self.config
         return cfg.mode == "visibility" and cfg.unseen_side and index.cloud.view_dirs is not None
 
+    @property
+    def _side_key(self) -> tuple:
+        """The settings that decide the points' sides (cache keys of what follows from them)."""
+        cfg = self.config
+        return cfg.side_min_agreement, cfg.side_vote_neighbours, cfg.side_min_vote
+
     def _normals_of(self, index: IndexedCloud) -> tuple[np.ndarray, np.ndarray | None] | None:
         """(normals, sided or None) of the index's points as views need them, or None."""
         cfg = self.config
         if self._with_sides(index):
-            return point_sides_of(index, cfg.normal_neighbours, cfg.spacing_neighbours, cfg.side_min_agreement)
+            return point_sides_of(index, cfg.normal_neighbours, cfg.spacing_neighbours, cfg.side_min_agreement,
+                                  cfg.side_vote_neighbours, cfg.side_min_vote)
         if self._with_slope:
             return point_normals_of(index, cfg.normal_neighbours, cfg.spacing_neighbours), None
         return None
@@ -115,8 +122,7 @@ class SplatRenderer:
         if cfg.lod != "voxel" or cfg.lod_points_per_px is None:
             return None
         normals = self._normals_of(index)
-        nn = None if normals is None else (cfg.normal_neighbours,
-                                           cfg.side_min_agreement if normals[1] is not None else None)
+        nn = None if normals is None else (cfg.normal_neighbours, *(self._side_key if normals[1] is not None else ()))
         key = ("voxel-lod", cfg.lod_cell_m, cfg.lod_cell_spacings, cfg.lod_levels, cfg.spacing_neighbours, nn)
         if key not in index.cache:
             spacing = point_spacing_of(index, cfg.spacing_neighbours)
@@ -145,7 +151,7 @@ class SplatRenderer:
         drawn_normals = None
         if normals is not None:
             key = ("normal-columns", self._ops.name, self.device, *tag, cfg.normal_neighbours,
-                   None if sided is None else cfg.side_min_agreement)
+                   *(() if sided is None else self._side_key))
             if key not in index.cache:
                 cols = tuple(self._ops.asarray(np.ascontiguousarray(normals[:, k])) for k in range(3))
                 index.cache[key] = _Normals(cols, None if sided is None else self._ops.asarray(sided))

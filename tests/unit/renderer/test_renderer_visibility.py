@@ -379,6 +379,47 @@ def test_a_wall_face_never_mapped_shows_as_unseen_not_in_the_next_rooms_paint(ba
     assert (plain.rgb[0][~plain.hole_mask[0]][:, 2] == 200).mean() > 0.9
 
 
+def test_a_noisy_wall_face_never_mapped_shows_as_unseen_by_its_neighbours_vote():
+    # Issue 33: on a depth-noise map the next room's face is a slab a few cm thick, and ten of its
+    # points' normal tilts anywhere within it; decided point by point, the face this room never
+    # mapped is a mottle of grey and the next room's blue. Decided by a vote of each point's
+    # neighbours, it is evenly grey again.
+    face = _lattice(2.1, (-4.0, 4.0), (0.0, 2.6), 0.026, (30, 30, 200), 1, seed=1)
+    xyz = face.xyz + np.random.default_rng(3).normal(0.0, 0.03, (len(face), 1)) * [1.0, 0.0, 0.0]
+    noisy = _seen_from(PointCloud(xyz, face.rgb, face.labels, face.label_names), (1, 0, 0))
+    far = _seen_from(_lattice(5.0, (-4.0, 4.0), (0.0, 2.6), 0.026, (30, 200, 30), 1, seed=2), (-1, 0, 0))
+    index = IndexedCloud(PointCloud.concatenate([noisy, far]))
+
+    def grey_and_blue(**cfg) -> tuple[float, float]:
+        out = _render("visibility", index, **cfg)
+        seen = ~out.hole_mask[0]
+        assert seen.mean() > 0.5
+        rgb = out.rgb[0][seen]
+        return float((rgb == 128).all(axis=-1).mean()), float((rgb[:, 2] >= 150).mean())
+
+    grey, blue = grey_and_blue(side_vote_neighbours=0)
+    assert grey < 0.8 and blue > 0.05  # the mottle the vote is for
+    grey, blue = grey_and_blue()  # the default vote
+    assert grey >= 0.99 and blue < 0.01
+
+
+def test_the_side_vote_keeps_a_clean_sided_wall_and_cancels_on_a_thin_panel_seen_from_both_sides():
+    wall = _lattice(2.0, (-1.0, 1.0), (0.0, 1.0), 0.026, (200, 30, 30), 0)
+    normals = np.tile(np.float32([1.0, 0.0, 0.0]), (len(wall), 1))
+    # A clean wall, every point sided: the vote keeps each side and normal.
+    n, sided = visibility.vote_sides(wall.xyz, normals, np.ones(len(wall), np.uint8), 16, 0.5)
+    assert sided.all() and np.allclose(n, normals, atol=1e-6)
+    # Half of its points oriented one way and half the other (a panel whose two faces coincide):
+    # the votes cancel, no side is known.
+    flip = np.where((np.arange(len(wall)) % 2 == 0)[:, None], normals, -normals)
+    _, sided = visibility.vote_sides(wall.xyz, flip, np.ones(len(wall), np.uint8), 16, 0.5)
+    assert not sided.any()
+    # Points without a side of their own do not vote: a wall a fifth of whose points are sided has none.
+    few = (np.arange(len(wall)) % 5 == 0).astype(np.uint8)
+    _, sided = visibility.vote_sides(wall.xyz, normals, few, 16, 0.5)
+    assert not sided.any()
+
+
 def test_a_mapped_near_face_and_a_surface_seen_from_both_sides_keep_their_colour():
     out = _render("visibility", _wall_between_rooms(near_face=True))
     seen = ~out.hole_mask[0]
