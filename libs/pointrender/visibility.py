@@ -361,16 +361,25 @@ def _pull(ops, lev: _Level, p: VisibilityParams) -> _Level:
     return _Level(weight, sum_z, sum_rgb, zlo, zhi, label)
 
 
-def point_spacing(xyz: np.ndarray, neighbours: int = 4, lo_m: float = 0.002, hi_m: float = 0.1) -> np.ndarray:
-    """Local point spacing per point (float32, metres): the mean distance to its ``neighbours``
-    nearest points, between ``lo_m`` and ``hi_m`` (an isolated outlier does not get a huge disk)."""
+def point_tree(xyz: np.ndarray):
+    """The k-d tree (scipy's cKDTree) of the points, which the neighbour queries below take (``tree``)
+    so that a map's load builds it once for its spacing, normals and sides, not once each."""
     from scipy.spatial import cKDTree
 
-    dist, _ = cKDTree(xyz).query(xyz, k=neighbours + 1, workers=-1)
+    return cKDTree(np.asarray(xyz, np.float64))
+
+
+def point_spacing(xyz: np.ndarray, neighbours: int = 4, lo_m: float = 0.002, hi_m: float = 0.1,
+                  tree=None) -> np.ndarray:
+    """Local point spacing per point (float32, metres): the mean distance to its ``neighbours``
+    nearest points, between ``lo_m`` and ``hi_m`` (an isolated outlier does not get a huge disk).
+    ``tree``: :func:`point_tree` of ``xyz``, where the caller has it."""
+    tree = point_tree(xyz) if tree is None else tree
+    dist, _ = tree.query(xyz, k=neighbours + 1, workers=-1)
     return np.clip(dist[:, 1:].mean(axis=1), lo_m, hi_m).astype(np.float32)
 
 
-def point_normals(xyz: np.ndarray, neighbours: int = 10) -> np.ndarray:
+def point_normals(xyz: np.ndarray, neighbours: int = 10, tree=None) -> np.ndarray:
     """Unit surface normal per point (float32 (N, 3), sign arbitrary): the direction of least
     variance of the point and its ``neighbours`` nearest points (principal component analysis,
     Hoppe et al. 1992, "Surface reconstruction from unorganized points").
@@ -379,7 +388,7 @@ def point_normals(xyz: np.ndarray, neighbours: int = 10) -> np.ndarray:
     does not depend on the normal's sign; :func:`orient_normals` turns them towards the side the
     robot saw where the map records it. The neighbourhood (~4 cm at the maps' 2.6 cm spacing)
     stays on one face of a 10 cm wall."""
-    return point_spacing_and_normals(xyz, 1, neighbours)[1]
+    return point_spacing_and_normals(xyz, 1, neighbours, tree=tree)[1]
 
 
 def orient_normals(normals: np.ndarray, view_dirs: np.ndarray | None,
@@ -403,7 +412,7 @@ def orient_normals(normals: np.ndarray, view_dirs: np.ndarray | None,
 
 
 def vote_sides(xyz: np.ndarray, normals: np.ndarray, sided: np.ndarray, neighbours: int,
-               min_vote: float, chunk: int = 1 << 14) -> tuple[np.ndarray, np.ndarray]:
+               min_vote: float, chunk: int = 1 << 14, tree=None) -> tuple[np.ndarray, np.ndarray]:
     """(normals float32 (N, 3), sided uint8 (N,)): the side of each point decided by its
     ``neighbours`` nearest points (itself included), not by its own normal alone. Each sided
     neighbour votes with its oriented normal (:func:`orient_normals`); a point's side, and its
@@ -419,9 +428,7 @@ def vote_sides(xyz: np.ndarray, normals: np.ndarray, sided: np.ndarray, neighbou
     k = min(neighbours, len(xyz))
     if k < 2:
         return np.asarray(normals, np.float32), np.asarray(sided, np.uint8)
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(xyz)
+    tree = point_tree(xyz) if tree is None else tree  # (:func:`point_tree`)
     votes = np.where(np.asarray(sided, bool)[:, None], normals, np.float32(0.0)).astype(np.float32)
     out_n = np.asarray(normals, np.float32).copy()
     out_s = np.zeros(len(xyz), np.uint8)
@@ -438,7 +445,7 @@ def vote_sides(xyz: np.ndarray, normals: np.ndarray, sided: np.ndarray, neighbou
 
 
 def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, normal_neighbours: int = 10,
-                              chunk: int = 1 << 14) -> tuple[np.ndarray, np.ndarray]:
+                              chunk: int = 1 << 14, tree=None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`point_spacing` and :func:`point_normals` from one nearest-neighbour query (a map's
     load pays for one tree and one query, not two); the spacing is the one ``point_spacing``
     returns, to the bit (the nearest distances of a longer query are the same values).
@@ -448,11 +455,10 @@ def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, norm
     mmap threshold: at 131k (35 MB) every temporary was a fresh mapping whose pages the kernel
     zeroed on first touch, and a 400k-point cloud took 3.2-4.1 s of CPU (1.2-1.6 s of it system
     time) against 2.0 s."""
-    from scipy.spatial import cKDTree
-
     xyz = np.asarray(xyz, np.float64)
     k = min(max(normal_neighbours, spacing_neighbours) + 1, len(xyz))
-    dist, nbr = cKDTree(xyz).query(xyz, k=k, workers=-1)
+    tree = point_tree(xyz) if tree is None else tree  # (:func:`point_tree`)
+    dist, nbr = tree.query(xyz, k=k, workers=-1)
     dist, nbr = dist.reshape(len(xyz), k), nbr.reshape(len(xyz), k)
     if k - 1 < spacing_neighbours:
         # Fewer points than neighbours asked for: point_spacing's query pads with infinite

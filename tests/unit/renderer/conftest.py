@@ -36,11 +36,11 @@ def room_index_sided(room_cloud, room_index) -> IndexedCloud:
     c = room_cloud
     sided = IndexedCloud(PointCloud(c.xyz, c.rgb, c.labels, c.label_names, quantise_view_dirs(unit)))
     # The same points in the same order as room_index (same cloud, block size and shuffle seed), so the
-    # same spacing and normals: computed once for both (a 1e6-point neighbour query and eigen-solve,
+    # same k-d tree, spacing and normals: computed once for both (a 1e6-point neighbour query and eigen-solve,
     # 3.9 s of CPU), not once per index. The sides (normals turned by view_dirs) are still its own.
     cfg = SplatConfig()
     point_normals_of(room_index, cfg.normal_neighbours, cfg.spacing_neighbours)
-    assert share_point_geometry(room_index, sided) == 2
+    assert share_point_geometry(room_index, sided) == 3  # the k-d tree, the spacing and the normals
     return sided
 
 

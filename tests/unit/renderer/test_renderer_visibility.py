@@ -10,6 +10,7 @@ from services.renderer.tools import scenes
 from shared.cloud import PointCloud, quantise_view_dirs
 from shared.geometry import PinholeCamera
 from libs.pointrender import RENDERERS, IndexedCloud, visibility, visibility_kernels
+from libs.pointrender.ops_numpy import point_tree_of
 from libs.pointrender.splat import point_normals_of, point_spacing_of, share_point_geometry
 from shared.schemas import ViewPose
 
@@ -189,8 +190,9 @@ def test_an_index_of_the_same_points_with_view_dirs_shares_their_spacing_and_nor
     sided = IndexedCloud(PointCloud(wall.xyz, wall.rgb, wall.labels, wall.label_names, dirs))
     assert share_point_geometry(plain, sided) == 0  # nothing computed yet, nothing shared
     normals = point_normals_of(plain, 10, 4)
-    assert share_point_geometry(plain, sided) == 2
+    assert share_point_geometry(plain, sided) == 3  # the tree, the spacing and the normals
     assert point_normals_of(sided, 10, 4) is normals and point_spacing_of(sided, 4) is point_spacing_of(plain, 4)
+    assert point_tree_of(sided) is point_tree_of(plain)
     # ... and they are what the sided index would have computed itself.
     alone = IndexedCloud(PointCloud(wall.xyz, wall.rgb, wall.labels, wall.label_names, dirs))
     assert np.array_equal(point_normals_of(alone, 10, 4), normals)
