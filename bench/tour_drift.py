@@ -92,9 +92,9 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
                          last, rec.region, float(true.position_m[2]), float(true.position_m[0]),
                          float(true.position_m[1])))
     a = np.array([r[:4] for r in rows]) if rows else np.zeros((0, 4))
-    frame_z = np.array([r[6] for r in rows])
     frame_region = np.array([r[5] for r in rows], np.int64)
     frame_xyz = np.array([(r[7], r[8], r[6]) for r in rows]).reshape(-1, 3)
+    frame_z = frame_xyz[:, 2]
     # Each panorama's pose after its own step (what the model took it at) against the truth, with
     # the odometry path from the start: an error that grows with it is the model's own drift.
     panos, path_m, prev = [], 0.0, None
