@@ -59,3 +59,24 @@ def test_a_frames_error_is_split_between_the_panoramas_and_the_drift_between_the
     assert np.allclose(b[:, 0], 0.01)  # as recorded
     assert np.allclose(b[:, 1], [0.005, 0.01, 0.015])  # the graph's 2 cm, interpolated
     assert np.allclose(b[:, 2], 0.0, atol=1e-12) and np.allclose(b[:, 4], 0.0, atol=1e-12)
+
+
+def test_rooms_are_the_panoramas_the_fully_pinned_edges_join_and_a_room_off_as_a_block_says_so():
+    """bench.tour_drift's rooms (issue 33): the pose graph's panoramas joined by fully pinned scan edges;
+    a room placed against the others by odometry alone sits off as a block, its panoramas rigid
+    within it, so its error is its block offset and little is left once that is taken off."""
+    from bench.tour_drift import room_blocks, rooms
+
+    room = rooms(7, [(0, 1), (1, 2), (4, 3), (5, 6), (6, 4)])
+    assert room.tolist() == [0, 0, 0, 1, 1, 1, 1]
+    assert rooms(3, []).tolist() == [0, 1, 2]  # no edge: each panorama its own room
+    rng = np.random.default_rng(5)
+    true_xy = rng.uniform(-4, 4, (7, 2))
+    own = rng.normal(0.0, 0.001, (7, 2))  # each panorama's own millimetre
+    placed = true_xy + own
+    placed[room == 1] += [0.02, -0.01]  # the second room 2.2 cm off as a block
+    (k0, n0, off0, med0, rest0), (k1, n1, off1, med1, rest1) = room_blocks(room, placed, true_xy)
+    assert (k0, n0, k1, n1) == (0, 3, 1, 4)
+    assert np.allclose(off1, [0.02, -0.01] + own[room == 1].mean(axis=0))
+    assert med1 > 0.015 and rest1 < 0.003
+    assert np.hypot(*off0) < 0.003 and med0 < 0.004
