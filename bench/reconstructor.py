@@ -31,9 +31,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 from shared.geometry import PinholeCamera
+from shared.o3d import o3d
 from shared.schemas import CameraIntrinsics, Pose
 
 from services.reconstructor.core import (

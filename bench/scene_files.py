@@ -17,10 +17,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 from bench.common import table
 from libs.world.scene import load_scene
+from shared.o3d import o3d
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ASSETS = ["habitat_test_assets/simple_room.glb", "habitat_test_assets/stage_floor1.glb", "habitat_test_assets/chair.glb",

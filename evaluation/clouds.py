@@ -104,7 +104,7 @@ def visible_from(scene, xyz: np.ndarray, viewpoints_m: np.ndarray, nearest: int 
     Points go ``chunk`` at a time (each point's answer is its own, so the chunk changes no bit): 16k
     points make ~5 MB temporaries, 200k made ~57 MB ones whose fresh pages the kernel had to fault in
     (300k points on generated:0: 4.4 s of system CPU on the first call, against 0.02 s at 16k)."""
-    import open3d as o3d
+    from shared.o3d import o3d
     from scipy.spatial import cKDTree
 
     rc = o3d.t.geometry.RaycastingScene()

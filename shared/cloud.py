@@ -558,7 +558,7 @@ def read_cloud_bytes(data: bytes, filename: str) -> PointCloud:
 
 
 def _read_foreign(path: Path) -> PointCloud:
-    import open3d as o3d
+    from shared.o3d import o3d
 
     pcd = o3d.io.read_point_cloud(str(path))
     xyz = np.asarray(pcd.points)

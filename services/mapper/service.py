@@ -22,7 +22,6 @@ from typing import Any
 from pydantic import Field
 
 from services.mapper.core import DEFAULT_PREDICTOR, PREDICTORS, WaypointPredictor
-from services.mapper.core.exploration_job import explore, request_discovery_config
 from shared import keys
 from shared.clients import MapClient, RobotClient
 from shared.jobs import JobRunner
@@ -81,6 +80,10 @@ class MapperService(Service[MapperSettings]):
         return CandidateSet(pose=pano.pose, candidates=self.predictor.predict(pano))
 
     def submit(self, key: str, req: ExplorationRequest) -> JobAccepted:
+        # Here, not at module level: exploration (scipy, networkx, the explorer, regions and tours) costs ~0.6 s
+        # of CPU to import, and most mapper processes only ever predict waypoints.
+        from services.mapper.core.exploration_job import explore, request_discovery_config
+
         node = self._node
         assert node is not None
         robot_id = keys.robot_of(keys.MAPPER_EXPLORE, key)

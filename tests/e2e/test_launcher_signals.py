@@ -154,14 +154,15 @@ class Case:
 @pytest.mark.parametrize("name", ["demo", "up", "evaluation", "bench"])
 def test_each_signal_to_a_starting_launcher_leaves_no_process(name, tmp_path, episodes):
     # The four signals' cases run side by side (four launchers at once), which bounds the test's time by
-    # the slowest case rather than their sum; each case has its own marker, so they cannot mix.
+    # the slowest case rather than their sum; each case has its own marker, so they cannot mix. Each case
+    # gets its signal as soon as all its processes are there: waiting for the other cases' too only let its
+    # services import on (CPU the 2-core machine shares with the other cases), and they are no less started.
     cases = [Case(name, sig, tmp_path, episodes) for sig in SIGNALS]
     try:
         for c in cases:
             c.start()
         for c in cases:
             c.wait_spawned()
-        for c in cases:
             c.proc.send_signal(c.sig)
         for c in cases:
             c.check_stopped()

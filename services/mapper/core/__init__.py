@@ -2,42 +2,22 @@
 
 Pure Python (numpy/scipy/networkx/open3d); the bus adapter in ``services/mapper/service.py`` only
 decodes requests, calls these functions and encodes the results.
+
+The names below are imported from their submodule on first use (:func:`shared.lazy.lazy_exports`): the
+mapper process needs only the predictor to serve, and exploration (scipy, networkx: ~0.6 s of CPU) loads
+with its first job.
 """
 
-from services.mapper.core.discovery import (
-    DISCOVERY_PROFILES,
-    Discovery,
-    DiscoveryConfig,
-    discover,
-    discovery_config,
-)
-from services.mapper.core.errors import (
-    ExplorationError,
-    MapperError,
-    PlanningError,
-    PredictorError,
-    TourExecutionError,
-)
-from services.mapper.core.execute import RegionRecording, TourRobot, execute_tour, execute_tours
-from services.mapper.core.explorer import ExplorationConfig, ExplorationResult, Explorer, ExplorerRobot
-from services.mapper.core.navgraph import GridGraph, NodeStatus
-from services.mapper.core.predictor import (
-    DEFAULT_PREDICTOR,
-    PREDICTORS,
-    GeometricPredictor,
-    GeometricPredictorConfig,
-    Prediction,
-    WaypointPredictor,
-    create_predictor,
-)
-from services.mapper.core.regions import RegionConfig, SceneMap, analyse
-from services.mapper.core.tours import PlannedTour, TourConfig, TourPlanner
+from shared.lazy import lazy_exports
 
-__all__ = [
-    "DEFAULT_PREDICTOR", "DISCOVERY_PROFILES", "PREDICTORS", "Discovery", "DiscoveryConfig", "ExplorationConfig",
-    "ExplorationError", "ExplorationResult", "Explorer", "ExplorerRobot", "GeometricPredictor",
-    "GeometricPredictorConfig", "GridGraph", "MapperError", "NodeStatus", "PlannedTour",
-    "PlanningError", "Prediction", "PredictorError", "RegionConfig", "RegionRecording", "SceneMap",
-    "TourConfig", "TourExecutionError", "TourPlanner", "TourRobot", "WaypointPredictor",
-    "analyse", "create_predictor", "discover", "discovery_config", "execute_tour", "execute_tours",
-]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "discovery": ("DISCOVERY_PROFILES", "Discovery", "DiscoveryConfig", "discover", "discovery_config"),
+    "errors": ("ExplorationError", "MapperError", "PlanningError", "PredictorError", "TourExecutionError"),
+    "execute": ("RegionRecording", "TourRobot", "execute_tour", "execute_tours"),
+    "explorer": ("ExplorationConfig", "ExplorationResult", "Explorer", "ExplorerRobot"),
+    "navgraph": ("GridGraph", "NodeStatus"),
+    "predictor": ("DEFAULT_PREDICTOR", "PREDICTORS", "GeometricPredictor", "GeometricPredictorConfig", "Prediction",
+                  "WaypointPredictor", "create_predictor"),
+    "regions": ("RegionConfig", "SceneMap", "analyse"),
+    "tours": ("PlannedTour", "TourConfig", "TourPlanner"),
+})

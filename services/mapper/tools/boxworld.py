@@ -16,9 +16,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 
 from shared.geometry import PANORAMA_VIEWS, PinholeCamera, camera_pose, panorama_headings
+from shared.o3d import o3d
 from shared.schemas import CameraIntrinsics, Frame, MoveResult, MoveStatus, Panorama, Pose
 
 

@@ -455,7 +455,7 @@ def remove_statistical_outliers(
     ``threads`` threads; otherwise from open3d's k-d tree."""
     if cell_m is not None and kernels.AVAILABLE and len(cloud) > 1:
         return cloud.subset(statistical_inliers(cloud.xyz, neighbors, std_ratio, cell_m, threads))
-    import open3d as o3d
+    from shared.o3d import o3d
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.xyz.astype(np.float64)))
     _, keep = pcd.remove_statistical_outlier(nb_neighbors=neighbors, std_ratio=std_ratio)

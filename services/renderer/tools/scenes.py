@@ -105,7 +105,7 @@ def built_room(seed: int = 0) -> LabelledMesh:
 
 def replica_office(data_dir: Path) -> LabelledMesh:
     """The Replica office0 mesh (vertex colours, no labels: every triangle is -1)."""
-    import open3d as o3d
+    from shared.o3d import o3d
 
     mesh = o3d.io.read_triangle_mesh(str(Path(data_dir) / "replica_office0" / "office0_mesh.ply"))
     tris = np.asarray(mesh.triangles, dtype=np.int32)
@@ -131,7 +131,7 @@ class RaycastCamera:
     """Ground-truth RGB-D-label views of a mesh by ray casting (open3d RaycastingScene)."""
 
     def __init__(self, mesh: LabelledMesh):
-        import open3d as o3d
+        from shared.o3d import o3d
 
         self._o3d = o3d
         self.mesh = mesh

@@ -29,9 +29,9 @@ from functools import lru_cache
 from typing import Literal
 
 import numpy as np
-import open3d as o3d
 
 from shared.geometry import PinholeCamera, camera_poses
+from shared.o3d import o3d
 
 from .raster import RasterScene
 from libs.world.scene import Scene

@@ -15,11 +15,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from services.robot_io.core.raster import MISS_ID, RasterScene
 from services.robot_io.core.render import Intrinsics, _homogeneous_rays, ray_matrices, write_rays
 from libs.world.scene import Scene
+from shared.o3d import o3d
 
 EDGE_BARY = 1e-3  # a ray this close (in barycentric terms) to an edge of a triangle passes "on the edge"
 DEPTH_RTOL = 1e-5
