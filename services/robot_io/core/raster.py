@@ -54,10 +54,11 @@ intersects in float32, so the two can differ only where rounding decides:
 ``python -m services.robot_io.tools.raster_parity`` prints these counts for any scene.
 
 **Cost.** Per scene: triangles sorted along a Morton curve into chunks of :data:`CHUNK`, with a box
-each. Per view: chunks outside the (one-pixel widened) frustum are skipped, the rest drawn nearest
-first; a chunk or triangle behind what is already drawn over its whole rectangle is skipped (8 x 8
-pixel tiles keep their farthest depth), as are triangles whose three vertices are outside one
-frustum plane or whose rectangle holds no pixel centre. A remaining triangle is set up once (three
+and the chunk's distinct vertices each. Per view: chunks outside the (one-pixel widened) frustum are
+skipped, the rest drawn nearest first (ties in numba's argsort order: see :func:`_argsort`), each
+distinct vertex transformed once; a chunk or triangle behind what is already drawn over its whole
+rectangle is skipped (8 x 8 pixel tiles keep their farthest depth), as are triangles whose three
+vertices are outside one frustum plane or whose rectangle holds no pixel centre. A remaining triangle is set up once (three
 cross products) and filled row by row over its exact span: each edge is solved for the row's bound
 in floating point, and only a bound within 1e-6 px of an integer is settled by evaluating the
 per-pixel expression, so the span is exactly the covered set. One compiled loop, single-threaded,
@@ -120,11 +121,19 @@ class RasterScene:
             order = np.zeros(0, np.int64)
         self.tri_ids = order.astype(np.uint32)
         corners = corners[order]
-        # Three vertex copies per triangle, coordinate-major: a chunk's vertices are three
-        # contiguous runs that one vectorisable loop transforms into the camera frame.
-        self.corners = np.ascontiguousarray(corners.reshape(-1, 3).T)
         n_chunks = -(-n // CHUNK)
         self.chunk_lo = np.minimum(np.arange(n_chunks + 1, dtype=np.int64) * CHUNK, n)
+        # Each chunk's distinct vertex positions, coordinate-major, and its triangles' corners as
+        # indices into them: a view transforms a position once, not once per triangle using it (a
+        # chunk of a generated house has ~48 distinct corners of its 96). The same float64 values
+        # go through the same operations, so each corner's camera coordinates are the same bits.
+        # Positions are told apart by their bits (0.0 and -0.0 are two: they can round differently).
+        chunk_of = np.repeat(np.arange(n_chunks, dtype=np.uint64), CHUNK * 3)[:3 * n]
+        keys = np.column_stack([chunk_of, corners.reshape(-1, 3).view(np.uint64)])
+        uniq, inverse = np.unique(keys, axis=0, return_inverse=True)  # sorted by chunk first
+        self.vert_lo = np.searchsorted(uniq[:, 0], np.arange(n_chunks + 1, dtype=np.uint64)).astype(np.int64)
+        self.verts = np.ascontiguousarray(uniq[:, 1:].view(np.float64).T)
+        self.tri_local = (inverse.reshape(-1) - self.vert_lo[chunk_of.astype(np.int64)]).astype(np.int32)
         # The last chunk padded with copies of its last triangle, which leave its box as it is.
         padded = np.concatenate([corners, np.repeat(corners[-1:], n_chunks * CHUNK - n, axis=0)])
         padded = padded.reshape(n_chunks, CHUNK * 3, 3)
@@ -136,6 +145,7 @@ class RasterScene:
         self._setup_id = np.empty(max(n, 1), np.uint32)
         self._chunk_order = np.empty(n_chunks, np.int64)
         self._chunk_key = np.empty(n_chunks, np.float64)
+        self._chunk_rank = np.empty(n_chunks, np.int64)
         self._chunk_rect = np.empty((n_chunks, 4), np.int64)
         self._cam = np.empty((5, CHUNK * 3), np.float64)  # x, y, z, column, row of a chunk's vertices
         self._code = np.empty(CHUNK * 3, np.int64)
@@ -150,17 +160,17 @@ class RasterScene:
         prim = np.empty((b, n), np.uint32)
         uv = np.empty((b, n, 2), np.float32)
         tiles = -(-width_px // TILE) * -(-height_px // TILE)
-        _raster_kernel(self.corners, self.tri_ids, self.chunk_lo, self.box_lo, self.box_hi, self.box_rad, poses,
-                       float(fx), float(fy), float(cx), float(cy), int(width_px), int(height_px), self.near_m,
-                       t, prim, uv, np.empty(n, np.float64), np.empty(n, np.int32), self._setup, self._setup_id,
-                       np.empty(tiles, np.float64), np.empty(tiles, np.bool_), self._chunk_order, self._chunk_key,
-                       self._chunk_rect, self._cam, self._code)
+        _raster_kernel(self.verts, self.vert_lo, self.tri_local, self.tri_ids, self.chunk_lo, self.box_lo,
+                       self.box_hi, self.box_rad, poses, float(fx), float(fy), float(cx), float(cy), int(width_px),
+                       int(height_px), self.near_m, t, prim, uv, np.empty(n, np.float64), np.empty(n, np.int32),
+                       self._setup, self._setup_id, np.empty(tiles, np.float64), np.empty(tiles, np.bool_),
+                       self._chunk_order, self._chunk_key, self._chunk_rank, self._chunk_rect, self._cam, self._code)
         return {"t_hit": t, "primitive_ids": prim, "primitive_uvs": uv}
 
 
-def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, fx, fy, cx, cy, w, h, near_m,
-                   t_out, prim_out, uv_out, wbuf, lbuf, setup, setup_id, tile_far, tile_dirty,
-                   chunk_order, chunk_key, crect, cam, code):  # pragma: no cover - compiled
+def _raster_kernel(verts, vert_lo, tri_local, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, fx, fy, cx, cy,
+                   w, h, near_m, t_out, prim_out, uv_out, wbuf, lbuf, setup, setup_id, tile_far, tile_dirty,
+                   chunk_order, chunk_key, rank, crect, cam, code):  # pragma: no cover - compiled
     # Frustum side planes through the camera centre, widened by one pixel: inside is
     # xlo z <= x <= xhi z and ylo z <= y <= yhi z (camera frame).
     xlo, xhi = (-1.0 - cx) / fx, (w - cx) / fx
@@ -241,25 +251,24 @@ def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, f
             chunk_key[n_vis] = zmin
             chunk_order[n_vis] = c
             n_vis += 1
-        order = np.argsort(chunk_key[:n_vis])
+        _argsort(chunk_key, n_vis, rank)
         n_set = 0
         for oi in range(n_vis):
-            c = chunk_order[order[oi]]
-            zc = chunk_key[order[oi]]
+            c = chunk_order[rank[oi]]
+            zc = chunk_key[rank[oi]]
             # np.bool_(False), not the constant False: numba compiles a constant argument as a
             # signature of its own (Literal[bool]), a second compile of _occluded beside the one for
             # the triangles' runtime flag below, for the same code.
             if zc >= near_m and _occluded(_w_bound(zc), crect[c, 0], crect[c, 1], crect[c, 2], crect[c, 3],
                                           wbuf, w, h, tile_far, tile_dirty, tx, np.bool_(False)):
                 continue
-            v0 = chunk_lo[c] * 3
-            nv = chunk_lo[c + 1] * 3 - v0
+            v0 = vert_lo[c]
             # The chunk's vertices in the camera frame, with the frustum planes each is outside of
             # and its pixel position (only used when the whole triangle is in front of the near plane).
-            for q in range(nv):
-                ex = corners[0, v0 + q] - ox
-                ey = corners[1, v0 + q] - oy
-                ez = corners[2, v0 + q] - oz
+            for q in range(vert_lo[c + 1] - v0):
+                ex = verts[0, v0 + q] - ox
+                ey = verts[1, v0 + q] - oy
+                ez = verts[2, v0 + q] - oz
                 x = r00 * ex + r10 * ey + r20 * ez
                 y = r01 * ex + r11 * ey + r21 * ez
                 z = r02 * ex + r12 * ey + r22 * ez
@@ -268,10 +277,10 @@ def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, f
                 iz = 1.0 / max(z, near_m)
                 cus[q] = fx * (x * iz) + cx
                 cvs[q] = fy * (y * iz) + cy
-            for m0 in range(0, nv, 3):
-                if code[m0] & code[m0 + 1] & code[m0 + 2]:
+            for tri in range(chunk_lo[c], chunk_lo[c + 1]):
+                m0, m1, m2 = tri_local[3 * tri], tri_local[3 * tri + 1], tri_local[3 * tri + 2]
+                if code[m0] & code[m1] & code[m2]:
                     continue
-                m1, m2 = m0 + 1, m0 + 2
                 zmin = min(czs[m0], min(czs[m1], czs[m2]))
                 crosses = zmin < near_m
                 if not crosses:
@@ -281,7 +290,7 @@ def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, f
                     # The projection of the part in front of the near plane bounds the pixels tried.
                     npoly = 0
                     for m in range(3):
-                        ma, mb = m0 + m, m0 + (m + 1) % 3
+                        ma, mb = tri_local[3 * tri + m], tri_local[3 * tri + (m + 1) % 3]
                         za, zb = czs[ma], czs[mb]
                         if za >= near_m:
                             poly[npoly, 0], poly[npoly, 1], poly[npoly, 2] = cxs[ma], cys[ma], za
@@ -327,6 +336,9 @@ def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, f
                 n0 = -1.0 / a0 if a0 != 0.0 else 0.0
                 n1 = -1.0 / a1 if a1 != 0.0 else 0.0
                 n2 = -1.0 / a2 if a2 != 0.0 else 0.0
+                # The edges as tuples, for one loop over them in the rows below: one inlined copy of
+                # _bound rather than three compiles ~0.7 s faster on a cold cache, draws as fast.
+                ea, eb, ec, en = (a0, a1, a2), (b0, b1, b2), (c0, c1, c2), (n0, n1, n2)
                 li = n_set
                 drawn = False
                 fx0, fx1 = float(x0), float(x1)
@@ -334,11 +346,12 @@ def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, f
                     fi = float(i)
                     # Each edge bounds the row's span on one side, exactly as the per-pixel
                     # expression ``a j + (b i + c) >= 0`` decides it (see _bound).
-                    lo, hi = _bound(a0, b0 * fi + c0, n0, fx0, fx1)
-                    lo1, hi1 = _bound(a1, b1 * fi + c1, n1, fx0, fx1)
-                    lo2, hi2 = _bound(a2, b2 * fi + c2, n2, fx0, fx1)
-                    jl = int(max(lo, max(lo1, lo2)))
-                    jh = int(min(hi, min(hi1, hi2)))
+                    lo, hi = fx0, fx1
+                    for k in range(3):
+                        lo_k, hi_k = _bound(ea[k], eb[k] * fi + ec[k], en[k], fx0, fx1)
+                        lo, hi = max(lo, lo_k), min(hi, hi_k)
+                    jl = int(lo)
+                    jh = int(hi)
                     if jl > jh:
                         continue
                     kw = bw * fi + cw
@@ -368,7 +381,7 @@ def _raster_kernel(corners, tri_ids, chunk_lo, box_lo, box_hi, box_rad, poses, f
                     setup[li, 3], setup[li, 4], setup[li, 5] = a1, b1, c1
                     setup[li, 6], setup[li, 7], setup[li, 8] = a2, b2, c2
                     setup[li, 9] = adet
-                    setup_id[li] = tri_ids[m0 // 3 + chunk_lo[c]]
+                    setup_id[li] = tri_ids[tri]
                     n_set += 1
         # Resolve: t, u, v of the winning triangle, once per pixel.
         for i in range(h):
@@ -496,7 +509,72 @@ def _bound(a, k, neg_inv_a, lo, hi):  # pragma: no cover - compiled
     return lo, min(hi, j)
 
 
+_SORT_SMALL = 15  # numba's quicksort sorts a range shorter than this by insertion
+_SORT_STACK = 64  # the larger part is pushed, the smaller sorted first: the stack holds < log2(n) ranges
+
+
+def _argsort(key, n, rank):  # pragma: no cover - compiled
+    """``rank[:n]`` = ``np.argsort(key[:n])`` as numba compiles it, equal keys included.
+
+    Chunks at the same nearest depth (one in five visible chunks in a generated house: boxes that
+    share a corner) are drawn in this order, and the first drawn wins a z-fight, so the order of
+    equal keys decides pixels: a stable sort changes some on every scene tried. This is numba's
+    quicksort (numba/misc/quicksort.py: median of three, the larger part pushed, insertion sort
+    below ``_SORT_SMALL``) step for step, so it puts equal keys where ``np.argsort`` did; written
+    out with an array for its stack it compiles in a third of the time (0.5 s of CPU instead of 1.4)."""
+    for i in range(n):
+        rank[i] = i
+    lo_stack = np.empty(_SORT_STACK, np.int64)
+    hi_stack = np.empty(_SORT_STACK, np.int64)
+    lo_stack[0], hi_stack[0] = 0, n - 1
+    top = 1 if n >= 2 else 0
+    while top > 0:
+        top -= 1
+        lo, hi = lo_stack[top], hi_stack[top]
+        while hi - lo >= _SORT_SMALL:
+            mid = (lo + hi) >> 1
+            if key[rank[mid]] < key[rank[lo]]:
+                rank[lo], rank[mid] = rank[mid], rank[lo]
+            if key[rank[hi]] < key[rank[mid]]:
+                rank[hi], rank[mid] = rank[mid], rank[hi]
+            if key[rank[mid]] < key[rank[lo]]:
+                rank[lo], rank[mid] = rank[mid], rank[lo]
+            pivot = key[rank[mid]]
+            rank[hi], rank[mid] = rank[mid], rank[hi]
+            i, j = lo, hi - 1
+            while True:
+                while i < hi and key[rank[i]] < pivot:
+                    i += 1
+                while j >= lo and pivot < key[rank[j]]:
+                    j -= 1
+                if i >= j:
+                    break
+                rank[i], rank[j] = rank[j], rank[i]
+                i += 1
+                j -= 1
+            rank[i], rank[hi] = rank[hi], rank[i]
+            if hi - i > i - lo:
+                if hi > i:
+                    lo_stack[top], hi_stack[top] = i + 1, hi
+                    top += 1
+                hi = i - 1
+            else:
+                if i > lo:
+                    lo_stack[top], hi_stack[top] = lo, i - 1
+                    top += 1
+                lo = i + 1
+        for i in range(lo + 1, hi + 1):
+            k = rank[i]
+            v = key[k]
+            j = i
+            while j > lo and v < key[rank[j - 1]]:
+                rank[j] = rank[j - 1]
+                j -= 1
+            rank[j] = k
+
+
 if AVAILABLE:
+    _argsort = numba.njit(nogil=True, cache=True)(_argsort)
     _fill = numba.njit(nogil=True, cache=True, inline="always")(_fill)
     _w_bound = numba.njit(nogil=True, cache=True, inline="always")(_w_bound)
     _pixel_rect = numba.njit(nogil=True, cache=True, inline="always")(_pixel_rect)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from services.robot_io.core import render, shading
+from services.robot_io.core import raster, render, shading
 from services.robot_io.core.raster import MISS_ID, NEAR_M, RasterScene
 from services.robot_io.core.render import Intrinsics, SceneRenderer
 from services.robot_io.core.robot import SimConfig, SimRobot
@@ -113,6 +113,20 @@ def test_both_faces_are_hit_and_degenerate_triangles_never():
 def test_an_empty_scene_misses_everywhere():
     r = raster_hits(RasterScene(np.zeros((0, 3)), np.zeros((0, 3), np.int64)), np.eye(4)[None], SKEWED)
     assert np.all(r["primitive_ids"] == MISS_ID) and np.all(np.isinf(r["t_hit"])) and not r["primitive_uvs"].any()
+
+
+def test_chunks_at_equal_depth_are_drawn_in_numbas_argsort_order():
+    """The draw order of equal keys decides z-fights: _argsort must put ties where numba's np.argsort
+    (its quicksort, run here as plain Python from numba's own source) puts them, not merely sort."""
+    from numba.misc.quicksort import make_py_quicksort  # numba is optional: see pytestmark
+
+    reference = make_py_quicksort(is_argsort=True, is_np_array=True).run_quicksort
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 14, 15, 16, 40, 333):
+        for key in (rng.integers(0, max(n // 8, 1), n).astype(np.float64), rng.uniform(0, 1, n), np.zeros(n)):
+            rank = np.full(n + 3, -1, np.int64)
+            raster._argsort(np.concatenate([key, [-1.0, -1.0, -1.0]]), n, rank)  # only key[:n] is sorted
+            assert rank[:n].tolist() == reference(key).tolist(), (n, key)
 
 
 def test_triangles_behind_and_across_the_camera_plane():
