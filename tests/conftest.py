@@ -149,6 +149,18 @@ def pytest_collection_modifyitems(config, items):
             _suffix_group(item, group)
 
 
+def pytest_collection_finish(session) -> None:
+    """Everything collection left alive (the imported modules of numpy, torch, scipy, pydantic, the
+    product and the test modules: ~all of a worker's objects) moves out of the cyclic garbage
+    collector's reach (``gc.freeze``). Each full collection otherwise walks all of it again, and the
+    tests' allocations trigger one every few seconds: tests/unit/{evaluation,gateway,planner} spent
+    3.2 s of 38.7 s of CPU in full collections, 2.1 s with them frozen. Only collection is skipped:
+    frozen objects that become garbage are still freed by reference counting, none of them is a test's."""
+    import gc
+
+    gc.freeze()
+
+
 def _suffix_group(item, group: str) -> None:
     """The ``@group`` node id suffix that xdist's scheduler groups by, written where pytest reads it.
 
