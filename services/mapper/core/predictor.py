@@ -178,7 +178,7 @@ def _column_median_kernel(depth, rows, gate_scale, out):  # pragma: no cover - c
                 out[v, r, c] = d
                 if not d > 0.0:
                     continue
-                n = 0
+                n = np.int64(0)  # not the literal 0, for which numba would compile insert_sorted again
                 for k in range(max(r - half, 0), min(r + half + 1, height)):
                     x = depth[v, k, c]
                     if not x > 0.0:

@@ -91,7 +91,7 @@ def _denoise_loop(d, rel, r, g, e, out):  # pragma: no cover - compiled; the arr
             if not (c > 0 and np.isfinite(c)):
                 out[i, j] = c
                 continue
-            n = 0
+            n = np.int64(0)  # not the literal 0, for which numba would compile insert_sorted again
             for a in range(i - 1, i + 2):
                 for b in range(j - 1, j + 2):
                     if 0 <= a < h and 0 <= b < w:
