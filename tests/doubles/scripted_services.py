@@ -425,7 +425,7 @@ class ScriptedReconstructor:
     def _import(self, req: MapImportRequest) -> MapInfo:
         import tempfile
 
-        import open3d as o3d
+        from shared.o3d import o3d
 
         suffix = "." + req.filename.rsplit(".", 1)[-1]
         with tempfile.NamedTemporaryFile(suffix=suffix) as f:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 import pytest
 
 from libs.scenegraph.labeller import LABELLERS

@@ -128,7 +128,7 @@ def test_a_walkable_floor_of_the_same_kind_loads():
 
 
 def test_load_scene_without_walkable_area_over_the_bus_is_bad_request_and_the_service_keeps_serving(tmp_path):
-    import open3d as o3d
+    from shared.o3d import o3d
 
     from services.robot_io.service import RobotIoService, RobotIoSettings
     from shared.bus.typed import RemoteError

@@ -6,7 +6,9 @@
 - ``libs/`` (pure libraries) import nothing of ours but ``shared/`` (and each other's own package);
 - a service never imports ``bench``, ``evaluation``, ``deploy`` or ``tools`` (they stand on services, not
   the other way round);
-- no import cycle anywhere in the tree (module to module, through any package).
+- no import cycle anywhere in the tree (module to module, through any package);
+- open3d is imported through ``shared.o3d`` only, so no process pays for its plotly/dash front-end because
+  some module happened to import open3d first.
 """
 
 from __future__ import annotations
@@ -87,6 +89,43 @@ def test_the_check_reads_relative_and_absolute_imports():
     probe = ROOT / "services" / "renderer" / "core" / "port.py"
     names = {n for _, n in _imports(probe)}
     assert "libs.pointrender.splat" in names and "services.renderer.core.errors" in names
+
+
+def _runtime_imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of the absolute ``import X`` / ``from X import`` statements that run, that is, not
+    under ``if TYPE_CHECKING:`` (annotations only: they load nothing)."""
+    out: list[tuple[int, str]] = []
+
+    def walk(node: ast.AST) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and getattr(child.test, "id", None) == "TYPE_CHECKING":
+                for other in child.orelse:
+                    walk(other)
+                continue
+            if isinstance(child, ast.Import):
+                out.extend((child.lineno, a.name) for a in child.names)
+            elif isinstance(child, ast.ImportFrom) and not child.level:
+                out.append((child.lineno, child.module or ""))
+            walk(child)
+
+    walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path)))
+    return out
+
+
+def test_open3d_is_imported_through_shared_o3d_only():
+    """``import open3d`` loads plotly and dash (~700 modules, 0.3-0.5 s of CPU a process); shared.o3d loads
+    them on first use. One direct import anywhere that runs first brings the whole cost back."""
+    files = [p for top in OURS for p in _py(top) if p != ROOT / "shared" / "o3d.py"]
+    found = [f"{p.relative_to(ROOT)}:{line} imports {name}" for p in files
+             for line, name in _runtime_imports(p) if name == "open3d" or name.startswith("open3d.")]
+    assert not found, "\n".join(found)
+
+
+def test_the_open3d_check_sees_runtime_imports_and_skips_type_checking(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import open3d\n"
+                     "def f():\n    import open3d.geometry\n")
+    assert [name for _, name in _runtime_imports(probe) if name.startswith("open3d")] == ["open3d.geometry"]
 
 
 OURS = ("shared", "libs", "services", "bench", "evaluation", "deploy", "tools", "tests")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 import pytest
 
 from tests.unit.evaluation.conftest import box_scene

@@ -9,7 +9,7 @@ import zipfile
 from contextlib import contextmanager
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 import pytest
 import rerun as rr
 import yaml

@@ -6,7 +6,7 @@ import csv
 import io
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 
 from shared.export import encode_pcd, trajectory_csv
 from shared.export.pcd import pcd_header, pcd_records

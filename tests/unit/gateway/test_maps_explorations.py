@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 
 from shared.cloud import decode
 from tests.doubles.scripted_services import ply_bytes

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 import pytest
 
 from shared.schemas import CameraIntrinsics

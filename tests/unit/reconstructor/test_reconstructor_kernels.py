@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 import pytest
 
 from services.reconstructor.core import RECONSTRUCTORS, BackendUnavailableError, InputError, RegionInput, kernels

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 import pytest
 
 from services.reconstructor.core import (

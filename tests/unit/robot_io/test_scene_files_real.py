@@ -7,7 +7,7 @@ import math
 
 import cv2
 import numpy as np
-import open3d as o3d
+from shared.o3d import o3d
 import pytest
 
 from libs.world.episodes import Episode, EpisodeDataset, read_episodes, write_episodes

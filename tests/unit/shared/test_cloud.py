@@ -45,7 +45,7 @@ def test_save_load_keeps_labels_in_one_file(tmp_path):
 
 
 def test_other_layouts_go_through_open3d(tmp_path):
-    import open3d as o3d
+    from shared.o3d import o3d
 
     assert decode(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n") is None
     pts = np.random.default_rng(1).random((50, 3))

@@ -91,7 +91,7 @@ def test_two_floors_joined_by_stairs(two_floor_robot):
 
 
 def test_export_ply_roundtrip(tmp_path):
-    import open3d as o3d
+    from shared.o3d import o3d
 
     s = generate_house("generated:2:area=80")
     path = s.export_ply(tmp_path / "house.ply")
