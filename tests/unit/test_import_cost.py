@@ -1,6 +1,9 @@
 """Process start stays cheap: the world library, the evaluation CLI and the launchers import without open3d,
 networkx, numba or scipy's image and graph modules (seconds of CPU per process at every start, most of it open3d's
 dash import). They load where a code path needs them: building a nav grid, reading a mesh, generating a set.
+A service loads what it serves from its start and no more: robot-io its ray caster's open3d without open3d's
+plotly/dash drawing (shared.o3d), the mapper its predictor without the exploration code (shared.lazy), which
+loads with the first exploration.
 
 Each case imports in a fresh interpreter, since this test process has those libraries loaded already."""
 
@@ -15,7 +18,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[3]
-HEAVY = ("open3d", "networkx", "numba", "scipy.ndimage", "scipy.sparse.csgraph", "scipy.spatial")
+HEAVY = ("open3d", "networkx", "numba", "scipy.ndimage", "scipy.sparse.csgraph", "scipy.spatial", "dash", "plotly",
+         "services.mapper.core.exploration_job")
 
 PROBE = """
 import importlib, json, sys
@@ -32,14 +36,16 @@ def _heavy_after_import(*modules: str) -> list[str]:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize("modules", [
-    ("libs.world",),
-    ("libs.world.house", "libs.world.navgrid", "libs.world.scene_semantics", "libs.world.scene_files"),
-    ("evaluation.cli", "evaluation.dataset", "evaluation.presets"),
-    ("deploy.demo", "deploy.up", "deploy.launcher"),
+@pytest.mark.parametrize("modules, needed", [
+    (("libs.world",), ()),
+    (("libs.world.house", "libs.world.navgrid", "libs.world.scene_semantics", "libs.world.scene_files"), ()),
+    (("evaluation.cli", "evaluation.dataset", "evaluation.presets"), ()),
+    (("deploy.demo", "deploy.up", "deploy.launcher"), ()),
+    (("services.robot_io.service",), ("numba", "open3d")),  # the ray caster and its kernels, not dash
+    (("services.mapper.service",), ("numba",)),  # the predictor's kernels, not the exploration
 ])
-def test_import_loads_no_heavy_library(modules):
-    assert _heavy_after_import(*modules) == []
+def test_import_loads_no_heavy_library_it_does_not_serve(modules, needed):
+    assert _heavy_after_import(*modules) == sorted(needed)
 
 
 def test_the_probe_sees_a_heavy_import():
