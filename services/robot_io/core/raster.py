@@ -58,11 +58,11 @@ and the chunk's distinct vertices each. Per view: chunks outside the (one-pixel 
 skipped, the rest drawn nearest first (ties in numba's argsort order: see :func:`_argsort`), each
 distinct vertex transformed once; a chunk or triangle behind what is already drawn over its whole
 rectangle is skipped (8 x 8 pixel tiles keep their farthest depth), as are triangles whose three
-vertices are outside one frustum plane or whose rectangle holds no pixel centre. A remaining triangle is set up once (three
-cross products) and filled row by row over its exact span: each edge is solved for the row's bound
-in floating point, and only a bound within 1e-6 px of an integer is settled by evaluating the
-per-pixel expression, so the span is exactly the covered set. One compiled loop, single-threaded,
-GIL released: callers parallelise across robots.
+vertices are outside one frustum plane or whose rectangle holds no pixel centre. A remaining
+triangle is set up once (three cross products) and filled row by row over its exact span: each edge
+is solved for the row's bound in floating point, and only a bound within 1e-6 px of an integer is
+settled by evaluating the per-pixel expression, so the span is exactly the covered set. One compiled
+loop, single-threaded, GIL released: callers parallelise across robots.
 """
 
 from __future__ import annotations
