@@ -174,6 +174,27 @@ def test_observe_turns_through_twelve_headings_and_returns_rgbd(standin):
     assert standin.robot.stats.last_cmd == (0.0, 0.0)
 
 
+def test_late_odometry_does_not_turn_the_views_past_their_layout(standins):
+    # The stand-in's sensors (odometry, images) arrive 0.3 s of robot time late. A closed loop that stopped
+    # on the stale heading overshot each 30-degree step (views up to 7.6 degrees off the layout, the return
+    # to the start 5.5 off); the loop now counts the turn its own commands made since the odometry's stamp.
+    s = standins("bridge")
+    normal = s.robot.config
+    s.robot.config = StandInConfig.model_validate({**normal.model_dump(), "latency_s": 0.3})
+    try:
+        with s.backend(keys="bridge") as robot:
+            start_rad = s.robot.true_pose.heading_rad
+            pano = robot.observe()
+            tol = math.radians(robot.config.yaw_tolerance_deg)
+            layout = start_rad - math.radians(30) * np.arange(12)
+            # Each reported heading is where the view looked (odometry stamped after the base came to rest)...
+            assert np.abs(np.remainder(pano.headings_rad - layout + math.pi, 2 * math.pi) - math.pi).max() <= tol
+            # ...and the base came back to where it started.
+            assert abs(math.remainder(s.robot.true_pose.heading_rad - start_rad, 2 * math.pi)) <= tol
+    finally:
+        s.robot.config = normal
+
+
 def test_a_move_into_a_wall_stops_at_the_safety_distance_and_reports_blocked(standin):
     with standin.backend(keys=standin.keys) as robot:
         # The nearest wall from the scan: drive at it, twice as far as it is. The backend is up once it has

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from libs.ros2 import messages as m
-from services.robot_io.core.ros2.backend import RobotClock, _Latest
+from services.robot_io.core.ros2.backend import RobotClock, _Latest, commanded_turn_rad
 from libs.ros2.occupancy import OccupancyPlanner
 from libs.ros2.profiles import profile
 
@@ -132,3 +132,14 @@ def test_the_localised_pose_composes_map_to_odom_with_odometry_and_ignores_the_r
     # Without a localisation frame, odometry is the pose.
     robot.profile = profile("generic")
     assert robot._world(odo) == odo
+
+
+def test_the_turn_commanded_since_a_stamp_counts_each_rate_until_the_next_command():
+    sent = [(10.0, 0.2), (10.5, 0.4), (11.0, 0.0)]
+    # Odometry stamped at 10.25 s, read at 11.5 s: 0.25 s at 0.2 rad/s, 0.5 s at 0.4, then at rest.
+    assert commanded_turn_rad(sent, 10.25, 11.5) == pytest.approx(0.25 * 0.2 + 0.5 * 0.4)
+    # Stamped before the turn began: all of it; the last rate holds until now.
+    assert commanded_turn_rad(sent[:2], 9.0, 10.75) == pytest.approx(0.5 * 0.2 + 0.25 * 0.4)
+    # Odometry newer than every command, and no commands yet: nothing ahead of it.
+    assert commanded_turn_rad(sent, 11.2, 11.5) == 0.0
+    assert commanded_turn_rad([], 0.0, 5.0) == 0.0

@@ -141,6 +141,8 @@ class Ros2Config(BackendConfig):
     yaw_tolerance_deg: float = Field(1.5, gt=0.0, le=20.0)
     goal_tolerance_m: float = Field(0.1, gt=0.0, le=1.0)
     settle_s: float = Field(0.3, ge=0.0, le=10.0)
+    # Turns again after a settle that found the base past yaw_tolerance_deg (see Ros2Robot._face).
+    turn_corrections: int = Field(2, ge=0, le=10)
     stamp_match_s: float = Field(0.05, ge=0.0, le=1.0)  # colour/depth pairing tolerance
     turn_gain: float = Field(2.0, gt=0.0, le=20.0)
     stall_s: float = Field(1.5, gt=0.0, le=30.0)  # no progress this long while driving: blocked
@@ -171,6 +173,18 @@ def _same_place(a: Pose, b: Pose) -> bool:
     """Whether two poses agree in the plane (the teleport sets x, y and heading, not z)."""
     return (math.hypot(a.position_m[0] - b.position_m[0], a.position_m[1] - b.position_m[1]) <= TELEPORT_MATCH_M
             and abs(float(wrap_angle(a.heading_rad - b.heading_rad))) <= TELEPORT_MATCH_RAD)
+
+
+def commanded_turn_rad(sent: list[tuple[float, float]], since_s: float, now_s: float) -> float:
+    """The turn that rate commands ``sent`` ((robot time, rad/s), in order; the base at rest before the first)
+    asked for between ``since_s`` and ``now_s``: each rate holds until the next command."""
+    total = 0.0
+    for i, (t_s, w) in enumerate(sent):
+        t_end = sent[i + 1][0] if i + 1 < len(sent) else now_s
+        lo, hi = max(t_s, since_s), min(t_end, now_s)
+        if hi > lo:
+            total += w * (hi - lo)
+    return total
 
 
 class _Latest:
@@ -507,15 +521,21 @@ class Ros2Robot(Robot):
         dt = 1.0 / c.control_rate_hz
         tol = math.radians(c.yaw_tolerance_deg)
         w = 0.0
+        sent: list[tuple[float, float]] = []  # (robot time, rate) of each command of this turn; at rest before
         while True:
-            _, odo = self._fresh(self._odom, p.odom)
-            err = float(wrap_angle(heading_rad - self._world(self._odom_pose(odo)).heading_rad))
+            t_odo, odo = self._fresh(self._odom, p.odom)
+            # Odometry is as old as its stamp (the sensor's latency, a loaded link): the base has since turned
+            # by what the commands after that stamp asked for. Stopping on the stale heading alone overshot by
+            # as much (stand-in odometry 0.3 s late: panorama views 7.6 degrees off their layout).
+            ahead_rad = commanded_turn_rad(sent, t_odo, self.clock.now())
+            err = float(wrap_angle(heading_rad - self._world(self._odom_pose(odo)).heading_rad - ahead_rad))
             if abs(err) <= tol:
                 break
             # Speed that still stops in time (v^2 = 2 a d), P-control near the goal, then rate limits.
             want = math.copysign(min(w_max, math.sqrt(2 * a_max * abs(err)), c.turn_gain * abs(err) + 0.05), err)
             w = float(np.clip(want, w - a_max * dt, w + a_max * dt))
             self._send(0.0, w)
+            sent.append((self.clock.now(), w))
             self._tick(end_s, "turn")
         self._send(0.0, 0.0)
 
@@ -630,6 +650,35 @@ class Ros2Robot(Robot):
         err = float(wrap_angle(heading_rad - self.pose.heading_rad))
         if abs(err) > math.radians(self.config.yaw_tolerance_deg):
             self._spin_by(err, end_s, what)
+
+    def _settled_heading(self, since_s: float, end_s: float) -> float:
+        """The heading in odometry stamped at or after ``since_s`` (robot time). Odometry that left the robot
+        before it came to rest (sensor latency) still shows it turning, short of where it stopped."""
+        while True:
+            t, odo = self._fresh(self._odom, self.profile.odom)
+            if t >= since_s:
+                return float(self._world(self._odom_pose(odo)).heading_rad)
+            self._tick(end_s, "settle")
+
+    def _face(self, heading_rad: float, end_s: float, what: str, *, nav2_spin: bool) -> float:
+        """Turn to a heading, settle, and return the heading the base came to rest at. The cmd_vel loop allows
+        for its odometry's latency by its own commands; a base that did not follow them (acceleration limits,
+        wheel slip, a controller stalled on a loaded machine) or a Nav2 spin can still stop past the
+        tolerance. So the heading at rest is checked and the turn repeated, at most ``turn_corrections``
+        times; whatever remains is reported as it is, never as the target."""
+        c = self.config
+        tol = math.radians(c.yaw_tolerance_deg)
+        settled = heading_rad
+        for _ in range(c.turn_corrections + 1):
+            if nav2_spin:
+                self._turn_to(heading_rad, end_s, what)
+            else:
+                self._rotate_to(heading_rad, end_s)
+            self.clock.sleep(c.settle_s)
+            settled = self._settled_heading(self.clock.now(), end_s)
+            if abs(float(wrap_angle(heading_rad - settled))) <= tol:
+                break
+        return settled
 
     def turn(self, angle_rad: float) -> Pose:
         if not math.isfinite(angle_rad):
@@ -862,15 +911,13 @@ class Ros2Robot(Robot):
             rgbs, depths, sems, heads = [], [], [], []
             t_first = None
             for h in targets:
-                self._rotate_to(float(h), end)
-                self.clock.sleep(c.settle_s)
+                heads.append(self._face(float(h), end, "observe", nav2_spin=False))
                 t, rgb, depth, sem = self._capture(self.clock.now(), cam, with_semantic, end)
                 t_first = t if t_first is None else t_first
                 rgbs.append(rgb)
                 depths.append(depth)
                 sems.append(sem)
-                heads.append(self.pose.heading_rad)
-            self._rotate_to(start.heading_rad, end)
+            self._face(start.heading_rad, end, "observe", nav2_spin=False)
         have_sem = with_semantic and all(s is not None for s in sems)
         # Reported headings are where each view looked (odometry at rest after the settle), not the
         # targets: the closed loop stops within yaw_tolerance_deg, short of the target in the turn's
@@ -928,8 +975,7 @@ class Ros2Robot(Robot):
                 n = max(1, int(round(abs(b - a) / step)))
                 path += [a + (b - a) * k / n for k in range(1, n + 1)]
             for yaw in path:
-                self._turn_to(h0 + yaw, end, "look_around")
-                self.clock.sleep(c.settle_s)
+                self._face(h0 + yaw, end, "look_around", nav2_spin=True)
                 t0 = self.clock.now()
                 self._capture(t0, c.camera, True, end)  # waits for a frame taken after settling
                 f = self._frame()
