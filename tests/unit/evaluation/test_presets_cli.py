@@ -83,6 +83,9 @@ def test_cli_options_become_the_run_config(tmp_path):
     assert (cfg.policy, cfg.map_source, cfg.anticipation, cfg.anticipation_hfov_deg, cfg.limit) == (
         "oracle", MapSource.CURATED, False, 60.0, 3)
     assert cfg.policy_config == {"stop_radius_m": 1.0}
+    assert cfg.plots and not run_config(build_parser().parse_args(["run", "--episodes", "e", "--no-plots"])).plots
+    preset = build_parser().parse_args(["preset", "hfov", "--episodes", "e", "--no-plots"])
+    assert not run_config(preset).plots
 
 
 def test_cli_summarize_and_errors(world, gateway, episodes, tmp_path, capsys):
