@@ -15,7 +15,8 @@ from evaluation.results import ResultsLog
 from evaluation.runner import EvalRunner, SceneMapIndex, MapSource, RunConfig, episode_seed, group_by_scene, map_id_for
 from libs.world import GroundTruth
 
-FAST = {"poll_s": 0.01}
+# Plots off: no test here looks at them (test_predictions_plots does), and they cost ~0.1 s of CPU each.
+FAST = {"poll_s": 0.01, "plots": False}
 
 
 def runner(gw, world, out, **cfg):
