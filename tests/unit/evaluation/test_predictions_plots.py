@@ -110,8 +110,9 @@ def test_a_run_writes_the_prediction_file_and_linked_plots(runs):
     for rel in links:
         img = Image.open(out / rel)
         assert img.size[0] >= 600 and img.size[1] >= 600
-        px = np.asarray(img.convert("RGB")).reshape(-1, 3)
-        assert len(np.unique(px, axis=0)) > 20  # a drawn picture, not a blank canvas
+        px = np.asarray(img.convert("RGB")).reshape(-1, 3).astype(np.uint32)
+        # Colours packed into one integer each: np.unique(px, axis=0) counts the same, 0.43 s vs 0.006 s a plot.
+        assert len(np.unique(px[:, 0] << 16 | px[:, 1] << 8 | px[:, 2])) > 20  # a drawn picture, not a blank canvas
 
 
 def _episode_rows(md: str) -> list[str]:
