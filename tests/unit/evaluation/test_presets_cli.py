@@ -59,8 +59,9 @@ def test_cloud_preset_uses_both_sources(world, gateway, episodes, tmp_path, monk
 
     monkeypatch.setattr(runner_mod.EvalRunner, "__init__", _with_builder(runner_mod.EvalRunner.__init__))
     with gateway() as gw:
-        rep = run_preset("cloud", episodes[:2], None, RunConfig(poll_s=0.01, plots=False), tmp_path, gw, world.robot,
-                         progress=False)
+        # A sparse curated cloud (see test_runner's FAST): the preset's path is tested, not the cloud.
+        rep = run_preset("cloud", episodes[:2], None, RunConfig(poll_s=0.01, plots=False, curated_density_per_m2=200.0),
+                         tmp_path, gw, world.robot, progress=False)
     sources = sorted(m[0].source.split(":")[0] for m in world.reconstructor.maps.values())
     assert sources == ["scripted", "scripted", "upload", "upload"]
     assert [r["label"] for r in rep.rows] == ["curated", "reconstructed"]
