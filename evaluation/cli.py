@@ -72,6 +72,9 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-retry-errors", action="store_true", help="on resume, keep episodes that errored")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--record", action="store_true", help="record every mission (.rrd) into <out>/recordings/")
+    p.add_argument("--no-plots", action="store_true",
+                   help="draw no top-down plot per episode (<out>/plots/, about 0.1 s of CPU each); summary.md says "
+                        "plots off. Not a setting of the experiment: a resumed run may switch it")
     g = p.add_argument_group("cost")
     g.add_argument("--prices", type=Path, help="price table (JSON or TOML: model -> input_per_1m_usd, "
                                                "output_per_1m_usd) over the defaults of shared/pricing.py")
@@ -174,6 +177,7 @@ def _run_config(a: argparse.Namespace) -> RunConfig:
         curated_density_per_m2=a.curated_density_per_m2,
         mission_timeout_s=a.mission_timeout_s, exploration_timeout_s=a.exploration_timeout_s,
         exploration_max_steps=a.exploration_max_steps, retry_errors=not a.no_retry_errors, record=a.record,
+        plots=not a.no_plots,
         anticipation_splat_mode=a.splat_mode, anticipation_views=a.anticipation_views)
 
 

@@ -3,7 +3,8 @@
 Each plot shows the start, the goal with the success radius, the reference path, the agent's path
 (backtrack moves in their own colour), where the agent stopped (or where its step budget ran out),
 and the instruction. ``write_episode_plots`` puts them in ``<run>/plots/`` and returns the rows that
-:func:`evaluation.runner.EvalRunner` links from ``summary.md``.
+:func:`evaluation.runner.EvalRunner` links from ``summary.md``; a run with plots off
+(``RunConfig.plots``) lists the same episodes there without pictures.
 """
 
 from __future__ import annotations
@@ -119,14 +120,19 @@ def plot_episode(result: EpisodeResult, geo: EpisodeGeometry, path: Path | str,
     return path
 
 
+def plotted_results(results: Iterable[EpisodeResult]) -> list[EpisodeResult]:
+    """The results an episode plot is drawn for: ``done``, with a trajectory."""
+    return [r for r in results if r.status == "done" and r.trajectory_m]
+
+
 def write_episode_plots(results: Iterable[EpisodeResult], geometry: Mapping[str, EpisodeGeometry],
                         out_dir: Path | str) -> list[tuple[EpisodeResult, str]]:
     """A plot per ``done`` result that has its geometry; returns (result, path relative to out_dir)."""
     out_dir = Path(out_dir)
     rows = []
-    for r in results:
+    for r in plotted_results(results):
         geo = geometry.get(str(r.episode_id))
-        if r.status != "done" or geo is None or not r.trajectory_m:
+        if geo is None:
             continue
         rel = f"{PLOTS_DIR}/{plot_name(r.episode_id)}"
         path = out_dir / rel
@@ -143,18 +149,22 @@ def write_episode_plots(results: Iterable[EpisodeResult], geometry: Mapping[str,
     return rows
 
 
-def plots_markdown(rows: list[tuple[EpisodeResult, str]]) -> str:
-    """The summary.md section linking every plot."""
+def plots_markdown(rows: list[tuple[EpisodeResult, str | None]], drawn: bool = True) -> str:
+    """The summary.md section listing the episodes and linking every plot (``rel`` None: no plot, and
+    ``drawn`` False: the run's plots were off, which the section says)."""
     if not rows:
         return ""
-    lines = ["", f"## Episodes ({len(rows)})", "",
-             "| episode | success | NE (m) | nDTW | steps | backtracks | plot | recording |",
-             "|---|---|---:|---:|---:|---:|---|---|"]
+    lines = ["", f"## Episodes ({len(rows)})", ""]
+    if not drawn:
+        # Plots from an earlier attempt of a resumed run may still lie in plots/: not linked, they may be stale.
+        lines += ["Plots off (`--no-plots`): no episode plot was drawn.", ""]
+    lines += ["| episode | success | NE (m) | nDTW | steps | backtracks | plot | recording |",
+              "|---|---|---:|---:|---:|---:|---|---|"]
     for r, rel in rows:
         m = r.metrics or {}
         ne = "-" if m.get("ne_m") is None else f"{m['ne_m']:.2f}"
         nd = "-" if m.get("ndtw") is None else f"{m['ndtw']:.2f}"
         lines.append(f"| {r.episode_id} | {'yes' if m.get('success') else 'no'} | {ne} | {nd} | {m.get('steps', '-')} "
-                     f"| {len(backtrack_segments(r))} | [{Path(rel).name}]({rel}) | "
+                     f"| {len(backtrack_segments(r))} | " + (f"[{Path(rel).name}]({rel}) | " if rel else "- | ")
                      + (f"[{Path(r.recording).name}]({r.recording}) |" if r.recording else "- |"))
     return "\n".join(lines) + "\n"

@@ -93,6 +93,9 @@ class RunConfig(BaseModel):
     poll_s: float = Field(0.5, gt=0, le=30)
     retry_errors: bool = Field(True, description="on resume, run episodes that ended in an error again")
     record: bool = Field(False, description="record every mission (.rrd) and keep a copy in <run>/recordings/")
+    # Output only, so not in experiment_key(): a run resumed with plots switched on or off is the same experiment.
+    plots: bool = Field(True, description="draw a top-down PNG per episode into <run>/plots/ (about 0.1 s of CPU "
+                                          "each); off, summary.md says so and links none")
     budget_usd: float | None = Field(None, gt=0, allow_inf_nan=False,
                                      description="stop the run once its dollars (every attempt, the missions in "
                                                  "flight included) reach this; see evaluation.ledger.Budget")
@@ -413,28 +416,33 @@ class EvalRunner:
 
     def _write_pictures_and_predictions(self, selected: Sequence[Episode], results: Sequence[EpisodeResult],
                                         gt: dict[str, GroundTruth], md: Path) -> None:
-        """A top-down plot per episode in ``plots/`` (linked from summary.md) and the VLN-CE prediction file."""
+        """The episodes of summary.md, each with its top-down plot in ``plots/`` unless plots are off, and the
+        VLN-CE prediction file."""
         import numpy as np
 
-        from evaluation.plots import EpisodeGeometry, plots_markdown, write_episode_plots
+        from evaluation.plots import EpisodeGeometry, plots_markdown, plotted_results, write_episode_plots
         from evaluation.predictions import PREDICTIONS_FILE, write_predictions
 
-        geometry: dict[str, EpisodeGeometry] = {}
-        for e in selected:
-            try:
-                ref = self.reference_for(e, gt.get(str(e.episode_id)))
-            except ConfigError:
-                ref = None
-            geometry[str(e.episode_id)] = EpisodeGeometry(np.asarray(e.start_pose.position_m), np.asarray(e.goal_m),
-                                                          None if ref is None else np.asarray(ref))
-        rows = write_episode_plots(results, geometry, self.out_dir)
+        if self.config.plots:
+            geometry: dict[str, EpisodeGeometry] = {}
+            for e in selected:
+                try:
+                    ref = self.reference_for(e, gt.get(str(e.episode_id)))
+                except ConfigError:
+                    ref = None
+                geometry[str(e.episode_id)] = EpisodeGeometry(
+                    np.asarray(e.start_pose.position_m), np.asarray(e.goal_m), None if ref is None else np.asarray(ref))
+            rows = write_episode_plots(results, geometry, self.out_dir)
+        else:
+            rows = [(r, None) for r in plotted_results(results)]
         path, written, left_out = write_predictions(
             results, self.out_dir / PREDICTIONS_FILE, {str(e.episode_id): e.start_pose.heading_rad for e in selected})
         with open(md, "a", encoding="utf-8") as f:
             f.write(f"\nVLN-CE prediction file: [{PREDICTIONS_FILE}]({PREDICTIONS_FILE}) ({written} episodes"
                     + (f"; {left_out} not run are left out" if left_out else "") + ")\n")
-            f.write(plots_markdown(rows))
-        log.info("%d episode plots in %s, predictions in %s", len(rows), self.out_dir / "plots", path)
+            f.write(plots_markdown(rows, drawn=self.config.plots))
+        log.info("%s, predictions in %s", f"{len(rows)} episode plots in {self.out_dir / 'plots'}"
+                 if self.config.plots else "plots off", path)
 
     # --- one scene -----------------------------------------------------------------------------------
     def _base(self, e: Episode, **kw) -> EpisodeResult:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -48,18 +50,19 @@ def world():
     w.close()
 
 
+@contextmanager
+def gateway_client(world: World, db_path: Path, instance: str = "gw-eval") -> Iterator[GatewayClient]:
+    """A :class:`GatewayClient` over a real gateway app on ``world``'s network."""
+    settings = GatewaySettings(instance=instance, db_path=db_path, request_timeout_s=2.0)
+    app = create_app(settings, bus_factory=lambda _s: FakeBus(world.net))
+    with TestClient(app) as http:
+        yield GatewayClient(http, retries=0)
+
+
 @pytest.fixture
 def gateway(world, tmp_path):
     """``gateway()``: a context manager giving a :class:`GatewayClient` over a real gateway app."""
-
-    @contextmanager
-    def make():
-        settings = GatewaySettings(instance="gw-eval", db_path=tmp_path / "gw.sqlite3", request_timeout_s=2.0)
-        app = create_app(settings, bus_factory=lambda _s: FakeBus(world.net))
-        with TestClient(app) as http:
-            yield GatewayClient(http, retries=0)
-
-    return make
+    return lambda: gateway_client(world, tmp_path / "gw.sqlite3")
 
 
 def make_episode(eid: int, scene: str, start=(0.0, 0.0, 0.0), goal=(4.0, 0.0, 0.0), text: str = "walk ahead"):

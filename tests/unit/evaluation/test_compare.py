@@ -78,7 +78,7 @@ def test_a_chunked_preset_interleaves_its_variants_and_compares_them(world, gate
     from evaluation.runner import RunConfig, SceneMapIndex
 
     with gateway() as gw:
-        rep = run_preset("anticipation", episodes, None, RunConfig(poll_s=0.01), tmp_path, gw, world.robot,
+        rep = run_preset("anticipation", episodes, None, RunConfig(poll_s=0.01, plots=False), tmp_path, gw, world.robot,
                          map_cache=SceneMapIndex(tmp_path / "maps.json"), progress=False, chunk=2)
     order = [r.options.anticipation for r in world.planner.requests]
     # Rounds of 2 episodes of the file's 5 (limits 2, 4, 5; episode 3's scene is missing): the variants

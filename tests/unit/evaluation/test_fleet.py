@@ -5,14 +5,9 @@ from __future__ import annotations
 
 from contextlib import ExitStack, contextmanager
 
-from fastapi.testclient import TestClient
-
-from evaluation.gateway_client import GatewayClient
 from evaluation.runner import EvalRunner, Lane, RunConfig, group_by_scene, shard_scenes
-from services.gateway.app import create_app
-from services.gateway.settings import GatewaySettings
-from shared.bus import FakeBus, FakeNetwork
-from tests.unit.evaluation.conftest import World, box_scene, make_episode
+from shared.bus import FakeNetwork
+from tests.unit.evaluation.conftest import World, box_scene, gateway_client, make_episode
 
 SCENES = ["generated:1", "generated:2", "generated:3"]
 
@@ -33,18 +28,15 @@ def fleet(n, tmp_path):
         for k in range(n):
             world = World(FakeNetwork())
             stack.callback(world.close)
-            settings = GatewaySettings(instance=f"gw-{k}", db_path=tmp_path / f"gw{k}-{n}.sqlite3",
-                                       request_timeout_s=2.0)
-            app = create_app(settings, bus_factory=lambda _s, w=world: FakeBus(w.net))
-            http = stack.enter_context(TestClient(app))
+            gateway = stack.enter_context(gateway_client(world, tmp_path / f"gw{k}-{n}.sqlite3", f"gw-{k}"))
             worlds.append(world)
-            lanes.append(Lane(GatewayClient(http, retries=0), world.robot))
+            lanes.append(Lane(gateway, world.robot))
         yield worlds, lanes
 
 
 def _run(n, tmp_path, **cfg):
     with fleet(n, tmp_path) as (worlds, lanes):
-        runner = EvalRunner(lanes[0].gateway, lanes[0].scenes, RunConfig(poll_s=0.01, max_steps=8, **cfg),
+        runner = EvalRunner(lanes[0].gateway, lanes[0].scenes, RunConfig(poll_s=0.01, max_steps=8, plots=False, **cfg),
                             tmp_path / f"out{n}", progress=False, scene_builder=lambda spec, d: box_scene(),
                             lanes=lanes[1:])
         report = runner.run(_episodes())
@@ -88,7 +80,7 @@ def test_a_budget_reached_mid_episode_cancels_the_missions_of_every_robot(tmp_pa
         for w in worlds:
             w.planner.interval_s = 0.1  # three robots walk at once, a step each 0.1 s
         runner = EvalRunner(lanes[0].gateway, lanes[0].scenes,
-                            RunConfig(poll_s=0.01, max_steps=8, budget_tokens=400), tmp_path / "out",
+                            RunConfig(poll_s=0.01, max_steps=8, budget_tokens=400, plots=False), tmp_path / "out",
                             progress=False, scene_builder=lambda spec, d: box_scene(), lanes=lanes[1:])
         report = runner.run(_episodes())
         missions = [len(w.planner.requests) for w in worlds]

@@ -22,7 +22,7 @@ from tests.unit.evaluation.conftest import box_scene, make_episode
 
 
 def _runner(gw, world, out, **cfg):
-    return EvalRunner(gw, world.robot, RunConfig(poll_s=0.01, **cfg), out, progress=False,
+    return EvalRunner(gw, world.robot, RunConfig(poll_s=0.01, plots=False, **cfg), out, progress=False,
                       scene_builder=lambda spec, d: box_scene())
 
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -14,7 +16,8 @@ from evaluation.plots import backtrack_segments, plot_name
 from evaluation.predictions import episode_states, habitat_heading
 from evaluation.results import EpisodeResult
 from evaluation.runner import EvalRunner, RunConfig
-from tests.unit.evaluation.conftest import make_episode
+from shared.bus import FakeNetwork
+from tests.unit.evaluation.conftest import World, gateway_client, make_episode
 
 
 def vlnce_heading_of_quaternion(q_xyzw) -> float:
@@ -61,13 +64,29 @@ def test_backtrack_segments_follow_the_decisions():
     assert plot_name("a/b c") == "a_b_c.png"
 
 
-def test_a_run_writes_the_prediction_file_and_linked_plots(world, gateway, tmp_path):
-    episodes = [make_episode(1, "generated:1", goal=(4.0, 0.0, 0.0)),
-                make_episode(2, "generated:1", start=(1.0, 1.0, 0.0), goal=(1.0, 8.0, 0.0)),
-                make_episode(3, "mp3d/NOPE/NOPE.glb", goal=(3.0, 0.0, 0.0))]
-    out = tmp_path / "run"
-    with gateway() as gw:
-        report = EvalRunner(gw, world.robot, RunConfig(max_steps=5, poll_s=0.02), out, progress=False).run(episodes)
+EPISODES = [make_episode(1, "generated:1", goal=(4.0, 0.0, 0.0)),
+            make_episode(2, "generated:1", start=(1.0, 1.0, 0.0), goal=(1.0, 8.0, 0.0)),
+            make_episode(3, "mp3d/NOPE/NOPE.glb", goal=(3.0, 0.0, 0.0))]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """The same episodes run with plots on (``runs[True]``) and off (``runs[False]``) through one scripted
+    world: made once for the module, since its tests only read what the runs wrote (and resume copies)."""
+    root = tmp_path_factory.mktemp("plots")
+    world = World(FakeNetwork())
+    try:
+        with gateway_client(world, root / "gw.sqlite3") as gw:
+            return {plots: EvalRunner(gw, world.robot, RunConfig(max_steps=5, poll_s=0.02, plots=plots),
+                                      root / ("on" if plots else "off"), progress=False).run(EPISODES)
+                    for plots in (True, False)}
+    finally:
+        world.close()
+
+
+def test_a_run_writes_the_prediction_file_and_linked_plots(runs):
+    episodes, report = EPISODES, runs[True]
+    out = report.out_dir
     by_id = {r.episode_id: r for r in report.results}
 
     preds = json.loads((out / "predictions.json").read_text())
@@ -91,8 +110,57 @@ def test_a_run_writes_the_prediction_file_and_linked_plots(world, gateway, tmp_p
     for rel in links:
         img = Image.open(out / rel)
         assert img.size[0] >= 600 and img.size[1] >= 600
-        px = np.asarray(img.convert("RGB")).reshape(-1, 3)
-        assert len(np.unique(px, axis=0)) > 20  # a drawn picture, not a blank canvas
+        px = np.asarray(img.convert("RGB")).reshape(-1, 3).astype(np.uint32)
+        # Colours packed into one integer each: np.unique(px, axis=0) counts the same, 0.43 s vs 0.006 s a plot.
+        assert len(np.unique(px[:, 0] << 16 | px[:, 1] << 8 | px[:, 2])) > 20  # a drawn picture, not a blank canvas
+
+
+def _episode_rows(md: str) -> list[str]:
+    """The rows of summary.md's episodes table, each plot link read as ``-``."""
+    return [re.sub(r"\[[^]]*\]\(plots/[^)]*\)", "-", line) for line in md.splitlines()
+            if re.match(r"\| \d+ \|", line)]
+
+
+class NoGateway:
+    def __getattr__(self, name):
+        raise AssertionError(f"the gateway was called ({name}) by a run that had nothing left to run")
+
+
+def test_plots_off_draws_no_picture_and_changes_no_number(runs, tmp_path):
+    on, off = runs[True], runs[False]
+    assert sorted(p.name for p in on.out_dir.rglob("*.png")) == ["1.png", "2.png"]
+    assert not list(off.out_dir.rglob("*.png"))
+
+    def outcome(r):
+        return (r.episode_id, r.status, r.reason, r.seed, r.metrics, r.trajectory_m, r.prompt_tokens, r.cost_usd,
+                [d["reasoning"] for d in r.decisions], r.ledger)
+
+    assert [outcome(r) for r in off.results] == [outcome(r) for r in on.results]
+    # Every number of the summary but the measured step latency (step_s), in both tables.
+    assert {k: v for k, v in off.row.items() if k != "step_s"} == {k: v for k, v in on.row.items() if k != "step_s"}
+    on_md, off_md = (r.tables[0].read_text() for r in (on, off))
+    on_csv, off_csv = ([{k: v for k, v in row.items() if k != "step_s"} for row in csv.DictReader(r.tables[1].open())]
+                       for r in (on, off))
+    assert off_csv == on_csv and len(on_csv) == 1
+    assert (json.loads((off.out_dir / "predictions.json").read_text())
+            == json.loads((on.out_dir / "predictions.json").read_text()))
+    # summary.md lists the same episodes (3 skipped, 1 and 2 run) with the same numbers, says the plots were
+    # off and links none.
+    assert _episode_rows(off_md) == _episode_rows(on_md) and len(_episode_rows(off_md)) == 3
+    assert "Plots off" in off_md and "plots/" not in off_md and "Plots off" not in on_md
+    assert "[predictions.json](predictions.json) (2 episodes" in off_md
+
+    # Not a setting of the experiment: a resumed run may switch plots either way (nothing is left to run, so
+    # it only rewrites its outputs; episode 3's scene is still missing).
+    for src, plots in ((off, True), (on, False)):
+        out = tmp_path / f"resumed-{plots}"
+        shutil.copytree(src.out_dir, out)
+        again = EvalRunner(NoGateway(), None, RunConfig(max_steps=5, plots=plots), out, progress=False).run(EPISODES)
+        assert again.resumed == 2 and [outcome(r) for r in again.results[:2]] == [outcome(r) for r in on.results[:2]]
+        md = (out / "summary.md").read_text()
+        assert sorted(re.findall(r"\]\((plots/[^)]+)\)", md)) == (["plots/1.png", "plots/2.png"] if plots else [])
+        assert ("Plots off" in md) is not plots and _episode_rows(md) == _episode_rows(on_md)
+        assert sorted(p.name for p in out.rglob("*.png")) == ["1.png", "2.png"]  # old ones stay, unlinked
 
 
 def test_a_recorded_run_keeps_each_missions_rrd_and_links_it(world, gateway, tmp_path):
@@ -101,7 +169,7 @@ def test_a_recorded_run_keeps_each_missions_rrd_and_links_it(world, gateway, tmp
     out = tmp_path / "run"
     episodes = [make_episode(1, "generated:1", goal=(3.0, 0.0, 0.0))]
     with gateway() as gw:
-        report = EvalRunner(gw, world.robot, RunConfig(max_steps=5, poll_s=0.02, record=True), out,
+        report = EvalRunner(gw, world.robot, RunConfig(max_steps=5, poll_s=0.02, record=True, plots=False), out,
                             progress=False).run(episodes)
     (r,) = report.results
     assert world.planner.requests[-1].options.record is True

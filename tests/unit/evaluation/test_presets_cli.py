@@ -39,7 +39,7 @@ def test_presets_mirror_the_paper(monkeypatch):
 
 def test_hfov_preset_runs_every_variant_and_writes_table_and_plot(world, gateway, episodes, tmp_path):
     with gateway() as gw:
-        rep = run_preset("hfov", episodes, None, RunConfig(poll_s=0.01), tmp_path, gw, world.robot,
+        rep = run_preset("hfov", episodes, None, RunConfig(poll_s=0.01, plots=False), tmp_path, gw, world.robot,
                          map_cache=SceneMapIndex(tmp_path / "maps.json"), progress=False)
     hfovs = sorted({r.options.anticipation_hfov_deg for r in world.planner.requests})
     assert hfovs == [60.0, 90.0, 120.0] and len(world.planner.requests) == 3 * 4
@@ -59,8 +59,9 @@ def test_cloud_preset_uses_both_sources(world, gateway, episodes, tmp_path, monk
 
     monkeypatch.setattr(runner_mod.EvalRunner, "__init__", _with_builder(runner_mod.EvalRunner.__init__))
     with gateway() as gw:
-        rep = run_preset("cloud", episodes[:2], None, RunConfig(poll_s=0.01), tmp_path, gw, world.robot,
-                         progress=False)
+        # A sparse curated cloud (see test_runner's FAST): the preset's path is tested, not the cloud.
+        rep = run_preset("cloud", episodes[:2], None, RunConfig(poll_s=0.01, plots=False, curated_density_per_m2=200.0),
+                         tmp_path, gw, world.robot, progress=False)
     sources = sorted(m[0].source.split(":")[0] for m in world.reconstructor.maps.values())
     assert sources == ["scripted", "scripted", "upload", "upload"]
     assert [r["label"] for r in rep.rows] == ["curated", "reconstructed"]
@@ -83,13 +84,17 @@ def test_cli_options_become_the_run_config(tmp_path):
     assert (cfg.policy, cfg.map_source, cfg.anticipation, cfg.anticipation_hfov_deg, cfg.limit) == (
         "oracle", MapSource.CURATED, False, 60.0, 3)
     assert cfg.policy_config == {"stop_radius_m": 1.0}
+    assert cfg.plots and not run_config(build_parser().parse_args(["run", "--episodes", "e", "--no-plots"])).plots
+    preset = build_parser().parse_args(["preset", "hfov", "--episodes", "e", "--no-plots"])
+    assert not run_config(preset).plots
 
 
 def test_cli_summarize_and_errors(world, gateway, episodes, tmp_path, capsys):
     from evaluation.runner import EvalRunner
 
     with gateway() as gw:
-        EvalRunner(gw, world.robot, RunConfig(poll_s=0.01), tmp_path / "heur", progress=False).run(episodes)
+        EvalRunner(gw, world.robot, RunConfig(poll_s=0.01, plots=False), tmp_path / "heur",
+                   progress=False).run(episodes)
     assert main(["summarize", str(tmp_path / "heur"), "--out", str(tmp_path / "all")]) == 0
     out = capsys.readouterr().out
     assert "| heur | 4 | 1 | 0 |" in out and (tmp_path / "all.csv").is_file()

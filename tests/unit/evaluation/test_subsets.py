@@ -47,8 +47,15 @@ def rxr_like(path: Path, *, scenes: int = 11, per: tuple[int, ...] = (9, 14, 5, 
     if edit:
         edit(eps)
     with gzip.open(path, "wt", encoding="utf-8") as f:
-        json.dump({"episodes": eps}, f)  # RxR-CE files carry no instruction_vocab
+        # dumps, not dump: the same text, from the C encoder in one write (dump encodes in Python, chunk by chunk)
+        f.write(json.dumps({"episodes": eps}))  # RxR-CE files carry no instruction_vocab
     return path
+
+
+@pytest.fixture(scope="module")
+def rxr_file(tmp_path_factory) -> Path:
+    """The default :func:`rxr_like` file, written once for the module (its tests only read it)."""
+    return rxr_like(tmp_path_factory.mktemp("rxr") / "rxr.json.gz")
 
 
 def test_allocation_gives_every_stratum_one_and_the_rest_by_size():
@@ -60,14 +67,14 @@ def test_allocation_gives_every_stratum_one_and_the_rest_by_size():
         allocate([3, 4], 8)
 
 
-def test_rxr_subset_covers_every_scene_and_language_and_does_not_depend_on_file_order(tmp_path):
+def test_rxr_subset_covers_every_scene_and_language_and_does_not_depend_on_file_order(rxr_file, tmp_path):
     rule = SUBSET_PRESETS["rxr-ce-val-unseen-195"]
-    a = make_subset(rxr_like(tmp_path / "a.json.gz"), rule, "rxr")
+    a = make_subset(rxr_file, rule, "rxr")
     b = make_subset(rxr_like(tmp_path / "b.json.gz", shuffle=True), rule, "rxr")
     assert len(a.episode_ids) == 195 and len(set(a.episode_ids)) == 195
     assert a.episode_ids == b.episode_ids and a.episodes_sha256 == b.episodes_sha256
     assert a.source_sha256 != b.source_sha256  # different bytes, same episodes
-    eps = {e.episode_id: e for e in read_episodes(tmp_path / "a.json.gz").episodes}
+    eps = {e.episode_id: e for e in read_episodes(rxr_file).episodes}
     chosen = [eps[i] for i in a.episode_ids]
     strata = Counter((e.scene_id, e.raw["instruction"]["language"]) for e in chosen)
     assert len(strata) == 11 * 4  # every (scene, language) stratum is represented
@@ -78,7 +85,7 @@ def test_rxr_subset_covers_every_scene_and_language_and_does_not_depend_on_file_
         paths = {e.raw["trajectory_id"] for e in eps.values() if (e.scene_id, e.raw["instruction"]["language"]) == key}
         chosen_paths = {e.raw["trajectory_id"] for e in chosen if (e.scene_id, e.raw["instruction"]["language"]) == key}
         assert len(chosen_paths) == min(n, len(paths)), key
-    other = make_subset(tmp_path / "a.json.gz", SubsetRule(count=195, seed=1, strata=("scene", "language")))
+    other = make_subset(rxr_file, SubsetRule(count=195, seed=1, strata=("scene", "language")))
     assert other.episode_ids != a.episode_ids
 
 
@@ -103,8 +110,8 @@ def test_selection_is_pinned(tmp_path):
 PINNED = [3, 4, 9, 11, 12, 16, 19, 21, 26]
 
 
-def test_apply_runs_exactly_the_subset_and_refuses_other_files(tmp_path):
-    src = rxr_like(tmp_path / "rxr.json.gz")
+def test_apply_runs_exactly_the_subset_and_refuses_other_files(rxr_file, tmp_path):
+    src = rxr_file
     sub = make_subset(src, SubsetRule(count=30, strata=("scene", "language")), "s30")
     path = sub.write(tmp_path / "s30.json")
     back = Subset.read(path)
@@ -124,8 +131,8 @@ def test_apply_runs_exactly_the_subset_and_refuses_other_files(tmp_path):
         back.apply(fewer)
 
 
-def test_cli_subset_then_run_estimates_exactly_those_episodes(tmp_path, capsys):
-    src = rxr_like(tmp_path / "rxr.json.gz")
+def test_cli_subset_then_run_estimates_exactly_those_episodes(rxr_file, tmp_path, capsys):
+    src = rxr_file
     out = tmp_path / "sub.json"
     assert main(["subset", "--dataset", str(src), "--count", "25", "--seed", "3", "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
