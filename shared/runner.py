@@ -13,6 +13,7 @@ Handlers registered through ``node.serve`` turn any exception into a typed error
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import signal
@@ -180,6 +181,22 @@ class RunningService:
         self.close()
 
 
+def freeze_started_heap() -> None:
+    """Called by a long-running process (a service, the gateway, the ROS 2 stand-in) once it has started:
+    everything it holds by then (imported modules, loaded kernels, its scene) moves out of the cyclic
+    garbage collector's reach (``gc.freeze``), where it stays until the process ends.
+
+    Why: the interpreter's shutdown walks every tracked object in its collections, and a service's
+    ~70-180 thousand (numpy, scipy, numba, pydantic, the product) made its exit after a SIGTERM cost 0.2-0.5 s
+    of CPU (robot-io 0.45, mapper, renderer and reconstructor 0.36-0.39, planner 0.20), ~0.03-0.05 s
+    frozen: a launched system of 8 services stopped in 2.6 s of wall time instead of 0.25 s (2 cores,
+    load average 12). The full collections while it runs skip them too. Frozen objects are still freed by
+    reference counting; only garbage cycles among them would stay, and a full collection at that point
+    found 0-240 unreachable objects in the services.
+    """
+    gc.freeze()
+
+
 def run(service_cls: type[Service], argv: list[str] | None = None) -> int:
     """Entry point of ``python -m services.<name>``: settings, zenoh, serve until a signal."""
     from shared.bus.zenoh_bus import ZenohBus  # entry points alone import zenoh
@@ -191,6 +208,7 @@ def run(service_cls: type[Service], argv: list[str] | None = None) -> int:
         signal.signal(sig, lambda *_: stop.set())
     try:
         with ZenohBus(settings.zenoh) as bus, RunningService(service_cls(settings), bus):
+            freeze_started_heap()
             stop.wait()
             log.info("stopping")
         log.info("stopped")

@@ -141,6 +141,11 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "system" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.system)
+    # The tests that move the launched system's robots to other scenes (``system_on_scene``) run after every
+    # test that uses the system as the fixture made it: the first of those used to find both robots moved
+    # and reload the shared house on each (``put_back``: the default house and its nav grids, seconds of CPU
+    # on the tier's longest worker). A stable sort: every other test keeps its place.
+    items.sort(key=lambda item: "system_on_scene" in getattr(item, "fixturenames", ()))
     groups = _file_groups(items)
     for item in items:
         group = groups[item.nodeid.split("::", 1)[0]]

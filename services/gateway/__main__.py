@@ -6,6 +6,7 @@ import uvicorn
 from services.gateway.app import create_app
 from services.gateway.settings import GatewaySettings
 from shared.logs import configure_logging
+from shared.runner import freeze_started_heap
 
 
 def main() -> int:
@@ -15,7 +16,9 @@ def main() -> int:
     # handler underneath makes that a clean exit (status 0) instead of death by SIGTERM.
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: None)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_config=None,
+    app = create_app(settings)
+    freeze_started_heap()  # its imports: fastapi, pydantic, the routes (what the lifespan opens stays collectable)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_config=None,
                 log_level=settings.log_level.lower(),
                 # SSE streams never end by themselves; give them a grace period, then close them.
                 timeout_graceful_shutdown=settings.shutdown_grace_s or None)

@@ -28,6 +28,7 @@ from services.robot_io.core.ros2.standin import StandInConfig, StandInRobot
 from services.robot_io.ros2_zenoh import ZenohRos2Transport, ZenohTransportConfig, env_zenoh_settings
 from shared.bus.config import ZenohSettings
 from shared.logs import configure_logging
+from shared.runner import freeze_started_heap
 
 log = logging.getLogger("ros2_robot")
 
@@ -68,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     transport = ZenohRos2Transport(ZenohTransportConfig(zenoh=bus_settings(args)))
     keys = key_style(args.keys, domain_id=args.domain_id, namespace=args.namespace)
     robot = StandInRobot(config, prof, transport, keys)
+    freeze_started_heap()
     stop = threading.Event()
 
     def on_signal(*_):
