@@ -125,6 +125,39 @@ def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
     assert (~paper.hole_mask[0][56:72]).mean() > 0.99
 
 
+def test_renderers_of_one_cell_size_build_the_levels_once_and_each_gets_a_fresh_builds_lod(monkeypatch):
+    # Paper mode (no normals), the slope tolerance (normals) and the unseen side (sided normals) on
+    # one map with one cell size: the levels' points are built once and shared, each setting sums its
+    # own normals over them, and every LOD equals a build from scratch. A coarser lod_cell_m that this
+    # cloud's spacing halves to the same first cell shares them too; a first cell of its own builds its own.
+    import libs.pointrender.renderer as renderer_module
+
+    built = []
+    build = renderer_module.build_voxel_geometry
+    monkeypatch.setattr(renderer_module, "build_voxel_geometry", lambda *a: built.append(a[2:]) or build(*a))
+    wall = _wall(2.0, 1.0, 0.02)
+    toward_x = quantise_view_dirs(np.tile([-1.0, 0.0, 0.0], (len(wall), 1)))
+    index = IndexedCloud(PointCloud(wall.xyz, wall.rgb, wall.labels, wall.label_names, toward_x))
+    settings = ({"mode": "paper"}, {"unseen_side": False}, {}, {"lod_cell_m": 0.16},
+                {"lod_cell_m": 0.16, "lod_cell_spacings": 3.0})
+    renderers = [RENDERERS.create("numpy", s) for s in settings]
+    lods = [r._voxel_lod(index) for r in renderers]
+    assert [lod.normals is None for lod in lods] == [True, False, False, False, False]
+    assert [lod.sided is None for lod in lods] == [True, True, False, False, False]
+    cell_m = lods[0].cell_m[1]
+    assert [lod.cell_m[1] for lod in lods[:4]] == [cell_m] * 4 and lods[4].cell_m[1] > cell_m
+    assert built == [(cell_m, 5), (lods[4].cell_m[1], 5)]
+    assert all(lod.cloud is lods[0].cloud and lod.spacing is lods[0].spacing for lod in lods[:4])  # shared
+    spacing = point_spacing_of(index, 4)
+    for r, lod in zip(renderers, lods):
+        fresh = build_voxel_lod(index, spacing, lod.cell_m[1], 5, *(r._normals_of(index) or (None, None)))
+        for name in ("starts", "counts", "cell_m", "spacing", "normals", "sided"):
+            a, b = getattr(lod, name), getattr(fresh, name)
+            assert (a is None and b is None) or np.array_equal(a, b), name
+        for name in ("xyz", "rgb", "labels"):
+            assert np.array_equal(getattr(lod.cloud, name), getattr(fresh.cloud, name)), name
+
+
 def test_compiled_level_selection_picks_the_runs_the_array_code_picks(room_index, monkeypatch):
     if lod_module.select_runs is None:
         pytest.skip("numba is not installed: only the array code runs")
