@@ -38,9 +38,11 @@ def _view():
 
 
 def test_drawn_points_follow_the_pixels_not_the_distance_or_density():
-    # The same 1 cm wall 2 m and 8 m away: without LOD a view draws every point in the frustum
-    # (more at 8 m: the frustum takes in more of the wall); with it, about the pixels covered.
-    near, far = IndexedCloud(_wall(2.0, 2.0, 0.01)), IndexedCloud(_wall(8.0, 8.0, 0.01, seed=1))
+    # The same 2 cm wall 2 m and 8 m away: without LOD a view draws every point in the frustum
+    # (more at 8 m: the frustum takes in more of the wall); with it, about the pixels covered. A pixel
+    # is 12.5 cm at 8 m: the far wall has ~39 points a pixel, far more than the LOD draws (the checks
+    # hold with a 3.5x margin; a 1 cm wall draws as many level points and only costs 4x to build).
+    near, far = IndexedCloud(_wall(2.0, 2.0, 0.02)), IndexedCloud(_wall(8.0, 8.0, 0.02, seed=1))
     lod = RENDERERS.create("numpy")
     off = RENDERERS.create("numpy", {"lod_points_per_px": None})
     n_near = lod.render(near, _view(), CAM).visible_points[0]
@@ -113,7 +115,9 @@ def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
     # (LOD_CELL_PX); the paper's fixed 3x3 splat would show 2 px gaps as holes, so it keeps 1 px.
     from libs.pointrender.splat import LOD_CELL_PX
 
-    wall = IndexedCloud(_wall(4.0, 4.0, 0.01))
+    # A 2 cm wall 4 m away (a pixel is 6.25 cm there): finer than the cells either mode draws, so both
+    # draw voxel levels, and the modes differ only by their cell size in pixels.
+    wall = IndexedCloud(_wall(4.0, 4.0, 0.02))
     drawn = {mode: RENDERERS.create("numpy", {"mode": mode}).render(wall, _view(), CAM).visible_points[0]
              for mode in ("visibility", "paper")}
     assert LOD_CELL_PX == {"visibility": 2.5, "paper": 1.0}
