@@ -19,9 +19,10 @@ from shared.schemas import ViewPose
 CAM = PinholeCamera(128, 128, 90.0)
 
 
-def _wall(x_m: float, half_m: float, step_m: float, checker_m: float | None = None, seed: int = 0) -> PointCloud:
-    """A dense vertical wall at ``x = x_m`` (y in +-half_m, z 0-2.5 m), grey or a red/blue checker."""
-    ys, zs = np.arange(-half_m, half_m, step_m), np.arange(0.0, 2.5, step_m)
+def _wall(x_m: float, half_m: float, step_m: float, checker_m: float | None = None, seed: int = 0,
+          z_m: tuple[float, float] = (0.0, 2.5)) -> PointCloud:
+    """A dense vertical wall at ``x = x_m`` (y in +-half_m, z in ``z_m``), grey or a red/blue checker."""
+    ys, zs = np.arange(-half_m, half_m, step_m), np.arange(*z_m, step_m)
     yy, zz = np.meshgrid(ys, zs)
     n = yy.size
     xyz = np.column_stack([np.full(n, x_m), yy.ravel(), zz.ravel()])
@@ -98,8 +99,9 @@ def test_level_normals_are_the_principal_axis_of_their_members_normals():
 
 def test_a_far_checker_renders_its_mean_colour_and_matches_every_point():
     # 2 cm checker 6 m away: a pixel is 4.7 cm there. Drawn from its voxel levels, the wall shows
-    # the checker's mean (purple), as drawing every point does, within a few levels.
-    index = IndexedCloud(_wall(6.0, 6.0, 0.01, checker_m=0.02))
+    # the checker's mean (purple), as drawing every point does, within a few levels. The checks read
+    # rows 58-69 (z ~0.8-1.8 m at 6 m): the wall spans z 0.5-2 m, not 0-2.5 (180k points, not 300k).
+    index = IndexedCloud(_wall(6.0, 6.0, 0.01, checker_m=0.02, z_m=(0.5, 2.0)))
     a = RENDERERS.create("numpy").render(index, _view(), CAM)
     b = RENDERERS.create("numpy", {"lod_points_per_px": None}).render(index, _view(), CAM)
     both = ~a.hole_mask[0] & ~b.hole_mask[0]
