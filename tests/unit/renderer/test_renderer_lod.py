@@ -167,7 +167,10 @@ def test_renderers_of_one_cell_size_build_the_levels_once_and_each_gets_a_fresh_
 def test_compiled_level_selection_picks_the_runs_the_array_code_picks(room_index, monkeypatch):
     if lod_module.select_runs is None:
         pytest.skip("numba is not installed: only the array code runs")
-    lod = build_voxel_lod(room_index, point_spacing_of(room_index, 4), cell_m=0.04, levels=5)
+    # The flat's LOD as the renderer builds it (cached on the session's index, so the 1e6-point levels
+    # are built once for every test that renders the flat).
+    lod = RENDERERS.create("numpy", {"mode": "paper"})._voxel_lod(room_index)
+    assert lod.levels == 5
     frustum = Frustum.for_camera(CAM, 0.05, 20.0)
     rng = np.random.default_rng(5)
     lo, hi = room_index.cloud.xyz.min(axis=0), room_index.cloud.xyz.max(axis=0)
