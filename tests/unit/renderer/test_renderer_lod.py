@@ -13,7 +13,7 @@ from shared.geometry import PinholeCamera, camera_pose
 from libs.pointrender import RENDERERS, IndexedCloud
 from libs.pointrender.cloud import Frustum
 from libs.pointrender.lod import build_voxel_lod, first_cell_m
-from libs.pointrender.splat import point_normals_of, point_sides_of, point_spacing_of
+from libs.pointrender.splat import point_normals_of, point_sides_of, point_spacing_of, share_point_geometry
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(128, 128, 90.0)
@@ -80,12 +80,24 @@ def test_level_points_are_the_means_of_their_voxels():
             assert (pts >= index.block_min[b] - 1e-4).all() and (pts <= index.block_max[b] + 1e-4).all()
 
 
-def test_level_normals_are_the_principal_axis_of_their_members_normals():
-    # A wall (normal +-x) and a floor (normal +-z) meeting in one block: the PCA normals of the
-    # points, and of every level's voxels away from the edge, are the surface's, whatever the sign.
+@pytest.fixture(scope="module")
+def wall_and_floor() -> tuple[PointCloud, int, IndexedCloud]:
+    """(cloud, points of the wall, index) of a wall at x = 1 and a floor meeting it, for both tests of
+    the levels' normals, with the points' k-d tree, spacing and normals computed once on the index
+    (another index of the same points takes them: share_point_geometry)."""
     wall = _wall(1.0, 0.5, 0.01)
     floor = PointCloud(wall.xyz[:, [2, 1, 0]] * [1.0, 1.0, 0.0] + [1.2, 0.0, 0.0], wall.rgb, wall.labels, wall.label_names)
-    index = IndexedCloud(PointCloud.concatenate([wall, floor]))
+    both = PointCloud.concatenate([wall, floor])
+    index = IndexedCloud(both)
+    point_normals_of(index, 10)
+    point_spacing_of(index, 4)
+    return both, len(wall), index
+
+
+def test_level_normals_are_the_principal_axis_of_their_members_normals(wall_and_floor):
+    # A wall (normal +-x) and a floor (normal +-z) meeting in one block: the PCA normals of the
+    # points, and of every level's voxels away from the edge, are the surface's, whatever the sign.
+    _, _, index = wall_and_floor
     normals = point_normals_of(index, 10)
     lod = build_voxel_lod(index, point_spacing_of(index, 4), cell_m=0.04, levels=3, normals=normals)
     assert np.allclose(np.linalg.norm(lod.normals, axis=1), 1.0, atol=1e-5)
@@ -206,14 +218,13 @@ def test_a_denser_cloud_gets_a_finer_first_level_and_draws_fewer_points_at_mid_r
     assert np.array_equal(seen, ~f.hole_mask[0]) and np.allclose(a.depth_m[0][seen], f.depth_m[0][seen], atol=0.03)
 
 
-def test_level_normals_turn_towards_the_side_their_members_were_seen_from():
+def test_level_normals_turn_towards_the_side_their_members_were_seen_from(wall_and_floor):
     # A wall at x = 1 seen from x < 1, and a floor seen from above: every level keeps the side
     # (normal towards the cameras, known), and a level whose members disagree knows none.
-    wall = _wall(1.0, 0.5, 0.01)
-    floor = PointCloud(wall.xyz[:, [2, 1, 0]] * [1.0, 1.0, 0.0] + [1.2, 0.0, 0.0], wall.rgb, wall.labels, wall.label_names)
-    view = np.concatenate([np.tile([-1.0, 0.0, 0.0], (len(wall), 1)), np.tile([0.0, 0.0, 1.0], (len(floor), 1))])
-    both = PointCloud.concatenate([wall, floor])
+    both, n_wall, plain = wall_and_floor
+    view = np.concatenate([np.tile([-1.0, 0.0, 0.0], (n_wall, 1)), np.tile([0.0, 0.0, 1.0], (len(both) - n_wall, 1))])
     index = IndexedCloud(PointCloud(both.xyz, both.rgb, both.labels, both.label_names, quantise_view_dirs(view)))
+    assert share_point_geometry(plain, index) == 3  # the k-d tree, the spacing and the normals
     normals, sided = point_sides_of(index, 10, None, 0.2)
     lod = build_voxel_lod(index, point_spacing_of(index, 4), cell_m=0.04, levels=3, normals=normals, sided=sided)
     xyz = lod.cloud.xyz
