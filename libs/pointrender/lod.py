@@ -113,6 +113,7 @@ class VoxelGeometry:
         Each level sums its members' n n^T (and sided normals) over the voxels of the level below,
         carrying sums, so its axes are those of all its original points."""
         n64 = normals.astype(np.float64)
+        # Sums of n n^T (xx, yy, zz, xy, xz, yz): a level's normal is their principal axis.
         s_nn = np.stack([n64[:, a] * n64[:, b] for a, b in _NN], 1)
         s_side = None if sided is None else n64 * (sided != 0)[:, None]  # sums of the sided members' normals
         parts_n, parts_sided = [], []
