@@ -18,7 +18,7 @@ that a view's selection is a list of contiguous runs, exactly what the splat's f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -92,10 +92,55 @@ def first_cell_m(spacing: np.ndarray, cell_m: float, min_spacings: float) -> flo
 SIDE_AGREEMENT = 0.5
 
 
+@dataclass(frozen=True)
+class VoxelGeometry:
+    """The voxel levels of an index without normals (``lod``), and how each level groups the one
+    below (``groups[L - 1]``: the voxel of level L of every point of level L - 1; ``sizes[L - 1]``:
+    the number of original points in each voxel of level L).
+
+    What follows from positions, colours, labels and spacing is the same whatever normals a renderer
+    asks for (modes, slope tolerance, sides), so it is built once per (cell, levels) and the normals
+    of each setting are summed over the same groups (:meth:`with_normals`). The groups cost one
+    integer per point of the levels they group (8 MB for a 1e6-point map)."""
+
+    lod: VoxelLod
+    groups: tuple[np.ndarray, ...]  # intp (points of level L - 1,) per level L >= 1
+    sizes: tuple[np.ndarray, ...]  # float64 (voxels of level L,) per level L >= 1
+
+    def with_normals(self, normals: np.ndarray, sided: np.ndarray | None = None) -> VoxelLod:
+        """The LOD with ``normals`` (and ``sided``) per point of the index and their levels'.
+
+        Each level sums its members' n n^T (and sided normals) over the voxels of the level below,
+        carrying sums, so its axes are those of all its original points."""
+        n64 = normals.astype(np.float64)
+        # Sums of n n^T (xx, yy, zz, xy, xz, yz): a level's normal is their principal axis.
+        s_nn = np.stack([n64[:, a] * n64[:, b] for a, b in _NN], 1)
+        s_side = None if sided is None else n64 * (sided != 0)[:, None]  # sums of the sided members' normals
+        parts_n, parts_sided = [], []
+        for inv, n in zip(self.groups, self.sizes):
+            m = len(n)
+            s_nn = np.stack([np.bincount(inv, weights=s_nn[:, k], minlength=m) for k in range(6)], 1)
+            axis = _principal_axis(s_nn)
+            if s_side is not None:
+                s_side = np.stack([np.bincount(inv, weights=s_side[:, k], minlength=m) for k in range(3)], 1)
+                agree = np.einsum("ij,ij->i", axis.astype(np.float64), s_side) / n
+                axis = np.where((agree < 0)[:, None], -axis, axis)
+                parts_sided.append((np.abs(agree) >= SIDE_AGREEMENT).astype(np.uint8))
+            parts_n.append(axis)
+        all_sided = None if sided is None else np.concatenate([sided.astype(np.uint8), *parts_sided])
+        return replace(self.lod, normals=np.concatenate([normals.astype(np.float32), *parts_n]), sided=all_sided)
+
+
 def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int,
                     normals: np.ndarray | None = None, sided: np.ndarray | None = None) -> VoxelLod:
     """The voxel levels of ``index`` (``spacing``, and optional ``normals`` with ``sided``: per point
-    of ``index.cloud``, as :func:`visibility.orient_normals` gives them).
+    of ``index.cloud``, as :func:`visibility.orient_normals` gives them)."""
+    geometry = build_voxel_geometry(index, spacing, cell_m, levels)
+    return geometry.lod if normals is None else geometry.with_normals(normals, sided)
+
+
+def build_voxel_geometry(index: IndexedCloud, spacing: np.ndarray, cell_m: float, levels: int) -> VoxelGeometry:
+    """The voxel levels of ``index`` without normals, and their groups (:class:`VoxelGeometry`).
 
     Each level is built from the one below (a cell of level L is exactly the union of 2x2x2 cells
     of level L - 1 on the same grid), carrying sums and counts, so its means are exact and the
@@ -110,16 +155,9 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
     cnt = np.ones(len(cloud), np.float64)
     s_xyz, s_rgb, s_sp = xyz, cloud.rgb.astype(np.float64), spacing.astype(np.float64)
     rep_xyz, rep_lab = xyz, cloud.labels
-    # Sums of n n^T (xx, yy, zz, xy, xz, yz): a level's normal is their principal axis.
-    s_nn = s_side = None
-    if normals is not None:
-        n64 = normals.astype(np.float64)
-        s_nn = np.stack([n64[:, a] * n64[:, b] for a, b in _NN], 1)
-        if sided is not None:
-            s_side = n64 * (sided != 0)[:, None]  # sums of the sided members' oriented normals
-    parts_n, parts_sided = [], []
     cell_xyz = np.floor((xyz - lo) / cell_m).astype(np.int64)  # level-1 cells of the points
     parts_xyz, parts_rgb, parts_lab, parts_sp = [], [], [], []
+    groups, sizes = [], []
     starts = [index.starts.astype(np.int64)]
     counts = [index.counts.astype(np.int64)]
     cells = [0.0]
@@ -140,15 +178,8 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
         t_xyz = np.stack([total(s_xyz[:, k]) for k in range(3)], 1)
         t_rgb = np.stack([total(s_rgb[:, k]) for k in range(3)], 1)
         t_sp = total(s_sp)
-        t_nn = None if s_nn is None else np.stack([total(s_nn[:, k]) for k in range(6)], 1)
-        t_side = None if s_side is None else np.stack([total(s_side[:, k]) for k in range(3)], 1)
-        if t_nn is not None:
-            axis = _principal_axis(t_nn)
-            if t_side is not None:
-                agree = np.einsum("ij,ij->i", axis.astype(np.float64), t_side) / n
-                axis = np.where((agree < 0)[:, None], -axis, axis)
-                parts_sided.append((np.abs(agree) >= SIDE_AGREEMENT).astype(np.uint8))
-            parts_n.append(axis)
+        groups.append(inv)
+        sizes.append(n)
         mean = t_xyz / n[:, None]
         if rep_lab is not None:
             # The label of the member nearest the voxel's mean: a voxel on the edge between two
@@ -170,14 +201,13 @@ def build_voxel_lod(index: IndexedCloud, spacing: np.ndarray, cell_m: float, lev
         offset += m
         # The next level groups these voxels: their cells, decoded from their keys.
         cell_xyz = np.stack([(uniq // (dims[1] * dims[2])) % dims[0], (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
-        cnt, s_xyz, s_rgb, s_sp, s_nn, s_side = n, t_xyz, t_rgb, t_sp, t_nn, t_side
+        cnt, s_xyz, s_rgb, s_sp = n, t_xyz, t_rgb, t_sp
     labels = None if cloud.labels is None else np.concatenate([cloud.labels.astype(np.int32), *parts_lab])
     full = PointCloud(np.concatenate([cloud.xyz.astype(np.float32), *parts_xyz]),
                       np.concatenate([cloud.rgb, *parts_rgb]), labels, cloud.label_names)
-    all_normals = None if normals is None else np.concatenate([normals.astype(np.float32), *parts_n])
-    all_sided = None if s_side is None else np.concatenate([sided.astype(np.uint8), *parts_sided])
-    return VoxelLod(full, np.stack(starts), np.stack(counts), tuple(cells),
-                    np.concatenate([spacing.astype(np.float32), *parts_sp]), all_normals, all_sided)
+    lod = VoxelLod(full, np.stack(starts), np.stack(counts), tuple(cells),
+                   np.concatenate([spacing.astype(np.float32), *parts_sp]))
+    return VoxelGeometry(lod, tuple(groups), tuple(sizes))
 
 
 _NN = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))

@@ -20,7 +20,7 @@ from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, PinholeCamera, camera_pose
 from libs.pointrender import kernels, occlusion, visibility, visibility_kernels
 from libs.pointrender.cloud import Frustum, IndexedCloud
 from libs.pointrender.errors import BackendUnavailableError
-from libs.pointrender.lod import VoxelLod, build_voxel_lod, first_cell_m
+from libs.pointrender.lod import VoxelLod, build_voxel_geometry, first_cell_m
 from shared.registry import Registry
 from shared.schemas import CameraIntrinsics, ViewPose
 
@@ -127,8 +127,13 @@ class SplatRenderer:
         if key not in index.cache:
             spacing = point_spacing_of(index, cfg.spacing_neighbours)
             cell_m = first_cell_m(spacing, cfg.lod_cell_m, cfg.lod_cell_spacings)
-            index.cache[key] = build_voxel_lod(index, spacing, cell_m, cfg.lod_levels,
-                                               *(normals if normals is not None else (None, None)))
+            # The levels' points (np.unique per level, means, labels) do not depend on the normals:
+            # renderers of other modes, normals or sides on one map share them and sum only their normals.
+            geometry_key = ("voxel-geometry", cell_m, cfg.lod_levels, cfg.spacing_neighbours)
+            if geometry_key not in index.cache:
+                index.cache[geometry_key] = build_voxel_geometry(index, spacing, cell_m, cfg.lod_levels)
+            geometry = index.cache[geometry_key]
+            index.cache[key] = geometry.lod if normals is None else geometry.with_normals(*normals)
         return index.cache[key]
 
     def _drawn(self, index: IndexedCloud):

@@ -13,15 +13,16 @@ from shared.geometry import PinholeCamera, camera_pose
 from libs.pointrender import RENDERERS, IndexedCloud
 from libs.pointrender.cloud import Frustum
 from libs.pointrender.lod import build_voxel_lod, first_cell_m
-from libs.pointrender.splat import point_normals_of, point_sides_of, point_spacing_of
+from libs.pointrender.splat import point_normals_of, point_sides_of, point_spacing_of, share_point_geometry
 from shared.schemas import ViewPose
 
 CAM = PinholeCamera(128, 128, 90.0)
 
 
-def _wall(x_m: float, half_m: float, step_m: float, checker_m: float | None = None, seed: int = 0) -> PointCloud:
-    """A dense vertical wall at ``x = x_m`` (y in +-half_m, z 0-2.5 m), grey or a red/blue checker."""
-    ys, zs = np.arange(-half_m, half_m, step_m), np.arange(0.0, 2.5, step_m)
+def _wall(x_m: float, half_m: float, step_m: float, checker_m: float | None = None, seed: int = 0,
+          z_m: tuple[float, float] = (0.0, 2.5)) -> PointCloud:
+    """A dense vertical wall at ``x = x_m`` (y in +-half_m, z in ``z_m``), grey or a red/blue checker."""
+    ys, zs = np.arange(-half_m, half_m, step_m), np.arange(*z_m, step_m)
     yy, zz = np.meshgrid(ys, zs)
     n = yy.size
     xyz = np.column_stack([np.full(n, x_m), yy.ravel(), zz.ravel()])
@@ -38,9 +39,11 @@ def _view():
 
 
 def test_drawn_points_follow_the_pixels_not_the_distance_or_density():
-    # The same 1 cm wall 2 m and 8 m away: without LOD a view draws every point in the frustum
-    # (more at 8 m: the frustum takes in more of the wall); with it, about the pixels covered.
-    near, far = IndexedCloud(_wall(2.0, 2.0, 0.01)), IndexedCloud(_wall(8.0, 8.0, 0.01, seed=1))
+    # The same 2 cm wall 2 m and 8 m away: without LOD a view draws every point in the frustum
+    # (more at 8 m: the frustum takes in more of the wall); with it, about the pixels covered. A pixel
+    # is 12.5 cm at 8 m: the far wall has ~39 points a pixel, far more than the LOD draws (the checks
+    # hold with a 3.5x margin; a 1 cm wall draws as many level points and only costs 4x to build).
+    near, far = IndexedCloud(_wall(2.0, 2.0, 0.02)), IndexedCloud(_wall(8.0, 8.0, 0.02, seed=1))
     lod = RENDERERS.create("numpy")
     off = RENDERERS.create("numpy", {"lod_points_per_px": None})
     n_near = lod.render(near, _view(), CAM).visible_points[0]
@@ -77,12 +80,24 @@ def test_level_points_are_the_means_of_their_voxels():
             assert (pts >= index.block_min[b] - 1e-4).all() and (pts <= index.block_max[b] + 1e-4).all()
 
 
-def test_level_normals_are_the_principal_axis_of_their_members_normals():
-    # A wall (normal +-x) and a floor (normal +-z) meeting in one block: the PCA normals of the
-    # points, and of every level's voxels away from the edge, are the surface's, whatever the sign.
+@pytest.fixture(scope="module")
+def wall_and_floor() -> tuple[PointCloud, int, IndexedCloud]:
+    """(cloud, points of the wall, index) of a wall at x = 1 and a floor meeting it, for both tests of
+    the levels' normals, with the points' k-d tree, spacing and normals computed once on the index
+    (another index of the same points takes them: share_point_geometry)."""
     wall = _wall(1.0, 0.5, 0.01)
     floor = PointCloud(wall.xyz[:, [2, 1, 0]] * [1.0, 1.0, 0.0] + [1.2, 0.0, 0.0], wall.rgb, wall.labels, wall.label_names)
-    index = IndexedCloud(PointCloud.concatenate([wall, floor]))
+    both = PointCloud.concatenate([wall, floor])
+    index = IndexedCloud(both)
+    point_normals_of(index, 10)
+    point_spacing_of(index, 4)
+    return both, len(wall), index
+
+
+def test_level_normals_are_the_principal_axis_of_their_members_normals(wall_and_floor):
+    # A wall (normal +-x) and a floor (normal +-z) meeting in one block: the PCA normals of the
+    # points, and of every level's voxels away from the edge, are the surface's, whatever the sign.
+    _, _, index = wall_and_floor
     normals = point_normals_of(index, 10)
     lod = build_voxel_lod(index, point_spacing_of(index, 4), cell_m=0.04, levels=3, normals=normals)
     assert np.allclose(np.linalg.norm(lod.normals, axis=1), 1.0, atol=1e-5)
@@ -96,8 +111,9 @@ def test_level_normals_are_the_principal_axis_of_their_members_normals():
 
 def test_a_far_checker_renders_its_mean_colour_and_matches_every_point():
     # 2 cm checker 6 m away: a pixel is 4.7 cm there. Drawn from its voxel levels, the wall shows
-    # the checker's mean (purple), as drawing every point does, within a few levels.
-    index = IndexedCloud(_wall(6.0, 6.0, 0.01, checker_m=0.02))
+    # the checker's mean (purple), as drawing every point does, within a few levels. The checks read
+    # rows 58-69 (z ~0.8-1.8 m at 6 m): the wall spans z 0.5-2 m, not 0-2.5 (180k points, not 300k).
+    index = IndexedCloud(_wall(6.0, 6.0, 0.01, checker_m=0.02, z_m=(0.5, 2.0)))
     a = RENDERERS.create("numpy").render(index, _view(), CAM)
     b = RENDERERS.create("numpy", {"lod_points_per_px": None}).render(index, _view(), CAM)
     both = ~a.hole_mask[0] & ~b.hole_mask[0]
@@ -113,7 +129,9 @@ def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
     # (LOD_CELL_PX); the paper's fixed 3x3 splat would show 2 px gaps as holes, so it keeps 1 px.
     from libs.pointrender.splat import LOD_CELL_PX
 
-    wall = IndexedCloud(_wall(4.0, 4.0, 0.01))
+    # A 2 cm wall 4 m away (a pixel is 6.25 cm there): finer than the cells either mode draws, so both
+    # draw voxel levels, and the modes differ only by their cell size in pixels.
+    wall = IndexedCloud(_wall(4.0, 4.0, 0.02))
     drawn = {mode: RENDERERS.create("numpy", {"mode": mode}).render(wall, _view(), CAM).visible_points[0]
              for mode in ("visibility", "paper")}
     assert LOD_CELL_PX == {"visibility": 2.5, "paper": 1.0}
@@ -125,10 +143,46 @@ def test_each_mode_draws_its_own_cell_size_unless_one_is_set():
     assert (~paper.hole_mask[0][56:72]).mean() > 0.99
 
 
+def test_renderers_of_one_cell_size_build_the_levels_once_and_each_gets_a_fresh_builds_lod(monkeypatch):
+    # Paper mode (no normals), the slope tolerance (normals) and the unseen side (sided normals) on
+    # one map with one cell size: the levels' points are built once and shared, each setting sums its
+    # own normals over them, and every LOD equals a build from scratch. A coarser lod_cell_m that this
+    # cloud's spacing halves to the same first cell shares them too; a first cell of its own builds its own.
+    import libs.pointrender.renderer as renderer_module
+
+    built = []
+    build = renderer_module.build_voxel_geometry
+    monkeypatch.setattr(renderer_module, "build_voxel_geometry", lambda *a: built.append(a[2:]) or build(*a))
+    wall = _wall(2.0, 1.0, 0.02)
+    toward_x = quantise_view_dirs(np.tile([-1.0, 0.0, 0.0], (len(wall), 1)))
+    index = IndexedCloud(PointCloud(wall.xyz, wall.rgb, wall.labels, wall.label_names, toward_x))
+    settings = ({"mode": "paper"}, {"unseen_side": False}, {}, {"lod_cell_m": 0.16},
+                {"lod_cell_m": 0.16, "lod_cell_spacings": 3.0})
+    renderers = [RENDERERS.create("numpy", s) for s in settings]
+    lods = [r._voxel_lod(index) for r in renderers]
+    assert [lod.normals is None for lod in lods] == [True, False, False, False, False]
+    assert [lod.sided is None for lod in lods] == [True, True, False, False, False]
+    cell_m = lods[0].cell_m[1]
+    assert [lod.cell_m[1] for lod in lods[:4]] == [cell_m] * 4 and lods[4].cell_m[1] > cell_m
+    assert built == [(cell_m, 5), (lods[4].cell_m[1], 5)]
+    assert all(lod.cloud is lods[0].cloud and lod.spacing is lods[0].spacing for lod in lods[:4])  # shared
+    spacing = point_spacing_of(index, 4)
+    for r, lod in zip(renderers, lods):
+        fresh = build_voxel_lod(index, spacing, lod.cell_m[1], 5, *(r._normals_of(index) or (None, None)))
+        for name in ("starts", "counts", "cell_m", "spacing", "normals", "sided"):
+            a, b = getattr(lod, name), getattr(fresh, name)
+            assert (a is None and b is None) or np.array_equal(a, b), name
+        for name in ("xyz", "rgb", "labels"):
+            assert np.array_equal(getattr(lod.cloud, name), getattr(fresh.cloud, name)), name
+
+
 def test_compiled_level_selection_picks_the_runs_the_array_code_picks(room_index, monkeypatch):
     if lod_module.select_runs is None:
         pytest.skip("numba is not installed: only the array code runs")
-    lod = build_voxel_lod(room_index, point_spacing_of(room_index, 4), cell_m=0.04, levels=5)
+    # The flat's LOD as the renderer builds it (cached on the session's index, so the 1e6-point levels
+    # are built once for every test that renders the flat).
+    lod = RENDERERS.create("numpy", {"mode": "paper"})._voxel_lod(room_index)
+    assert lod.levels == 5
     frustum = Frustum.for_camera(CAM, 0.05, 20.0)
     rng = np.random.default_rng(5)
     lo, hi = room_index.cloud.xyz.min(axis=0), room_index.cloud.xyz.max(axis=0)
@@ -164,14 +218,13 @@ def test_a_denser_cloud_gets_a_finer_first_level_and_draws_fewer_points_at_mid_r
     assert np.array_equal(seen, ~f.hole_mask[0]) and np.allclose(a.depth_m[0][seen], f.depth_m[0][seen], atol=0.03)
 
 
-def test_level_normals_turn_towards_the_side_their_members_were_seen_from():
+def test_level_normals_turn_towards_the_side_their_members_were_seen_from(wall_and_floor):
     # A wall at x = 1 seen from x < 1, and a floor seen from above: every level keeps the side
     # (normal towards the cameras, known), and a level whose members disagree knows none.
-    wall = _wall(1.0, 0.5, 0.01)
-    floor = PointCloud(wall.xyz[:, [2, 1, 0]] * [1.0, 1.0, 0.0] + [1.2, 0.0, 0.0], wall.rgb, wall.labels, wall.label_names)
-    view = np.concatenate([np.tile([-1.0, 0.0, 0.0], (len(wall), 1)), np.tile([0.0, 0.0, 1.0], (len(floor), 1))])
-    both = PointCloud.concatenate([wall, floor])
+    both, n_wall, plain = wall_and_floor
+    view = np.concatenate([np.tile([-1.0, 0.0, 0.0], (n_wall, 1)), np.tile([0.0, 0.0, 1.0], (len(both) - n_wall, 1))])
     index = IndexedCloud(PointCloud(both.xyz, both.rgb, both.labels, both.label_names, quantise_view_dirs(view)))
+    assert share_point_geometry(plain, index) == 3  # the k-d tree, the spacing and the normals
     normals, sided = point_sides_of(index, 10, None, 0.2)
     lod = build_voxel_lod(index, point_spacing_of(index, 4), cell_m=0.04, levels=3, normals=normals, sided=sided)
     xyz = lod.cloud.xyz

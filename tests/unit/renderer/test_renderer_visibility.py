@@ -38,6 +38,14 @@ def _wall_and_room(near_x_m: float) -> IndexedCloud:
     return IndexedCloud(PointCloud.concatenate([near, room]))
 
 
+@pytest.fixture(scope="module")
+def wall_half_a_metre_away() -> IndexedCloud:
+    """``_wall_and_room(0.5)`` for the three tests that render it: what a render derives from the
+    points (their k-d tree, spacing, normals and voxel levels) is cached on the index, so it is
+    computed once, not once per test."""
+    return _wall_and_room(0.5)
+
+
 def _render(mode: str, index: IndexedCloud, backend: str = "numpy", **cfg):
     extra = {"device": "cpu"} if backend == "torch" else {}
     r = RENDERERS.create(backend, {"mode": mode, **extra, **cfg})
@@ -53,8 +61,8 @@ def _leak_and_holes(out, near_x_m: float) -> tuple[float, float]:
     return leak, float(hole.mean())
 
 
-def test_no_leak_at_a_wall_half_a_metre_away():
-    index = _wall_and_room(0.5)
+def test_no_leak_at_a_wall_half_a_metre_away(wall_half_a_metre_away):
+    index = wall_half_a_metre_away
     leak, holes = _leak_and_holes(_render("visibility", index), 0.5)
     assert leak <= 0.01, leak
     assert holes <= 0.02, holes
@@ -98,8 +106,8 @@ def test_a_sparsely_sampled_wall_a_quarter_metre_away_has_no_holes():
     assert (out.labels[0][~hole] == 0).mean() >= 0.99
 
 
-def test_labels_and_colour_follow_the_visible_wall():
-    out = _render("visibility", _wall_and_room(0.5))
+def test_labels_and_colour_follow_the_visible_wall(wall_half_a_metre_away):
+    out = _render("visibility", wall_half_a_metre_away)
     seen = ~out.hole_mask[0]
     assert (out.labels[0][seen] == 0).mean() > 0.99
     assert (out.rgb[0][seen][:, 2] < 60).mean() > 0.99  # red wall, not the blue room behind
@@ -139,7 +147,7 @@ def test_a_near_object_does_not_spread_over_the_background():
 
 
 @pytest.mark.parametrize("scene", ["room", "wall", "sided room"])
-def test_numpy_and_torch_agree_in_visibility_mode(room_index, room_index_sided, scene):
+def test_numpy_and_torch_agree_in_visibility_mode(room_index, room_index_sided, wall_half_a_metre_away, scene):
     """Tolerance: the front-layer sums are float64 in numpy and float32 in torch, so mean depths
     differ in the last bits and a footprint radius or a depth test right at its threshold can
     flip: at most 0.2 % of the pixels may differ in hole, label or colour (> 2 levels), and depth
@@ -148,7 +156,7 @@ def test_numpy_and_torch_agree_in_visibility_mode(room_index, room_index_sided, 
         index = room_index if scene == "room" else room_index_sided
         views = [ViewPose(position_m=pos, heading_rad=h, pitch_rad=p) for pos, h, p in scenes.room_view_poses(3, seed=5)]
     else:
-        index = _wall_and_room(0.5)
+        index = wall_half_a_metre_away
         views = [ViewPose(position_m=(0.0, 0.0, 0.0), heading_rad=h) for h in (0.0, 0.4)]
     a = RENDERERS.create("numpy", {"mode": "visibility"}).render(index, views, CAM)
     b = RENDERERS.create("torch", {"mode": "visibility", "device": "cpu"}).render(index, views, CAM)
