@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from services.reconstructor.core import RECONSTRUCTORS, RegionInput, kernels
 from services.reconstructor.core.frames import PosedImage
@@ -17,22 +18,27 @@ WALL_X = 1.5
 NEAR_RGB, FAR_RGB = (120, 120, 120), (200, 60, 60)
 
 
-def _frames(rel: float, back: bool = False) -> RegionInput:
+def _frames(rel: float, back: bool = False, near_drift_m: float = 0.0, far_m: float = 4.0,
+            size_px: tuple[int, int] = (64, 48)) -> RegionInput:
     """The wall x = 1.5 m: four frames from 1.5 m away (grey) and four from 4 m (red), each with its own
     noise draw. The far frames also see the wall beyond the near frames' view (|y| > 1.5 m). With
-    ``back``, the far frames look from the other side at the wall's far face, 10 cm behind (x = 1.6)."""
-    cam = PinholeCamera(64, 48, 90.0)
+    ``back``, the far frames look from the other side at the wall's far face, 10 cm behind (x = 1.6).
+    ``near_drift_m``: the near frames believe they stand that much farther back (-x) than they do (the
+    tour drifted after the far looks), so they place the wall that much nearer to them; ``far_m`` and
+    ``size_px`` (width, height) place the far frames and size every image."""
+    w, h = size_px
+    cam = PinholeCamera(w, h, 90.0)
     images = []
     for i in range(8):
         near = i < 4
-        x, face, heading = (0.0, WALL_X, 0.0) if near else (WALL_X - 4.0, WALL_X, 0.0)
+        x, face, heading = (0.0, WALL_X, 0.0) if near else (WALL_X - far_m, WALL_X, 0.0)
         if back and not near:
-            x, face, heading = WALL_X + 0.1 + 4.0, WALL_X + 0.1, np.pi
+            x, face, heading = WALL_X + 0.1 + far_m, WALL_X + 0.1, np.pi
         rng = np.random.default_rng(40 + i)
-        wfc = camera_pose(np.array([x, 0.03 * (i % 4), 0.0]), heading, 0.0, 1.25)
-        true = np.full((48, 64), abs(face - x), np.float32)  # z-depth of the wall's face
+        wfc = camera_pose(np.array([x - (near_drift_m if near else 0.0), 0.03 * (i % 4), 0.0]), heading, 0.0, 1.25)
+        true = np.full((h, w), abs(face - x), np.float32)  # z-depth of the wall's face
         d = (true + rel * true**2 * rng.standard_normal(true.shape)).astype(np.float32) if rel else true
-        rgb = np.empty((48, 64, 3), np.uint8)
+        rgb = np.empty((h, w, 3), np.uint8)
         rgb[:] = NEAR_RGB if near else FAR_RGB
         images.append(PosedImage(rgb=rgb, world_from_camera=wfc, camera=cam, depth_m=d, index=i,
                                  depth_noise_rel=rel))
@@ -69,6 +75,52 @@ def test_a_far_look_at_the_other_face_of_a_wall_is_kept():
     # The far face, 10 cm behind the near one and within near_cover_m of it, was seen from the other
     # side: all of it is kept (fused in one tier, a few of its voxels also took near points' grey).
     assert red[1].sum() > 300 and red[0].sum() >= red[1].sum()
+
+
+def test_a_far_patch_the_near_looks_placed_apart_is_kept():
+    # The near looks drifted 4.5 cm: their wall, one tight layer, lies 4.5 cm in front of the true one.
+    # The far looks saw the true wall; covered by the near layer (within near_cover_m) nothing of it would
+    # be mapped within 3 cm. Kept as a patch apart, it is; its stray draws stay covered.
+    region = _frames(REL, near_drift_m=0.045, far_m=3.2, size_px=(160, 120))  # far pixels 4 cm apart
+    yy, zz = np.meshgrid(np.linspace(-0.9, 0.9, 37), np.linspace(0.6, 1.9, 27))
+    wall = np.stack([np.full(yy.size, WALL_X), yy.ravel(), zz.ravel()], axis=1)
+    mapped, red = [], []
+    for offset_m in (0.03, 0.0):
+        cfg = {"remove_outliers": False, "far_offset_m": offset_m}
+        c = RECONSTRUCTORS.create("rgbd", cfg).reconstruct(region).cloud
+        dist, _ = cKDTree(c.xyz).query(wall)
+        mapped.append(float((dist <= 0.03).mean()))
+        core = (np.abs(c.xyz[:, 1]) < 1.0) & (np.abs(c.xyz[:, 2] - 1.25) < 0.8)
+        red.append(core & (c.rgb == FAR_RGB).all(axis=1))
+        assert np.median(c.xyz[core & ~red[-1], 0]) == pytest.approx(WALL_X - 0.045, abs=0.01)
+    assert mapped[0] > 0.9 and mapped[1] < 0.1, mapped
+    kept = red[0].sum()
+    assert kept > 300 and red[1].sum() < 0.05 * kept
+
+
+def test_stray_far_draws_beyond_the_offset_stay_covered():
+    # Isolated far points 5 cm off a near surface: a draw of the far looks' noise, not a placement.
+    from services.reconstructor.core.regional import _fill_from_far
+    from shared.cloud import PointCloud
+
+    g = np.arange(0.0, 0.6, 0.03)
+    yy, zz = np.meshgrid(g, g)
+    near_xyz = np.stack([np.zeros(yy.size), yy.ravel(), zz.ravel()], axis=1)
+    stray = np.array([[0.05, 0.36, 0.06], [0.05, 0.45, 0.3], [0.05, 0.54, 0.54], [0.05, 0.3, 0.45]])  # apart
+    patch = near_xyz[(yy.ravel() < 0.2) & (zz.ravel() < 0.2)] + [0.05, 0.0, 0.0]  # a 7 x 7 patch, 3 cm apart
+    view = lambda n: np.tile(np.array([[-127, 0, 0]], np.int8), (n, 1))
+    rgb = lambda n: np.zeros((n, 3), np.uint8)
+    near = PointCloud(near_xyz, rgb(len(near_xyz)), None, {}, view(len(near_xyz)))
+    far = PointCloud(np.concatenate([stray, patch]), rgb(len(stray) + len(patch)), None, {},
+                     view(len(stray) + len(patch)))
+    kept = _fill_from_far(near, far, 0.1, offset_m=0.03, patch_m=0.06, patch_points=8).xyz[len(near):]
+    d_stray = np.linalg.norm(kept[:, None] - stray[None], axis=2).min(axis=0)
+    d_patch = np.linalg.norm(kept[:, None] - patch[None], axis=2).min(axis=0)
+    assert (d_stray > 0.01).all()
+    # the patch's 5 x 5 interior has 13 points within 6 cm of each of its own (its rim fewer)
+    interior = (np.abs(patch[:, 1] - 0.09) < 0.07) & (np.abs(patch[:, 2] - 0.09) < 0.07)
+    assert (d_patch[interior] < 1e-6).all() and interior.sum() == 25
+    assert len(_fill_from_far(near, far, 0.1)) == len(near)  # no offset: everything within 10 cm is covered
 
 
 def test_exact_depth_is_fused_in_one_tier_as_before():
