@@ -208,7 +208,7 @@ def _raster_kernel(verts, vert_lo, tri_local, tri_ids, chunk_lo, box_lo, box_hi,
             tile_dirty[q] = False
         # Chunks whose box meets the frustum, each with the pixel rectangle of its box (the whole
         # image when the box reaches behind the near plane), drawn nearest box corner first.
-        n_vis = 0
+        n_vis = np.int64(0)  # not the literal 0, for which numba would compile _argsort a second time
         for c in range(n_chunks):
             # The box's circumscribed sphere first: one point to transform instead of eight.
             ex = 0.5 * (box_lo[c, 0] + box_hi[c, 0]) - ox
