@@ -34,11 +34,12 @@ def _wait_for(cond, deadline_s: float, what: str) -> None:
 
 
 def test_backoff_doubles_while_crashing_and_resets_after_a_healthy_run(tmp_path):
-    # healthy_after_s is far above a quick crash (an interpreter that starts with -S and exits: well under a
-    # second even on a loaded machine) and below the healthy run (4 s of sleep), so load cannot flip either.
-    policy = RestartPolicy(first_backoff_s=0.05, max_backoff_s=5.0, healthy_after_s=3.0)
+    # healthy_after_s is far above a quick crash (an interpreter that starts with -S and exits: 15-20 ms here,
+    # well under half a second even at load average 15) and below the healthy run (2.5 s of sleep), so load
+    # cannot flip either.
+    policy = RestartPolicy(first_backoff_s=0.05, max_backoff_s=5.0, healthy_after_s=1.5)
     launcher = Launcher(tmp_path, restart_policy=policy)
-    p = Proc("flaky", [sys.executable, "-S", "-c", CHILD, str(tmp_path / "runs"), "4.0"], {},
+    p = Proc("flaky", [sys.executable, "-S", "-c", CHILD, str(tmp_path / "runs"), "2.5"], {},
              tmp_path / "logs" / "flaky.log")
     launcher.procs.append(p)
     p.start()
@@ -48,7 +49,7 @@ def test_backoff_doubles_while_crashing_and_resets_after_a_healthy_run(tmp_path)
         # Three quick crashes: waited 0.05, 0.1, 0.2 s; the next crash would wait 0.4 s.
         _wait_for(lambda: p.restarts == 3, 30, "three restarts")
         assert p.history == [3, 3, 3] and p.next_backoff_s == pytest.approx(0.4)
-        # The fourth run stayed up 4 s >= healthy_after_s: its crash waited first_backoff_s again (0.05 s,
+        # The fourth run stayed up 2.5 s >= healthy_after_s: its crash waited first_backoff_s again (0.05 s,
         # then doubled to 0.1), not 0.4 s (then 0.8).
         _wait_for(lambda: p.restarts == 4, 30, "the fourth restart")
         assert p.history == [3, 3, 3, 4]
