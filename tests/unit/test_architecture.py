@@ -23,19 +23,34 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @functools.lru_cache(maxsize=None)
-def _import_nodes(path: Path) -> tuple[ast.Import | ast.ImportFrom, ...]:
-    """Every import statement of a file, at any depth. Parsed once per session: the checks below walk
-    the same files again and again (each service, each library, the whole tree for cycles), and
-    parsing them was most of this module's time."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-    return tuple(n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)))
+def _import_nodes(path: Path) -> tuple[tuple[ast.Import | ast.ImportFrom, bool], ...]:
+    """Every import statement of a file, at any depth, and whether it runs: not under ``if TYPE_CHECKING:``
+    (annotations only: it loads nothing). Parsed once per session: the checks below walk the same files
+    again and again (each service, each library, the whole tree for cycles and for open3d), and parsing
+    them was most of this module's time."""
+    found: list[tuple[ast.Import | ast.ImportFrom, bool]] = []
+
+    def visit(node: ast.AST, runs: bool) -> None:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            found.append((node, runs))
+        elif isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            for child in node.body:
+                visit(child, False)
+            for child in node.orelse:
+                visit(child, runs)
+        else:
+            for child in ast.iter_child_nodes(node):
+                visit(child, runs)
+
+    visit(ast.parse(path.read_text(encoding="utf-8"), filename=str(path)), True)
+    return tuple(found)
 
 
 def _imports(path: Path) -> list[tuple[int, str]]:
     """(line, module) of every import in a file, relative imports resolved against its package."""
     package = path.relative_to(ROOT).with_suffix("").parts[:-1]
     out = []
-    for node in _import_nodes(path):
+    for node, _ in _import_nodes(path):
         if isinstance(node, ast.Import):
             out.extend((node.lineno, a.name) for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -92,23 +107,14 @@ def test_the_check_reads_relative_and_absolute_imports():
 
 
 def _runtime_imports(path: Path) -> list[tuple[int, str]]:
-    """(line, module) of the absolute ``import X`` / ``from X import`` statements that run, that is, not
-    under ``if TYPE_CHECKING:`` (annotations only: they load nothing)."""
+    """(line, module) of the absolute ``import X`` / ``from X import`` statements that run (not under
+    ``if TYPE_CHECKING:``)."""
     out: list[tuple[int, str]] = []
-
-    def walk(node: ast.AST) -> None:
-        for child in ast.iter_child_nodes(node):
-            if isinstance(child, ast.If) and getattr(child.test, "id", None) == "TYPE_CHECKING":
-                for other in child.orelse:
-                    walk(other)
-                continue
-            if isinstance(child, ast.Import):
-                out.extend((child.lineno, a.name) for a in child.names)
-            elif isinstance(child, ast.ImportFrom) and not child.level:
-                out.append((child.lineno, child.module or ""))
-            walk(child)
-
-    walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path)))
+    for node, runs in _import_nodes(path):
+        if runs and isinstance(node, ast.Import):
+            out.extend((node.lineno, a.name) for a in node.names)
+        elif runs and isinstance(node, ast.ImportFrom) and not node.level:
+            out.append((node.lineno, node.module or ""))
     return out
 
 
@@ -173,7 +179,7 @@ def _import_graph(tops: tuple[str, ...] = OURS) -> dict[str, set[str]]:
     for mod, path in modules.items():
         package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
         out: set[str] = set()
-        for node in _import_nodes(path):
+        for node, _ in _import_nodes(path):
             if isinstance(node, ast.Import):
                 out.update(a.name for a in node.names if a.name in modules)
             elif isinstance(node, ast.ImportFrom):
