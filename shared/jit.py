@@ -4,17 +4,26 @@ Every kernel module imports ``numba`` and ``AVAILABLE`` from here and keeps a nu
 identical results for when it is absent.
 """
 
+import contextlib
+import os
 import threading
 
 try:  # pragma: no cover - which branch runs depends on the environment
     import numba
+    from numba.core.compiler_lock import global_compiler_lock
+    from numba.core.registry import CPUDispatcher
 
     AVAILABLE = True
 except ImportError:  # pragma: no cover
     numba = None
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "insert_sorted", "numba", "one_signature"]
+try:  # pragma: no cover - POSIX only; elsewhere every process compiles on its own, as numba does
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
+
+__all__ = ["AVAILABLE", "insert_sorted", "kernel", "numba", "one_signature"]
 
 
 class one_signature:  # noqa: N801 - used like numba's own decorators
@@ -56,6 +65,67 @@ class one_signature:  # noqa: N801 - used like numba's own decorators
         if not isinstance(t, numba.types.Array):
             return t
         return t.copy(layout="A", readonly=not t.mutable or i in self._read_only)
+
+
+def kernel(**options):
+    """``numba.njit(nogil=True, cache=True, **options)``, whose first compile of a signature is one process's
+    work when several start together on an empty cache: a fresh clone's test workers, services started
+    together on a fresh install. numba's on-disk cache alone lets each of them miss, compile the same kernel
+    (seconds of CPU for the renderer's) and write it. Here a process takes a file lock beside the cache
+    before it looks there, and holds it until it has written what it compiled; the others wait for it and
+    then load that, so a waiter idles for the rest of a compile it would otherwise have run whole. A call
+    that finds its signature compiled in the process takes no lock."""
+    options = {"nogil": True, "cache": True, **options}
+
+    def wrap(fn):
+        dispatcher = numba.njit(**options)(fn)
+        # numba's decorators build their own Dispatcher class; ours adds one method and no state.
+        dispatcher.__class__ = _CacheLockedDispatcher
+        return dispatcher
+
+    return wrap
+
+
+if AVAILABLE:  # pragma: no cover - which branch runs depends on the environment
+
+    class _CacheLockedDispatcher(CPUDispatcher):
+        """numba's dispatcher, with :func:`kernel`'s lock around a compile (which starts with the cache)."""
+
+        _held = threading.local()  # the lock files this thread holds: a kernel's compile may nest another's
+
+        def compile(self, sig):
+            # numba's in-process compiler lock first, then the file lock: a thread of this process only ever
+            # waits for a file lock while it holds the compiler lock, so two threads never wait on each other.
+            with global_compiler_lock, self._cache_lock():
+                return super().compile(sig)
+
+        @property
+        def cache_lock_path(self) -> str:
+            """The lock file, beside numba's index of the kernel (named as that is, ``.lock`` for ``.nbi``)."""
+            fn = self.py_func
+            name = f"{fn.__module__.rpartition('.')[2]}.{fn.__qualname__}-{fn.__code__.co_firstlineno}.lock"
+            return os.path.join(self._cache.cache_path, name)
+
+        @contextlib.contextmanager
+        def _cache_lock(self):
+            held = self._held.__dict__.setdefault("paths", set())
+            path = self.cache_lock_path
+            if fcntl is None or path in held:
+                yield
+                return
+            try:
+                os.makedirs(self._cache.cache_path, exist_ok=True)
+                fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+            except OSError:  # a cache numba cannot write either: nothing to share
+                yield
+                return
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                held.add(path)
+                yield
+            finally:
+                held.discard(path)
+                os.close(fd)  # releases the lock
 
 
 def insert_sorted(buf, n, x):  # pragma: no cover - called from compiled kernels

@@ -28,7 +28,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
+from shared.jit import AVAILABLE, kernel, numba  # noqa: F401  (re-exported)
 
 
 # The colour and offset sums are float32 sums of 8-bit values: exact (the integers the array code
@@ -70,7 +70,7 @@ def _project_run_py(xs, ys, zs, proj, near, far, w, h, qo, zo, uo, with_uv, pad=
             uo[i] = np.int32(np.rint(du)) + 256 * np.int32(np.rint(dv))
 
 
-_project_run = numba.njit(nogil=True, cache=True, error_model="numpy")(_project_run_py) if AVAILABLE else _project_run_py
+_project_run = kernel(error_model="numpy")(_project_run_py) if AVAILABLE else _project_run_py
 
 
 def _front_pass(
@@ -286,10 +286,10 @@ def _visible_blocks(block_min, block_max, centre, radius, rot, t, normals, offse
 
 
 if AVAILABLE:
-    visible_blocks = numba.njit(nogil=True, cache=True)(_visible_blocks)
-    labels_of = numba.njit(nogil=True, cache=True)(_labels_of)
-    front_pass = numba.njit(nogil=True, cache=True, error_model="numpy")(_front_pass)
-    compose = numba.njit(nogil=True, cache=True, error_model="numpy")(_compose)
+    visible_blocks = kernel()(_visible_blocks)
+    labels_of = kernel()(_labels_of)
+    front_pass = kernel(error_model="numpy")(_front_pass)
+    compose = kernel(error_model="numpy")(_compose)
 else:  # pragma: no cover
     front_pass = compose = labels_of = visible_blocks = None
 

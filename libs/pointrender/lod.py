@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from shared.cloud import PointCloud
-from shared.jit import AVAILABLE, numba
+from shared.jit import AVAILABLE, kernel
 from libs.pointrender.cloud import IndexedCloud
 
 
@@ -242,4 +242,4 @@ def _select_runs(mask, every, block_min, block_max, cam, focal_px, cell_px, cell
         n += 1
 
 
-select_runs = numba.njit(nogil=True, cache=True)(_select_runs) if AVAILABLE else None
+select_runs = kernel()(_select_runs) if AVAILABLE else None

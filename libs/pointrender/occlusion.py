@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from shared.jit import AVAILABLE, numba
+from shared.jit import AVAILABLE, kernel
 from libs.pointrender import visibility
 from libs.pointrender.kernels import _project_run
 
@@ -269,7 +269,7 @@ def _cull_test(tiles, tile, row0, row1, col0, col1, margin, r_cls, ahead, reach,
 
 
 if AVAILABLE:
-    _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+    _jit = kernel(error_model="numpy")
     occluder_depths, occluder_classes = _jit(_occluder_depths), _jit(_occluder_classes)
     cover_tiles, cull_test = _jit(_cover_tiles), _jit(_cull_test)
 else:  # pragma: no cover - the renderer culls only on the compiled path

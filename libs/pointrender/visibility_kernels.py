@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.jit import AVAILABLE, numba, one_signature
+from shared.jit import AVAILABLE, kernel, numba, one_signature
 from libs.pointrender.cover_codes import COVER_MAX_CODE, COVER_NONE
 
 _INF = np.float32(np.inf)
@@ -446,7 +446,7 @@ def _rgb8(rgb):
 
 
 if AVAILABLE:
-    _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+    _jit = kernel(error_model="numpy")
     _mirrored_min = numba.njit(nogil=True, cache=True, inline="always")(_mirrored_min)
     # classes: one signature too; the front layer's count and spacing arrive as strided views or copies,
     # and numba compiled it for each (the inputs typed read-only, as callers may pass read-only arrays).

@@ -71,7 +71,7 @@ import math
 
 import numpy as np
 
-from shared.jit import AVAILABLE, numba
+from shared.jit import AVAILABLE, kernel, numba
 
 CHUNK = 32  # triangles per culling chunk: about the size of a wall segment or a furniture part
 NEAR_M = 1e-4
@@ -574,10 +574,10 @@ def _argsort(key, n, rank):  # pragma: no cover - compiled
 
 
 if AVAILABLE:
-    _argsort = numba.njit(nogil=True, cache=True)(_argsort)
+    _argsort = kernel()(_argsort)
     _fill = numba.njit(nogil=True, cache=True, inline="always")(_fill)
     _w_bound = numba.njit(nogil=True, cache=True, inline="always")(_w_bound)
     _pixel_rect = numba.njit(nogil=True, cache=True, inline="always")(_pixel_rect)
     _bound = numba.njit(nogil=True, cache=True, inline="always")(_bound)
-    _occluded = numba.njit(nogil=True, cache=True)(_occluded)
-    _raster_kernel = numba.njit(nogil=True, cache=True)(_raster_kernel)
+    _occluded = kernel()(_occluded)
+    _raster_kernel = kernel()(_raster_kernel)

@@ -1,11 +1,16 @@
-"""shared.jit.one_signature: a kernel compiled once for the layouts its callers pass."""
+"""shared.jit.one_signature: a kernel compiled once for the layouts its callers pass; shared.jit.kernel: one
+process compiles a cached kernel while the others wait for it."""
 
 from __future__ import annotations
+
+import fcntl
+import os
+import threading
 
 import numpy as np
 import pytest
 
-from shared.jit import AVAILABLE, numba, one_signature
+from shared.jit import AVAILABLE, kernel, numba, one_signature
 
 pytestmark = pytest.mark.skipif(not AVAILABLE, reason="needs numba")
 
@@ -46,3 +51,24 @@ def test_an_argument_declared_read_only_takes_writable_and_read_only_arrays_in_e
     kernel(np.ones((2, 2), np.float32), ids)
     with pytest.raises(TypeError):
         kernel(ro, ids)
+
+
+def _plus_one(x):
+    return x + 1
+
+
+def test_a_cached_kernel_waits_for_the_process_that_holds_its_compile_lock():
+    plus_one = kernel()(_plus_one)
+    result = []
+    os.makedirs(os.path.dirname(plus_one.cache_lock_path), exist_ok=True)
+    fd = os.open(plus_one.cache_lock_path, os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # another process compiling it (a lock of another open file, as theirs is)
+        caller = threading.Thread(target=lambda: result.append(plus_one(np.int64(1))))
+        caller.start()
+        caller.join(0.5)
+        assert caller.is_alive() and not result  # neither loaded from the cache nor compiled while it waits
+    finally:
+        os.close(fd)
+    caller.join(60)
+    assert result == [2]
