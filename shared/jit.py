@@ -79,8 +79,10 @@ def kernel(**options):
 
     def wrap(fn):
         dispatcher = numba.njit(**options)(fn)
-        # numba's decorators build their own Dispatcher class; ours adds one method and no state.
-        dispatcher.__class__ = _CacheLockedDispatcher
+        # numba's decorators build their own Dispatcher class; ours adds one method and no state. (With
+        # NUMBA_DISABLE_JIT they return the function itself.)
+        if type(dispatcher) is CPUDispatcher:
+            dispatcher.__class__ = _CacheLockedDispatcher
         return dispatcher
 
     return wrap
@@ -100,21 +102,25 @@ if AVAILABLE:  # pragma: no cover - which branch runs depends on the environment
                 return super().compile(sig)
 
         @property
-        def cache_lock_path(self) -> str:
-            """The lock file, beside numba's index of the kernel (named as that is, ``.lock`` for ``.nbi``)."""
+        def cache_lock_path(self) -> str | None:
+            """The lock file, beside numba's index of the kernel (named as that is, ``.lock`` for ``.nbi``);
+            None without a cache (``cache=False``)."""
+            cache_dir = getattr(self._cache, "cache_path", None)
+            if cache_dir is None:
+                return None
             fn = self.py_func
             name = f"{fn.__module__.rpartition('.')[2]}.{fn.__qualname__}-{fn.__code__.co_firstlineno}.lock"
-            return os.path.join(self._cache.cache_path, name)
+            return os.path.join(cache_dir, name)
 
         @contextlib.contextmanager
         def _cache_lock(self):
             held = self._held.__dict__.setdefault("paths", set())
             path = self.cache_lock_path
-            if fcntl is None or path in held:
+            if fcntl is None or path is None or path in held:
                 yield
                 return
             try:
-                os.makedirs(self._cache.cache_path, exist_ok=True)
+                os.makedirs(os.path.dirname(path), exist_ok=True)
                 fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
             except OSError:  # a cache numba cannot write either: nothing to share
                 yield
