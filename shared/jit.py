@@ -126,8 +126,11 @@ if AVAILABLE:  # pragma: no cover - which branch runs depends on the environment
                 yield
                 return
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX)
-                held.add(path)
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX)
+                    held.add(path)
+                except OSError:  # a file system without locks: compile on our own, as numba would
+                    pass
                 yield
             finally:
                 held.discard(path)
