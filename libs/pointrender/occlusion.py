@@ -155,8 +155,10 @@ def _occluder_depths(x, y, z, spacing, starts, counts, scale, proj, near, far, w
     runs' points and the smallest spacing among them, projected exactly as the front pass
     projects them."""
     npad = (h + 2 * pad) * (w + 2 * pad)
-    zbuf = np.full(npad + 1, np.inf, np.float32)
-    spmin = np.full(npad + 1, np.inf, np.float32)
+    zbuf = np.empty(npad + 1, np.float32)  # np.empty and fills, not np.full: see kernels._front_pass
+    zbuf[:] = np.inf
+    spmin = np.empty(npad + 1, np.float32)
+    spmin[:] = np.inf
     m_max = 0
     for r in range(counts.shape[0]):
         m_max = max(m_max, counts[r])
@@ -250,7 +252,8 @@ def _cover_tiles(cov4, tiles, tile):
 def _cull_test(tiles, tile, row0, row1, col0, col1, margin, r_cls, ahead, reach, hp, wp, vis_rel1, vis_tol):
     """Per run: True when its grown rectangle lies behind the occluder (see the module docstring)."""
     n = row0.shape[0]
-    out = np.zeros(n, np.bool_)
+    out = np.empty(n, np.bool_)  # not np.zeros: see kernels._front_pass
+    out[:] = False
     th, tw = tiles.shape
     for r in range(n):
         if not ahead[r] or r_cls[r] >= reach:

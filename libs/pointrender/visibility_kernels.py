@@ -46,7 +46,8 @@ def _bucket(cls, hist):
     """Pixels grouped by footprint class: class k is ``order[first[k]:first[k + 1]]``, each pixel as
     ``i << 16 | j`` (shifts, not a division by the width, get its row and column back)."""
     hq, wq = cls.shape
-    first = np.zeros(hist.shape[0] + 1, np.int64)
+    first = np.empty(hist.shape[0] + 1, np.int64)  # not np.zeros: see kernels._front_pass
+    first[0] = 0
     for k in range(hist.shape[0]):
         first[k + 1] = first[k] + hist[k]
     fill = first[:-1].copy()
@@ -360,8 +361,10 @@ def _colour_filter(rgb, depth, hole, rel, taps):
     which leaves a sum as it was, as skipping it does."""
     h, w = depth.shape
     zero = np.float32(0.0)
-    dpad = np.full((h + 2, w + 2), _INF, np.float32)
-    cpad = np.zeros((3, h + 2, w + 2), np.float32)
+    dpad = np.empty((h + 2, w + 2), np.float32)  # np.empty and fills, not np.full or np.zeros: see kernels._front_pass
+    dpad[:] = _INF
+    cpad = np.empty((3, h + 2, w + 2), np.float32)
+    cpad[:] = zero
     for i in range(h):  # row by row and branch-free, so that the copies vectorise
         d_in, h_in, d_out = depth[i], hole[i], dpad[i + 1, 1 : w + 1]
         for j in range(w):
