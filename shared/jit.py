@@ -152,4 +152,4 @@ def insert_sorted(buf, n, x):  # pragma: no cover - called from compiled kernels
 
 
 if AVAILABLE:  # pragma: no cover - which branch runs depends on the environment
-    insert_sorted = numba.njit(nogil=True, cache=True)(insert_sorted)
+    insert_sorted = kernel()(insert_sorted)

@@ -653,13 +653,13 @@ def _compiled(name: str):
     if _JIT is None:
         with _JIT_LOCK:
             if _JIT is None:
-                from shared.jit import AVAILABLE, numba, one_signature
+                from shared.jit import AVAILABLE, kernel, numba, one_signature
 
                 kernels = {"walk": None, "obstacles": None}
                 if AVAILABLE:
                     global _nearest_level  # the kernel calls it: numba resolves the global when it compiles
-                    _nearest_level = numba.njit(nogil=True, cache=True)(_nearest_level)
-                    jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+                    _nearest_level = kernel()(_nearest_level)
+                    jit = kernel(error_model="numpy")
                     # The obstacle pass gets its node columns as strided views (np.nonzero's), a caller
                     # with fresh arrays (the kernel's own test) as contiguous ones: two machine codes of the
                     # same kernel, 0.6-1 s of CPU each on a cold cache, where one signature does for both.

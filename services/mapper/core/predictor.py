@@ -20,7 +20,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from shared.geometry import DEFAULT_CAMERA_HEIGHT_M, wrap_angle
-from shared.jit import AVAILABLE, insert_sorted, numba, one_signature
+from shared.jit import AVAILABLE, insert_sorted, kernel, one_signature
 from shared.registry import BackendConfig, Registry
 from shared.schemas import Candidate, CandidateKind, Panorama
 
@@ -384,15 +384,15 @@ def _profiles_kernel(depth, range_scale, yn, cam_h, bin_m, nb, band_top_m, max_v
 
 if AVAILABLE:
     # Compiled on first use (and kept in numba's disk cache): importing the module stays cheap.
-    _column_walk_kernel = numba.njit(nogil=True, cache=True, error_model="numpy")(_column_walk_kernel)
+    _column_walk_kernel = kernel(error_model="numpy")(_column_walk_kernel)
     # One signature each for every depth they are given (shared.jit.one_signature): the strided view of
     # the configured pixel stride, a stride of 1's contiguous array, a panorama's read-only depth; numba
     # compiled _profiles_kernel three times and _column_median_kernel twice for these (0.3-0.7 s of CPU
     # each on a cold cache), the same arithmetic every time.
-    _profiles_kernel = one_signature(numba.njit(nogil=True, cache=True, error_model="numpy")(_profiles_kernel),
+    _profiles_kernel = one_signature(kernel(error_model="numpy")(_profiles_kernel),
                                      read_only=(0, 1, 2))
     _column_median_kernel = one_signature(
-        numba.njit(nogil=True, cache=True, error_model="numpy")(_column_median_kernel), read_only=(0,))
+        kernel(error_model="numpy")(_column_median_kernel), read_only=(0,))
 
 _warm = False
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.jit import AVAILABLE, insert_sorted, numba
+from shared.jit import AVAILABLE, insert_sorted, kernel
 
 
 def denoise_depth(depth: np.ndarray, noise_rel: float, window_px: int = 5, gate_sigmas: float = 2.5,
@@ -113,4 +113,4 @@ def _denoise_loop(d, rel, r, g, e, out):  # pragma: no cover - compiled; the arr
             out[i, j] = total / np.float32(cnt) if cnt > 0 else c
 
 
-_denoise_kernel = numba.njit(cache=True, nogil=True)(_denoise_loop) if AVAILABLE else None
+_denoise_kernel = kernel()(_denoise_loop) if AVAILABLE else None

@@ -29,7 +29,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
+from shared.jit import AVAILABLE, kernel, numba  # noqa: F401  (re-exported)
 
 # Packing of voxel keys, shared with voxel.py (which imports these).
 AXIS_BITS = 15
@@ -232,7 +232,7 @@ def _knn_mean(xyz, frac, cells, dims, order, sorted_flat, head, k, cell_m, start
 
 
 if AVAILABLE:
-    _jit = numba.njit(nogil=True, cache=True, error_model="numpy")
+    _jit = kernel(error_model="numpy")
     _slot = _jit(_slot)
     _find_or_add = _jit(_find_or_add)
     rehash = _jit(_rehash)

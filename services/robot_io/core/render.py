@@ -31,11 +31,12 @@ from typing import Literal
 import numpy as np
 
 from shared.geometry import PinholeCamera, camera_poses
+from shared.jit import kernel
 from shared.o3d import o3d
 
 from .raster import RasterScene
 from libs.world.scene import Scene
-from .shading import AVAILABLE, ShadingTables, numba, shade
+from .shading import AVAILABLE, ShadingTables, shade
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +120,7 @@ def _rays_kernel(rays, mats, out):  # pragma: no cover - compiled
 
 
 if AVAILABLE:
-    _rays_kernel = numba.njit(nogil=True, cache=True)(_rays_kernel)
+    _rays_kernel = kernel()(_rays_kernel)
 
 
 def write_rays(rays: np.ndarray, mats: np.ndarray, out: np.ndarray, use_kernel: bool = True) -> None:

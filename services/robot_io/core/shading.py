@@ -28,7 +28,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-from shared.jit import AVAILABLE, numba  # noqa: F401  (re-exported)
+from shared.jit import AVAILABLE, kernel, numba  # noqa: F401  (re-exported)
 
 
 @dataclass
@@ -206,7 +206,7 @@ _compiled = None
 def _kernel():
     global _compiled
     if _compiled is None:
-        _compiled = numba.njit(nogil=True, cache=True, error_model="numpy")(_shade_kernel)
+        _compiled = kernel(error_model="numpy")(_shade_kernel)
     return _compiled
 
 
