@@ -11,7 +11,6 @@ import functools
 import io
 import math
 import threading
-import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -306,13 +305,14 @@ class ScriptedGround:
 class ScriptedRobotIo:
     """Serves IO_SCENE and IO_LOAD_SCENE like a simulator robot-io.
 
-    Specs ``generated:<seed>[:floors=N]`` load (after ``load_delay_s``); anything else is refused as
-    a bad request, as robot-io refuses a mesh it cannot read. ``loaded`` lists the loads in order.
+    Specs ``generated:<seed>[:floors=N]`` load (once ``load_gate`` is set, where one is given: a slow load
+    that lasts exactly as long as the test needs); anything else is refused as a bad request, as robot-io
+    refuses a mesh it cannot read. ``loaded`` lists the loads in order.
     """
 
     def __init__(self, bus: TypedBus, robot: str = "robot0", *, scene: str = "generated:0",
-                 load_delay_s: float = 0.0):
-        self.load_delay_s = load_delay_s
+                 load_gate: threading.Event | None = None):
+        self.load_gate = load_gate
         self.loaded: list[str] = []
         self._summary = self._summarise(scene)
         self._lock = threading.Lock()
@@ -345,7 +345,9 @@ class ScriptedRobotIo:
     def _load(self, req: LoadSceneRequest) -> SceneSummary:
         summary = self._summarise(req.scene)  # a bad spec fails before anything changes
         with self._lock:
-            time.sleep(self.load_delay_s)
+            # Bounded, so that a gateway which waits on this load instead of refusing fails in seconds, not hangs.
+            if self.load_gate is not None and not self.load_gate.wait(10.0):
+                raise TimeoutError("the test never let the scene load finish")
             self._summary = summary
             self.loaded.append(req.scene)
         return summary
