@@ -69,6 +69,8 @@ def test_budget_stops_the_run_mid_episode_and_the_run_resumes(world, gateway, tm
         md = (out / "summary.md").read_text()
         assert "Run stopped early" in md and "Spent by the run, every attempt counted: $" in md
         # Resumed with a larger budget: the stopped episode runs again, and what its first attempt spent counts.
+        # Nothing is cancelled in this run, so its steps need no time between polls.
+        world.planner.interval_s = 0.0
         second = _runner(gw, world, out, budget_usd=0.012).run(_eps(3))
     assert second.ran == 2 and second.resumed == 1 and not second.stopped
     assert [r.status for r in second.results] == ["done"] * 3 and second.row["stopped"] == 0
