@@ -104,6 +104,9 @@ class ScriptedPlanner:
         self.image_variants = image_variants
         self.steps, self.step_interval_s, self.n_candidates, self.image_px = steps, step_interval_s, candidates, image_px
         self.runs: dict[str, _Run] = {}
+        # Where a test sets one: a mission holds its finish until the event is set (bounded, 10 s), so it is
+        # still running for as long as the test needs, without a step interval that load could outrun.
+        self.finish_gate: threading.Event | None = None
         self._entities: list[Closeable] = [
             bus.serve(keys.MISSION_SUBMIT.format(robot=robot), MissionRequest, self._submit, workers=2),
             bus.serve(keys.MISSION_CANCEL.format(robot=robot), CancelRequest, self._cancel),
@@ -177,6 +180,8 @@ class ScriptedPlanner:
                                          spl=0.8 * ok, ndtw=0.7, sdtw=0.7 * ok, shortest_m=1.5 * (steps - 1),
                                          stop_called=True, steps=steps, goal_reachable=True)
         traj_m = [(x, y, 0.0) for x, y in traj]
+        if self.finish_gate is not None:
+            self.finish_gate.wait(10.0)
         emit(JobEventKind.FINISHED, JobState.SUCCEEDED, steps,
              MissionFinished(stop_called=True, steps=steps, trajectory_m=traj_m, metrics=metrics))
 
