@@ -34,6 +34,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -288,7 +289,10 @@ class Proc:
     next_backoff_s: float = 0.5
     stopping: bool = False
     history: list[int] = field(default_factory=list)  # exit codes of crashes
-    started_monotonic_s: float = 0.0  # when start() last ran: the supervisor's uptime reference
+    started_monotonic_s: float = 0.0  # clock() when start() last ran: the supervisor's uptime reference
+    # The clock of uptime, and so of healthy_after_s: a test steps a fake one past the healthy period instead
+    # of keeping a child up that long, and no load can stretch a quick crash into a healthy run.
+    clock: Callable[[], float] = time.monotonic
 
     def start(self) -> None:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -298,7 +302,7 @@ class Proc:
         # child's life to the launcher's (parent-death signal).
         try:
             with LIFECYCLE.shield():
-                self.started_monotonic_s = time.monotonic()
+                self.started_monotonic_s = self.clock()
                 self.popen = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
                                               start_new_session=True, preexec_fn=_child_preexec(os.getpid()))
         finally:
@@ -501,7 +505,7 @@ class Launcher:
                 p.history.append(code)
                 policy = self.restart_policy
                 # Up long enough to count as healthy (or never restarted): this crash starts the backoff over.
-                if p.restarts == 0 or time.monotonic() - p.started_monotonic_s >= policy.healthy_after_s:
+                if p.restarts == 0 or p.clock() - p.started_monotonic_s >= policy.healthy_after_s:
                     p.next_backoff_s = policy.first_backoff_s
                 log.warning("%s exited with %s; restarting in %.1f s", p.name, code, p.next_backoff_s)
                 if self._stop.wait(p.next_backoff_s):

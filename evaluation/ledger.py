@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -136,17 +136,20 @@ class Budget:
       earlier attempt spent) plus the running totals of the missions in flight, as the gateway reports
       them step by step (:meth:`track`). A mission is cancelled at the first poll that sees the limit
       reached, so a run overshoots by at most the LLM calls already in flight (one per robot).
-    - ``limit_wall_s`` caps the wall seconds of this call (a resumed run gets its own).
+    - ``limit_wall_s`` caps the wall seconds of this call (a resumed run gets its own), read from ``clock``
+      (a test gives one that moves with the missions' steps, so the limit falls mid-episode whatever the load).
 
     Thread-safe: the robots' workers track their missions, the runner's thread settles results."""
 
     def __init__(self, limit_usd: float | None = None, limit_tokens: int | None = None,
-                 limit_wall_s: float | None = None, spent: Spent | None = None):
+                 limit_wall_s: float | None = None, spent: Spent | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.limit_usd, self.limit_tokens, self.limit_wall_s = limit_usd, limit_tokens, limit_wall_s
         self._settled = spent or Spent()
         self._live: dict[str, Spent] = {}
         self._lock = threading.Lock()
-        self._t0 = time.monotonic()
+        self._clock = clock
+        self._t0 = clock()
 
     @property
     def limited(self) -> bool:
@@ -177,7 +180,7 @@ class Budget:
             return f"the budget of ${self.limit_usd:.4f} was reached (${s.usd:.4f} spent)"
         if self.limit_tokens is not None and s.tokens >= self.limit_tokens:
             return f"the budget of {self.limit_tokens:,d} tokens was reached ({s.tokens:,d} spent)"
-        if self.limit_wall_s is not None and time.monotonic() - self._t0 >= self.limit_wall_s:
+        if self.limit_wall_s is not None and self._clock() - self._t0 >= self.limit_wall_s:
             return f"the wall-time budget of {self.limit_wall_s:g} s was reached"
         return ""
 

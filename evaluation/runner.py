@@ -229,11 +229,13 @@ class EvalRunner:
             the scenes are sharded over ``gateway`` + these (:func:`shard_scenes`) and run concurrently.
             Every result is the same whatever the number of robots: each episode runs alone on its robot
             with its own seed.
+        clock: seconds for the wall-time budget (``budget_wall_s``); the default is the monotonic clock.
     """
 
     def __init__(self, gateway: GatewayClient, scenes: SceneLoader | None, config: RunConfig, out_dir: Path | str,
                  *, map_cache: SceneMapIndex | None = None, label: str = "all", progress: bool = True,
-                 scene_builder: Callable[[str, Path | None], Any] | None = None, lanes: Sequence[Lane] = ()):
+                 scene_builder: Callable[[str, Path | None], Any] | None = None, lanes: Sequence[Lane] = (),
+                 clock: Callable[[], float] = time.monotonic):
         self.gateway, self.scenes, self.config = gateway, scenes, config
         self.lanes = [Lane(gateway, scenes), *lanes]
         self._stop = threading.Event()  # set: no robot starts another episode
@@ -244,6 +246,7 @@ class EvalRunner:
         self.maps = map_cache or SceneMapIndex(self.out_dir / "maps.json")
         self.label, self.progress = label, progress
         self.scene_builder = scene_builder
+        self.clock = clock
 
     # --- the run -------------------------------------------------------------------------------------
     def _check_resume(self) -> None:
@@ -302,7 +305,7 @@ class EvalRunner:
         # Every attempt counts: an episode stopped by the budget or retried after an error was paid for.
         budget = Budget(cfg.budget_usd, cfg.budget_tokens, cfg.budget_wall_s,
                         spent=sum((Spent.of(r) for r in self.log.attempts() if r.episode_id in selected_ids),
-                                  Spent()))
+                                  Spent()), clock=self.clock)
         self._budget = budget
         self._explorations_stopped.clear()
         why = budget.exceeded() if todo else ""

@@ -50,11 +50,14 @@ class ScriptedRobotIo:
 
 class ScriptedNavPlanner:
     """Serves ``MISSION_SUBMIT``/``MISSION_CANCEL`` with a straight-line walker (one mission at a time
-    per thread). ``requests`` keeps every accepted :class:`MissionRequest`."""
+    per thread). ``requests`` keeps every accepted :class:`MissionRequest`; ``steps_walked`` counts the steps of
+    every mission (a test's clock can move with it)."""
 
     def __init__(self, bus: TypedBus, robot: str = "robot0", *, step_m: float = 1.0, step_interval_s: float = 0.0):
         self.bus, self.robot, self.step_m, self.interval_s = bus, robot, step_m, step_interval_s
         self.requests: list[MissionRequest] = []
+        self.steps_walked = 0
+        self._steps_lock = threading.Lock()
         self._cancel: dict[str, threading.Event] = {}
         self._threads: list[threading.Thread] = []
         self._entities = [
@@ -114,6 +117,8 @@ class ScriptedNavPlanner:
                 pos = pos + d * min(1.0, self.step_m / dist)
                 traj.append(pos.copy())
             lat.append(time.perf_counter() - t0 + 0.01)
+            with self._steps_lock:
+                self.steps_walked += 1
             emit(JobEventKind.STEP, JobState.RUNNING, step,
                  MissionStep(pose=Pose(position_m=tuple(pos.tolist())), candidates=[], decision=Decision(
                      candidate_index=0, kind="stop" if stop else "waypoint", backend=opts.policy,

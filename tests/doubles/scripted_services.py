@@ -11,7 +11,6 @@ import functools
 import io
 import math
 import threading
-import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -105,6 +104,9 @@ class ScriptedPlanner:
         self.image_variants = image_variants
         self.steps, self.step_interval_s, self.n_candidates, self.image_px = steps, step_interval_s, candidates, image_px
         self.runs: dict[str, _Run] = {}
+        # Where a test sets one: a mission holds its finish until the event is set (bounded, 10 s), so it is
+        # still running for as long as the test needs, without a step interval that load could outrun.
+        self.finish_gate: threading.Event | None = None
         self._entities: list[Closeable] = [
             bus.serve(keys.MISSION_SUBMIT.format(robot=robot), MissionRequest, self._submit, workers=2),
             bus.serve(keys.MISSION_CANCEL.format(robot=robot), CancelRequest, self._cancel),
@@ -178,6 +180,8 @@ class ScriptedPlanner:
                                          spl=0.8 * ok, ndtw=0.7, sdtw=0.7 * ok, shortest_m=1.5 * (steps - 1),
                                          stop_called=True, steps=steps, goal_reachable=True)
         traj_m = [(x, y, 0.0) for x, y in traj]
+        if self.finish_gate is not None:
+            self.finish_gate.wait(10.0)
         emit(JobEventKind.FINISHED, JobState.SUCCEEDED, steps,
              MissionFinished(stop_called=True, steps=steps, trajectory_m=traj_m, metrics=metrics))
 
@@ -306,13 +310,14 @@ class ScriptedGround:
 class ScriptedRobotIo:
     """Serves IO_SCENE and IO_LOAD_SCENE like a simulator robot-io.
 
-    Specs ``generated:<seed>[:floors=N]`` load (after ``load_delay_s``); anything else is refused as
-    a bad request, as robot-io refuses a mesh it cannot read. ``loaded`` lists the loads in order.
+    Specs ``generated:<seed>[:floors=N]`` load (once ``load_gate`` is set, where one is given: a slow load
+    that lasts exactly as long as the test needs); anything else is refused as a bad request, as robot-io
+    refuses a mesh it cannot read. ``loaded`` lists the loads in order.
     """
 
     def __init__(self, bus: TypedBus, robot: str = "robot0", *, scene: str = "generated:0",
-                 load_delay_s: float = 0.0):
-        self.load_delay_s = load_delay_s
+                 load_gate: threading.Event | None = None):
+        self.load_gate = load_gate
         self.loaded: list[str] = []
         self._summary = self._summarise(scene)
         self._lock = threading.Lock()
@@ -345,7 +350,9 @@ class ScriptedRobotIo:
     def _load(self, req: LoadSceneRequest) -> SceneSummary:
         summary = self._summarise(req.scene)  # a bad spec fails before anything changes
         with self._lock:
-            time.sleep(self.load_delay_s)
+            # Bounded, so that a gateway which waits on this load instead of refusing fails in seconds, not hangs.
+            if self.load_gate is not None and not self.load_gate.wait(10.0):
+                raise TimeoutError("the test never let the scene load finish")
             self._summary = summary
             self.loaded.append(req.scene)
         return summary

@@ -49,5 +49,6 @@ def test_import_loads_no_heavy_library_it_does_not_serve(modules, needed):
 
 
 def test_the_probe_sees_a_heavy_import():
-    # The probe itself can fail: a module that does need open3d at import is reported.
-    assert "open3d" in _heavy_after_import("libs.world", "open3d")
+    # The probe itself can fail: a heavy module imported is reported. networkx rather than open3d: the same
+    # check at half the cost (a process importing it: 0.54 s of CPU, 1.06 s wall, against 1.09 s and 2.61 s).
+    assert "networkx" in _heavy_after_import("libs.world", "networkx")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -21,9 +22,9 @@ from tests.doubles.scripted_eval import SCRIPTED_TIMINGS_S
 from tests.unit.evaluation.conftest import box_scene, make_episode
 
 
-def _runner(gw, world, out, **cfg):
+def _runner(gw, world, out, clock=time.monotonic, **cfg):
     return EvalRunner(gw, world.robot, RunConfig(poll_s=0.01, plots=False, **cfg), out, progress=False,
-                      scene_builder=lambda spec, d: box_scene())
+                      scene_builder=lambda spec, d: box_scene(), clock=clock)
 
 
 def _eps(n=3):
@@ -68,6 +69,8 @@ def test_budget_stops_the_run_mid_episode_and_the_run_resumes(world, gateway, tm
         md = (out / "summary.md").read_text()
         assert "Run stopped early" in md and "Spent by the run, every attempt counted: $" in md
         # Resumed with a larger budget: the stopped episode runs again, and what its first attempt spent counts.
+        # Nothing is cancelled in this run, so its steps need no time between polls.
+        world.planner.interval_s = 0.0
         second = _runner(gw, world, out, budget_usd=0.012).run(_eps(3))
     assert second.ran == 2 and second.resumed == 1 and not second.stopped
     assert [r.status for r in second.results] == ["done"] * 3 and second.row["stopped"] == 0
@@ -86,12 +89,14 @@ def test_token_and_wall_time_budgets(world, gateway, tmp_path):
         tok = _runner(gw, world, tmp_path / "tokens", budget_tokens=300).run(_eps(2))
         assert [r.status for r in tok.results] == ["stopped"] and "budget of 300 tokens was reached" in tok.stopped
         assert 330 <= tok.spent.tokens < 17 * 110
-        # An episode takes about 7 s; the run may take 1.5 s. The budget counts from the run's start, so
-        # it must outlast the first mission's submission on a busy machine (a 0.3 s budget once ran out
-        # before the first episode began: no result at all), and still end the first episode midway.
-        world.planner.interval_s = 0.4
-        wall = _runner(gw, world, tmp_path / "wall", budget_wall_s=1.5).run(_eps(2))
+        # Wall time from a clock that moves 0.4 s per step walked: an episode takes 6.8 s of it, the run may
+        # take 1.5 s, reached at the fourth step of the first episode. On the monotonic clock the budget had
+        # to outlast the first mission's submission on a busy machine (a 0.3 s budget once ran out before the
+        # first episode began: no result at all), which cost 1.5 s of waiting.
+        wall = _runner(gw, world, tmp_path / "wall", budget_wall_s=1.5,
+                       clock=lambda: 0.4 * world.planner.steps_walked).run(_eps(2))
     assert [r.status for r in wall.results] == ["stopped"] and "wall-time budget of 1.5 s" in wall.stopped
+    assert 4 <= len(wall.results[0].ledger) < 17  # not before 1.6 s of the clock, and before the episode's end
 
 
 def _ctx(step, n_waypoints):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 
 import pytest
 
@@ -80,7 +81,10 @@ def test_sse_replays_from_the_db_and_resumes_after_last_event_id(world, gateway)
 def test_sse_streams_live_events_as_they_happen(net, gateway):
     from tests.unit.gateway.conftest import World
 
-    w = World(net, steps=4, step_interval_s=0.15)
+    w = World(net, steps=4)
+    # The mission holds its finish until step 1 has come through the stream: a stream that held events back
+    # until the end would show step 1 only after the gate's 10 s, with the mission ended.
+    w.planner.finish_gate = stepped = threading.Event()
     try:
         with gateway() as client:
             mid = submit(client).json()["id"]
@@ -95,8 +99,10 @@ def test_sse_streams_live_events_as_they_happen(net, gateway):
                         if seen and seen[-1]["id"] == "1":
                             # The stream delivered step 1 while the mission was still running.
                             assert client.get(f"/missions/{mid}").json()["state"] == "running"
+                            stepped.set()
             assert [e["id"] for e in seen[:-1]] == ["0", "1", "2", "3", "4", "5"]
     finally:
+        stepped.set()
         w.close()
 
 

@@ -105,7 +105,8 @@ def test_409_while_an_exploration_runs(net, robot_io, gateway):
 
 def test_jobs_and_a_second_switch_are_refused_while_a_scene_loads(net, gateway):
     bus = FakeBus(net)
-    io = ScriptedRobotIo(TypedBus(bus, "slow-io"), load_delay_s=1.0)
+    loaded = threading.Event()  # the switch lasts until the refusals below are seen
+    io = ScriptedRobotIo(TypedBus(bus, "slow-io"), load_gate=loaded)
     w = World(net)
     try:
         with gateway() as client:
@@ -113,12 +114,15 @@ def test_jobs_and_a_second_switch_are_refused_while_a_scene_loads(net, gateway):
             t = threading.Thread(target=lambda: result.update(
                 r=client.post("/robot/scene", json={"scene": "generated:9"})))
             t.start()
-            wait_until(lambda: client.app.state.scene_lock.locked(), 5.0, "the switch to start")
-            assert client.post("/robot/scene", json={"scene": "generated:8"}).status_code == 409
-            m = client.post("/missions", json={"instruction": "go to the kitchen", "map_id": "house"})
-            assert m.status_code == 409 and "switching scenes" in m.json()["detail"]
-            assert client.post("/explorations", json={"map_id": "other"}).status_code == 409
-            t.join(10)
+            try:
+                wait_until(lambda: client.app.state.scene_lock.locked(), 5.0, "the switch to start")
+                assert client.post("/robot/scene", json={"scene": "generated:8"}).status_code == 409
+                m = client.post("/missions", json={"instruction": "go to the kitchen", "map_id": "house"})
+                assert m.status_code == 409 and "switching scenes" in m.json()["detail"]
+                assert client.post("/explorations", json={"map_id": "other"}).status_code == 409
+            finally:
+                loaded.set()  # also when an assertion failed: the gateway waits for the switch's request on exit
+                t.join(10)
             assert result["r"].status_code == 200
             # Refused submissions leave nothing behind, and jobs start again once the switch is done.
             assert client.get("/missions").json()["total"] == 0
