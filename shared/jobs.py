@@ -242,10 +242,10 @@ def await_job(bus: TypedBus, submit_key: str, request: Message, events_key: str,
             except queue.Empty:
                 if time.monotonic() - last_s > stall_s:
                     if asked:
-                        log.warning("job %s sent nothing for %.0f s after its cancel; taken as cancelled",
+                        log.warning("job %s sent nothing for %.3g s after its cancel; taken as cancelled",
                                     reply.job_id, stall_s)
                         raise Cancelled() from None
-                    raise JobFailedError(f"no event from job {reply.job_id} for {stall_s:.0f} s") from None
+                    raise JobFailedError(f"no event from job {reply.job_id} for {stall_s:.3g} s") from None
                 continue
             last_s = time.monotonic()
             if ev.job_id != reply.job_id or ev.seq <= seen:
