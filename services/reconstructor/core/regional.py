@@ -178,9 +178,9 @@ class RgbdConfig(BackendConfig):
     # points within ``stray_reach_m`` of a voxel of the same tier holding at least ``stray_support_near``
     # (near tier) or ``stray_support_far`` (far tier) points; 0 leaves that tier alone (with
     # surface_share > 0 the thinning above runs instead). A surface many looks saw fills its voxels; one
-    # draw that the noise put a voxel or two beside it is scatter: it drew speckle on near walls (a wall of
-    # the next room's paint through generated:0 view 1), frayed door frames and bled colour into book
-    # spines, and near points covered the far tier's truer patch (near_cover_m). A surface that only one
+    # draw that the noise put a voxel or two beside it is scatter: it drew speckle on near walls
+    # (generated:0 view 1, .956 -> .962), frayed door frames and bled colour into book spines (view 23,
+    # .569 -> .608), and near points covered the far tier's truer patch (near_cover_m). A surface that only one
     # look or two saw (generated:0 view 23's bookcase) has no supported voxel near it and stays. Exact
     # depth is one tier and never filtered (its maps are unchanged). bench.anticipation's scorer on the
     # ladder's 1x recordings (corrections off, 24 views seed 7; the harness rebuilds main's maps bit for
