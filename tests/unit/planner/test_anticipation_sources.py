@@ -13,7 +13,6 @@ from services.planner.core import POLICIES
 from services.planner.core.mission import AnticipationError, MissionLoop, TrueSceneViews
 from services.planner.core.policy import Policy
 from services.renderer.core import MapRenderer, SpatialMapper
-from services.robot_io.core import ROBOTS
 from libs.pointrender import RENDERERS, IndexedCloud
 from shared.schemas import CameraIntrinsics, MissionOptions, RenderRequest, SceneViewsRequest, ViewPose
 
@@ -23,12 +22,12 @@ CAM = {"width_px": 64, "height_px": 64, "hfov_deg": 90.0}
 
 
 @pytest.fixture(scope="module")
-def world(house_map_cloud):
-    robot = ROBOTS.create("sim", {"scene": "generated:0", "camera": CAM})
+def world(house_robot, house_map_cloud):
+    # The session's simulator of generated:0 at this file's camera (tests/unit/conftest.py), not one
+    # of its own: every test here resets it to the start pose before it moves or looks.
     c = house_map_cloud  # the same scene's cloud, sampled once for the session
     port = MapRenderer(IndexedCloud(c), RENDERERS.create("numpy"), SpatialMapper())
-    yield robot, port, c.label_names
-    robot.close()
+    return house_robot, port, c.label_names
 
 
 class Keeps(Policy):

@@ -214,12 +214,15 @@ def test_ply_round_trip_keeps_labels(tmp_path):
 
 def test_replica_office_fidelity(shared_data):
     mesh = scenes.replica_office(shared_data)
-    index = IndexedCloud(scenes.sample_mesh(mesh, 500_000))
+    # 250k points: SSIM 0.87 (0.90 at 500k, for 2.3x the CPU: the normals of every point), and the
+    # same geometry errors fall below the bar as at 500k (hfov 100 for 90: 0.49; the image
+    # transposed or mirrored: 0.39).
+    index = IndexedCloud(scenes.sample_mesh(mesh, 250_000))
     gt = scenes.RaycastCamera(mesh)
     poses = scenes.replica_view_poses(shared_data, 4, stride=400)
     out = RENDERERS.create("numpy").render_poses(index, poses, CAM)
     ssim = [structural_similarity(gt.render(p, CAM)[0], out.rgb[i], channel_axis=2) for i, p in enumerate(poses)]
-    # Measured ~0.8 on these poses; the smooth office texture is easy for splats away from holes.
+    # The smooth office texture is easy for splats away from holes.
     assert np.mean(ssim) > 0.6, ssim
 
 

@@ -15,10 +15,11 @@ from shared.schemas import FloorGrid, NavEdge, NavGraph, NavNode, SceneGraph, Sc
 
 
 @pytest.fixture(scope="module")
-def house_cloud(house_robot) -> PointCloud:
+def house_cloud(house_robot, house_viewpoints) -> PointCloud:
     # The map's labelled points (visible surfaces only): what the builder may read. The scene's own rooms
     # are used below only to check the graph, never given to the builder.
-    return sample_scene_cloud(house_robot.scene, density_per_m2=400, max_points=300_000)
+    return sample_scene_cloud(house_robot.scene, density_per_m2=400, max_points=300_000,
+                              viewpoints_m=house_viewpoints)
 
 
 def test_schema_refuses_non_finite_out_of_range_and_dangling_references():
