@@ -103,9 +103,10 @@ class RunConfig(BaseModel):
     budget_wall_s: float | None = Field(None, gt=0, allow_inf_nan=False,
                                         description="stop the run once this call has run this many seconds")
     stop_wait_s: float = Field(120.0, gt=0, le=3600, allow_inf_nan=False,
-                               description="how long a mission or exploration cancelled by the budget may take "
-                                           "to end (the planner ends a mission between steps, the mapper an "
-                                           "exploration within a step or by cancelling its map build)")
+                               description="how long a mission or exploration cancelled (by the budget or a "
+                                           "timeout) may take to end (the planner ends a mission between steps, "
+                                           "the mapper an exploration within a step or by cancelling its map "
+                                           "build)")
 
     def experiment_key(self) -> dict[str, Any]:
         """The settings a results file is only valid for (resuming with others would mix experiments)."""
@@ -633,10 +634,12 @@ class EvalRunner:
             if rec["state"] not in TERMINAL_STATES:
                 rec = self._cancel_and_wait(mid)
         except MissionTimeout as exc:
+            # Waited for as a budget's stop is: the next episode's mission must not start while this one still
+            # drives the robot (nor a resume find it running).
             try:
-                self.gateway.cancel_mission(mid)
+                self._cancel_and_wait(mid)
             except GatewayError as cancel_exc:
-                log.warning("could not cancel %s: %s", mid, cancel_exc)
+                log.warning("could not see %s end after its timeout: %s", mid, cancel_exc)
             return self._base(e, status="error", reason=f"timeout: {exc}", mission_id=mid,
                               wall_s=time.monotonic() - t0, **base)
         except GatewayError as exc:
