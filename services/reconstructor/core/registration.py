@@ -641,7 +641,8 @@ def register_stands(images: list[PosedImage], cfg: StandRegistrationConfig) -> t
         centre = np.mean([im.position_m for im in images[a:b]], axis=0)
         for i in range(a, b):
             im = images[i]
-            out[i] = PosedImage(**{**im.__dict__, "world_from_camera": _turned_about(im.world_from_camera, x[i - a], centre),
+            turned = _turned_about(im.world_from_camera, x[i - a], centre)
+            out[i] = PosedImage(**{**im.__dict__, "world_from_camera": turned,
                                    "heading_rad": float(im.heading_rad + x[i - a])})
         rep.adjusted += 1
         rep.frames_adjusted += b - a
