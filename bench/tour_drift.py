@@ -138,6 +138,7 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
                                           planned[r.region].position_m[:2])))
               for r in recs if r.frames and r.frames[0].index in truth and r.region in planned]
     between = _between_panoramas(recs, truth, pano_truth, loc)
+    stands = _stand_headings(recs, truth)
     outcomes: dict[str, int] = {}
     for s in loc.frame_steps:
         key = s.outcome.split(":")[0]
@@ -154,9 +155,32 @@ def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz
             "frame_region": frame_region, "frame_xyz": frame_xyz,
             "pano_poses": np.array(pano_xy) if pano_xy else np.zeros((0, 7)), "pano_outcomes": outcomes_,
             "node_errors": np.array(nodes) if nodes else np.zeros((0, 3)), "node_shift": loc.node_shift,
-            "tour_start_vs_plan_m": np.array(starts), "between": between,
+            "tour_start_vs_plan_m": np.array(starts), "between": between, "stands": stands,
             "rooms": rooms(len(pg.nodes), full)[pano_step] if pg else None, "pano_steps": pano_step,
             "one_way_pairs": one_way}
+
+
+def _stand_headings(recs, truth: dict) -> dict:
+    """The look-arounds' frames (runs of frames on one spot) as the reconstructor places them: each frame's
+    heading error (deg) against the truth as recorded and after the reconstructor's stand registration
+    (registration.register_stands, its default config), and how many stands it moved."""
+    from services.reconstructor.core.frames import posed_from_frame
+    from services.reconstructor.core.registration import StandRegistrationConfig, find_stands, register_stands
+
+    cfg = StandRegistrationConfig()
+    before, after, found, moved = [], [], 0, 0
+    for rec in recs:
+        frames = [f for f in rec.frames if f.index in truth]
+        ims = [posed_from_frame(f) for f in frames]  # the camera height does not change a heading
+        out, rep = register_stands(ims, cfg)
+        found, moved = found + rep.stands, moved + rep.adjusted
+        true = np.array([truth[f.index][0].heading_rad for f in frames])
+        for a, b in find_stands(ims, cfg.same_place_m, cfg.min_frames):
+            for dst, src in ((before, ims), (after, out)):
+                h = np.array([im.heading_rad for im in src[a:b]])
+                dst.append(np.abs(np.degrees(np.angle(np.exp(1j * (h - true[a:b]))))))
+    cat = lambda v: np.concatenate(v) if v else np.zeros(0)  # noqa: E731
+    return {"before_deg": cat(before), "after_deg": cat(after), "stands": found, "adjusted": moved}
 
 
 def _between_panoramas(recs, truth: dict, pano_truth: dict, loc) -> np.ndarray:
@@ -367,6 +391,12 @@ def report(r: dict) -> None:
               f"in time {q(b[:, 2])} (heading {np.median(b[:, 3]):.2f} / {np.percentile(b[:, 3], 90):.2f} deg): "
               f"the last is the drift between exact panoramas; true corrections along the path and turns "
               f"{q(b[:, 4])} (heading {np.median(b[:, 5]):.2f} / {np.percentile(b[:, 5], 90):.2f} deg)")
+    st = r.get("stands")
+    if st is not None and len(st["before_deg"]):
+        q = lambda v: f"{np.median(v):.2f} / {np.percentile(v, 90):.2f} / {v.max():.2f}"  # noqa: E731
+        print(f"   look-arounds: {st['stands']} stands ({len(st['before_deg'])} frames on one spot), heading error "
+              f"median / p90 / max (deg): as recorded {q(st['before_deg'])}; after the reconstructor's stand "
+              f"registration {q(st['after_deg'])} ({st['adjusted']} stands moved)")
     ne, ns = r["node_errors"], r["node_shift"]
     if len(ne):
         print(f"   graph: {len(ne)} visited nodes against the truth of their panoramas, median / p90 (cm): before "

@@ -16,8 +16,8 @@ from shared.geometry import PinholeCamera, camera_pose
 from services.reconstructor.core.frames import PosedImage
 from services.reconstructor.core.pipeline import MapBuild, ReconstructionConfig
 from services.reconstructor.core.registration import (
-    FrameRegistrationConfig, RegionRegistrationConfig, Target, apply_se2, icp_planar, register_frames,
-    register_regions, se2, se2_params,
+    FrameRegistrationConfig, RegionRegistrationConfig, StandRegistrationConfig, Target, apply_se2, find_stands,
+    icp_planar, register_frames, register_regions, register_stands, se2, se2_params,
 )
 
 ROOM_LO = np.array([-2.0, -1.5, 0.0])
@@ -287,3 +287,62 @@ def test_two_faces_of_a_wall_do_not_pull_a_region_through_it():
     assert math.hypot(x, y) > 0.05, blind.regions  # what went wrong before: pulled through both walls
     rep = register_regions([a, b], cfg, [va, vb])
     assert np.array_equal(rep.corrections[1], np.eye(3)), rep.regions
+
+
+# A hub's look-around (the simulator's): the yaw swept 0 -> +60 -> -60 -> 0 deg at pitch 0, +45 and -45 in
+# 15 deg steps, (yaw, pitch) in degrees.
+SWEEP = ([(0, 0)] + [(y, 0) for y in range(15, 61, 15)] + [(y, 0) for y in range(45, -61, -15)]
+         + [(-60, 45)] + [(y, 45) for y in range(-45, 61, 15)] + [(60, -45)]
+         + [(y, -45) for y in range(45, -61, -15)] + [(-45, -30), (-30, -15), (-15, 0), (0, 0)])
+STAND_FRAMES = len(SWEEP)
+
+
+def _stand(heading_error_deg, at=(0.2, 0.1)) -> tuple[list, list]:
+    """(images as recorded, their true headings) of a look-around (SWEEP) in the box room, each frame's
+    believed heading off by ``heading_error_deg[k]`` (the drift of the turns)."""
+    ims, truth = [], []
+    for k, ((yaw, pitch), err) in enumerate(zip(SWEEP, heading_error_deg)):
+        h = math.radians(30.0 + yaw)
+        true = camera_pose(np.array([*at, 0.0]), h, math.radians(pitch), H_M)
+        told = camera_pose(np.array([*at, 0.0]), h + math.radians(err), math.radians(pitch), H_M)
+        ims.append(PosedImage(rgb=np.zeros((CAM.height_px, CAM.width_px, 3), np.uint8), world_from_camera=told,
+                              camera=CAM, depth_m=_depth(true), index=k, heading_rad=h + math.radians(err),
+                              pitch_rad=math.radians(pitch)))
+        truth.append(h)
+    return ims, truth
+
+
+def test_a_look_arounds_heading_drift_is_taken_out():
+    # The heading drifts as a random walk over the turns; the mapper's panoramas before and after the
+    # look-around hold its ends (a random walk's bridge: the end frames right, the middle up to ~1 deg off).
+    walk = np.cumsum(np.random.default_rng(3).normal(0.0, 0.25, STAND_FRAMES))
+    err = walk - np.linspace(walk[0], walk[-1], STAND_FRAMES)
+    ims, truth = _stand(err)
+    before = np.abs(err).max()
+    out, rep = register_stands(ims, StandRegistrationConfig(pixel_stride=2))
+    after = max(abs(math.degrees(im.heading_rad - t)) for im, t in zip(out, truth))
+    assert before > 1.5 and after < 0.15, (before, after)
+    assert rep.stands == 1 and rep.adjusted == 1 and rep.frames_adjusted == STAND_FRAMES
+    # The frames turned about the camera's vertical axis: the camera stays where it was, level stays level.
+    for a, b in zip(ims, out):
+        assert np.allclose(a.world_from_camera[:3, 3], b.world_from_camera[:3, 3])
+        assert math.isclose(a.world_from_camera[2, 2], b.world_from_camera[2, 2], abs_tol=1e-12)
+    # Off: the same frames come back as they were.
+    same, rep_off = register_stands(ims, StandRegistrationConfig(enabled=False))
+    assert all(a is b for a, b in zip(same, ims)) and rep_off.stands == 0
+
+
+def test_an_exact_stand_is_left_bit_identical():
+    ims, _ = _stand(np.zeros(STAND_FRAMES))
+    out, rep = register_stands(ims, StandRegistrationConfig(pixel_stride=2))
+    assert rep.stands == 1 and rep.adjusted == 0 and rep.kept == {"within gate": 1}
+    assert all(a is b for a, b in zip(ims, out))
+
+
+def test_stands_are_the_runs_of_frames_on_one_spot():
+    a, _ = _stand(np.zeros(STAND_FRAMES), at=(0.2, 0.1))
+    b, _ = _stand(np.zeros(STAND_FRAMES), at=(1.0, 0.1))
+    drive = [PosedImage(rgb=a[0].rgb, world_from_camera=camera_pose(np.array([0.2 + 0.1 * k, 0.1, 0.0]), 0.0, 0.0, H_M),
+                        camera=CAM, depth_m=a[0].depth_m) for k in range(1, 8)]
+    assert find_stands(a + drive + b, 0.02, 12) == [(0, STAND_FRAMES), (STAND_FRAMES + 7, 2 * STAND_FRAMES + 7)]
+    assert find_stands(drive, 0.02, 3) == []
