@@ -28,7 +28,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-from shared.jit import AVAILABLE, kernel, numba  # noqa: F401  (re-exported)
+from shared.jit import AVAILABLE, kernel
 
 
 # The colour and offset sums are float32 sums of 8-bit values: exact (the integers the array code

@@ -29,7 +29,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-from shared.jit import AVAILABLE, kernel, numba  # noqa: F401  (re-exported)
+from shared.jit import AVAILABLE, kernel
 
 # Packing of voxel keys, shared with voxel.py (which imports these).
 AXIS_BITS = 15

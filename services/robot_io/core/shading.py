@@ -28,7 +28,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-from shared.jit import AVAILABLE, kernel, numba  # noqa: F401  (re-exported)
+from shared.jit import AVAILABLE, kernel
 
 
 @dataclass
