@@ -160,6 +160,7 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
             "plan_s": round(pt.plan_s, 4),
             "tour_vs_nn": round(pt.order_length_m / pt.nn_length_m, 3) if pt.nn_length_m > 0 else 1.0,
             "path_m": round(pt.length_m, 1),
+            "paths_on": pt.paths_on,
         })
     nn = sum(pt.nn_length_m for pt in d.tours)
     ours = sum(pt.order_length_m for pt in d.tours)

@@ -330,3 +330,57 @@ def test_a_one_hub_tour_hidden_from_the_nearest_node_starts_from_a_node_that_see
     rec = execute_tour(robot, _planned([(1.5, 0.0)], [0]), scene=scene, rate_hz=1.0)
     assert rec.hubs_visited == 1
     assert robot.looks[0] == pytest.approx((1.5, 0.0), abs=0.02)
+
+
+def _split_region_scene():
+    """One region over two rooms joined by a 0.4 m door (narrower than the tour's 0.6 m body with
+    clearance, as a drifting robot's scans draw a doorway it walked through); the robot walked from
+    the near room, where most of its nodes are, through the door to the far room's end and back."""
+    from services.mapper.core.explorer import ExplorationResult
+    from services.mapper.core.navgraph import GridGraph
+    from services.mapper.core.regions import Floor, SceneMap
+    from shared.schemas import Pose
+
+    cells = np.full((82, 32), OCCUPIED, np.uint8)  # 0.1 m cells: x 0-8.2 m, y 0-3.2 m
+    cells[1:30, 1:31] = FREE  # the near room, x 0.1-3.0 m
+    cells[31:81, 1:31] = FREE  # the far room, x 3.1-8.1 m
+    cells[30, 14:18] = FREE  # the door, y 1.4-1.8 m
+    occ = OccupancyGrid(cells, np.zeros(2), 0.1, 0.0)
+    g = GridGraph()
+    near = [g.add_visited((x, 1.55, 0.0), order=k) for k, x in enumerate((0.8, 1.6, 2.4))]
+    far = [g.add_visited((x, 1.55, 0.0), order=3 + k) for k, x in enumerate((4.5, 6.5))]
+    for a, b in zip(near + far, (near + far)[1:]):
+        g.connect(a, b)
+    xs = np.r_[np.arange(0.8, 7.0, 0.2), np.arange(6.6, 0.7, -0.2)]
+    traj = np.column_stack([xs, np.full(len(xs), 1.55), np.zeros(len(xs))])
+    nodes = near + far
+    result = ExplorationResult(graph=g, scans=[], trajectory_m=traj, visit_order=nodes, steps=len(nodes),
+                               moves=len(traj) - 1, unreachable=0, blocked_moves=0, finished=True, duration_s=0.0,
+                               start_pose=Pose(position_m=(0.8, 1.55, 0.0), heading_rad=0.0))
+    return SceneMap(result, [Floor(0, 0.0, occ, nodes)], set(), {0: nodes}, {0: 0}, {n: 0 for n in nodes})
+
+
+def test_a_region_the_map_splits_at_a_door_the_robot_walked_through_is_toured_on_its_walk():
+    from services.mapper.core.tours import TourConfig, TourPlanner
+
+    scene = _split_region_scene()
+    (on_map,) = TourPlanner(TourConfig(walked_fallback_below=0.0)).plan(scene)
+    (pt,) = TourPlanner().plan(scene)
+    # On the map alone the tour stands in the near room and sees the far one only through the door.
+    assert on_map.paths_on == "map" and on_map.achievable_coverage < 0.8
+    assert (np.asarray(on_map.tour.hubs_m)[:, 0] < 3.0).all()
+    # On the walk, a hub stands in the far room and the region is covered as tau asks.
+    assert pt.paths_on == "walked"
+    assert (np.asarray(pt.tour.hubs_m)[:, 0] > 3.1).any()
+    assert pt.tour.coverage >= 0.9 > on_map.tour.coverage
+
+
+def test_a_region_the_map_covers_keeps_its_map_tour():
+    from services.mapper.core.tours import TourConfig, TourPlanner
+
+    scene = _split_region_scene()
+    scene.floors[0].occupancy.cells[30, 8:24] = FREE  # a 1.6 m opening: the map joins the rooms itself
+    (pt,) = TourPlanner().plan(scene)
+    (on_map,) = TourPlanner(TourConfig(walked_fallback_below=0.0)).plan(scene)
+    assert pt.paths_on == "map" and pt.achievable_coverage >= 0.8
+    assert np.array_equal(pt.tour.path_m, on_map.tour.path_m)
