@@ -532,11 +532,8 @@ def find_stands(images: list[PosedImage], same_place_m: float, min_frames: int) 
 
 def _turned_about(m: np.ndarray, yaw: float, centre: np.ndarray) -> np.ndarray:
     """The 4x4 pose ``m`` turned by ``yaw`` about the vertical axis through ``centre``."""
-    r = np.eye(4)
-    c, s = math.cos(yaw), math.sin(yaw)
-    r[:2, :2] = [[c, -s], [s, c]]
-    r[:2, 3] = centre[:2] - r[:2, :2] @ centre[:2]
-    return r @ m
+    r = se2(0.0, 0.0, yaw)[:2, :2]
+    return se2_to_4x4(se2(*(centre[:2] - r @ centre[:2]), yaw)) @ m
 
 
 def stand_headings(images: list[PosedImage], cfg: StandRegistrationConfig) -> np.ndarray:
@@ -609,8 +606,7 @@ def stand_headings(images: list[PosedImage], cfg: StandRegistrationConfig) -> np
         # heading: turning the whole stand changes no residual, and only the anchors hold its heading.
         # (Each point's own lever let the matches' small offsets turn whole stands of exact frames by
         # 0.13 deg on generated:0.)
-        la = nq[:, 1] * (0.5 * (p[a, 0] + p[b, 0]) - centre[0]) - nq[:, 0] * (0.5 * (p[a, 1] + p[b, 1]) - centre[1])
-        lb = la
+        lever = nq[:, 1] * (0.5 * (p[a, 0] + p[b, 0]) - centre[0]) - nq[:, 0] * (0.5 * (p[a, 1] + p[b, 1]) - centre[1])
         # Weighted by both points' depth noise, Huber beyond huber_sigmas of it.
         sp = np.hypot(sig[a], sig[b])
         ar = np.abs(r) / sp
@@ -618,9 +614,11 @@ def stand_headings(images: list[PosedImage], cfg: StandRegistrationConfig) -> np
         ia, ib = own[a], own[b]
         # The normal equations: each match ties its two frames' headings (bincount: np.add.at is slow).
         cells = np.concatenate([ia * n + ia, ib * n + ib, ia * n + ib, ib * n + ia])
-        vals = np.concatenate([w * la * la, w * lb * lb, -w * la * lb, -w * la * lb])
+        wll = w * lever * lever
+        vals = np.concatenate([wll, wll, -wll, -wll])
         h = prior + np.bincount(cells, vals, minlength=n * n).reshape(n, n)
-        g = prior @ x + np.bincount(np.concatenate([ia, ib]), np.concatenate([w * la * r, -w * lb * r]), minlength=n)
+        wlr = w * lever * r
+        g = prior @ x + np.bincount(np.concatenate([ia, ib]), np.concatenate([wlr, -wlr]), minlength=n)
         x = x - np.linalg.solve(h, g)
     return x
 
