@@ -646,7 +646,40 @@ class _Run:
                 return True
             self.blocked += 1
             self._return_to(self.here)
-        return self._reconnect_by_map([o for o, s in zip(others, same) if s])
+        return self._reconnect_by_map([o for o, s in zip(others, same) if s]) or self._bridge()
+
+    def _bridge(self) -> bool:
+        """Rejoin the rest where the two parts of the graph touch, not where the robot stands: walk
+        to the node of its own part nearest a node of another part at the same height, and move
+        across. A robot that slid off a flight and climbed on from where it landed explores the upper
+        floor as a part whose only contact with the rest is on the stairs; :meth:`_reconnect` looks
+        only near the robot, a floor away from every node of the rest. generated:1011:floors=2
+        (noisy) so gave up 21 frontiers of its ground floor, two stair nodes of the two parts 0.2 m
+        apart, and its tours could not reach three of its six ground-floor regions."""
+        g = self.graph
+        reach = nx.node_connected_component(g.walked(), self.here)
+        visited = g.nodes_with(NodeStatus.VISITED)
+        mine, others = [n for n in visited if n in reach], [n for n in visited if n not in reach]
+        if not others:
+            return False
+        pa, pb = g.positions(mine), g.positions(others)
+        level = np.abs(pa[:, None, 2] - pb[None, :, 2]) < self.cfg.same_floor_dz_m
+        gap = np.where(level, np.linalg.norm(pa[:, None, :2] - pb[None, :, :2], axis=2), np.inf)
+        for k in np.argsort(gap, axis=None)[: self.cfg.replan_attempts]:
+            i, j = np.unravel_index(k, gap.shape)
+            if gap[i, j] > self.cfg.reconnect_radius_m:
+                break
+            if not self._follow(nx.shortest_path(g.walked(), self.here, mine[i], weight="length")):
+                return False  # an edge of the way was dropped: the caller plans again
+            res = self._move(*(pb[j, :2] - self.pose.xyz[:2]))
+            if res.status == MoveStatus.REACHED:
+                g.connect(self.here, others[j], res.travelled_m)
+                self.here = others[j]
+                log.info("rejoined the rest of the graph across %s -> %s (%.2f m)", mine[i], others[j], gap[i, j])
+                return True
+            self.blocked += 1
+            self._return_to(self.here)
+        return False
 
     def _reconnect_by_map(self, others: list[str]) -> bool:
         """No straight move rejoins the rest: walk the free-space map's shortest way to the nearest
