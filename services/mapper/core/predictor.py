@@ -130,8 +130,8 @@ class GeometricPredictorConfig(BackendConfig):
     # whatever stands behind. On the 5 of 300 seed-0 ablation episodes that ended at step 0 (ids 126,
     # 174, 233, 255, 258): 0.1 m gives 4 of them a candidate (not 255), 0.075 m all 5, and the
     # simulator walks 12 of their 13 candidates to the end (one stops after 0.19 of 0.5 m). At or above
-    # the clearance: off.
-    escape_clearance_m: float = Field(0.075, ge=0.0, le=1.0)
+    # the clearance, or None: off (the exploration's own way out of a dead end is the graph, discovery.py).
+    escape_clearance_m: float | None = Field(0.075, ge=0.0, le=1.0)
 
     @model_validator(mode="after")
     def _ranges(self):
@@ -462,7 +462,7 @@ class GeometricPredictor:
         c = self.config
         obst = self.obstacle_distance(panorama)
         prediction = self._predict_at(obst, c.clearance_m, panorama.pose.heading_rad)
-        if prediction.candidates or c.escape_clearance_m >= c.clearance_m:
+        if prediction.candidates or c.escape_clearance_m is None or c.escape_clearance_m >= c.clearance_m:
             return prediction
         return self._predict_at(obst, c.escape_clearance_m, panorama.pose.heading_rad)
 

@@ -18,6 +18,7 @@ from shared.geometry import PinholeCamera
 from shared.schemas import Pose
 
 from services.mapper.core import GeometricPredictor, GeometricPredictorConfig
+from services.mapper.core.discovery import discovery_config
 from services.mapper.tools.boxworld import Box, BoxWorld, BoxWorldRobot
 
 START = (1.5, 0.1, 0.0)  # 0.1 m north of the south wall
@@ -57,6 +58,15 @@ def test_a_robot_beside_a_wall_gets_away_from_it(heading_rad):
         assert not world.blocked(end[0], end[1], 0.0, p.config.escape_clearance_m), f"candidate {c} ends in an obstacle"
         k = int(round((c.angle_rad % (2 * math.pi)) / (2 * math.pi / p.config.angle_bins))) % p.config.angle_bins
         assert c.distance_m <= pr.free_distance_m[k] + 1e-9
+
+
+def test_an_exploration_dead_end_stays_one():
+    """The exploration's predictor does not escape: its dead ends are left along the graph, and escape
+    frontiers reordered the walk of both two-floor houses of the seed-0 set (discovery.WIDE_EXPLORATION)."""
+    pano = _pano(_alcove(), START, 0.3)
+    for profile in ("default", "cluttered-scan"):
+        config = GeometricPredictorConfig(**discovery_config(profile).predictor_config)
+        assert GeometricPredictor(config).predict_full(pano).candidates == [], profile
 
 
 def test_a_panorama_with_room_to_move_keeps_its_candidates(world):
