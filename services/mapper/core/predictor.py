@@ -39,6 +39,7 @@ class Prediction:
     free_distance_m: np.ndarray  # (angle_bins,) obstacle-free travel distance per angle bin
     angles_rad: np.ndarray  # (angle_bins,) bin centres relative to the heading, positive left
     distances_m: np.ndarray  # (distance_bins,) bin centres
+    clearance_m: float  # the body clearance the free distances were swept with (less when boxed in)
 
 
 @dataclass(frozen=True)
@@ -119,6 +120,18 @@ class GeometricPredictorConfig(BackendConfig):
     door_score: float = Field(0.9, gt=0.0, le=1.0)  # heatmap value of an approach waypoint
     max_door_candidates: int = Field(2, ge=0, le=32)
     nms_distance_m: float = Field(1.0, gt=0.0)  # a doorway waypoint suppresses only this near in distance
+    # Boxed in: where no candidate clears the full clearance (body_radius_m + clearance_margin_m), the
+    # free distances are swept again with this smaller disc, so that a robot standing nearer to a wall
+    # than its clearance can still get away from it; a panorama that has a candidate is not touched.
+    # Obstacles the smaller disc already overlaps block only the directions that approach them (see
+    # sweep). It lies below the profile's 0.1 m bin because the profile reads an obstacle at the near
+    # edge of its bin: a wall 0.1-0.2 m away reads 0.1 m over an arc of up to 100 deg, and a disc of
+    # 0.1 m may not move towards any point of that arc, so it could only back straight off into
+    # whatever stands behind. On the 5 of 300 seed-0 ablation episodes that ended at step 0 (ids 126,
+    # 174, 233, 255, 258): 0.1 m gives 4 of them a candidate (not 255), 0.075 m all 5, and the
+    # simulator walks 12 of their 13 candidates to the end (one stops after 0.19 of 0.5 m). At or above
+    # the clearance, or None: off (the exploration's own way out of a dead end is the graph, discovery.py).
+    escape_clearance_m: float | None = Field(0.075, ge=0.0, le=1.0)
 
     @model_validator(mode="after")
     def _ranges(self):
@@ -442,14 +455,26 @@ class GeometricPredictor:
         return self.predict_full(panorama).candidates
 
     def predict_full(self, panorama: Panorama) -> Prediction:
-        """Candidates plus the heatmap and free-space profile they came from."""
+        """Candidates plus the heatmap and free-space profile they came from.
+
+        Swept at the full body clearance; only where that leaves no candidate at all (the robot is
+        boxed in) again at ``escape_clearance_m`` (see the config)."""
+        c = self.config
         obst = self.obstacle_distance(panorama)
-        free = self._free_from_obstacles(obst)
+        prediction = self._predict_at(obst, c.clearance_m, panorama.pose.heading_rad)
+        if prediction.candidates or c.escape_clearance_m is None or c.escape_clearance_m >= c.clearance_m:
+            return prediction
+        return self._predict_at(obst, c.escape_clearance_m, panorama.pose.heading_rad)
+
+    def _predict_at(self, obst: np.ndarray, clearance_m: float, heading_rad: float) -> Prediction:
+        free = self._free_from_obstacles(obst, clearance_m)
         heatmap = self.heatmap(free)
+        # A doorway's approach point must be reachable at this clearance; the straight shot through
+        # the door from there keeps the full one (by then the robot is out of the box).
         doors = self.doorways(obst, free) if self.config.doorways else []
         priority = self._door_peaks(heatmap, doors)
-        candidates = self._nms(heatmap, panorama.pose.heading_rad, priority)
-        return Prediction(candidates, heatmap, doors, free, self.angles_rad, self.distances_m)
+        candidates = self._nms(heatmap, heading_rad, priority)
+        return Prediction(candidates, heatmap, doors, free, self.angles_rad, self.distances_m, clearance_m)
 
     def obstacle_distance(self, panorama: Panorama) -> np.ndarray:
         """Horizontal distance to the nearest obstacle per angle bin (``inf``: none in range)."""
@@ -565,12 +590,11 @@ class GeometricPredictor:
 
     def free_distance(self, panorama: Panorama) -> np.ndarray:
         """How far the agent's body (radius + margin) can travel along each angle bin."""
-        return self._free_from_obstacles(self.obstacle_distance(panorama))
+        return self._free_from_obstacles(self.obstacle_distance(panorama), self.config.clearance_m)
 
-    def _free_from_obstacles(self, obst: np.ndarray) -> np.ndarray:
-        c = self.config
+    def _free_from_obstacles(self, obst: np.ndarray, clearance_m: float) -> np.ndarray:
         unseen = np.isnan(obst)
-        free = self.sweep(np.where(unseen, np.inf, obst), c.clearance_m, c.sensor_range_m)
+        free = self.sweep(np.where(unseen, np.inf, obst), clearance_m, self.config.sensor_range_m)
         free[unseen] = 0.0
         return free
 
