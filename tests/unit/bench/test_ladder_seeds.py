@@ -1,15 +1,18 @@
-"""bench.agent_maps' noise seeds (issue 33): each noise seed is a map of its own (its name, its recording,
-its side record). No real map is built here: the exploration and the reconstructor are stand-ins, the
-simulated robot is real."""
+"""bench.anticipation --ladder --noise-seeds (issue 33): each noise seed is a map of its own (its name, its
+recording, its side record), the ladder's targets are checked on the seeds' means, and a corrected build's
+time is compared with the uncorrected one's from the same recording. No real map is built here: the
+exploration and the reconstructor are stand-ins, the simulated robot is real."""
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from bench import agent_maps
+from bench import anticipation as an
 from shared.cloud import PointCloud
 
 SCENE = "generated:3:area=50"
@@ -101,3 +104,75 @@ def test_each_seed_is_its_own_recording_and_map_and_its_corrections_share_one_re
     robot, _ = agent_maps.build_map(SCENE, "rgbd", None)
     robot.close()
     assert agent_maps.build_record(SCENE, "rgbd", None)["noise_seed"] is None
+
+
+def _scores(mapped: float, ssim: float, n: int = 3, label: float = 0.95, leak: float = 0.0) -> an.Scores:
+    s = an.Scores()
+    s.coverage, s.ssim, s.label, s.leak = [mapped] * n, [ssim] * n, [label] * n, [leak] * n
+    s.holes = [0.0] * n
+    return s
+
+
+def _row(label, seed, corr, ssim_near, build_s=40.0, recording="r"):
+    bands = {"< 1 m": _scores(0.95, ssim_near), "1-2 m": _scores(0.9, 0.88, 5, leak=0.001), "> 2 m": an.Scores()}
+    return an.LadderRow(label, seed, corr, bands, {"build_s": build_s, "recording_id": recording}, 100)
+
+
+def test_the_seeds_mean_and_spread_per_band_and_a_band_with_no_view_is_left_out():
+    rows = [_row("1x", s, "off", v) for s, v in ((0, 0.90), (1, 0.80), (2, 0.84))]
+    (key, bands), = an.over_seeds(rows).items()
+    assert key == ("1x", "off") and list(bands) == ["< 1 m", "1-2 m"]
+    near = bands["< 1 m"]
+    assert near.mean[1] == pytest.approx(2.54 / 3) and (near.lo[1], near.hi[1]) == pytest.approx((0.80, 0.90))
+    assert near.mean[0] == pytest.approx(0.95) and near.per_seed.shape == (3, 4)
+    rows[1].bands["< 1 m"].label = []  # no view of seed 1 scored labels: the mean says so, not the others' mean
+    assert math.isnan(an.over_seeds(rows)[("1x", "off")]["< 1 m"].mean[2])
+
+
+def test_targets_are_checked_on_the_seeds_means_not_on_one_seed(capsys):
+    exact = _row("exact", None, "off", 0.90)
+    # Seed 0 alone meets SSIM within 0.05 of the noise-free 0.90 (0.88); the seeds' mean (0.84) does not.
+    noisy = [_row("1x", s, "off", v) for s, v in ((0, 0.88), (1, 0.80), (2, 0.84))]
+    an._ladder_report("h", "visibility", 24, 0.03, [exact, noisy[0]], [0])
+    one = capsys.readouterr().out
+    an._ladder_report("h", "visibility", 24, 0.03, [exact, *noisy], [0, 1, 2])
+    three = capsys.readouterr().out
+    assert "targets 1x off             < 1 m  mapped>=85% +  SSIM-0.05 +" in one
+    assert "targets 1x off             < 1 m  mapped>=85% +  SSIM-0.05 -" in three
+    # One seed, the simulator's: rows unlabelled by seed, no table of means (the table as before seeds).
+    assert "mean over noise seeds" not in one and "1x     off " in one and " s0 " not in one
+    assert "mean over noise seeds 0 1 2" in three and "1x s1  off " in three
+    assert "0.840 (0.800-0.880)" in three  # the < 1 m SSIM: mean (min-max)
+    for out in (one, three):  # the verdict lines come last, the table's order unchanged
+        assert out.rstrip().splitlines()[-1].startswith("targets 1x off             1-2 m")
+
+
+def test_build_times_are_paired_only_from_one_recording_and_averaged_over_seeds(capsys):
+    rows = [_row("exact", None, "off", 0.9, 30.0, "e"), _row("exact", None, "frames+regions", 0.9, 33.0, "e")]
+    for s in (0, 1, 2):
+        rows += [_row("1x", s, "off", 0.9, 40.0, f"r{s}"),
+                 _row("1x", s, "frames+regions", 0.9, 60.0 + 10 * s, f"r{s}" if s else "other"),
+                 _row("1x", s, "off:route", 0.9, 50.0, f"r{s}")]  # an oracle row: no build of the ladder
+    pairs = an.build_pairs(rows)
+    assert pairs[("exact", "frames+regions")] == [(None, 33.0, 30.0, True)]
+    assert pairs[("1x", "frames+regions")] == [(0, 60.0, 40.0, False), (1, 70.0, 40.0, True), (2, 80.0, 40.0, True)]
+    assert set(pairs) == {("exact", "frames+regions"), ("1x", "frames+regions")}
+    an._build_time_report(rows)
+    out = capsys.readouterr().out
+    assert "seed 0 60.0 / 40.0 s = 1.50x (not from one recording)" in out
+    assert "mean 1.88x  <=2x +" in out  # (1.75 + 2.0) / 2: seed 0's pair is not one recording's
+    rows[-2].record["build_s"] = 100.0
+    an._build_time_report(rows)
+    assert "mean 2.12x  <=2x -" in capsys.readouterr().out
+
+
+def test_the_ladder_takes_distinct_non_negative_seeds_and_defaults_to_the_simulators(monkeypatch):
+    got = {}
+    monkeypatch.setattr(an, "ladder", lambda *a, **kw: got.update(kw))
+    an.main(["--ladder"])
+    assert got["noise_seeds"] == [agent_maps.NOISE_SEED]
+    an.main(["--ladder", "--noise-seeds", "0", "1", "2"])
+    assert got["noise_seeds"] == [0, 1, 2]
+    for bad in (["1", "1"], ["-1"]):
+        with pytest.raises(SystemExit):
+            an.main(["--ladder", "--noise-seeds", *bad])
