@@ -63,9 +63,9 @@ missed targets seed 0 met, by both codes compared. So with ``--noise-seeds`` eac
 per seed (its own recording and cached map, ``_seed<n>`` in the name when not the default), the table lists
 each seed's rows, a second table the seeds' mean per band with the min-max between seeds, and the targets
 are checked on the means. A corrected build's time is set against the uncorrected one's from the same
-recording (issue 33: at most 2x at 1x), per seed and as the mean of the seeds' ratios; the ladder builds
-the two one after the other in one process, and a pair from two recordings (one map cached from another
-run) is shown but not averaged. The last line is the verdict: the targets, then, when both were built, how
+recording (issue 33: at most 2x at 1x), per seed and as the mean of the seeds' ratios, each with its
+registration's part ("off" keeps the stands' stage); the ladder builds the two one after the other in one
+process, and a pair from two recordings (one map cached from another run) is shown but not averaged. The last line is the verdict: the targets, then, when both were built, how
 far the correction moved the noise-free map.
 """
 
@@ -78,6 +78,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from skimage.metrics import structural_similarity
@@ -378,20 +379,33 @@ def targets_met(v: tuple[float, ...], ref: tuple[float, ...]) -> tuple[bool, boo
             v[3] <= max(TARGET_LEAK_TIMES * ref[3], 1e-3))
 
 
-def build_pairs(rows: list[LadderRow]) -> dict[tuple[str, str], list[tuple[int | None, float, float, bool]]]:
-    """(label, corrected correction) -> per noise seed (seed, corrected build s, uncorrected build s, paired):
-    paired when both maps were built from the same recording (their side records' ``recording_id``: the
-    ladder builds them one after the other in one process), so the two times differ by the correction alone
-    and by the machine's load at the time. Oracle rows and maps recorded without a build time are left out."""
+class BuildPair(NamedTuple):
+    """A corrected build's time against the uncorrected one's, each with its registration's part (the
+    uncorrected "off" keeps the stands' stage, StandRegistrationConfig: its registration is not zero)."""
+
+    noise_seed: int | None
+    corrected_s: float
+    uncorrected_s: float
+    corrected_register_s: float
+    uncorrected_register_s: float
+    paired: bool  # both built from one recording
+
+
+def build_pairs(rows: list[LadderRow]) -> dict[tuple[str, str], list[BuildPair]]:
+    """(label, corrected correction) -> per noise seed its BuildPair: paired when both maps were built from
+    the same recording (their side records' ``recording_id``: the ladder builds them one after the other in
+    one process), so the two times differ by the correction alone and by the machine's load at the time.
+    Oracle rows and maps recorded without a build time are left out."""
     off = {(r.label, r.noise_seed): r.record for r in rows if r.corr == "off"}
-    out: dict[tuple[str, str], list] = {}
+    out: dict[tuple[str, str], list[BuildPair]] = {}
     for r in rows:
         base = off.get((r.label, r.noise_seed))
         if r.corr == "off" or ":" in r.corr or base is None or "build_s" not in r.record or "build_s" not in base:
             continue
         rid = r.record.get("recording_id")
-        out.setdefault((r.label, r.corr), []).append(
-            (r.noise_seed, r.record["build_s"], base["build_s"], rid is not None and rid == base.get("recording_id")))
+        out.setdefault((r.label, r.corr), []).append(BuildPair(
+            r.noise_seed, r.record["build_s"], base["build_s"], r.record.get("register_s", math.nan),
+            base.get("register_s", math.nan), rid is not None and rid == base.get("recording_id")))
     return out
 
 
@@ -536,12 +550,14 @@ def _seed_means_report(spec: str, rows: list[LadderRow], seeds: dict, noise_seed
 
 
 def _build_time_report(rows: list[LadderRow]) -> None:
-    """Corrected against uncorrected build time per noise seed, from the same recording, and the mean of the
-    seeds' ratios (issue 33: <= 2x at 1x)."""
+    """Corrected against uncorrected build time per noise seed, from the same recording, each with its
+    registration's part, and the mean of the seeds' ratios (issue 33: <= 2x at 1x)."""
     for (label, corr), pairs in build_pairs(rows).items():
-        each = ", ".join(f"{'' if ns is None else f'seed {ns} '}{c:.1f} / {u:.1f} s = {c / u:.2f}x"
-                         f"{'' if paired else ' (not from one recording)'}" for ns, c, u, paired in pairs)
-        ratios = [c / u for _, c, u, paired in pairs if paired and u > 0]
+        each = ", ".join(f"{'' if p.noise_seed is None else f'seed {p.noise_seed} '}{p.corrected_s:.1f} / "
+                         f"{p.uncorrected_s:.1f} s = {p.corrected_s / p.uncorrected_s:.2f}x (registration "
+                         f"{p.corrected_register_s:.1f} / {p.uncorrected_register_s:.1f} s)"
+                         f"{'' if p.paired else ' not from one recording'}" for p in pairs)
+        ratios = [p.corrected_s / p.uncorrected_s for p in pairs if p.paired and p.uncorrected_s > 0]
         mark = ("  <=2x " + ("+" if np.mean(ratios) <= TARGET_BUILD_TIMES else "-")) if ratios and label == "1x" else ""
         mean = f"; mean {np.mean(ratios):.2f}x{mark}" if ratios else "; no pair from one recording"
         print(f"build time {label} {corr} / off: {each}{mean}")

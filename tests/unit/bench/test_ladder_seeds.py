@@ -115,7 +115,8 @@ def _scores(mapped: float, ssim: float, n: int = 3, label: float = 0.95, leak: f
 
 def _row(label, seed, corr, ssim_near, build_s=40.0, recording="r"):
     bands = {"< 1 m": _scores(0.95, ssim_near), "1-2 m": _scores(0.9, 0.88, 5, leak=0.001), "> 2 m": an.Scores()}
-    return an.LadderRow(label, seed, corr, bands, {"build_s": build_s, "recording_id": recording}, 100)
+    record = {"build_s": build_s, "register_s": build_s / 4, "recording_id": recording}
+    return an.LadderRow(label, seed, corr, bands, record, 100)
 
 
 def test_the_seeds_mean_and_spread_per_band_and_a_band_with_no_view_is_left_out():
@@ -154,12 +155,13 @@ def test_build_times_are_paired_only_from_one_recording_and_averaged_over_seeds(
                  _row("1x", s, "frames+regions", 0.9, 60.0 + 10 * s, f"r{s}" if s else "other"),
                  _row("1x", s, "off:route", 0.9, 50.0, f"r{s}")]  # an oracle row: no build of the ladder
     pairs = an.build_pairs(rows)
-    assert pairs[("exact", "frames+regions")] == [(None, 33.0, 30.0, True)]
-    assert pairs[("1x", "frames+regions")] == [(0, 60.0, 40.0, False), (1, 70.0, 40.0, True), (2, 80.0, 40.0, True)]
+    assert pairs[("exact", "frames+regions")] == [(None, 33.0, 30.0, 8.25, 7.5, True)]
+    assert [(p.noise_seed, p.corrected_s, p.uncorrected_s, p.paired) for p in pairs[("1x", "frames+regions")]] == [
+        (0, 60.0, 40.0, False), (1, 70.0, 40.0, True), (2, 80.0, 40.0, True)]
     assert set(pairs) == {("exact", "frames+regions"), ("1x", "frames+regions")}
     an._build_time_report(rows)
     out = capsys.readouterr().out
-    assert "seed 0 60.0 / 40.0 s = 1.50x (not from one recording)" in out
+    assert "seed 0 60.0 / 40.0 s = 1.50x (registration 15.0 / 10.0 s) not from one recording" in out
     assert "mean 1.88x  <=2x +" in out  # (1.75 + 2.0) / 2: seed 0's pair is not one recording's
     rows[-2].record["build_s"] = 100.0
     an._build_time_report(rows)
