@@ -391,16 +391,23 @@ class BuildPair(NamedTuple):
     paired: bool  # both built from one recording
 
 
+def uncorrected_name(corrections) -> str:
+    """The correction the others are set against: "none" (no registration) where the ladder built it,
+    else "off" (whose build still registers the stands)."""
+    return "none" if "none" in corrections else "off"
+
+
 def build_pairs(rows: list[LadderRow]) -> dict[tuple[str, str], list[BuildPair]]:
     """(label, corrected correction) -> per noise seed its BuildPair: paired when both maps were built from
     the same recording (their side records' ``recording_id``: the ladder builds them one after the other in
     one process), so the two times differ by the correction alone and by the machine's load at the time.
     Oracle rows and maps recorded without a build time are left out."""
-    off = {(r.label, r.noise_seed): r.record for r in rows if r.corr == "off"}
+    uncorrected = uncorrected_name({r.corr for r in rows})
+    off = {(r.label, r.noise_seed): r.record for r in rows if r.corr == uncorrected}
     out: dict[tuple[str, str], list[BuildPair]] = {}
     for r in rows:
         base = off.get((r.label, r.noise_seed))
-        if r.corr == "off" or ":" in r.corr or base is None or "build_s" not in r.record or "build_s" not in base:
+        if r.corr == uncorrected or ":" in r.corr or base is None or "build_s" not in r.record or "build_s" not in base:
             continue
         rid = r.record.get("recording_id")
         out.setdefault((r.label, r.corr), []).append(BuildPair(
@@ -511,7 +518,7 @@ def _ladder_report(spec: str, mode: str, n_views: int, mapped_m: float, rows: li
             print(f"targets 1x {corr:<15} {band:<6} mapped>=85% {m[0]}  SSIM-0.05 {m[1]}  labels>=90% {m[2]}  "
                   f"leak<=2x {m[3]}")
     if len(ref) > 1:
-        base = ref.get("off", next(iter(ref.values())))
+        base = ref.get(uncorrected_name(ref), next(iter(ref.values())))
         worst = max(abs(a - b) for c in ref.values() for band in c for a, b in zip(c[band], base.get(band, c[band]))
                     if math.isfinite(a) and math.isfinite(b))
         print(f"noise-free map, corrected vs uncorrected: largest change {100 * worst:.2f} points (must stay <= 0.5)")
@@ -552,6 +559,7 @@ def _seed_means_report(spec: str, rows: list[LadderRow], seeds: dict, noise_seed
 def _build_time_report(rows: list[LadderRow]) -> None:
     """Corrected against uncorrected build time per noise seed, from the same recording, each with its
     registration's part, and the mean of the seeds' ratios (issue 33: <= 2x at 1x)."""
+    base = uncorrected_name({r.corr for r in rows})
     for (label, corr), pairs in build_pairs(rows).items():
         each = ", ".join(f"{'' if p.noise_seed is None else f'seed {p.noise_seed} '}{p.corrected_s:.1f} / "
                          f"{p.uncorrected_s:.1f} s = {p.corrected_s / p.uncorrected_s:.2f}x (registration "
@@ -560,7 +568,7 @@ def _build_time_report(rows: list[LadderRow]) -> None:
         ratios = [p.corrected_s / p.uncorrected_s for p in pairs if p.paired and p.uncorrected_s > 0]
         mark = ("  <=2x " + ("+" if np.mean(ratios) <= TARGET_BUILD_TIMES else "-")) if ratios and label == "1x" else ""
         mean = f"; mean {np.mean(ratios):.2f}x{mark}" if ratios else "; no pair from one recording"
-        print(f"build time {label} {corr} / off: {each}{mean}")
+        print(f"build time {label} {corr} / {base}: {each}{mean}")
 
 
 def main(argv: list[str] | None = None) -> None:

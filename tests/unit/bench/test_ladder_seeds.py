@@ -178,3 +178,18 @@ def test_the_ladder_takes_distinct_non_negative_seeds_and_defaults_to_the_simula
     for bad in (["1", "1"], ["-1"]):
         with pytest.raises(SystemExit):
             an.main(["--ladder", "--noise-seeds", *bad])
+
+
+def test_with_a_build_without_any_registration_the_others_are_set_against_it(capsys):
+    """"off" still registers the stands; where the ladder also built "none" (no registration at all), that
+    is the uncorrected build the corrected ones' times are set against, "off" among them."""
+    rows = [_row("1x", 0, "none", 0.9, 30.0, "r"), _row("1x", 0, "off", 0.9, 40.0, "r"),
+            _row("1x", 0, "frames+regions", 0.9, 90.0, "r")]
+    pairs = an.build_pairs(rows)
+    assert set(pairs) == {("1x", "off"), ("1x", "frames+regions")}
+    assert [(p.corrected_s, p.uncorrected_s) for p in pairs[("1x", "off")]] == [(40.0, 30.0)]
+    an._build_time_report(rows)
+    out = capsys.readouterr().out
+    assert "build time 1x off / none: seed 0 40.0 / 30.0 s = 1.33x" in out and "mean 1.33x  <=2x +" in out
+    assert "build time 1x frames+regions / none:" in out and "mean 3.00x  <=2x -" in out
+    assert an.CORRECTIONS["none"]["stands"] == {"enabled": False}
