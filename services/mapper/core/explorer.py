@@ -669,7 +669,11 @@ class _Run:
             i, j = np.unravel_index(k, gap.shape)
             if gap[i, j] > self.cfg.reconnect_radius_m:
                 break
-            if not self._follow(nx.shortest_path(g.walked(), self.here, mine[i], weight="length")):
+            try:
+                way = nx.shortest_path(g.walked(), self.here, mine[i], weight="length")
+            except (nx.NetworkXNoPath, nx.NodeNotFound):
+                return False
+            if not self._follow(way):
                 return False  # an edge of the way was dropped: the caller plans again
             res = self._move(*(pb[j, :2] - self.pose.xyz[:2]))
             if res.status == MoveStatus.REACHED:
@@ -679,6 +683,11 @@ class _Run:
                 return True
             self.blocked += 1
             self._return_to(self.here)
+            if self.here not in reach:
+                # It did not get back (a slide off the flight): a new node of its own, which the
+                # caller's next plan rejoins; the generated:3:floors=2 ladder (noise seed 1) raised
+                # NetworkXNoPath here, planning the next crossing from that unjoined node.
+                return False
         return False
 
     def _reconnect_by_map(self, others: list[str]) -> bool:
