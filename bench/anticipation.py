@@ -64,9 +64,10 @@ per seed (its own recording and cached map, ``_seed<n>`` in the name when not th
 each seed's rows, a second table the seeds' mean per band with the min-max between seeds, and the targets
 are checked on the means. A corrected build's time is set against the uncorrected one's from the same
 recording (issue 33: at most 2x at 1x), per seed and as the mean of the seeds' ratios, each with its
-registration's part ("off" keeps the stands' stage); the ladder builds the two one after the other in one
-process, and a pair from two recordings (one map cached from another run) is shown but not averaged. The last line is the verdict: the targets, then, when both were built, how
-far the correction moved the noise-free map.
+registration's part ("off" keeps the stands' stage; "none", where built, registers nothing and is then the
+uncorrected build); the ladder builds the two one after the other in one process, and a pair from two
+recordings (one map cached from another run) is shown but not averaged. The last lines are the verdict: the
+targets, then, when more than one correction was built, how far the corrections moved the noise-free map.
 """
 
 from __future__ import annotations
