@@ -356,16 +356,21 @@ class SeedSpread:
         return tuple(float(v) for v in self.per_seed.max(axis=0))
 
 
+def by_kind(rows: list[LadderRow]) -> dict[tuple[str, str], list[LadderRow]]:
+    """(label, corr) -> its rows, one per noise seed, in the ladder's order."""
+    groups: dict[tuple[str, str], list[LadderRow]] = {}
+    for row in rows:
+        groups.setdefault((row.label, row.corr), []).append(row)
+    return groups
+
+
 def over_seeds(rows: list[LadderRow]) -> dict[tuple[str, str], dict[str, SeedSpread]]:
     """(label, corr) -> band -> its figures over the noise seeds the rows hold (one row per seed; a band no
     view of the seeds' falls in is left out; every map of a scene is scored at the same poses, so a band holds
     the same views on every seed). Means are over seeds, each seed's figure the mean over its views; a figure
     that is nan on one seed (no view scored it) is nan in the mean, not the mean of the others."""
-    groups: dict[tuple[str, str], list[LadderRow]] = {}
-    for row in rows:
-        groups.setdefault((row.label, row.corr), []).append(row)
     out = {}
-    for key, group in groups.items():
+    for key, group in by_kind(rows).items():
         bands = {}
         for band in group[0].bands:
             if any(r.bands[band].coverage for r in group):
@@ -532,15 +537,13 @@ def _seed_means_report(spec: str, rows: list[LadderRow], seeds: dict, noise_seed
           "(min-max between seeds) ==")
     print(f"{'drift':<6} {'corr':<22} {'band':<6} {'views':>5} {'mapped%':>17} {'SSIM':>19} {'label%':>17} "
           f"{'leak%':>15}   {'start m (rec/corr)':>18} {'skipped':>7} {'build s':>7}")
-    by_kind: dict[tuple[str, str], list[LadderRow]] = {}
-    for r in rows:
-        by_kind.setdefault((r.label, r.corr), []).append(r)
+    kinds = by_kind(rows)
 
     def pct(sp: SeedSpread, i: int, width: int) -> str:
         return f"{100 * sp.mean[i]:5.1f} ({100 * sp.lo[i]:4.1f}-{100 * sp.hi[i]:4.1f})".rjust(width)
 
     for (label, corr), bands in seeds.items():
-        group = by_kind[(label, corr)]
+        group = kinds[(label, corr)]
         recs = [r.record for r in group]
         pos = [float(np.median(r["position_m"])) for r in recs if r.get("position_m")]
         cpos = [float(np.median(r["corrected_position_m"])) for r in recs if r.get("corrected_position_m")]
