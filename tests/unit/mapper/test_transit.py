@@ -90,3 +90,46 @@ def test_a_blocked_crossing_is_dropped_for_the_next_pair():
     assert np.allclose(robot.p[:2], [0, 2])
     assert any(np.allclose(a[:2], [1.5, 0]) and np.allclose(b[:2], [1.5, 0.8]) and not blocked
                for a, b, blocked in robot.moves)
+
+
+class DriftingRobot:
+    """Believes itself ``offset_m`` along x from where it stands; the world ends at ``wall_x_m``: a move
+    past it stops there. ``relocalise`` finds the truth (a panorama registered on the map)."""
+
+    def __init__(self, true_x_m, offset_m, wall_x_m, drift_seen=True):
+        self.x, self.offset, self.wall = float(true_x_m), float(offset_m), float(wall_x_m)
+        self.localiser = SimpleNamespace(drift_seen=drift_seen)
+        self.relocalised = 0
+
+    @property
+    def pose(self) -> Pose:
+        return Pose(position_m=(self.x + self.offset, 0.0, 0.0), heading_rad=0.0)
+
+    def relocalise(self):
+        self.relocalised += 1
+        self.offset = 0.0
+
+    def move_to(self, dx_m, dy_m):
+        goal = self.x + dx_m
+        status = MoveStatus.REACHED if goal <= self.wall else MoveStatus.BLOCKED
+        travelled = abs(min(goal, self.wall) - self.x)
+        self.x = min(goal, self.wall)
+        return MoveResult(status=status, pose=self.pose, travelled_m=travelled, steps=1)
+
+
+def test_a_drifting_robot_relocalises_where_a_transit_move_stopped_and_tries_the_edge_again():
+    """The map puts the robot 0.2 m behind where it stands: the move to the next node runs into the
+    wall 0.1 m past it. Re-localised where it stopped, the robot reaches the node on the second try."""
+    g, _ = _graph([(0, 0), (1, 0)], [(0, 1)])
+    robot = DriftingRobot(true_x_m=0.2, offset_m=-0.2, wall_x_m=1.1)
+    _transit(robot, SimpleNamespace(result=SimpleNamespace(graph=g)), np.array([1.0, 0.0, 0.0]))
+    assert robot.relocalised == 1 and np.isclose(robot.x, 1.0)
+
+
+def test_an_exact_robot_takes_no_panorama_at_a_blocked_transit_move():
+    """Without drift a blocked move is the world's: no re-localisation, no second try (an exact
+    robot's tours stay bit for bit)."""
+    g, _ = _graph([(0, 0), (1, 0)], [(0, 1)])
+    robot = DriftingRobot(true_x_m=0.0, offset_m=0.0, wall_x_m=0.9, drift_seen=False)
+    _transit(robot, SimpleNamespace(result=SimpleNamespace(graph=g)), np.array([1.0, 0.0, 0.0]))
+    assert robot.relocalised == 0
