@@ -305,6 +305,7 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Calla
                 res = robot.move_to(float(d[0]), float(d[1]))
                 if res.status != MoveStatus.REACHED and _relocalised(robot):
                     d = g.pos(n)[:2] - robot.pose.xyz[:2]
+                    check()
                     res = robot.move_to(float(d[0]), float(d[1]))
                 if res.status != MoveStatus.REACHED:
                     log.warning("transit blocked towards node %s; planning around that edge", n)

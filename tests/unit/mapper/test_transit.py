@@ -5,6 +5,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from shared.schemas import MoveResult, MoveStatus, Pose
 
@@ -124,6 +125,22 @@ def test_a_drifting_robot_relocalises_where_a_transit_move_stopped_and_tries_the
     robot = DriftingRobot(true_x_m=0.2, offset_m=-0.2, wall_x_m=1.1)
     _transit(robot, SimpleNamespace(result=SimpleNamespace(graph=g)), np.array([1.0, 0.0, 0.0]))
     assert robot.relocalised == 1 and np.isclose(robot.x, 1.0)
+
+
+def test_a_cancelled_transit_makes_no_second_try():
+    """The second try is a move like any other: a cancelled job stops before it (``check`` raises)."""
+    g, _ = _graph([(0, 0), (1, 0)], [(0, 1)])
+    robot = DriftingRobot(true_x_m=0.2, offset_m=-0.2, wall_x_m=1.1)
+    calls = []
+
+    def check():
+        calls.append(robot.relocalised)
+        if robot.relocalised:
+            raise RuntimeError("cancelled")
+
+    with pytest.raises(RuntimeError):
+        _transit(robot, SimpleNamespace(result=SimpleNamespace(graph=g)), np.array([1.0, 0.0, 0.0]), check)
+    assert calls == [0, 1] and np.isclose(robot.x, 1.1)
 
 
 def test_an_exact_robot_takes_no_panorama_at_a_blocked_transit_move():
