@@ -25,6 +25,7 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
+from shared.geometry import wrap_angle
 from shared.schemas import Pose, Tour
 
 from services.mapper.core.errors import PlanningError
@@ -67,6 +68,12 @@ class TourConfig(BaseModel):
     # 15 houses changed map, its SR on them did not). 0: never.
     walked_fallback_below: float = Field(0.8, ge=0.0, le=1.0)
     max_2opt_rounds: int = Field(200, ge=0)
+    # How far either side of the heading a hub is reached with the look-around records: the robot's
+    # yaw sweep (+-60 deg, the paper's) plus half its camera's hfov (90 deg). A one-hub tour has no
+    # path to set that heading, so it faces where this window holds most of what the hub sees:
+    # facing east whatever the room, generated:1001:floors=2's bathroom hub (noisy, 1x) never
+    # recorded the toilet 149 deg off east of it, which the set cover counted as seen.
+    look_around_half_fov_deg: float = Field(105.0, gt=0.0, le=180.0)
 
     @property
     def clearance_m(self) -> float:
@@ -252,6 +259,32 @@ def greedy_set_cover(vis, tau: float, tie_break: np.ndarray | None = None) -> tu
         left -= gain
         covered = 1.0 - left / n_t
     return chosen, covered
+
+
+def look_heading(standpoint_m: np.ndarray, targets_m: np.ndarray, half_window_rad: float, bins: int) -> float:
+    """The heading (rad) from ``standpoint_m`` whose window of +-``half_window_rad`` holds the most
+    of ``targets_m`` (the bearings binned into ``bins`` headings, the visibility's rays).
+
+    0.0 where it holds as many as any (no target, a window all round, targets east): a start heading
+    that cannot see more stays as it was. Otherwise the middle of the widest run of best headings,
+    so that a few degrees of heading error at the hub do not drop a target at the window's edge."""
+    d = np.asarray(targets_m, dtype=np.float64).reshape(-1, 3)[:, :2] - np.asarray(standpoint_m)[:2]
+    step = 2.0 * math.pi / bins
+    w = int(math.floor(half_window_rad / step + 1e-9))  # the window's half width in bins
+    if len(d) == 0 or 2 * w + 1 >= bins:
+        return 0.0
+    hist = np.bincount(np.floor(np.arctan2(d[:, 1], d[:, 0]) / step + 0.5).astype(np.int64) % bins, minlength=bins)
+    # held[k]: targets in bins k - w .. k + w (circular), a running sum over the histogram wrapped by w.
+    run = np.concatenate([[0], np.cumsum(np.concatenate([hist[bins - w :], hist, hist[:w]]))])
+    held = run[2 * w + 1 : 2 * w + 1 + bins] - run[:bins]
+    best = held == held.max()
+    if best[0]:
+        return 0.0
+    # Bin 0 is not among the best, so no run of best bins wraps round the end.
+    edges = np.diff(np.concatenate([[0], best.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # runs [start, end)
+    k = int(np.argmax(ends - starts))
+    return float(wrap_angle(0.5 * (starts[k] + ends[k] - 1) * step))
 
 
 def tour_cost(order: list[int] | np.ndarray, cost: np.ndarray, closed: bool = True) -> float:
@@ -525,6 +558,9 @@ class TourPlanner:
         if len(path) > 1:
             d = path[1] - path[0]
             heading = math.atan2(d[1], d[0])
+        elif len(chosen) == 1:
+            seen = occ.centres(targets[coverable][vis[chosen[0]].indices])
+            heading = look_heading(path[0], seen, math.radians(cfg.look_around_half_fov_deg), cfg.vis_rays)
         tour = Tour(
             region=rid,
             start_pose=Pose(position_m=tuple(float(v) for v in path[0]), heading_rad=heading),

@@ -268,36 +268,83 @@ def test_a_one_hub_tour_out_of_reach_looks_around_where_the_robot_stopped_close_
     assert robot.looks[0] == pytest.approx((0.7, 0.0), abs=0.02)
 
 
-def test_a_room_too_narrow_to_stand_in_is_toured_from_its_door():
-    """A 0.3 m wide closet off a room: none of its cells has the robot's clearance (0.3 m), nor any
-    cell of the room within two cells of it (generated:3:floors=2 at 1x lost a region's tour so: 'no
-    reachable cell inside the region'). The tour stands outside it, as close as a node may snap, and
-    looks in, instead of the region going unrecorded."""
+def _closet_scene(west: bool = False):
+    """A 3 m room with a 0.3 m wide closet off it (x 3.0-4.9 m; ``west``: mirrored, x 0.1-2.0 m),
+    a node each side of the closet's door: region 0 the room, region 1 the closet."""
     from services.mapper.core.explorer import ExplorationResult
     from services.mapper.core.navgraph import GridGraph
     from services.mapper.core.regions import Floor, SceneMap
-    from services.mapper.core.tours import TourPlanner
     from shared.schemas import Pose
 
     cells = np.full((50, 40), OCCUPIED, np.uint8)  # 0.1 m cells: x 0-5 m, y 0-4 m
     cells[1:30, 1:39] = FREE  # the room, x 0.1-3.0 m
     cells[30:49, 19:22] = FREE  # the closet behind it, x 3.0-4.9 m, 0.3 m wide
+    room_x, closet_x = 2.75, 3.45
+    if west:
+        cells = cells[::-1].copy()
+        room_x, closet_x = 5.0 - room_x, 5.0 - closet_x
     occ = OccupancyGrid(cells, np.zeros(2), 0.1, 0.0)
-    assert (occ.clearance_m()[30:49, 19:22] < 0.3).all()
     g = GridGraph()
     # The room's node by the closet's door, the closet's just inside it (the region boundary half way).
-    room, closet = g.add_visited((2.75, 2.05, 0.0), order=1), g.add_visited((3.45, 2.05, 0.0), order=2)
+    room, closet = g.add_visited((room_x, 2.05, 0.0), order=1), g.add_visited((closet_x, 2.05, 0.0), order=2)
     g.connect(room, closet, 0.7)
     result = ExplorationResult(graph=g, scans=[], trajectory_m=np.zeros((0, 3)), visit_order=[room, closet],
                                steps=2, moves=1, unreachable=0, blocked_moves=0, finished=True, duration_s=0.0,
-                               start_pose=Pose(position_m=(2.75, 2.05, 0.0), heading_rad=0.0))
-    scene = SceneMap(result, [Floor(0, 0.0, occ, [room, closet])], set(), {0: [room], 1: [closet]}, {0: 0, 1: 0},
-                     {room: 0, closet: 1})
+                               start_pose=Pose(position_m=(room_x, 2.05, 0.0), heading_rad=0.0))
+    return SceneMap(result, [Floor(0, 0.0, occ, [room, closet])], set(), {0: [room], 1: [closet]}, {0: 0, 1: 0},
+                    {room: 0, closet: 1})
+
+
+def test_a_room_too_narrow_to_stand_in_is_toured_from_its_door():
+    """A 0.3 m wide closet off a room: none of its cells has the robot's clearance (0.3 m), nor any
+    cell of the room within two cells of it (generated:3:floors=2 at 1x lost a region's tour so: 'no
+    reachable cell inside the region'). The tour stands outside it, as close as a node may snap, and
+    looks in, instead of the region going unrecorded."""
+    from services.mapper.core.tours import TourPlanner
+
+    scene = _closet_scene()
+    occ = scene.floors[0].occupancy
+    assert (occ.clearance_m()[30:49, 19:22] < 0.3).all()
     tours = {pt.tour.region: pt for pt in TourPlanner().plan(scene)}
     assert set(tours) == {0, 1}
     hubs = np.asarray(tours[1].tour.hubs_m)
     assert len(hubs) and (hubs[:, 0] < 3.0).all() and (hubs[:, 0] > 2.2).all()  # in the room, at the closet's door
     assert tours[1].tour.coverage > 0.5
+
+
+def test_a_one_hub_tour_faces_what_its_hub_sees():
+    """A one-hub tour has no path to face along: it faces where the look-around (+-60 deg yaw, 90 deg
+    hfov) holds most of what its hub sees. Facing east whatever the room, a bathroom hub of
+    generated:1001:floors=2 never recorded the toilet west of it. A closet east of its hub keeps 0.0."""
+    from services.mapper.core.tours import TourPlanner
+
+    east = {pt.tour.region: pt.tour for pt in TourPlanner().plan(_closet_scene())}
+    west = {pt.tour.region: pt.tour for pt in TourPlanner().plan(_closet_scene(west=True))}
+    assert len(east[1].hubs_m) == len(west[1].hubs_m) == 1
+    assert east[1].start_pose.heading_rad == 0.0
+    hub = np.asarray(west[1].hubs_m)[0]
+    assert hub[0] > 2.0  # in the room, the closet west of it
+    # Facing west, within a few degrees: the closet lies within 105 deg either side of the heading.
+    heading = west[1].start_pose.heading_rad
+    assert abs(math.remainder(heading - math.pi, 2 * math.pi)) < math.radians(30)
+
+
+def test_the_look_heading_keeps_east_where_no_heading_sees_more():
+    from services.mapper.core.tours import look_heading
+
+    half = math.radians(105)
+    ang = np.radians(np.arange(360))  # one target per bearing
+    ring = np.column_stack([np.cos(ang), np.sin(ang), np.zeros(360)])
+    assert look_heading(np.zeros(3), ring, half, 360) == 0.0  # all round: every heading holds as many
+    assert look_heading(np.zeros(3), np.zeros((0, 3)), half, 360) == 0.0
+    assert look_heading(np.zeros(3), ring, math.pi, 360) == 0.0  # a window all round
+    # Targets from 100 to 260 deg: every heading from 155 to 205 deg holds them all; the middle is 180.
+    arc = np.radians(np.arange(100, 261, 5))
+    west = np.column_stack([np.cos(arc), np.sin(arc), np.zeros(len(arc))])
+    assert abs(look_heading(np.zeros(3), west, half, 360)) == pytest.approx(math.pi, abs=math.radians(1))
+    # Shifted by 2 m, bearings are taken from the standpoint, not the origin.
+    assert abs(look_heading(np.array([2.0, 0, 0]), west + [2.0, 0, 0], half, 360)) == pytest.approx(
+        math.pi, abs=math.radians(1))
 
 
 def test_a_one_hub_tour_hidden_from_the_nearest_node_starts_from_a_node_that_sees_it():
