@@ -300,8 +300,8 @@ class TsdfVolume:
         view = np.empty((3 * n, 3), np.float32)
         support = np.empty(3 * n, np.float32)
         floor = 1.0 if fill_m > 0 else float(min_updates)
-        k = extract(self.keys, self.rows, n, self.table, self.shift, self.voxel_m, floor, crossing_max_vox * self.voxel_m,
-                    xyz, rgb, lab, view, support)
+        k = extract(self.keys, self.rows, n, self.table, self.shift, self.voxel_m, floor,
+                    crossing_max_vox * self.voxel_m, xyz, rgb, lab, view, support)
         keep = np.arange(k)
         if fill_m > 0:
             strong = support[:k] >= min_updates
