@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from services.reconstructor.core import RECONSTRUCTORS, RegionInput, kernels
-from services.reconstructor.core.frames import PosedImage
-from shared.geometry import PinholeCamera, camera_pose
-from shared.schemas import Pose
+from shared.geometry import PinholeCamera
+from tests.unit.reconstructor.walls import wall_frames
 
 REL = 0.01  # bench.anticipation's noisy robot: sigma = 0.01 * z^2
 WALL_X = 1.515  # the middle of a 3 cm voxel: exact depth fuses it in one layer
@@ -18,22 +17,8 @@ AWAY_M = 2.5  # denoised sigma 0.002 * 2.5^2 = 1.25 cm: still the near tier, a s
 
 
 def _frames(rel: float, back: int = 0, thick_m: float = 0.1) -> RegionInput:
-    """Eight frames of the wall x = WALL_X from 2.5 m, each its own noise draw; with ``back``, that many
-    more look from the other side at the wall's far face, ``thick_m`` behind."""
-    cam = PinholeCamera(64, 48, 90.0)
-    images = []
-    for i in range(8 + back):
-        front = i < 8
-        face = WALL_X if front else WALL_X + thick_m
-        x, heading = (face - AWAY_M, 0.0) if front else (face + AWAY_M, np.pi)
-        rng = np.random.default_rng(60 + i)
-        wfc = camera_pose(np.array([x, 0.02 * (i % 4), 0.0]), heading, 0.0, 1.25)
-        true = np.full((48, 64), AWAY_M, np.float32)
-        d = (true + rel * true**2 * rng.standard_normal(true.shape)).astype(np.float32) if rel else true
-        rgb = np.full((48, 64, 3), 120 if front else 200, np.uint8)
-        images.append(PosedImage(rgb=rgb, world_from_camera=wfc, camera=cam, depth_m=d, index=i,
-                                 depth_noise_rel=rel))
-    return RegionInput(0, Pose(position_m=(0.0, 0.0, 0.0), heading_rad=0.0), images)
+    """Eight frames of the wall x = WALL_X from 2.5 m (walls.wall_frames), 64 x 48 px."""
+    return wall_frames(rel, WALL_X, AWAY_M, PinholeCamera(64, 48, 90.0), back, thick_m)
 
 
 THIN = {"surface_share": 0.4}

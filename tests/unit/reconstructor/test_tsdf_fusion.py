@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from services.reconstructor.core import RECONSTRUCTORS, RegionInput, kernels
-from services.reconstructor.core.frames import PosedImage
 from shared.cloud import view_dirs_unit
-from shared.geometry import PinholeCamera, camera_pose
-from shared.schemas import Pose
+from shared.geometry import PinholeCamera
+from tests.unit.reconstructor.walls import wall_frames
 
 pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="the TSDF fusion is compiled (numba)")
 
@@ -24,23 +23,9 @@ TSDF = {"fusion": "tsdf"}
 
 
 def _frames(rel: float, back: int = 0, thick_m: float = 0.1) -> RegionInput:
-    """Eight frames of the wall x = WALL_X from AWAY_M, each its own noise draw; with ``back``, that many
-    more look from the other side at the wall's far face, ``thick_m`` behind (another colour)."""
-    cam = PinholeCamera(192, 144, 90.0)  # a pixel 2.6 cm wide at AWAY_M: narrower than a voxel
-    images = []
-    for i in range(8 + back):
-        front = i < 8
-        face = WALL_X if front else WALL_X + thick_m
-        x, heading = (face - AWAY_M, 0.0) if front else (face + AWAY_M, np.pi)
-        rng = np.random.default_rng(60 + i)
-        wfc = camera_pose(np.array([x, 0.02 * (i % 4), 0.0]), heading, 0.0, 1.25)
-        true = np.full((144, 192), AWAY_M, np.float32)
-        d = (true + rel * true**2 * rng.standard_normal(true.shape)).astype(np.float32) if rel else true
-        rgb = np.full((144, 192, 3), 120 if front else 200, np.uint8)
-        sem = np.full((144, 192), LABEL if front else LABEL + 1, np.int32)
-        images.append(PosedImage(rgb=rgb, world_from_camera=wfc, camera=cam, depth_m=d, semantic=sem, index=i,
-                                 depth_noise_rel=rel))
-    return RegionInput(0, Pose(position_m=(0.0, 0.0, 0.0), heading_rad=0.0), images)
+    """Eight frames of the wall x = WALL_X from AWAY_M (walls.wall_frames), labelled; a pixel 2.6 cm wide at
+    AWAY_M: narrower than a voxel."""
+    return wall_frames(rel, WALL_X, AWAY_M, PinholeCamera(192, 144, 90.0), back, thick_m, label=LABEL)
 
 
 def _patch(c, face: float):
