@@ -43,18 +43,24 @@ DRIFT_KEYS = ("odometry_drift_per_m", "heading_drift_per_rad")
 # < 1 m band is 2-3 views, and seeds 1 and 2 missed targets seed 0 met, by both codes compared), so the
 # ladder can score several, each a map of its own.
 NOISE_SEED = 0
-# Drift correction of a build (ReconstructionConfig.registration), by name. "off" is explicit so that
-# an uncorrected row keeps its frames and regions uncorrected whatever the reconstructor's default becomes.
-# It leaves the stands' stage (StandRegistrationConfig, on by default) on, so an "off" build still
-# registers its look-arounds: its side record's register_s (24.7 s of 39.2 s on generated:0's noise-free
-# map, 30.1 of 76.3 s on its noisy seed-1 map, a loaded machine) is that stage's.
+# How a build corrects drift (ReconstructionConfig.registration) and, where it says so, fuses depth
+# (ReconstructionConfig.backend_config), by name: the ReconstructionConfig fields a ladder row overrides.
+# "off" is explicit so that an uncorrected row keeps its frames and regions uncorrected whatever the
+# reconstructor's default becomes. It leaves the stands' stage (StandRegistrationConfig, on by default) on,
+# so an "off" build still registers its look-arounds: its side record's register_s (24.7 s of 39.2 s on
+# generated:0's noise-free map, 30.1 of 76.3 s on its noisy seed-1 map, a loaded machine) is that stage's.
+_OFF = {"frames": {"enabled": False}, "regions": {"enabled": False}}
 CORRECTIONS = {
     # No registration at all, the stands' stage off too: the truly uncorrected build that a corrected
     # one's time is set against (issue 33: <= 2x), and the noise-free map's unmoved reference.
-    "none": {"frames": {"enabled": False}, "regions": {"enabled": False}, "stands": {"enabled": False}},
-    "off": {"frames": {"enabled": False}, "regions": {"enabled": False}},
-    "regions": {"frames": {"enabled": False}, "regions": {"enabled": True, "method": "sequential"}},
-    "frames+regions": {"frames": {"enabled": True}, "regions": {"enabled": True, "method": "sequential"}},
+    "none": {"registration": {**_OFF, "stands": {"enabled": False}}},
+    "off": {"registration": _OFF},
+    "regions": {"registration": {"frames": {"enabled": False}, "regions": {"enabled": True, "method": "sequential"}}},
+    "frames+regions": {"registration": {"frames": {"enabled": True}, "regions": {"enabled": True,
+                                                                                 "method": "sequential"}}},
+    # "off" with the opt-in TSDF fusion of noisy-depth regions (RgbdConfig.fusion): its ladder rows beside
+    # the voxels' decide whether it becomes the default (exact depth is fused as "off" fuses it).
+    "off+tsdf": {"registration": _OFF, "backend_config": {"fusion": "tsdf"}},
 }
 
 
@@ -164,9 +170,9 @@ def build_map(spec: str, backend: str, noise: str | None = None, size_px: int = 
         recs = _oracle_tour_starts(recs, truth)
     if frame_oracle is not None:
         recs = _oracle_frames(recs, truth, frame_oracle, robot)
-    reg = {} if correction is None else {"registration": CORRECTIONS[correction]}
+    overrides = {} if correction is None else CORRECTIONS[correction]
     t1 = time.perf_counter()
-    with Reconstructor(ReconstructionConfig(backend=backend, **reg)) as r:
+    with Reconstructor(ReconstructionConfig(backend=backend, **overrides)) as r:
         built = r.build_from_recordings(recs, robot.scene.label_names)
     cloud = built.cloud
     build_s = time.perf_counter() - t1

@@ -52,7 +52,11 @@ def stand_ins(monkeypatch, tmp_path):
     import services.mapper.core as mapper
     import services.reconstructor.core as reconstructor
 
-    seen: list[int] = []
+    class Seen(list):  # the seeds explored, in order; .configs: each build's ReconstructionConfig
+        configs: list
+
+    seen = Seen()
+    configs: list = []
 
     def discover(robot, config):
         seen.append(robot.config.noise.seed)
@@ -60,7 +64,7 @@ def stand_ins(monkeypatch, tmp_path):
 
     class Reconstructor:
         def __init__(self, config):
-            pass
+            configs.append(config)
 
         def __enter__(self):
             return self
@@ -82,6 +86,7 @@ def stand_ins(monkeypatch, tmp_path):
     monkeypatch.setattr(reconstructor, "Reconstructor", Reconstructor)
     monkeypatch.setattr(agent_maps, "MAPS", tmp_path)
     monkeypatch.setattr(agent_maps, "_RECORDINGS", {})
+    seen.configs = configs
     return seen
 
 
@@ -104,6 +109,25 @@ def test_each_seed_is_its_own_recording_and_map_and_its_corrections_share_one_re
     robot, _ = agent_maps.build_map(SCENE, "rgbd", None)
     robot.close()
     assert agent_maps.build_record(SCENE, "rgbd", None)["noise_seed"] is None
+
+
+def test_a_named_build_sets_the_reconstructors_fields_and_tsdf_is_a_map_of_its_own(stand_ins):
+    from services.reconstructor.core import ReconstructionConfig
+
+    for corr in ("off", "off+tsdf", "none"):
+        robot, _ = agent_maps.build_map(SCENE, "rgbd", "noisy", correction=corr)
+        robot.close()
+    off, tsdf, none = stand_ins.configs
+    assert stand_ins == [0]  # one recording: the fusion is the build's, not the exploration's
+    assert off.backend_config == {} and tsdf.backend_config == {"fusion": "tsdf"}
+    assert tsdf.registration == off.registration and not off.registration.frames.enabled
+    assert off.registration.stands.enabled and not none.registration.stands.enabled
+    # Every entry is a set of ReconstructionConfig fields that it accepts.
+    for name, fields in agent_maps.CORRECTIONS.items():
+        ReconstructionConfig(backend="rgbd", **fields)
+    names = {agent_maps._map_path(SCENE, "rgbd", "noisy", 128, 1.0, c)[0].name for c in ("off", "off+tsdf")}
+    assert names == {"generated_3_area-50_rgbd_noisy_corr-off_128.ply",
+                     "generated_3_area-50_rgbd_noisy_corr-off-tsdf_128.ply"}
 
 
 def _scores(mapped: float, ssim: float, n: int = 3, label: float = 0.95, leak: float = 0.0) -> an.Scores:
@@ -192,4 +216,4 @@ def test_with_a_build_without_any_registration_the_others_are_set_against_it(cap
     out = capsys.readouterr().out
     assert "build time 1x off / none: seed 0 40.0 / 30.0 s = 1.33x" in out and "mean 1.33x  <=2x +" in out
     assert "build time 1x frames+regions / none:" in out and "mean 3.00x  <=2x -" in out
-    assert an.CORRECTIONS["none"]["stands"] == {"enabled": False}
+    assert an.CORRECTIONS["none"]["registration"]["stands"] == {"enabled": False}
