@@ -322,25 +322,34 @@ def _band_samples(vol: TsdfVolume, d, rx, ry, front, back, dz, steps, sub, pitch
     half = AXIS_HALF
     t_n = int((sub * sub).max())
     s_n = int(steps.max()) + 1
-    t = np.arange(t_n)
-    s = np.arange(s_n)
-    z = (d - front)[:, None] + s[None, :] * dz[:, None]  # (P, S), rising along each ray
-    on = (s[None, :] <= steps[:, None]) & (z > 0.0)
-    # The samples a loop visits, in its order: C order of (pixel, sub-ray, step).
-    pix, ti, si = np.nonzero((t[None, :] < (sub * sub)[:, None])[:, :, None] & on[:, None, :])
-    subf = sub[pix]
-    ox = ((ti % subf) + 0.5) / subf - 0.5
-    oy = ((ti // subf) + 0.5) / subf - 0.5
-    z = z[pix, si]
-    xc, yc = (rx[pix] + ox * pitch[0]) * z, (ry[pix] + oy * pitch[1]) * z
-    cell = [np.floor((m[k, 0] * xc + m[k, 1] * yc + m[k, 2] * z + m[k, 3]) * (1.0 / vol.voxel_m)).astype(np.int64)
-            for k in range(3)]
+    t = np.arange(t_n)[None, :]
+    s = np.arange(s_n)[None, :]
+    # (P, T): each sub-ray's direction; (P, S): each step's depth, rising along the ray.
+    subf = np.maximum(sub, 1)[:, None]
+    srx = rx[:, None] + (((t % subf) + 0.5) / subf - 0.5) * pitch[0]
+    sry = ry[:, None] + (((t // subf) + 0.5) / subf - 0.5) * pitch[1]
+    z = (d - front)[:, None] + s * dz[:, None]
+    # A ray's samples are one run of steps: those with z <= 0 come first, those past its band last.
+    first = ((z <= 0.0) & (s <= steps[:, None])).sum(axis=1)
+    rp, rt = np.nonzero(t < (sub * sub)[:, None])  # the rays, in the loops' order
+    count = np.maximum(steps - first + 1, 0)[rp]
+    ray = np.repeat(np.arange(len(rp)), count)  # each sample's ray, samples in the loops' order
+    si = first[rp][ray] + (np.arange(len(ray)) - np.repeat(np.cumsum(count) - count, count))
+    pix = rp[ray]
+    z = np.take(z.reshape(-1), pix * s_n + si)
+    xc, yc = np.take(srx[rp, rt], ray) * z, np.take(sry[rp, rt], ray) * z
+    cell = []
+    for k in range(3):  # m[k, 0] * xc + m[k, 1] * yc + m[k, 2] * z + m[k, 3], in place
+        p = m[k, 0] * xc
+        p += m[k, 1] * yc
+        p += m[k, 2] * z
+        p += m[k, 3]
+        p *= 1.0 / vol.voxel_m
+        cell.append(np.floor(p, out=p).astype(np.int64))
     if any(len(c) and (c.min() < -half or c.max() >= half - 1) for c in cell):
         return None
     key = ((cell[0] + half) << (2 * AXIS_BITS)) | ((cell[1] + half) << AXIS_BITS) | (cell[2] + half)
-    # A ray's consecutive samples in one voxel update it once (a ray's samples are one run: steps with
-    # z <= 0 come first, those past its band last).
-    ray = pix * t_n + ti
+    # A ray's consecutive samples in one voxel update it once.
     keep = np.r_[True, (ray[1:] != ray[:-1]) | (key[1:] != key[:-1])]
     pix, key, cell = pix[keep], key[keep], [c[keep] for c in cell]
     centre = [(c + 0.5) * vol.voxel_m - m[k, 3] for k, c in enumerate(cell)]
