@@ -350,7 +350,8 @@ def _band_samples(vol: TsdfVolume, d, rx, ry, front, back, dz, steps, sub, pitch
         return None
     key = ((cell[0] + half) << (2 * AXIS_BITS)) | ((cell[1] + half) << AXIS_BITS) | (cell[2] + half)
     # A ray's consecutive samples in one voxel update it once.
-    keep = np.r_[True, (ray[1:] != ray[:-1]) | (key[1:] != key[:-1])]
+    keep = np.ones(len(key), bool)
+    keep[1:] = (ray[1:] != ray[:-1]) | (key[1:] != key[:-1])
     pix, key, cell = pix[keep], key[keep], [c[keep] for c in cell]
     centre = [(c + 0.5) * vol.voxel_m - m[k, 3] for k, c in enumerate(cell)]
     sdf = d[pix] - (m[0, 2] * centre[0] + m[1, 2] * centre[1] + m[2, 2] * centre[2])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.reconstructor.core import RECONSTRUCTORS, InputError, RegionInput, kernels
-from services.reconstructor.core.frames import region_from_frames
+from services.reconstructor.core.frames import PosedImage, region_from_frames
 from shared.cloud import view_dirs_unit
 from shared.geometry import PinholeCamera
 from tests.unit.reconstructor.test_reconstructor_kernels import _region
@@ -159,3 +159,15 @@ def test_points_out_of_range_raise_in_both_paths(kernel):
         im.depth_noise_rel = REL
     with pytest.raises(InputError, match="span more than"):
         RECONSTRUCTORS.create("rgbd", {**TSDF, "kernel": kernel, "tsdf_voxel_m": 0.01}).reconstruct(region)
+
+
+@pytest.mark.parametrize("kernel", [pytest.param("numba", marks=needs_numba), "numpy"])
+def test_a_frame_of_one_strided_pixel_is_counted_and_adds_nothing(kernel):
+    # One pixel has no neighbour to measure its width by: the loop walks no ray for it (zero sub-rays).
+    cam = PinholeCamera(16, 16, 90.0)
+    im = PosedImage(rgb=np.zeros((16, 16, 3), np.uint8), world_from_camera=np.eye(4), camera=cam,
+                    depth_m=np.full((16, 16), 1.5, np.float32), semantic=np.zeros((16, 16), np.int32), index=0,
+                    depth_noise_rel=REL)
+    rgbd = RECONSTRUCTORS.create("rgbd", {**TSDF, "kernel": kernel, "pixel_stride": 16})
+    vol = rgbd.tsdf_volume([im], np.eye(4), True)
+    assert vol.points == 1 and vol.n == 0
