@@ -218,7 +218,8 @@ class RgbdConfig(BackendConfig):
     threads: int = Field(2, ge=1, le=64)
     # How a region whose frames declare their depth noise is fused: "voxels" (the tiers, thinning and
     # stray removal above) or "tsdf" (tsdf.py: a truncated signed distance volume whose zero crossings
-    # are the cloud; needs numba). Exact depth is always fused in voxels (its maps stay bit-identical).
+    # are the cloud; compiled or array code as ``kernel`` says, with the same bits). Exact depth is always
+    # fused in voxels (its maps stay bit-identical).
     # The voxels keep each surface as a slab (every look's draws over two or three voxels along its
     # normal); the signed distance averages every look at a surface into one sheet. Issue 33's ladder
     # scorer on the same 1x recordings (noise seed 0, corrections off, 96 free poses, visibility
@@ -264,8 +265,6 @@ class RgbdConfig(BackendConfig):
         if self.denoise_window_px % 2 == 0:
             raise ValueError(f"denoise_window_px must be odd (a window centred on its pixel), "
                              f"got {self.denoise_window_px}")
-        if self.fusion == "tsdf" and self.kernel == "numpy":
-            raise ValueError("fusion 'tsdf' is a compiled kernel (numba): kernel 'numpy' has none")
         return self
 
 
@@ -281,8 +280,6 @@ class RgbdReconstructor(RegionalReconstructor):
         self._rays: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         if self.config.kernel == "numba" and not kernels.AVAILABLE:
             raise BackendUnavailableError("kernel 'numba' requested but numba is not installed")
-        if self.config.fusion == "tsdf" and not kernels.AVAILABLE:
-            raise BackendUnavailableError("fusion 'tsdf' needs numba, which is not installed")
         self._use_kernel = self.config.kernel != "numpy" and kernels.AVAILABLE
 
     @property
@@ -382,13 +379,19 @@ class RgbdReconstructor(RegionalReconstructor):
     def _fuse_tsdf(self, frames: list[PosedImage], local: np.ndarray, labelled: bool,
                    label_names) -> tuple[PointCloud, int]:
         """(the surface of ``frames``' TSDF volume, the pixels integrated): RgbdConfig.fusion "tsdf"."""
+        cfg = self.config
+        vol = self.tsdf_volume(frames, local, labelled)
+        return vol.cloud(cfg.tsdf_min_updates, cfg.tsdf_crossing_max_vox, cfg.tsdf_fill_m, label_names), vol.points
+
+    def tsdf_volume(self, frames: list[PosedImage], local: np.ndarray, labelled: bool) -> TsdfVolume:
+        """``frames`` integrated into a TSDF volume (``local``: the region's frame from the world's)."""
         cfg, s = self.config, self.config.pixel_stride
         vol = TsdfVolume(cfg.tsdf_voxel_m, cfg.min_depth_m, cfg.max_depth_m, labelled,
                          sigma_floor_m=cfg.tsdf_sigma_floor_m, trunc_min_m=cfg.tsdf_trunc_min_m,
                          trunc_sigmas=cfg.tsdf_trunc_sigmas, trunc_back_m=cfg.tsdf_trunc_back_m,
-                         max_sub_rays=cfg.tsdf_max_sub_rays)
-        # The denoising runs on the threads (a compiled loop without the GIL); the volume takes the
-        # frames one by one, in order.
+                         max_sub_rays=cfg.tsdf_max_sub_rays, compiled=self._use_kernel)
+        # The denoising runs on the threads (a compiled loop without the GIL, or array code); the volume
+        # takes the frames one by one, in order.
         with ThreadPoolExecutor(cfg.threads) as pool:
             depths = pool.map(self.frame_depth, frames)
             for im, depth in zip(frames, depths):
@@ -399,7 +402,7 @@ class RgbdReconstructor(RegionalReconstructor):
                                backs, s, rel, self.depth_limit_m(im)):
                     raise InputError(f"frame {im.index}: points span more than +-{AXIS_HALF * cfg.tsdf_voxel_m:.0f} m "
                                      f"from the origin at voxel {cfg.tsdf_voxel_m} m")
-        return vol.cloud(cfg.tsdf_min_updates, cfg.tsdf_crossing_max_vox, cfg.tsdf_fill_m, label_names), vol.points
+        return vol
 
     def near_limit_m(self, im: PosedImage) -> float:
         """Where this frame's near tier ends: the depth at which its denoised sigma reaches

@@ -1,19 +1,21 @@
 """TSDF fusion of a region whose frames declare their depth noise (RgbdConfig.fusion "tsdf", issue 33): a
 noisy wall comes out as one sheet on the true plane where the voxel fusion leaves a slab; the points keep
 their colour, label and view direction; a wall's far face seen from the other room stays; exact depth is
-fused as before."""
+fused as before; the array code (kernel "numpy", or numba missing) gives the compiled loops' bits."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from services.reconstructor.core import RECONSTRUCTORS, RegionInput, kernels
+from services.reconstructor.core import RECONSTRUCTORS, InputError, RegionInput, kernels
+from services.reconstructor.core.frames import PosedImage, region_from_frames
 from shared.cloud import view_dirs_unit
 from shared.geometry import PinholeCamera
+from tests.unit.reconstructor.test_reconstructor_kernels import _region
 from tests.unit.reconstructor.walls import wall_frames
 
-pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="the TSDF fusion is compiled (numba)")
+needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed: nothing to compare with")
 
 REL = 0.01  # bench.anticipation's noisy robot: sigma = 0.01 * z^2
 WALL_X = 1.507  # off the 3 cm grid's centres and faces: no fusion finds the plane by its grid alone
@@ -77,6 +79,95 @@ def test_exact_depth_is_fused_in_voxels_as_before():
     assert np.array_equal(a.labels, b.labels)
 
 
-def test_tsdf_needs_the_compiled_kernels():
-    with pytest.raises(ValueError, match="fusion 'tsdf' is a compiled kernel"):
-        RECONSTRUCTORS.create("rgbd", {**TSDF, "kernel": "numpy"})
+def _volumes(region: RegionInput, cfg: dict):
+    """``region``'s TSDF volume by the compiled loops and by the array code, with its cloud."""
+    out = []
+    for kernel in ("numba", "numpy"):
+        rgbd = RECONSTRUCTORS.create("rgbd", {**TSDF, **cfg, "kernel": kernel})
+        assert rgbd.kernel == kernel
+        c = rgbd.config
+        labelled = all(im.semantic is not None for im in region.images)
+        vol = rgbd.tsdf_volume(region.images, region.local_from_world(), labelled)
+        out.append((vol, vol.cloud(c.tsdf_min_updates, c.tsdf_crossing_max_vox, c.tsdf_fill_m)))
+    return out
+
+
+def _assert_same_bits(region: RegionInput, cfg: dict) -> int:
+    """The two paths' volumes (every sum, in the same entry order) and clouds are equal; returns the points."""
+    (va, a), (vb, b) = _volumes(region, cfg)
+    assert va.n == vb.n > 0 and va.points == vb.points > 0
+    assert np.array_equal(va.keys[: va.n], vb.keys[: vb.n]) and np.array_equal(va.rows[: va.n], vb.rows[: vb.n])
+    assert len(a) == len(b) > 0
+    for got, want in ((a.xyz, b.xyz), (a.rgb, b.rgb), (a.labels, b.labels), (a.view_dirs, b.view_dirs)):
+        assert np.array_equal(got, want)
+    return len(a)
+
+
+@needs_numba
+@pytest.mark.parametrize("cfg", [{}, {"pixel_stride": 3, "tsdf_max_sub_rays": 3, "tsdf_fill_m": 0.06}],
+                         ids=["one-ray", "sub-rays"])
+def test_the_array_path_gives_the_compiled_bits_on_the_wall(cfg):
+    # Both faces, two colours and labels; stride 3 makes a pixel 7.8 cm wide at 2.5 m: three rays a side.
+    assert _assert_same_bits(_frames(REL, back=2), cfg) > 3000
+
+
+@needs_numba
+def test_the_array_path_gives_the_compiled_bits_on_mixed_labels():
+    # Random depth, holes, NaN and up to five labels in a 10 cm voxel: the label majority steps through
+    # voxels that see several labels in one frame, where its order decides.
+    region = _region(7, seed=1)
+    for im in region.images:
+        im.depth_noise_rel = REL
+    (va, _), _ = _volumes(region, {"tsdf_voxel_m": 0.1})
+    labels = va.rows[: va.n, 6]
+    assert (labels > 0).sum() > 1000 and len(np.unique(labels)) == 5  # none and four labels: all compete
+    assert _assert_same_bits(region, {"tsdf_voxel_m": 0.1}) > 100
+
+
+@pytest.fixture(scope="module")
+def look_around():
+    """A noisy robot's look-around in a generated house (+-60 deg yaw, +-45 deg pitch): one hub's frames."""
+    from services.robot_io.core import ROBOTS
+
+    robot = ROBOTS.create("sim", {"scene": "generated:3:area=50", "camera": {"width_px": 48, "height_px": 48},
+                                  "noise": {"depth_noise_rel": REL}})
+    try:
+        frames = robot.look_around()
+    finally:
+        robot.close()
+    return region_from_frames(0, frames[0].pose, frames)
+
+
+@needs_numba
+def test_the_array_path_gives_the_compiled_bits_on_a_look_around(look_around):
+    assert len(look_around.images) > 20 and all(im.depth_noise_rel == REL for im in look_around.images)
+    assert _assert_same_bits(look_around, {}) > 2000
+
+
+def test_without_numba_the_array_path_fuses(monkeypatch, look_around):
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    rgbd = RECONSTRUCTORS.create("rgbd", TSDF)
+    assert rgbd.kernel == "numpy"
+    c = rgbd.reconstruct(look_around).cloud
+    assert len(c) > 2000 and (c.labels >= 0).mean() > 0.9
+
+
+@pytest.mark.parametrize("kernel", [pytest.param("numba", marks=needs_numba), "numpy"])
+def test_points_out_of_range_raise_in_both_paths(kernel):
+    region = _region(2, far=True)
+    for im in region.images:
+        im.depth_noise_rel = REL
+    with pytest.raises(InputError, match="span more than"):
+        RECONSTRUCTORS.create("rgbd", {**TSDF, "kernel": kernel, "tsdf_voxel_m": 0.01}).reconstruct(region)
+
+
+@pytest.mark.parametrize("kernel", [pytest.param("numba", marks=needs_numba), "numpy"])
+def test_a_frame_of_one_strided_pixel_is_counted_and_adds_nothing(kernel):
+    # One pixel has no neighbour to measure its width by: the loop walks no ray for it (zero sub-rays).
+    cam = PinholeCamera(16, 16, 90.0)
+    im = PosedImage(rgb=np.zeros((16, 16, 3), np.uint8), world_from_camera=np.eye(4), camera=cam,
+                    depth_m=np.full((16, 16), 1.5, np.float32), semantic=np.zeros((16, 16), np.int32), index=0,
+                    depth_noise_rel=REL)
+    rgbd = RECONSTRUCTORS.create("rgbd", {**TSDF, "kernel": kernel, "pixel_stride": 16})
+    vol = rgbd.tsdf_volume([im], np.eye(4), True)
+    assert vol.points == 1 and vol.n == 0
