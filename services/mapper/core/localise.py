@@ -685,7 +685,8 @@ class LocalisedRobot:
         tours stay bit for bit."""
         loc = self.localiser
         cfg = loc.config
-        bracket = ((after_look_around and cfg.relocalise_after_look_around) or (tour_end and cfg.relocalise_at_tour_end))
+        bracket = ((after_look_around and cfg.relocalise_after_look_around)
+                   or (tour_end and cfg.relocalise_at_tour_end))
         after = bracket and loc.graph is not None and loc.drift_seen
         due = not (after_look_around or tour_end) and loc.since_fix_m >= cfg.relocalise_after_m
         if cfg.enabled and (after or due):
