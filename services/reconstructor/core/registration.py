@@ -481,6 +481,26 @@ def _frame_points(im: PosedImage, stride: int, max_depth_m: float, voxel_m: floa
     return xyz if voxel_m is None else voxel_thin(xyz, voxel_m)
 
 
+def _frame_cloud(images: list[PosedImage], stride: int, max_depth_m: float, min_sigma_m: float):
+    """Every image's points (stride, range), normals turned towards its camera, owner (index into
+    ``images``) and error (the sensor's depth noise at the point's range, at least ``min_sigma_m``)."""
+    rays_cache: dict[tuple, np.ndarray] = {}
+    pts, nrm, own, sig = [], [], [], []
+    for i, im in enumerate(images):
+        p = _frame_points(im, stride, max_depth_m, None, rays_cache)  # unthinned: the stride spaces them
+        if len(p) < 3:
+            continue
+        pts.append(p)
+        nrm.append(orient_normals(estimate_normals(p), im.position_m - p))
+        own.append(np.full(len(p), i))
+        # A point's error: the sensor's depth noise at its range (sigma = rel * z^2), at least min_sigma_m.
+        z2 = np.sum((p - im.position_m) ** 2, axis=1)
+        sig.append(np.maximum(min_sigma_m, im.depth_noise_rel * z2))
+    if not pts:
+        return None
+    return np.concatenate(pts), np.concatenate(nrm), np.concatenate(own), np.concatenate(sig)
+
+
 def register_frames(images: list[PosedImage], cfg: FrameRegistrationConfig
                     ) -> tuple[list[PosedImage], FrameRegistrationReport]:
     """The images with their poses corrected frame to model (see the module docstring)."""
@@ -601,23 +621,11 @@ def stand_headings(images: list[PosedImage], cfg: StandRegistrationConfig) -> np
 
     n = len(images)
     centre = np.mean([im.position_m for im in images], axis=0)
-    rays_cache: dict[tuple, np.ndarray] = {}
-    pts, nrm, own, sig = [], [], [], []
-    for i, im in enumerate(images):
-        # Unthinned: the stride already spaces the points.
-        p = _frame_points(im, cfg.pixel_stride, cfg.max_depth_m, None, rays_cache)
-        if len(p) < 3:
-            continue
-        pts.append(p)
-        nrm.append(orient_normals(estimate_normals(p), im.position_m - p))
-        own.append(np.full(len(p), i))
-        # A point's error: the sensor's depth noise at its range (sigma = rel * z^2), at least min_sigma_m.
-        z2 = np.sum((p - im.position_m) ** 2, axis=1)
-        sig.append(np.maximum(cfg.min_sigma_m, im.depth_noise_rel * z2))
+    cloud = _frame_cloud(images, cfg.pixel_stride, cfg.max_depth_m, cfg.min_sigma_m)
     x = np.zeros(n)
-    if len(pts) < 2:
+    if cloud is None or len(np.unique(cloud[2])) < 2:  # fewer than two frames with points
         return x
-    p0, nrm, own, sig = np.concatenate(pts), np.concatenate(nrm), np.concatenate(own), np.concatenate(sig)
+    p0, nrm, own, sig = cloud
     # The prior: anchors at both ends, a random walk in the heading turned between frames.
     prior = np.zeros((n, n))
     sa = math.radians(cfg.anchor_deg)
@@ -715,25 +723,6 @@ class MoveReport:
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
-
-
-def _frame_cloud(images: list[PosedImage], stride: int, max_depth_m: float, min_sigma_m: float):
-    """Every image's points (stride, range), normals turned towards its camera, owner (index into
-    ``images``) and error (the sensor's depth noise at the point's range, at least ``min_sigma_m``)."""
-    rays_cache: dict[tuple, np.ndarray] = {}
-    pts, nrm, own, sig = [], [], [], []
-    for i, im in enumerate(images):
-        p = _frame_points(im, stride, max_depth_m, None, rays_cache)  # unthinned: the stride spaces them
-        if len(p) < 3:
-            continue
-        pts.append(p)
-        nrm.append(orient_normals(estimate_normals(p), im.position_m - p))
-        own.append(np.full(len(p), i))
-        z2 = np.sum((p - im.position_m) ** 2, axis=1)
-        sig.append(np.maximum(min_sigma_m, im.depth_noise_rel * z2))
-    if not pts:
-        return None
-    return np.concatenate(pts), np.concatenate(nrm), np.concatenate(own), np.concatenate(sig)
 
 
 def drive_poses(images: list[PosedImage], free: np.ndarray, cfg: MoveRegistrationConfig,
