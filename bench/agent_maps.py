@@ -46,14 +46,15 @@ NOISE_SEED = 0
 # How a build corrects drift (ReconstructionConfig.registration) and, where it says so, fuses depth
 # (ReconstructionConfig.backend_config), by name: the ReconstructionConfig fields a ladder row overrides.
 # "off" is explicit so that an uncorrected row keeps its frames and regions uncorrected whatever the
-# reconstructor's default becomes. It leaves the stands' stage (StandRegistrationConfig, on by default) on,
-# so an "off" build still registers its look-arounds: its side record's register_s (24.7 s of 39.2 s on
-# generated:0's noise-free map, 30.1 of 76.3 s on its noisy seed-1 map, a loaded machine) is that stage's.
+# reconstructor's default becomes. It leaves the stands' and the drives' stages (StandRegistrationConfig,
+# MoveRegistrationConfig, on by default) on, so an "off" build still registers its look-arounds and drives:
+# its side record's register_s (the stands' alone: 24.7 s of 39.2 s on generated:0's noise-free map, 30.1 of
+# 76.3 s on its noisy seed-1 map, a loaded machine) is those stages'.
 _OFF = {"frames": {"enabled": False}, "regions": {"enabled": False}}
 CORRECTIONS = {
-    # No registration at all, the stands' stage off too: the truly uncorrected build that a corrected
-    # one's time is set against (issue 33: <= 2x), and the noise-free map's unmoved reference.
-    "none": {"registration": {**_OFF, "stands": {"enabled": False}}},
+    # No registration at all, the stands' and the drives' stages off too: the truly uncorrected build that a
+    # corrected one's time is set against (issue 33: <= 2x), and the noise-free map's unmoved reference.
+    "none": {"registration": {**_OFF, "stands": {"enabled": False}, "moves": {"enabled": False}}},
     "off": {"registration": _OFF},
     "regions": {"registration": {"frames": {"enabled": False}, "regions": {"enabled": True, "method": "sequential"}}},
     "frames+regions": {"registration": {"frames": {"enabled": True}, "regions": {"enabled": True,

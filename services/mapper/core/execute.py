@@ -179,6 +179,7 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
     if any(k < first for k in hubs):
         hubs.add(first)
     note_correction()
+    moved_since_hub = False
     with robot.recording(sink, rate_hz):
         for k in range(first, len(path)):
             check()  # inside the recording: abandoning it here stops the recording on the way out
@@ -186,6 +187,7 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
                 cur = robot.pose.xyz
                 d = path[k, :2] - cur[:2]
                 if np.hypot(*d) > 1e-3:
+                    moved_since_hub = True
                     res = robot.move_to(float(d[0]), float(d[1]))
                     rec.travelled_m += res.travelled_m
                     if res.status != MoveStatus.REACHED:
@@ -204,6 +206,12 @@ def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = Non
                     relocalise(after_look_around=True)
                     note_correction()
                 rec.hubs_visited += 1
+                moved_since_hub = False
+        if moved_since_hub and relocalise is not None:
+            # The path went on past the last hub: a panorama where it ends gives that stretch's frames a
+            # fix after them too (LocaliserConfig.relocalise_at_tour_end), instead of the last hub's alone.
+            relocalise(tour_end=True)
+            note_correction()
     # The sink and the look-around return interleave: the reconstructor wants the video in time order.
     rec.frames = sorted(frames, key=lambda f: (f.timestamp_s, f.index))
     log.info(

@@ -23,8 +23,8 @@ from .depth import DEFAULT_METRIC_DEPTH, METRIC_DEPTH, MetricDepth
 from .errors import AlignmentError, EmptyRecordingError, ReconstructorError
 from .frames import RecordingLike, RegionInput, region_from_recording
 from .regional import DEFAULT_RECONSTRUCTOR, RECONSTRUCTORS, RegionalCloud, RegionalReconstructor
-from .registration import (RegistrationConfig, register_frames, register_regions, register_stands, se2_params,
-                           transform_cloud)
+from .registration import (RegistrationConfig, register_frames, register_moves, register_regions, register_stands,
+                           se2_params, transform_cloud)
 from .voxel import voxel_downsample
 
 log = logging.getLogger(__name__)
@@ -106,16 +106,18 @@ class MapBuild:
         for r in self.regions:
             reg = r.registration or {}
             fr, rg, st = reg.get("frames") or {}, reg.get("region") or {}, reg.get("stands") or {}
-            if not (fr or rg or st.get("adjusted")):  # stands left as they were are no correction
+            mv = reg.get("moves") or {}
+            if not (fr or rg or st.get("adjusted") or mv.get("adjusted")):  # stands, drives left as they were: none
                 continue
             per.append(RegionDriftCorrection(
                 region=r.region, anchor=bool(rg.get("anchor", False)), fell_back=bool(rg.get("fell_back", False)),
                 reason=str(rg.get("reason", ""))[:64],
-                correction_m=float(rg.get("correction_m", fr.get("correction_m", 0.0))),
-                correction_deg=min(180.0, float(rg.get("correction_deg", fr.get("correction_deg",
-                                                                                st.get("max_correction_deg", 0.0))))),
+                correction_m=float(rg.get("correction_m", fr.get("correction_m", mv.get("max_correction_m", 0.0)))),
+                correction_deg=min(180.0, float(rg.get("correction_deg", fr.get("correction_deg", max(
+                    st.get("max_correction_deg", 0.0), mv.get("max_correction_deg", 0.0)))))),
                 fitness=rg.get("fitness"), rmse_m=rg.get("rmse_m"),
-                frames_registered=int(fr.get("registered", 0)) + int(st.get("frames_adjusted", 0)),
+                frames_registered=int(fr.get("registered", 0)) + int(st.get("frames_adjusted", 0))
+                + int(mv.get("frames_adjusted", 0)),
                 frames_fallback=int(fr.get("fallback", 0))))
         moved = [p for p in per if p.correction_m > 0.0 or p.correction_deg > 0.0]
         return DriftCorrection(
@@ -188,14 +190,20 @@ class Reconstructor:
         fcfg = self.config.registration.frames
         placed: list[int] = []  # index into reports of each cloud
         scfg = self.config.registration.stands
+        mcfg = self.config.registration.moves
         for k, region in enumerate(regions):
-            frame_rep = stand_rep = None
+            frame_rep = stand_rep = move_rep = None
             depth = self.backend.metric and all(im.depth_m is not None for im in region.images)
             if scfg.enabled and depth:
                 t0 = time.perf_counter()
                 images, stand_rep = register_stands(region.images, scfg)
                 region = RegionInput(region.region, region.start_pose, images, region.camera_height_m, region.meta)
                 totals["register_stands"] = totals.get("register_stands", 0.0) + time.perf_counter() - t0
+            if mcfg.enabled and depth:  # after the stands: their frames hold the drives' ends
+                t0 = time.perf_counter()
+                images, move_rep = register_moves(region.images, mcfg, scfg)
+                region = RegionInput(region.region, region.start_pose, images, region.camera_height_m, region.meta)
+                totals["register_moves"] = totals.get("register_moves", 0.0) + time.perf_counter() - t0
             if fcfg.enabled and depth:
                 t0 = time.perf_counter()
                 images, frame_rep = register_frames(region.images, fcfg)
@@ -205,6 +213,7 @@ class Reconstructor:
                 rep, world = self._one(region, label_names, totals)
                 reg = {"frames": frame_rep.as_dict()} if frame_rep is not None else {}
                 reg.update({"stands": stand_rep.as_dict()} if stand_rep is not None else {})
+                reg.update({"moves": move_rep.as_dict()} if move_rep is not None else {})
                 rep.registration = reg or None
             except ReconstructorError as exc:
                 if not self.config.skip_failed_regions:
@@ -223,7 +232,9 @@ class Reconstructor:
             raise EmptyRecordingError("no region could be reconstructed")
         # Stands whose headings moved (a noise-free robot's never do: its map says it was not corrected).
         stands = sum(((r.registration or {}).get("stands") or {}).get("adjusted", 0) for r in reports)
-        drift = {"applied": False, "frames": fcfg.enabled, "regions": False, "stands_adjusted": stands}
+        drives = sum(((r.registration or {}).get("moves") or {}).get("adjusted", 0) for r in reports)
+        drift = {"applied": False, "frames": fcfg.enabled, "regions": False, "stands_adjusted": stands,
+                 "drives_adjusted": drives}
         rcfg = self.config.registration.regions
         if rcfg.enabled and len(clouds) > 1:
             views = [None if c.view_dirs is None else view_dirs_unit(c.view_dirs) for c in clouds]
@@ -243,7 +254,8 @@ class Reconstructor:
                          loop_closures_accepted=sum(e.accepted for e in loops),
                          loop_closures_rejected=sum(not e.accepted for e in loops))
             totals["register_regions"] = graph.timings_s
-        drift["applied"] = bool(drift["frames"] or drift["regions"] or drift["stands_adjusted"])
+        drift["applied"] = bool(drift["frames"] or drift["regions"] or drift["stands_adjusted"]
+                                or drift["drives_adjusted"])
         t0 = time.perf_counter()
         merged = voxel_downsample(PointCloud.concatenate(clouds), self.config.merge_voxel_m)
         if label_names:

@@ -16,8 +16,9 @@ from shared.geometry import PinholeCamera, camera_pose
 from services.reconstructor.core.frames import PosedImage
 from services.reconstructor.core.pipeline import MapBuild, ReconstructionConfig
 from services.reconstructor.core.registration import (
-    FrameRegistrationConfig, RegionRegistrationConfig, StandRegistrationConfig, Target, apply_se2, find_stands,
-    icp_planar, register_frames, register_regions, register_stands, se2, se2_params,
+    FrameRegistrationConfig, MoveRegistrationConfig, RegionRegistrationConfig, StandRegistrationConfig, Target,
+    apply_se2, find_stands, icp_planar, register_frames, register_moves, register_regions, register_stands, se2,
+    se2_params,
 )
 
 ROOM_LO = np.array([-2.0, -1.5, 0.0])
@@ -346,3 +347,60 @@ def test_stands_are_the_runs_of_frames_on_one_spot():
                         camera=CAM, depth_m=a[0].depth_m) for k in range(1, 8)]
     assert find_stands(a + drive + b, 0.02, 12) == [(0, STAND_FRAMES), (STAND_FRAMES + 7, 2 * STAND_FRAMES + 7)]
     assert find_stands(drive, 0.02, 3) == []
+
+
+def _drive(start, end, errors) -> tuple[list, list]:
+    """(images as recorded, their true 4x4 poses) of a straight drive from ``start`` to ``end`` (xy, facing
+    along it), each frame's believed pose off by ``errors[k]`` = (x m, y m, heading deg)."""
+    ims, truth = [], []
+    n = len(errors)
+    h = math.atan2(end[1] - start[1], end[0] - start[0])
+    for k, (ex, ey, eh) in enumerate(errors):
+        at = np.array([*(np.asarray(start) + (np.asarray(end) - start) * (k + 1) / (n + 1)), 0.0])
+        true = camera_pose(at, h, 0.0, H_M)
+        told = camera_pose(at + (ex, ey, 0.0), h + math.radians(eh), 0.0, H_M)
+        ims.append(PosedImage(rgb=np.zeros((CAM.height_px, CAM.width_px, 3), np.uint8), world_from_camera=told,
+                              camera=CAM, depth_m=_depth(true), index=1000 + k, heading_rad=h + math.radians(eh)))
+        truth.append(true)
+    return ims, truth
+
+
+def _pose_error(m, true) -> tuple[float, float]:
+    """(camera centre's error in the plane m, heading's error deg) of the pose ``m`` against ``true``."""
+    d = math.atan2(m[1, 2], m[0, 2]) - math.atan2(true[1, 2], true[0, 2])
+    return float(np.hypot(*(m[:2, 3] - true[:2, 3]))), abs(math.degrees(math.remainder(d, 2 * math.pi)))
+
+
+def _stands_and_drive(errors):
+    a, _ = _stand(np.zeros(STAND_FRAMES), at=(-1.2, -0.8))
+    b, _ = _stand(np.zeros(STAND_FRAMES), at=(1.8, -0.8))
+    drive, truth = _drive((-1.2, -0.8), (1.8, -0.8), errors)
+    return a + drive + b, drive, truth
+
+
+def test_a_drives_drift_between_two_stands_is_taken_out():
+    # The mapper's panoramas put both stands right; the frames between them carry the drift since the first,
+    # less the mapper's interpolation: a random walk's bridge, here up to ~3 cm and ~0.7 deg.
+    rng = np.random.default_rng(5)
+    walk = np.cumsum(rng.normal(0.0, [0.006, 0.006, 0.18], (24, 3)), axis=0)
+    errors = walk - np.linspace(0.0, 1.0, 24)[:, None] * walk[-1]
+    ims, drive, truth = _stands_and_drive(errors)
+    before = np.array([_pose_error(im.world_from_camera, t) for im, t in zip(drive, truth)])
+    out, rep = register_moves(ims, MoveRegistrationConfig(pixel_stride=2), StandRegistrationConfig())
+    after = np.array([_pose_error(im.world_from_camera, t) for im, t in zip(out[STAND_FRAMES:-STAND_FRAMES], truth)])
+    assert before[:, 0].max() > 0.02 and before[:, 1].max() > 0.5, before.max(axis=0)
+    assert after[:, 0].max() < 0.5 * before[:, 0].max() and after[:, 1].max() < 0.5 * before[:, 1].max(), (
+        before.max(axis=0), after.max(axis=0))
+    assert rep.drives == 1 and rep.adjusted == 1 and rep.frames_adjusted == 24
+    # The stands' frames hold the ends: they come back as they were.
+    ends = slice(None, STAND_FRAMES), slice(-STAND_FRAMES, None)
+    assert all(x is y for e in ends for x, y in zip(out[e], ims[e]))
+    same, rep_off = register_moves(ims, MoveRegistrationConfig(enabled=False), StandRegistrationConfig())
+    assert all(x is y for x, y in zip(same, ims)) and rep_off.drives == 0
+
+
+def test_an_exact_drive_is_left_bit_identical():
+    ims, _, _ = _stands_and_drive(np.zeros((24, 3)))
+    out, rep = register_moves(ims, MoveRegistrationConfig(pixel_stride=2), StandRegistrationConfig())
+    assert rep.drives == 1 and rep.adjusted == 0 and rep.kept == {"within gate": 1}
+    assert all(a is b for a, b in zip(ims, out))
