@@ -59,9 +59,9 @@ CORRECTIONS = {
     "regions": {"registration": {"frames": {"enabled": False}, "regions": {"enabled": True, "method": "sequential"}}},
     "frames+regions": {"registration": {"frames": {"enabled": True}, "regions": {"enabled": True,
                                                                                  "method": "sequential"}}},
-    # "off" with the opt-in TSDF fusion of noisy-depth regions (RgbdConfig.fusion): its ladder rows beside
-    # the voxels' decide whether it becomes the default (exact depth is fused as "off" fuses it).
-    "off+tsdf": {"registration": _OFF, "backend_config": {"fusion": "tsdf"}},
+    # "off" with noisy-depth regions fused in voxels, as before the TSDF fusion became the default
+    # (RgbdConfig.fusion): the two fusions' ladder rows side by side (exact depth is fused as "off" fuses it).
+    "off+voxels": {"registration": _OFF, "backend_config": {"fusion": "voxels"}},
 }
 
 

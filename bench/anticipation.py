@@ -18,8 +18,8 @@ simulator's ray-cast view at the same camera pose, for each renderer mode.
     python -m bench.anticipation --ladder --noise-seeds 0 1 2 ...   # each noisy map once per noise
                                             # seed of the simulator (default: its one seed, 0), then
                                             # per band the seeds' mean and min-max; targets on the means
-    python -m bench.anticipation --ladder --corrections none off off+tsdf ...   # the product's build
-                                            # beside the opt-in TSDF fusion of noisy depth, same recordings
+    python -m bench.anticipation --ladder --corrections none off off+voxels ...   # the product's build
+                                            # (TSDF fusion of noisy depth) beside the voxels', same recordings
 
 Maps are built the way the system builds them: explore (frontier DFS, hubs, tours), recorded tours,
 then the reconstructor (``rgbd``, ``mono-sim``, or ``rgbd`` on a robot with sensor noise on: all of it,

@@ -111,23 +111,23 @@ def test_each_seed_is_its_own_recording_and_map_and_its_corrections_share_one_re
     assert agent_maps.build_record(SCENE, "rgbd", None)["noise_seed"] is None
 
 
-def test_a_named_build_sets_the_reconstructors_fields_and_tsdf_is_a_map_of_its_own(stand_ins):
+def test_a_named_build_sets_the_reconstructors_fields_and_voxels_is_a_map_of_its_own(stand_ins):
     from services.reconstructor.core import ReconstructionConfig
 
-    for corr in ("off", "off+tsdf", "none"):
+    for corr in ("off", "off+voxels", "none"):
         robot, _ = agent_maps.build_map(SCENE, "rgbd", "noisy", correction=corr)
         robot.close()
-    off, tsdf, none = stand_ins.configs
+    off, voxels, none = stand_ins.configs
     assert stand_ins == [0]  # one recording: the fusion is the build's, not the exploration's
-    assert off.backend_config == {} and tsdf.backend_config == {"fusion": "tsdf"}
-    assert tsdf.registration == off.registration and not off.registration.frames.enabled
+    assert off.backend_config == {} and voxels.backend_config == {"fusion": "voxels"}
+    assert voxels.registration == off.registration and not off.registration.frames.enabled
     assert off.registration.stands.enabled and not none.registration.stands.enabled
     # Every entry is a set of ReconstructionConfig fields that it accepts.
     for name, fields in agent_maps.CORRECTIONS.items():
         ReconstructionConfig(backend="rgbd", **fields)
-    names = {agent_maps._map_path(SCENE, "rgbd", "noisy", 128, 1.0, c)[0].name for c in ("off", "off+tsdf")}
+    names = {agent_maps._map_path(SCENE, "rgbd", "noisy", 128, 1.0, c)[0].name for c in ("off", "off+voxels")}
     assert names == {"generated_3_area-50_rgbd_noisy_corr-off_128.ply",
-                     "generated_3_area-50_rgbd_noisy_corr-off-tsdf_128.ply"}
+                     "generated_3_area-50_rgbd_noisy_corr-off-voxels_128.ply"}
 
 
 def _scores(mapped: float, ssim: float, n: int = 3, label: float = 0.95, leak: float = 0.0) -> an.Scores:

@@ -181,7 +181,8 @@ def test_a_frame_that_declares_depth_noise_is_fused_only_as_far_as_it_is_good(ke
     # sensor (rel 0) keeps max_depth_m. Both paths agree bit for bit, as without noise.
     region = _region(5, seed=2)
     # Raw depth (not denoised): its sigma is the declared one (denoised frames: test_depth_denoise.py).
-    cfg = {"kernel": kernel, "remove_outliers": False, "pixel_stride": 1, "denoise_window_px": 1}
+    cfg = {"fusion": "voxels", "kernel": kernel, "remove_outliers": False, "pixel_stride": 1,
+           "denoise_window_px": 1}
     rgbd = RECONSTRUCTORS.create("rgbd", cfg)
     exact = rgbd.reconstruct(region)
     for im in region.images:

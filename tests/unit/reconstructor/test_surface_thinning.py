@@ -35,7 +35,8 @@ def _core(c, face: float, side: int = 0):
 @pytest.mark.parametrize("kernel", [pytest.param("numba", marks=pytest.mark.skipif(
     not kernels.AVAILABLE, reason="numba not installed")), "numpy"])
 def test_the_sparse_outer_layers_of_a_noisy_wall_are_dropped(kernel):
-    cfg = {"kernel": kernel, "remove_outliers": False, "stray_points": 0}  # the slab as fused, strays and all
+    # The slab as the voxels fuse it (noisy depth's default is the TSDF), strays and all.
+    cfg = {"fusion": "voxels", "kernel": kernel, "remove_outliers": False, "stray_points": 0}
     thin = RECONSTRUCTORS.create("rgbd", {**cfg, **THIN}).reconstruct(_frames(REL)).cloud
     slab = RECONSTRUCTORS.create("rgbd", cfg).reconstruct(_frames(REL)).cloud
     (n_thin, off_thin), (n_slab, off_slab) = _core(thin, WALL_X), _core(slab, WALL_X)
@@ -46,7 +47,7 @@ def test_the_sparse_outer_layers_of_a_noisy_wall_are_dropped(kernel):
 
 
 def test_behind_drops_only_the_layers_behind_the_wall():
-    cfg = {"remove_outliers": False, "stray_points": 0}
+    cfg = {"fusion": "voxels", "remove_outliers": False, "stray_points": 0}
     slab = RECONSTRUCTORS.create("rgbd", cfg).reconstruct(_frames(REL)).cloud
     behind = RECONSTRUCTORS.create("rgbd", {**cfg, **THIN, "surface_sides": "behind"}).reconstruct(_frames(REL)).cloud
     # The frames look along +x: behind the wall is the higher-x side.
@@ -55,7 +56,7 @@ def test_behind_drops_only_the_layers_behind_the_wall():
 
 
 def test_a_wall_seen_from_both_sides_keeps_both_faces():
-    cfg = {"remove_outliers": False, "stray_points": 0}
+    cfg = {"fusion": "voxels", "remove_outliers": False, "stray_points": 0}
     # A thin one (6 cm: a cabinet's side), its far face seen by one frame: within reach of the near
     # face's eight, whose voxels hold many more points.
     region = _frames(REL, back=1, thick_m=0.06)

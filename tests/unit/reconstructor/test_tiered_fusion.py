@@ -48,7 +48,7 @@ def _frames(rel: float, back: bool = False, near_drift_m: float = 0.0, far_m: fl
 @pytest.mark.parametrize("kernel", [pytest.param("numba", marks=pytest.mark.skipif(
     not kernels.AVAILABLE, reason="numba not installed")), "numpy"])
 def test_far_looks_add_only_what_no_near_look_saw(kernel):
-    cfg = {"kernel": kernel, "remove_outliers": False}
+    cfg = {"fusion": "voxels", "kernel": kernel, "remove_outliers": False}
     tiered = RECONSTRUCTORS.create("rgbd", cfg).reconstruct(_frames(REL)).cloud
     one = RECONSTRUCTORS.create("rgbd", {**cfg, "near_depth_noise_m": 0.0}).reconstruct(_frames(REL)).cloud
     for c in (tiered, one):
@@ -64,7 +64,7 @@ def test_far_looks_add_only_what_no_near_look_saw(kernel):
 
 
 def test_a_far_look_at_the_other_face_of_a_wall_is_kept():
-    cfg = {"remove_outliers": False}
+    cfg = {"fusion": "voxels", "remove_outliers": False}
     region = _frames(REL, back=True)
     red = []
     for c in (RECONSTRUCTORS.create("rgbd", cfg).reconstruct(region).cloud,
@@ -86,7 +86,7 @@ def test_a_far_patch_the_near_looks_placed_apart_is_kept():
     wall = np.stack([np.full(yy.size, WALL_X), yy.ravel(), zz.ravel()], axis=1)
     mapped, red = [], []
     for offset_m in (0.03, 0.0):
-        cfg = {"remove_outliers": False, "far_offset_m": offset_m}
+        cfg = {"fusion": "voxels", "remove_outliers": False, "far_offset_m": offset_m}
         c = RECONSTRUCTORS.create("rgbd", cfg).reconstruct(region).cloud
         dist, _ = cKDTree(c.xyz).query(wall)
         mapped.append(float((dist <= 0.03).mean()))

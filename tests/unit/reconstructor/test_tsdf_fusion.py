@@ -37,7 +37,7 @@ def _patch(c, face: float):
 
 
 def test_a_noisy_wall_is_one_sheet_on_its_plane():
-    voxels = RECONSTRUCTORS.create("rgbd").reconstruct(_frames(REL)).cloud
+    voxels = RECONSTRUCTORS.create("rgbd", {"fusion": "voxels"}).reconstruct(_frames(REL)).cloud
     tsdf = RECONSTRUCTORS.create("rgbd", TSDF).reconstruct(_frames(REL)).cloud
     (mv, off_v), (mt, off_t) = _patch(voxels, WALL_X), _patch(tsdf, WALL_X)
     # The voxel fusion's centroids scatter over the slab: 27 % of them more than 1.5 cm off the plane, the
