@@ -8,7 +8,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -187,34 +187,25 @@ class Reconstructor:
         totals = {"regional": 0.0, "align": 0.0, "integrate": 0.0}
         reports: list[RegionReport] = []
         clouds: list[PointCloud] = []
-        fcfg = self.config.registration.frames
         placed: list[int] = []  # index into reports of each cloud
-        scfg = self.config.registration.stands
-        mcfg = self.config.registration.moves
+        cfg = self.config.registration
+        # A region's own stages, in this order: the stands' headings, then the drives between them (the
+        # stands' frames hold the drives' ends), then the frames' ICP; each recorded under its name.
+        stages = (("stands", cfg.stands.enabled, lambda images: register_stands(images, cfg.stands)),
+                  ("moves", cfg.moves.enabled, lambda images: register_moves(images, cfg.moves, cfg.stands)),
+                  ("frames", cfg.frames.enabled, lambda images: register_frames(images, cfg.frames)))
         for k, region in enumerate(regions):
-            frame_rep = stand_rep = move_rep = None
+            stage_reports = {}
             depth = self.backend.metric and all(im.depth_m is not None for im in region.images)
-            if scfg.enabled and depth:
-                t0 = time.perf_counter()
-                images, stand_rep = register_stands(region.images, scfg)
-                region = RegionInput(region.region, region.start_pose, images, region.camera_height_m, region.meta)
-                totals["register_stands"] = totals.get("register_stands", 0.0) + time.perf_counter() - t0
-            if mcfg.enabled and depth:  # after the stands: their frames hold the drives' ends
-                t0 = time.perf_counter()
-                images, move_rep = register_moves(region.images, mcfg, scfg)
-                region = RegionInput(region.region, region.start_pose, images, region.camera_height_m, region.meta)
-                totals["register_moves"] = totals.get("register_moves", 0.0) + time.perf_counter() - t0
-            if fcfg.enabled and depth:
-                t0 = time.perf_counter()
-                images, frame_rep = register_frames(region.images, fcfg)
-                region = RegionInput(region.region, region.start_pose, images, region.camera_height_m, region.meta)
-                totals["register_frames"] = totals.get("register_frames", 0.0) + time.perf_counter() - t0
+            for name, enabled, run in stages:
+                if enabled and depth:
+                    t0 = time.perf_counter()
+                    images, stage_reports[name] = run(region.images)
+                    region = replace(region, images=images)
+                    totals[f"register_{name}"] = totals.get(f"register_{name}", 0.0) + time.perf_counter() - t0
             try:
                 rep, world = self._one(region, label_names, totals)
-                reg = {"frames": frame_rep.as_dict()} if frame_rep is not None else {}
-                reg.update({"stands": stand_rep.as_dict()} if stand_rep is not None else {})
-                reg.update({"moves": move_rep.as_dict()} if move_rep is not None else {})
-                rep.registration = reg or None
+                rep.registration = {name: r.as_dict() for name, r in stage_reports.items()} or None
             except ReconstructorError as exc:
                 if not self.config.skip_failed_regions:
                     raise
@@ -233,9 +224,9 @@ class Reconstructor:
         # Stands whose headings moved (a noise-free robot's never do: its map says it was not corrected).
         stands = sum(((r.registration or {}).get("stands") or {}).get("adjusted", 0) for r in reports)
         drives = sum(((r.registration or {}).get("moves") or {}).get("adjusted", 0) for r in reports)
-        drift = {"applied": False, "frames": fcfg.enabled, "regions": False, "stands_adjusted": stands,
+        drift = {"applied": False, "frames": cfg.frames.enabled, "regions": False, "stands_adjusted": stands,
                  "drives_adjusted": drives}
-        rcfg = self.config.registration.regions
+        rcfg = cfg.regions
         if rcfg.enabled and len(clouds) > 1:
             views = [None if c.view_dirs is None else view_dirs_unit(c.view_dirs) for c in clouds]
             graph = register_regions([c.xyz for c in clouds], rcfg, views)
