@@ -55,6 +55,7 @@ from shared.jit import AVAILABLE, kernel
 
 from . import kernels
 from .kernels import AXIS_BITS, AXIS_HALF, LABEL_MAX
+from .voxel import pack_cells, unpack_keys
 
 # Columns of a voxel's row: weighted distance sum, weight sum, weighted colour sums, updates, label
 # slot (label + 1, 0: none) and its weighted majority counter, view-vector sums and their count, and
@@ -348,7 +349,7 @@ def _band_samples(vol: TsdfVolume, d, rx, ry, front, back, dz, steps, sub, pitch
         cell.append(np.floor(p, out=p).astype(np.int64))
     if any(len(c) and (c.min() < -half or c.max() >= half - 1) for c in cell):
         return None
-    key = ((cell[0] + half) << (2 * AXIS_BITS)) | ((cell[1] + half) << AXIS_BITS) | (cell[2] + half)
+    key = pack_cells(cell[0] + half, cell[1] + half, cell[2] + half)
     # A ray's consecutive samples in one voxel update it once.
     keep = np.ones(len(key), bool)
     keep[1:] = (ray[1:] != ray[:-1]) | (key[1:] != key[:-1])
@@ -428,9 +429,7 @@ def _extract_array(vol: TsdfVolume, min_updates, crossing_max):
     cnt = rows[:, _N]
     a = np.flatnonzero(cnt >= min_updates)
     tsd = rows[:, _SDF] / rows[:, _W]
-    mask = (1 << AXIS_BITS) - 1
-    base = np.stack([((keys[a] >> (2 * AXIS_BITS)) & mask) - AXIS_HALF, ((keys[a] >> AXIS_BITS) & mask) - AXIS_HALF,
-                     (keys[a] & mask) - AXIS_HALF], axis=1)
+    base = unpack_keys(keys[a]) - AXIS_HALF
     # (a, axis) pairs in the loop's order: voxel by voxel, +x, +y, +z.
     steps = np.array([1 << (2 * AXIS_BITS), 1 << AXIS_BITS, 1], np.int64)
     b = vol.index.find((keys[a][:, None] + steps[None, :]).reshape(-1)).reshape(-1, 3)
