@@ -605,6 +605,14 @@ def _turned_about(m: np.ndarray, yaw: float, centre: np.ndarray) -> np.ndarray:
     return se2_to_4x4(se2(*(centre[:2] - r @ centre[:2]), yaw)) @ m
 
 
+def _moved(im: PosedImage, yaw: float, centre: np.ndarray, shift_m: tuple[float, float] = (0.0, 0.0)) -> PosedImage:
+    """``im`` turned by ``yaw`` about the vertical through ``centre``, then shifted by ``shift_m`` (x, y): its
+    pose and its heading alike (the stands' and the drives' corrections)."""
+    m = _turned_about(im.world_from_camera, yaw, centre)
+    m[:2, 3] += shift_m
+    return PosedImage(**{**im.__dict__, "world_from_camera": m, "heading_rad": float(im.heading_rad + yaw)})
+
+
 def stand_headings(images: list[PosedImage], cfg: StandRegistrationConfig) -> np.ndarray:
     """Heading corrections (rad) of the frames of one stand, all turned about one vertical axis.
 
@@ -696,10 +704,7 @@ def register_stands(images: list[PosedImage], cfg: StandRegistrationConfig) -> t
             continue
         centre = np.mean([im.position_m for im in images[a:b]], axis=0)
         for i in range(a, b):
-            im = images[i]
-            turned = _turned_about(im.world_from_camera, x[i - a], centre)
-            out[i] = PosedImage(**{**im.__dict__, "world_from_camera": turned,
-                                   "heading_rad": float(im.heading_rad + x[i - a])})
+            out[i] = _moved(images[i], x[i - a], centre)
         rep.adjusted += 1
         rep.frames_adjusted += b - a
         rep.max_correction_deg = max(rep.max_correction_deg, top)
@@ -870,11 +875,8 @@ def register_moves(images: list[PosedImage], cfg: MoveRegistrationConfig, stands
             rep.kept[why] = rep.kept.get(why, 0) + 1
             continue
         for k in range(a, b):
-            im = images[k]
             dx, dy, dyaw = x[k - a]
-            m = _turned_about(im.world_from_camera, dyaw, im.position_m)
-            m[:2, 3] += (dx, dy)
-            out[k] = PosedImage(**{**im.__dict__, "world_from_camera": m, "heading_rad": float(im.heading_rad + dyaw)})
+            out[k] = _moved(images[k], dyaw, images[k].position_m, (dx, dy))
         rep.adjusted += 1
         rep.frames_adjusted += b - a
         rep.max_correction_m = max(rep.max_correction_m, top_m)
