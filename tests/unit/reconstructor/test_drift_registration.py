@@ -17,8 +17,8 @@ from services.reconstructor.core.frames import PosedImage
 from services.reconstructor.core.pipeline import MapBuild, ReconstructionConfig
 from services.reconstructor.core.registration import (
     FrameRegistrationConfig, MoveRegistrationConfig, RegionRegistrationConfig, StandRegistrationConfig, Target,
-    apply_se2, find_stands, icp_planar, register_frames, register_moves, register_regions, register_stands, se2,
-    se2_params,
+    apply_se2, drive_poses, find_stands, icp_planar, register_frames, register_moves,
+    register_regions, register_stands, se2, se2_params,
 )
 
 ROOM_LO = np.array([-2.0, -1.5, 0.0])
@@ -404,3 +404,21 @@ def test_an_exact_drive_is_left_bit_identical():
     out, rep = register_moves(ims, MoveRegistrationConfig(pixel_stride=2), StandRegistrationConfig())
     assert rep.drives == 1 and rep.adjusted == 0 and rep.kept == {"within gate": 1}
     assert all(a is b for a, b in zip(ims, out))
+
+
+def test_a_drive_is_the_same_with_its_stands_points_kept_from_the_drive_before():
+    # register_moves computes each frame's points and normals once for every drive it serves (a stand's
+    # frames serve the drive before it and the one after): kept or computed afresh, the poses are the same.
+    rng = np.random.default_rng(7)
+    walk = np.cumsum(rng.normal(0.0, [0.006, 0.006, 0.18], (24, 3)), axis=0)
+    ims, _, _ = _stands_and_drive(walk - np.linspace(0.0, 1.0, 24)[:, None] * walk[-1])
+    free = np.array([STAND_FRAMES <= k < STAND_FRAMES + 24 for k in range(len(ims))])
+    cfg = MoveRegistrationConfig(pixel_stride=2)
+    fresh = drive_poses(ims, free, cfg)
+    frames: dict = {}
+    # Another drive with the same stand (its images in another order: the store follows the images, not
+    # their places in a drive's list).
+    drive_poses(ims[:STAND_FRAMES + 3][::-1], free[:STAND_FRAMES + 3][::-1], cfg, frames=frames)
+    assert len(frames) == STAND_FRAMES + 3
+    kept = drive_poses(ims, free, cfg, frames=frames)
+    assert np.abs(fresh).max() > 0.0 and np.array_equal(kept, fresh)
