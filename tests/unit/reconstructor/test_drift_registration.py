@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera, camera_pose
@@ -17,8 +18,8 @@ from services.reconstructor.core.frames import PosedImage
 from services.reconstructor.core.pipeline import MapBuild, ReconstructionConfig
 from services.reconstructor.core.registration import (
     FrameRegistrationConfig, MoveRegistrationConfig, RegionRegistrationConfig, StandRegistrationConfig, Target,
-    apply_se2, find_stands, icp_planar, register_frames, register_moves, register_regions, register_stands, se2,
-    se2_params,
+    apply_se2, drive_poses, estimate_normals, find_stands, icp_planar, register_frames, register_moves,
+    register_regions, register_stands, se2, se2_params,
 )
 
 ROOM_LO = np.array([-2.0, -1.5, 0.0])
@@ -404,3 +405,42 @@ def test_an_exact_drive_is_left_bit_identical():
     out, rep = register_moves(ims, MoveRegistrationConfig(pixel_stride=2), StandRegistrationConfig())
     assert rep.drives == 1 and rep.adjusted == 0 and rep.kept == {"within gate": 1}
     assert all(a is b for a, b in zip(ims, out))
+
+
+def test_normals_agree_with_eigh_to_rounding():
+    # The closed-form smallest eigenvector against LAPACK's: a noisy tilted plane, a round patch (the two
+    # largest eigenvalues equal, where the cubic's root loses digits), a line and repeated points (no normal:
+    # eigh decides, as it did).
+    rng = np.random.default_rng(3)
+    turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    grid = np.stack(np.meshgrid(np.arange(20) * 0.05, np.arange(20) * 0.05), -1).reshape(-1, 2)
+    ring = np.arange(12) * math.pi / 6
+    clouds = [np.c_[grid, rng.normal(0.0, 0.004, len(grid))] @ turn.T + 1.5,
+              np.c_[np.cos(ring), np.sin(ring), np.zeros(12)] * 0.05 @ turn.T,
+              np.c_[np.linspace(0.0, 1.0, 30), np.zeros(30), np.zeros(30)],
+              np.ones((12, 3))]
+    for xyz in clouds:
+        _, idx = cKDTree(xyz).query(xyz, k=12)
+        nb = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)
+        want = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0]
+        got = estimate_normals(xyz)
+        sign = np.where(np.einsum("ij,ij->i", got, want) < 0.0, -1.0, 1.0)
+        assert np.abs(got * sign[:, None] - want).max() < 1e-12
+
+
+def test_a_drive_is_the_same_with_its_stands_points_kept_from_the_drive_before():
+    # register_moves computes each frame's points and normals once for every drive it serves (a stand's
+    # frames serve the drive before it and the one after): kept or computed afresh, the poses are the same.
+    rng = np.random.default_rng(7)
+    walk = np.cumsum(rng.normal(0.0, [0.006, 0.006, 0.18], (24, 3)), axis=0)
+    ims, _, _ = _stands_and_drive(walk - np.linspace(0.0, 1.0, 24)[:, None] * walk[-1])
+    free = np.array([STAND_FRAMES <= k < STAND_FRAMES + 24 for k in range(len(ims))])
+    cfg = MoveRegistrationConfig(pixel_stride=2)
+    fresh = drive_poses(ims, free, cfg)
+    frames: dict = {}
+    # Another drive with the same stand (its images in another order: the store follows the images, not
+    # their places in a drive's list).
+    drive_poses(ims[:STAND_FRAMES + 3][::-1], free[:STAND_FRAMES + 3][::-1], cfg, frames=frames)
+    assert len(frames) == STAND_FRAMES + 3
+    kept = drive_poses(ims, free, cfg, frames=frames)
+    assert np.abs(fresh).max() > 0.0 and np.array_equal(kept, fresh)
