@@ -191,8 +191,9 @@ class Reconstructor:
         cfg = self.config.registration
         # A region's own stages, in this order: the stands' headings, then the drives between them (the
         # stands' frames hold the drives' ends), then the frames' ICP; each recorded under its name.
-        stages = (("stands", cfg.stands.enabled, lambda images: register_stands(images, cfg.stands)),
-                  ("moves", cfg.moves.enabled, lambda images: register_moves(images, cfg.moves, cfg.stands)),
+        stages = (("stands", cfg.stands.enabled, lambda images: register_stands(images, cfg.stands, cfg.threads)),
+                  ("moves", cfg.moves.enabled,
+                   lambda images: register_moves(images, cfg.moves, cfg.stands, cfg.threads)),
                   ("frames", cfg.frames.enabled, lambda images: register_frames(images, cfg.frames)))
         for k, region in enumerate(regions):
             stage_reports = {}

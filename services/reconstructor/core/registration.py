@@ -102,7 +102,6 @@ truer (the stands' stage is on: see StandRegistrationConfig for its figures).
 from __future__ import annotations
 
 import math
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -271,6 +270,10 @@ class RegistrationConfig(BaseModel):
     regions: RegionRegistrationConfig = Field(default_factory=RegionRegistrationConfig)
     stands: StandRegistrationConfig = Field(default_factory=StandRegistrationConfig)
     moves: MoveRegistrationConfig = Field(default_factory=MoveRegistrationConfig)
+    # A region's stands, and then its drives, are adjusted side by side on this many threads (as
+    # RgbdConfig.threads: a deployment that runs several builds on one machine sets it to its share of the
+    # cores). The result does not depend on it; 1: one after another.
+    threads: int = Field(2, ge=1, le=64)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -707,15 +710,15 @@ def _moved(im: PosedImage, yaw: float, centre: np.ndarray, shift_m: tuple[float,
     return PosedImage(**{**im.__dict__, "world_from_camera": m, "heading_rad": float(im.heading_rad + yaw)})
 
 
-def _side_by_side(fn, items: list) -> list:
-    """``[fn(item) for item in items]``, on as many threads as the machine has cores.
+def _side_by_side(fn, items: list, threads: int) -> list:
+    """``[fn(item) for item in items]``, on up to ``threads`` threads.
 
     For the stands and the drives of a region, which are independent of one another: their k-d trees and
     array work release the GIL, so each one's result is exactly what it was computed alone (two cores,
     generated:0's first 3 regions: both stages 6.95 -> 4.69 s)."""
-    if len(items) < 2:
+    if len(items) < 2 or threads < 2:
         return [fn(item) for item in items]
-    with ThreadPoolExecutor(max_workers=min(len(items), os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(max_workers=min(len(items), threads)) as pool:
         return list(pool.map(fn, items))
 
 
@@ -797,14 +800,16 @@ def stand_headings(images: list[PosedImage], cfg: StandRegistrationConfig) -> np
     return x
 
 
-def register_stands(images: list[PosedImage], cfg: StandRegistrationConfig) -> tuple[list[PosedImage], StandReport]:
-    """The images with the headings of every stand (a look-around) adjusted (:func:`stand_headings`)."""
+def register_stands(images: list[PosedImage], cfg: StandRegistrationConfig, threads: int = 2
+                    ) -> tuple[list[PosedImage], StandReport]:
+    """The images with the headings of every stand (a look-around) adjusted (:func:`stand_headings`), the
+    stands side by side on up to ``threads`` threads (RegistrationConfig.threads)."""
     rep = StandReport()
     if not cfg.enabled or any(im.depth_m is None for im in images):
         return images, rep
     out = list(images)
     spans = find_stands(images, cfg.same_place_m, cfg.min_frames)
-    for (a, b), x in zip(spans, _side_by_side(lambda ab: stand_headings(images[ab[0]:ab[1]], cfg), spans)):
+    for (a, b), x in zip(spans, _side_by_side(lambda ab: stand_headings(images[ab[0]:ab[1]], cfg), spans, threads)):
         rep.stands += 1
         top = float(np.degrees(np.abs(x).max()))
         why = "within gate" if top < cfg.gate_deg else "too far" if top > cfg.max_correction_deg else None
@@ -949,10 +954,11 @@ def drive_poses(images: list[PosedImage], free: np.ndarray, cfg: MoveRegistratio
     return x
 
 
-def register_moves(images: list[PosedImage], cfg: MoveRegistrationConfig, stands: StandRegistrationConfig
-                   ) -> tuple[list[PosedImage], MoveReport]:
+def register_moves(images: list[PosedImage], cfg: MoveRegistrationConfig, stands: StandRegistrationConfig,
+                   threads: int = 2) -> tuple[list[PosedImage], MoveReport]:
     """The images with the poses of every drive (a run of frames off the stands, ``stands``' definition of
-    one, next to a stand) adjusted against the stands either side of it (:func:`drive_poses`)."""
+    one, next to a stand) adjusted against the stands either side of it (:func:`drive_poses`), the drives side
+    by side on up to ``threads`` threads (RegistrationConfig.threads)."""
     rep = MoveReport()
     if not cfg.enabled or any(im.depth_m is None for im in images):
         return images, rep
@@ -983,7 +989,7 @@ def register_moves(images: list[PosedImage], cfg: MoveRegistrationConfig, stands
         return drive_poses([images[k] for k in pick], free, cfg, ends, frames)[free]
 
     # Two drives that share a stand may both compute its frames' points: the same arrays, either one kept.
-    for (a, b, _, _, _), x in zip(drives, _side_by_side(adjust, drives)):
+    for (a, b, _, _, _), x in zip(drives, _side_by_side(adjust, drives, threads)):
         rep.drives += 1
         top_m = float(np.hypot(x[:, 0], x[:, 1]).max())  # over the drive's frames alone
         top_deg = float(np.degrees(np.abs(x[:, 2]).max()))

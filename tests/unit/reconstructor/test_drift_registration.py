@@ -444,3 +444,25 @@ def test_a_drive_is_the_same_with_its_stands_points_kept_from_the_drive_before()
     assert len(frames) == STAND_FRAMES + 3
     kept = drive_poses(ims, free, cfg, frames=frames)
     assert np.abs(fresh).max() > 0.0 and np.array_equal(kept, fresh)
+
+
+def test_stands_and_drives_side_by_side_give_what_one_thread_gives():
+    # RegistrationConfig.threads shares a region's stands (then its drives) out to threads: each one's result
+    # must be exactly what it is alone, whatever the count.
+    rng = np.random.default_rng(11)
+    walks = [np.cumsum(rng.normal(0.0, 0.25, STAND_FRAMES)) for _ in range(2)]
+    a, _ = _stand(walks[0] - np.linspace(walks[0][0], walks[0][-1], STAND_FRAMES), at=(-1.2, -0.8))
+    b, _ = _stand(walks[1] - np.linspace(walks[1][0], walks[1][-1], STAND_FRAMES), at=(1.8, -0.8))
+    walk = np.cumsum(rng.normal(0.0, [0.006, 0.006, 0.18], (24, 3)), axis=0)
+    drive, _ = _drive((-1.2, -0.8), (1.8, -0.8), walk - np.linspace(0.0, 1.0, 24)[:, None] * walk[-1])
+    ims = a + drive + b
+    results = []
+    for threads in (1, 2):
+        stood, srep = register_stands(ims, StandRegistrationConfig(pixel_stride=2), threads)
+        moved, mrep = register_moves(stood, MoveRegistrationConfig(pixel_stride=2), StandRegistrationConfig(), threads)
+        results.append((moved, srep, mrep))
+    (one, s1, m1), (two, s2, m2) = results
+    assert s1.adjusted == 2 and m1.adjusted == 1, (s1, m1)  # both stands and the drive moved: the test bites
+    assert s1.as_dict() == s2.as_dict() and m1.as_dict() == m2.as_dict()
+    for x, y in zip(one, two):
+        assert np.array_equal(x.world_from_camera, y.world_from_camera) and x.heading_rad == y.heading_rad
