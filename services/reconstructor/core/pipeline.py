@@ -24,7 +24,7 @@ from .errors import AlignmentError, EmptyRecordingError, ReconstructorError
 from .frames import RecordingLike, RegionInput, region_from_recording
 from .regional import DEFAULT_RECONSTRUCTOR, RECONSTRUCTORS, RegionalCloud, RegionalReconstructor
 from .registration import (RegistrationConfig, register_frames, register_moves, register_regions, register_stands,
-                           se2_params, transform_cloud)
+                           se2_params, transform_cloud, transform_region)
 from .voxel import voxel_downsample
 
 log = logging.getLogger(__name__)
@@ -188,6 +188,7 @@ class Reconstructor:
         reports: list[RegionReport] = []
         clouds: list[PointCloud] = []
         placed: list[int] = []  # index into reports of each cloud
+        inputs: list[RegionInput] = []  # each cloud's region, its images as its stages registered them
         cfg = self.config.registration
         # A region's own stages, in this order: the stands' headings, then the drives between them (the
         # stands' frames hold the drives' ends), then the frames' ICP; each recorded under its name.
@@ -218,6 +219,7 @@ class Reconstructor:
             if world is not None:
                 clouds.append(world)
                 placed.append(len(reports) - 1)
+                inputs.append(region)
             if on_region is not None:
                 on_region(k, len(regions), rep)
         if not clouds:
@@ -232,6 +234,7 @@ class Reconstructor:
             views = [None if c.view_dirs is None else view_dirs_unit(c.view_dirs) for c in clouds]
             graph = register_regions([c.xyz for c in clouds], rcfg, views)
             clouds = [transform_cloud(c, x) for c, x in zip(clouds, graph.corrections)]
+            inputs = [transform_region(r, x) for r, x in zip(inputs, graph.corrections)]
             ids = [reports[i].region for i in placed]
             for j, (i, x) in enumerate(zip(placed, graph.corrections)):
                 cx, cy, cyaw = se2_params(x)
@@ -249,7 +252,16 @@ class Reconstructor:
         drift["applied"] = bool(drift["frames"] or drift["regions"] or drift["stands_adjusted"]
                                 or drift["drives_adjusted"])
         t0 = time.perf_counter()
-        merged = voxel_downsample(PointCloud.concatenate(clouds), self.config.merge_voxel_m)
+        # A backend that fuses the whole map at once (RgbdConfig.tsdf_scope) replaces the clouds of the
+        # regions it fused; the others' clouds stay.
+        parts = clouds
+        fused = self.backend.fuse_map(inputs, label_names)
+        if fused is not None:
+            cloud, ids = fused
+            parts = [cloud] + [c for c, r in zip(clouds, inputs) if r.region not in set(ids)]
+            totals["fuse_map"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+        merged = voxel_downsample(PointCloud.concatenate(parts), self.config.merge_voxel_m)
         if label_names:
             merged.label_names = dict(label_names)
         totals["merge"] = time.perf_counter() - t0

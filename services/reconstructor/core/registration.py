@@ -104,15 +104,17 @@ from __future__ import annotations
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.cloud import PointCloud, rotate_view_dirs
+from shared.geometry import planar_apply
+from shared.schemas import Pose
 
-from .frames import PosedImage
+from .frames import PosedImage, RegionInput
 
 
 class FrameRegistrationConfig(BaseModel):
@@ -310,6 +312,18 @@ def transform_cloud(cloud: PointCloud, t: np.ndarray) -> PointCloud:
     r[:2, :2] = t[:2, :2]
     return PointCloud(apply_se2(t, cloud.xyz.astype(np.float64)), cloud.rgb, cloud.labels,
                       dict(cloud.label_names), rotate_view_dirs(cloud.view_dirs, r))
+
+
+def transform_region(region: RegionInput, t: np.ndarray) -> RegionInput:
+    """The region moved by the planar transform ``t`` as ``transform_cloud`` moves its cloud: its images and
+    its start pose (its local frame, which moves with them)."""
+    if np.allclose(t, np.eye(3)):
+        return region
+    m = se2_to_4x4(t)
+    x, y, yaw = se2_params(t)
+    xyz, heading = planar_apply((x, y, 0.0), yaw, region.start_pose.xyz, region.start_pose.heading_rad)
+    return replace(region, start_pose=Pose(position_m=xyz, heading_rad=heading),
+                   images=[replace(im, world_from_camera=m @ im.world_from_camera) for im in region.images])
 
 
 # ---------------------------------------------------------------------------------------------

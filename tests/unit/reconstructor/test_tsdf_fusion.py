@@ -171,3 +171,64 @@ def test_a_frame_of_one_strided_pixel_is_counted_and_adds_nothing(kernel):
     rgbd = RECONSTRUCTORS.create("rgbd", {**TSDF, "kernel": kernel, "pixel_stride": 16})
     vol = rgbd.tsdf_volume([im], np.eye(4), True)
     assert vol.points == 1 and vol.n == 0
+
+
+def _two_rooms_build(scope: str):
+    """The wall seen by one region from 1 m (eight looks) and by another from 4.2 m, two looks (the next
+    room's, across it: denoised sigma 3.5 cm), built by the pipeline with the TSDF over ``scope``."""
+    from dataclasses import replace
+
+    from services.reconstructor.core import ReconstructionConfig, Reconstructor
+
+    near = wall_frames(REL, WALL_X, 1.0, PinholeCamera(192, 144, 90.0))
+    far = wall_frames(REL, WALL_X, 4.2, PinholeCamera(192, 144, 90.0))
+    far = replace(far, region=1, images=[replace(im, index=100 + im.index) for im in far.images[:2]])
+    cfg = ReconstructionConfig(backend="rgbd", backend_config={**TSDF, "tsdf_scope": scope},
+                               registration={"stands": {"enabled": False}, "moves": {"enabled": False}})
+    with Reconstructor(cfg) as r:
+        return r.build([near, far])
+
+
+def test_one_volume_for_the_map_lets_the_near_looks_outvote_the_far_region():
+    apart, together = _two_rooms_build("region"), _two_rooms_build("map")
+    # Apart, the far region keeps its own sheet beside the near one's: its two looks' scatter reaches 3 cm
+    # and more off the plane (what a view of the wall from the near room saw as speckle).
+    _, off_apart = _patch(apart.cloud, WALL_X)
+    _, off_together = _patch(together.cloud, WALL_X)
+    assert (off_apart > 0.03).sum() > 50
+    assert (off_together > 0.03).sum() <= 0.1 * (off_apart > 0.03).sum()
+    assert np.quantile(off_together, 0.99) < 0.015
+    # The regions still each have their own cloud and report; the map's build time says what it cost.
+    assert len(together.regional_clouds) == 2 and "fuse_map" in together.timings_s
+    assert "fuse_map" not in apart.timings_s
+
+
+def test_exact_depth_maps_are_their_regions_clouds_whatever_the_scope():
+    def build(scope):
+        from services.reconstructor.core import ReconstructionConfig, Reconstructor
+
+        cfg = ReconstructionConfig(backend="rgbd", backend_config={**TSDF, "tsdf_scope": scope})
+        with Reconstructor(cfg) as r:
+            return r.build([_frames(0.0)])
+
+    a, b = build("map"), build("region")
+    assert np.array_equal(a.cloud.xyz, b.cloud.xyz) and np.array_equal(a.cloud.rgb, b.cloud.rgb)
+    assert "fuse_map" not in a.timings_s
+
+
+def test_a_region_moved_by_its_correction_fuses_where_its_cloud_went():
+    # The regions' stage moves each region's cloud by a planar transform; the map's volume takes the region's
+    # images moved by the same one, so both put the wall in the same place.
+    from services.reconstructor.core.registration import se2, transform_cloud, transform_region
+
+    region = _frames(REL)
+    t = se2(0.2, -0.1, np.radians(10.0))
+    rgbd = RECONSTRUCTORS.create("rgbd", TSDF)
+    moved, _ = rgbd.fuse_map([transform_region(region, t)])
+    want, _ = rgbd.fuse_map([region])
+    want = transform_cloud(want, t)
+    assert abs(len(moved) - len(want)) <= 0.01 * len(want) and len(want) > 3000
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(want.xyz).query(moved.xyz)
+    assert np.quantile(dist, 0.99) < 1e-3  # the same wall: the grid turned with it
