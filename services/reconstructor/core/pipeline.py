@@ -1,6 +1,8 @@
 """Physically grounded reconstruction end to end: regional clouds -> metric alignment -> global
 integration -> one merged, voxel-downsampled map (paper Section 4.2). The map keeps labels and view
-directions (where each point was seen from) when every region's cloud has them."""
+directions (where each point was seen from) when every region's cloud has them. A backend may fuse the
+whole map at once instead (``RegionalReconstructor.fuse_map``: the RGB-D backend's one TSDF volume of
+every noisy-depth region's frames); the regions it stands for then give only their reports."""
 
 from __future__ import annotations
 
@@ -90,6 +92,9 @@ class MapBuild:
     config: ReconstructionConfig
     regional_clouds: list[PointCloud] = field(default_factory=list)  # world frame, before the merge
     drift_correction: dict = field(default_factory=lambda: {"applied": False})
+    # The regions whose frames the backend fused into the map's one volume (fuse_map): their own clouds are
+    # not in the map.
+    fused_regions: list[int] = field(default_factory=list)
 
     @property
     def scale_factors(self) -> list[float]:
@@ -138,6 +143,7 @@ class MapBuild:
             "regions": [r.as_dict() for r in self.regions],
             # Says plainly whether the map was corrected for drift, and how (issue 33).
             "drift_correction": self.drift_correction,
+            "fused_as_one_volume": list(self.fused_regions),
             "config": self.config.model_dump(mode="json"),
         }
 
@@ -254,11 +260,12 @@ class Reconstructor:
         t0 = time.perf_counter()
         # A backend that fuses the whole map at once (RgbdConfig.tsdf_scope) replaces the clouds of the
         # regions it fused; the others' clouds stay.
-        parts = clouds
+        parts, ids = clouds, []
         fused = self.backend.fuse_map(inputs, label_names)
         if fused is not None:
             cloud, ids = fused
-            parts = [cloud] + [c for c, r in zip(clouds, inputs) if r.region not in set(ids)]
+            own = set(ids)
+            parts = [cloud] + [c for c, r in zip(clouds, inputs) if r.region not in own]
             totals["fuse_map"] = time.perf_counter() - t0
             t0 = time.perf_counter()
         merged = voxel_downsample(PointCloud.concatenate(parts), self.config.merge_voxel_m)
@@ -267,7 +274,7 @@ class Reconstructor:
         totals["merge"] = time.perf_counter() - t0
         totals["total"] = time.perf_counter() - t_start
         log.info("map: %d regions, %d points, %.2f s", len(clouds), len(merged), totals["total"])
-        return MapBuild(merged, reports, totals, self.config, clouds, drift)
+        return MapBuild(merged, reports, totals, self.config, clouds, drift, list(ids))
 
     def _one(self, region: RegionInput, label_names, totals) -> tuple[RegionReport, PointCloud]:
         t0 = time.perf_counter()

@@ -1,7 +1,8 @@
 """TSDF fusion of a region whose frames declare their depth noise (RgbdConfig.fusion "tsdf", issue 33): a
 noisy wall comes out as one sheet on the true plane where the voxel fusion leaves a slab; the points keep
 their colour, label and view direction; a wall's far face seen from the other room stays; exact depth is
-fused as before; the array code (kernel "numpy", or numba missing) gives the compiled loops' bits."""
+fused as before; the array code (kernel "numpy", or numba missing) gives the compiled loops' bits; the map
+is one volume of every region's frames (tsdf_scope "map"), so a near region's looks outvote a far one's."""
 
 from __future__ import annotations
 
@@ -200,7 +201,8 @@ def test_one_volume_for_the_map_lets_the_near_looks_outvote_the_far_region():
     assert np.quantile(off_together, 0.99) < 0.015
     # The regions still each have their own cloud and report; the map's build time says what it cost.
     assert len(together.regional_clouds) == 2 and "fuse_map" in together.timings_s
-    assert "fuse_map" not in apart.timings_s
+    assert together.details()["fused_as_one_volume"] == [0, 1]
+    assert "fuse_map" not in apart.timings_s and apart.details()["fused_as_one_volume"] == []
 
 
 def test_exact_depth_maps_are_their_regions_clouds_whatever_the_scope():
@@ -213,7 +215,7 @@ def test_exact_depth_maps_are_their_regions_clouds_whatever_the_scope():
 
     a, b = build("map"), build("region")
     assert np.array_equal(a.cloud.xyz, b.cloud.xyz) and np.array_equal(a.cloud.rgb, b.cloud.rgb)
-    assert "fuse_map" not in a.timings_s
+    assert "fuse_map" not in a.timings_s and a.fused_regions == []
 
 
 def test_a_region_moved_by_its_correction_fuses_where_its_cloud_went():
