@@ -347,11 +347,7 @@ class RgbdReconstructor(RegionalReconstructor):
         t1 = time.perf_counter()
         if len(cloud) == 0:
             raise EmptyRecordingError(f"region {region.region}: no valid depth in {len(with_depth)} frames")
-        if cfg.remove_outliers and len(cloud) > cfg.outlier_neighbors:
-            cloud = remove_statistical_outliers(
-                cloud, cfg.outlier_neighbors, cfg.outlier_std_ratio,
-                cell_m=cfg.voxel_m if self._use_kernel else None, threads=cfg.threads,
-            )
+        cloud = self._without_outliers(cloud)
         t2 = time.perf_counter()
         log.info("region %d: %d frames -> %d points (%d in)", region.region, len(with_depth), len(cloud), points_in)
         return RegionalCloud(
@@ -365,6 +361,14 @@ class RgbdReconstructor(RegionalReconstructor):
             points_in=points_in,
             timings_s={"fuse": t1 - t0, "outliers": t2 - t1},  # fuse: back-projection and voxels
         )
+
+    def _without_outliers(self, cloud: PointCloud) -> PointCloud:
+        """``cloud`` less its statistical outliers (``remove_outliers``): a region's and the map's volume's."""
+        cfg = self.config
+        if not cfg.remove_outliers or len(cloud) <= cfg.outlier_neighbors:
+            return cloud
+        return remove_statistical_outliers(cloud, cfg.outlier_neighbors, cfg.outlier_std_ratio,
+                                           cell_m=cfg.voxel_m if self._use_kernel else None, threads=cfg.threads)
 
     def fuse_map(self, regions: list[RegionInput],
                  label_names: dict[int, str] | None = None) -> tuple[PointCloud, list[int]] | None:
@@ -381,11 +385,7 @@ class RgbdReconstructor(RegionalReconstructor):
         labelled = cfg.keep_labels and all(im.semantic is not None for im in frames)
         # The first region's floor frame keeps the voxel keys small whatever the world's origin.
         local = noisy[0].local_from_world()
-        cloud, _ = self._fuse_tsdf(frames, local, labelled, label_names)
-        if cfg.remove_outliers and len(cloud) > cfg.outlier_neighbors:
-            cloud = remove_statistical_outliers(cloud, cfg.outlier_neighbors, cfg.outlier_std_ratio,
-                                                cell_m=cfg.voxel_m if self._use_kernel else None,
-                                                threads=cfg.threads)
+        cloud = self._without_outliers(self._fuse_tsdf(frames, local, labelled, label_names)[0])
         world = np.linalg.inv(local)
         xyz = cloud.xyz.astype(np.float64) @ world[:3, :3].T + world[:3, 3]
         cloud = PointCloud(xyz, cloud.rgb, cloud.labels, dict(cloud.label_names),
