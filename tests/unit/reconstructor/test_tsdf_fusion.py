@@ -6,11 +6,16 @@ is one volume of every region's frames (tsdf_scope "map"), so a near region's lo
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from services.reconstructor.core import RECONSTRUCTORS, InputError, RegionInput, kernels
+from services.reconstructor.core import (RECONSTRUCTORS, InputError, ReconstructionConfig, Reconstructor, RegionInput,
+                                         kernels)
 from services.reconstructor.core.frames import PosedImage, region_from_frames
+from services.reconstructor.core.registration import se2, transform_cloud, transform_region
 from shared.cloud import view_dirs_unit
 from shared.geometry import PinholeCamera
 from tests.unit.reconstructor.test_reconstructor_kernels import _region
@@ -174,20 +179,21 @@ def test_a_frame_of_one_strided_pixel_is_counted_and_adds_nothing(kernel):
     assert vol.points == 1 and vol.n == 0
 
 
+def _build(regions: list[RegionInput], scope: str, stages: bool = True):
+    """The map the pipeline builds of ``regions`` with the TSDF over ``scope`` (without the stands' and drives'
+    registration when not ``stages``)."""
+    off = {} if stages else {"registration": {"stands": {"enabled": False}, "moves": {"enabled": False}}}
+    with Reconstructor(ReconstructionConfig(backend="rgbd", backend_config={**TSDF, "tsdf_scope": scope}, **off)) as r:
+        return r.build(regions)
+
+
 def _two_rooms_build(scope: str):
     """The wall seen by one region from 1 m (eight looks) and by another from 4.2 m, two looks (the next
     room's, across it: denoised sigma 3.5 cm), built by the pipeline with the TSDF over ``scope``."""
-    from dataclasses import replace
-
-    from services.reconstructor.core import ReconstructionConfig, Reconstructor
-
     near = wall_frames(REL, WALL_X, 1.0, PinholeCamera(192, 144, 90.0))
     far = wall_frames(REL, WALL_X, 4.2, PinholeCamera(192, 144, 90.0))
     far = replace(far, region=1, images=[replace(im, index=100 + im.index) for im in far.images[:2]])
-    cfg = ReconstructionConfig(backend="rgbd", backend_config={**TSDF, "tsdf_scope": scope},
-                               registration={"stands": {"enabled": False}, "moves": {"enabled": False}})
-    with Reconstructor(cfg) as r:
-        return r.build([near, far])
+    return _build([near, far], scope, stages=False)
 
 
 def test_one_volume_for_the_map_lets_the_near_looks_outvote_the_far_region():
@@ -206,14 +212,7 @@ def test_one_volume_for_the_map_lets_the_near_looks_outvote_the_far_region():
 
 
 def test_exact_depth_maps_are_their_regions_clouds_whatever_the_scope():
-    def build(scope):
-        from services.reconstructor.core import ReconstructionConfig, Reconstructor
-
-        cfg = ReconstructionConfig(backend="rgbd", backend_config={**TSDF, "tsdf_scope": scope})
-        with Reconstructor(cfg) as r:
-            return r.build([_frames(0.0)])
-
-    a, b = build("map"), build("region")
+    a, b = _build([_frames(0.0)], "map"), _build([_frames(0.0)], "region")
     assert np.array_equal(a.cloud.xyz, b.cloud.xyz) and np.array_equal(a.cloud.rgb, b.cloud.rgb)
     assert "fuse_map" not in a.timings_s and a.fused_regions == []
 
@@ -221,8 +220,6 @@ def test_exact_depth_maps_are_their_regions_clouds_whatever_the_scope():
 def test_a_region_moved_by_its_correction_fuses_where_its_cloud_went():
     # The regions' stage moves each region's cloud by a planar transform; the map's volume takes the region's
     # images moved by the same one, so both put the wall in the same place.
-    from services.reconstructor.core.registration import se2, transform_cloud, transform_region
-
     region = _frames(REL)
     t = se2(0.2, -0.1, np.radians(10.0))
     rgbd = RECONSTRUCTORS.create("rgbd", TSDF)
@@ -230,7 +227,5 @@ def test_a_region_moved_by_its_correction_fuses_where_its_cloud_went():
     want, _ = rgbd.fuse_map([region])
     want = transform_cloud(want, t)
     assert abs(len(moved) - len(want)) <= 0.01 * len(want) and len(want) > 3000
-    from scipy.spatial import cKDTree
-
     dist, _ = cKDTree(want.xyz).query(moved.xyz)
     assert np.quantile(dist, 0.99) < 1e-3  # the same wall: the grid turned with it
