@@ -239,7 +239,7 @@ class ExplorationFinished(EventPayload):
 
 
 class MapBuildProgress(StageProgress):
-    """A map build's stage (collecting frames, reconstructing region k of n, storing)."""
+    """A map build's stage (collecting frames, reconstructing region k of n, fusing the map, storing)."""
 
     type: Literal["map_build_progress"] = "map_build_progress"
 

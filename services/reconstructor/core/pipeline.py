@@ -24,7 +24,8 @@ from .align import AlignmentConfig, AlignmentReport, MetricAligner, to_world
 from .depth import DEFAULT_METRIC_DEPTH, METRIC_DEPTH, MetricDepth
 from .errors import AlignmentError, EmptyRecordingError, ReconstructorError
 from .frames import RecordingLike, RegionInput, region_from_recording
-from .regional import DEFAULT_RECONSTRUCTOR, RECONSTRUCTORS, RegionalCloud, RegionalReconstructor
+from .regional import (DEFAULT_RECONSTRUCTOR, RECONSTRUCTORS, MapProgressFn, RegionalCloud,
+                       RegionalReconstructor)
 from .registration import (RegistrationConfig, register_frames, register_moves, register_regions, register_stands,
                            se2_params, transform_cloud, transform_region)
 from .voxel import voxel_downsample
@@ -176,17 +177,18 @@ class Reconstructor:
 
     def build_from_recordings(
         self, recordings: Sequence[RecordingLike], label_names: dict[int, str] | None = None,
-        on_region: ProgressFn | None = None,
+        on_region: ProgressFn | None = None, on_map: MapProgressFn | None = None,
     ) -> MapBuild:
         """Convenience for the mapper's ``RegionRecording`` list (validates every frame first)."""
         regions = [region_from_recording(r, self.config.camera_height_m) for r in recordings]
-        return self.build(regions, label_names, on_region)
+        return self.build(regions, label_names, on_region, on_map)
 
     def build(
         self, regions: Sequence[RegionInput], label_names: dict[int, str] | None = None,
-        on_region: ProgressFn | None = None,
+        on_region: ProgressFn | None = None, on_map: MapProgressFn | None = None,
     ) -> MapBuild:
-        """Reconstruct, align and integrate every region; merge into one map."""
+        """Reconstruct, align and integrate every region; merge into one map. ``on_region`` after each
+        region; ``on_map`` after each region the backend's map-wide fusion took in (``fuse_map``)."""
         if not regions:
             raise EmptyRecordingError("no regions to reconstruct")
         t_start = time.perf_counter()
@@ -261,7 +263,7 @@ class Reconstructor:
         # A backend that fuses the whole map at once (RgbdConfig.tsdf_scope) replaces the clouds of the
         # regions it fused; the others' clouds stay.
         parts, ids = clouds, []
-        fused = self.backend.fuse_map(inputs, label_names)
+        fused = self.backend.fuse_map(inputs, label_names, on_map)
         if fused is not None:
             cloud, ids = fused
             own = set(ids)

@@ -33,6 +33,7 @@ import logging
 import math
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
@@ -51,6 +52,9 @@ from .frames import PosedImage, RegionInput
 from .kernels import AXIS_HALF
 from .tsdf import TsdfVolume
 from .voxel import VoxelAccumulator, voxel_keys
+
+#: ``fuse_map``'s progress: (k, n) once the k-th region of the n it fuses as one volume is in (0-based).
+MapProgressFn = Callable[[int, int], None]
 
 log = logging.getLogger(__name__)
 
@@ -86,11 +90,12 @@ class RegionalReconstructor(ABC):
     def reconstruct(self, region: RegionInput, label_names: dict[int, str] | None = None) -> RegionalCloud:
         """Reconstruct one region's recording into a cloud in its local frame."""
 
-    def fuse_map(self, regions: list[RegionInput],
-                 label_names: dict[int, str] | None = None) -> tuple[PointCloud, list[int]] | None:
+    def fuse_map(self, regions: list[RegionInput], label_names: dict[int, str] | None = None,
+                 on_region: MapProgressFn | None = None) -> tuple[PointCloud, list[int]] | None:
         """One world cloud of the regions' images fused together, where the backend fuses a whole map at
         once (their poses already corrected): (the cloud, the regions it stands for), or None, when
-        each region's own cloud is the map's (the default)."""
+        each region's own cloud is the map's (the default). ``on_region(k, n)`` after the k-th of the n
+        regions it fuses is in (a build's progress, and where a cancelled build stops)."""
         return None
 
     def close(self) -> None:
@@ -370,8 +375,8 @@ class RgbdReconstructor(RegionalReconstructor):
         return remove_statistical_outliers(cloud, cfg.outlier_neighbors, cfg.outlier_std_ratio,
                                            cell_m=cfg.voxel_m if self._use_kernel else None, threads=cfg.threads)
 
-    def fuse_map(self, regions: list[RegionInput],
-                 label_names: dict[int, str] | None = None) -> tuple[PointCloud, list[int]] | None:
+    def fuse_map(self, regions: list[RegionInput], label_names: dict[int, str] | None = None,
+                 on_region: MapProgressFn | None = None) -> tuple[PointCloud, list[int]] | None:
         """``tsdf_scope`` "map": every noisy-depth region's frames in one TSDF volume (see RgbdConfig), the
         surface in world coordinates with its outliers removed as a region's are; None when no region
         has noisy depth (exact depth stays each region's own voxels: bit-identical maps)."""
@@ -381,11 +386,19 @@ class RgbdReconstructor(RegionalReconstructor):
         noisy = [r for r in regions if any(im.depth_m is not None and im.depth_noise_rel > 0 for im in r.images)]
         if not noisy:
             return None
-        frames = [im for r in noisy for im in r.images if im.depth_m is not None]
+        per_region = [[im for im in r.images if im.depth_m is not None] for r in noisy]
+        frames = [im for images in per_region for im in images]
         labelled = cfg.keep_labels and all(im.semantic is not None for im in frames)
         # The first region's floor frame keeps the voxel keys small whatever the world's origin.
         local = noisy[0].local_from_world()
-        cloud = self._without_outliers(self._fuse_tsdf(frames, local, labelled, label_names)[0])
+        on_frame = None
+        if on_region is not None:
+            done = {int(n): k for k, n in enumerate(np.cumsum([len(f) for f in per_region]))}
+
+            def on_frame(added: int) -> None:
+                if added in done:
+                    on_region(done[added], len(noisy))
+        cloud = self._without_outliers(self._fuse_tsdf(frames, local, labelled, label_names, on_frame)[0])
         world = np.linalg.inv(local)
         xyz = cloud.xyz.astype(np.float64) @ world[:3, :3].T + world[:3, 3]
         cloud = PointCloud(xyz, cloud.rgb, cloud.labels, dict(cloud.label_names),
@@ -432,15 +445,17 @@ class RgbdReconstructor(RegionalReconstructor):
             out.append((cloud, acc.points_in))
         return out
 
-    def _fuse_tsdf(self, frames: list[PosedImage], local: np.ndarray, labelled: bool,
-                   label_names) -> tuple[PointCloud, int]:
+    def _fuse_tsdf(self, frames: list[PosedImage], local: np.ndarray, labelled: bool, label_names,
+                   on_frame: Callable[[int], None] | None = None) -> tuple[PointCloud, int]:
         """(the surface of ``frames``' TSDF volume, the pixels integrated): RgbdConfig.fusion "tsdf"."""
         cfg = self.config
-        vol = self.tsdf_volume(frames, local, labelled)
+        vol = self.tsdf_volume(frames, local, labelled, on_frame)
         return vol.cloud(cfg.tsdf_min_updates, cfg.tsdf_crossing_max_vox, cfg.tsdf_fill_m, label_names), vol.points
 
-    def tsdf_volume(self, frames: list[PosedImage], local: np.ndarray, labelled: bool) -> TsdfVolume:
-        """``frames`` integrated into a TSDF volume (``local``: the region's frame from the world's)."""
+    def tsdf_volume(self, frames: list[PosedImage], local: np.ndarray, labelled: bool,
+                    on_frame: Callable[[int], None] | None = None) -> TsdfVolume:
+        """``frames`` integrated into a TSDF volume (``local``: the region's frame from the world's);
+        ``on_frame(k)`` once the first k are in."""
         cfg, s = self.config, self.config.pixel_stride
         vol = TsdfVolume(cfg.tsdf_voxel_m, cfg.min_depth_m, cfg.max_depth_m, labelled,
                          sigma_floor_m=cfg.tsdf_sigma_floor_m, trunc_min_m=cfg.tsdf_trunc_min_m,
@@ -450,7 +465,7 @@ class RgbdReconstructor(RegionalReconstructor):
         # takes the frames one by one, in order.
         with ThreadPoolExecutor(cfg.threads) as pool:
             depths = pool.map(self.frame_depth, frames)
-            for im, depth in zip(frames, depths):
+            for k, (im, depth) in enumerate(zip(frames, depths), 1):
                 m = (local @ im.world_from_camera)[:3]
                 rays, backs = self._pixel_rays(im.camera)
                 rel = im.depth_noise_rel / max(cfg.denoise_window_px, 1)  # the sigma left after denoising
@@ -458,6 +473,8 @@ class RgbdReconstructor(RegionalReconstructor):
                                backs, s, rel, self.depth_limit_m(im)):
                     raise InputError(f"frame {im.index}: points span more than +-{AXIS_HALF * cfg.tsdf_voxel_m:.0f} m "
                                      f"from the origin at voxel {cfg.tsdf_voxel_m} m")
+                if on_frame is not None:
+                    on_frame(k)
         return vol
 
     def near_limit_m(self, im: PosedImage) -> float:
