@@ -56,6 +56,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shared.geometry import pca_normals
+
 # The quadrant covers' depth codes live with the compiled loops' shared constants (no import circle).
 from .cover_codes import COVER_MAX_CODE, COVER_NONE
 
@@ -470,11 +472,7 @@ def point_spacing_and_normals(xyz: np.ndarray, spacing_neighbours: int = 4, norm
     kn = min(normal_neighbours + 1, k)
     normals = np.empty((len(xyz), 3), np.float32)
     for lo in range(0, len(xyz), chunk):
-        p = xyz[nbr[lo : lo + chunk, :kn]]  # (c, k, 3)
-        p = p - p.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", p, p)
-        _, vec = np.linalg.eigh(cov)  # ascending eigenvalues: column 0 is the least variance
-        normals[lo : lo + chunk] = vec[:, :, 0]
+        normals[lo : lo + chunk] = pca_normals(xyz[nbr[lo : lo + chunk, :kn]])  # (c, k, 3) neighbourhoods
     return spacing, normals
 
 

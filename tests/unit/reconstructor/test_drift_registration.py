@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 from shared.cloud import PointCloud
 from shared.geometry import PinholeCamera, camera_pose
@@ -18,7 +17,7 @@ from services.reconstructor.core.frames import PosedImage
 from services.reconstructor.core.pipeline import MapBuild, ReconstructionConfig
 from services.reconstructor.core.registration import (
     FrameRegistrationConfig, MoveRegistrationConfig, RegionRegistrationConfig, StandRegistrationConfig, Target,
-    apply_se2, drive_poses, estimate_normals, find_stands, icp_planar, register_frames, register_moves,
+    apply_se2, drive_poses, find_stands, icp_planar, register_frames, register_moves,
     register_regions, register_stands, se2, se2_params,
 )
 
@@ -405,27 +404,6 @@ def test_an_exact_drive_is_left_bit_identical():
     out, rep = register_moves(ims, MoveRegistrationConfig(pixel_stride=2), StandRegistrationConfig())
     assert rep.drives == 1 and rep.adjusted == 0 and rep.kept == {"within gate": 1}
     assert all(a is b for a, b in zip(ims, out))
-
-
-def test_normals_agree_with_eigh_to_rounding():
-    # The closed-form smallest eigenvector against LAPACK's: a noisy tilted plane, a round patch (the two
-    # largest eigenvalues equal, where the cubic's root loses digits), a line and repeated points (no normal:
-    # eigh decides, as it did).
-    rng = np.random.default_rng(3)
-    turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    grid = np.stack(np.meshgrid(np.arange(20) * 0.05, np.arange(20) * 0.05), -1).reshape(-1, 2)
-    ring = np.arange(12) * math.pi / 6
-    clouds = [np.c_[grid, rng.normal(0.0, 0.004, len(grid))] @ turn.T + 1.5,
-              np.c_[np.cos(ring), np.sin(ring), np.zeros(12)] * 0.05 @ turn.T,
-              np.c_[np.linspace(0.0, 1.0, 30), np.zeros(30), np.zeros(30)],
-              np.ones((12, 3))]
-    for xyz in clouds:
-        _, idx = cKDTree(xyz).query(xyz, k=12)
-        nb = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)
-        want = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0]
-        got = estimate_normals(xyz)
-        sign = np.where(np.einsum("ij,ij->i", got, want) < 0.0, -1.0, 1.0)
-        assert np.abs(got * sign[:, None] - want).max() < 1e-12
 
 
 def test_a_drive_is_the_same_with_its_stands_points_kept_from_the_drive_before():

@@ -3,6 +3,7 @@ import math
 import numpy as np
 import pytest
 from pydantic import ValidationError
+from scipy.spatial import cKDTree
 
 from shared import geometry as g
 from shared.registry import BackendConfig, Registry, UnknownBackendError
@@ -90,3 +91,24 @@ def test_planar_between_gives_the_transform_planar_apply_undoes_drift_with():
     # A quarter turn about +z then a shift: (1, 0) -> (0, 1) -> (2, 4).
     xyz, heading = planar_apply((2.0, 3.0, 0.0), math.pi / 2, (1.0, 0.0, 0.0), 3.0)
     assert np.allclose(xyz, (2.0, 4.0, 0.0), atol=1e-12) and abs(heading - (3.0 + math.pi / 2 - 2 * math.pi)) < 1e-12
+
+
+def test_normals_agree_with_eigh_to_rounding():
+    # The closed-form smallest eigenvector (the reconstructor's registration and the renderer's normals) against
+    # LAPACK's: a noisy tilted plane, a round patch (the two largest eigenvalues equal, where the cubic's root
+    # loses digits), a line and repeated points (no normal: eigh decides, as it did).
+    rng = np.random.default_rng(3)
+    turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    grid = np.stack(np.meshgrid(np.arange(20) * 0.05, np.arange(20) * 0.05), -1).reshape(-1, 2)
+    ring = np.arange(12) * math.pi / 6
+    clouds = [np.c_[grid, rng.normal(0.0, 0.004, len(grid))] @ turn.T + 1.5,
+              np.c_[np.cos(ring), np.sin(ring), np.zeros(12)] * 0.05 @ turn.T,
+              np.c_[np.linspace(0.0, 1.0, 30), np.zeros(30), np.zeros(30)],
+              np.ones((12, 3))]
+    for xyz in clouds:
+        _, idx = cKDTree(xyz).query(xyz, k=12)
+        nb = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)
+        want = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0]
+        got = g.pca_normals(xyz[idx])
+        sign = np.where(np.einsum("ij,ij->i", got, want) < 0.0, -1.0, 1.0)
+        assert np.abs(got * sign[:, None] - want).max() < 1e-12
