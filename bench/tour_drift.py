@@ -11,6 +11,7 @@ frame placed by registration).
     python -m bench.tour_drift --graph off            # the sequential localiser alone (no pose graph)
     python -m bench.tour_drift --graph-set weak_edges=true   # PoseGraphConfig fields
     python -m bench.tour_drift --scene generated:3:floors=2   # a two-floor house: the errors split by level
+    python -m bench.tour_drift --noise-seed 1         # another draw of the robot's noise (the ladder's seeds)
 
 Explores once and drives the tours (no reconstruction): about a minute of CPU on generated:0.
 Besides the frames' error by path since a fix, it splits the errors by floor, by the pose graph's rooms
@@ -27,20 +28,21 @@ import time
 
 import numpy as np
 
-from bench.agent_maps import _recording_truth, noise_config, tap_true_poses
+from bench.agent_maps import NOISE_SEED, _recording_truth, noise_config, tap_true_poses
 
 BINS_M = (0.0, 0.25, 0.5, 1.0, 2.0, math.inf)
 
 
 def run(spec: str, drift_scale: float, frames: bool, size_px: int = 128, rate_hz: float = 4.0,
-        band_from_median: bool = False, graph: bool = True, graph_set: dict | None = None) -> dict:
+        band_from_median: bool = False, graph: bool = True, graph_set: dict | None = None,
+        noise_seed: int = NOISE_SEED) -> dict:
     from services.mapper.core import discover, discovery_config, execute_tours
     from services.robot_io.core.robot import ROBOTS
     from shared.schemas import CameraIntrinsics
 
     robot_cfg = {"scene": spec, "camera": CameraIntrinsics(width_px=size_px, height_px=size_px)}
     if drift_scale >= 0:  # negative: a noise-free robot (exact depth and poses)
-        robot_cfg["noise"] = noise_config("noisy", drift_scale)
+        robot_cfg["noise"] = noise_config("noisy", drift_scale, noise_seed)
     robot = ROBOTS.create("sim", robot_cfg)
     truth = _recording_truth(robot)
     # panorama timestamp -> (the true pose it was taken at, its odometry pose)
@@ -435,6 +437,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="generated:0")
     ap.add_argument("--drift-scale", type=float, default=1.0)
+    ap.add_argument("--noise-seed", type=int, default=NOISE_SEED,
+                    help="the robot's noise draws (bench.anticipation --noise-seeds: the ladder's seeds)")
     ap.add_argument("--frames", choices=("on", "off"), default="off", help="register tour frames (issue 33)")
     ap.add_argument("--graph", choices=("on", "off"), default="on", help="the panoramas' pose graph (posegraph.py)")
     ap.add_argument("--band", choices=("median", "pixel"), default="pixel",
@@ -442,10 +446,11 @@ def main() -> None:
     ap.add_argument("--graph-set", nargs="+", default=[], metavar="FIELD=JSON",
                     help="PoseGraphConfig fields, e.g. weak_edges=true min_fitness=0.25")
     args = ap.parse_args()
-    print(f"## {args.scene}, drift x{args.drift_scale:g}, frame registration {args.frames}, band by {args.band}, "
+    print(f"## {args.scene}, drift x{args.drift_scale:g} (noise seed {args.noise_seed}), frame registration {args.frames}, band by {args.band}, "
           f"pose graph {args.graph} {' '.join(args.graph_set)}")
     r = run(args.scene, args.drift_scale, args.frames == "on", band_from_median=args.band == "median",
-            graph=args.graph == "on", graph_set={k: _value(v) for k, v in (a.split("=", 1) for a in args.graph_set)})
+            graph=args.graph == "on", graph_set={k: _value(v) for k, v in (a.split("=", 1) for a in args.graph_set)},
+            noise_seed=args.noise_seed)
     report(r)
     report_levels(r)
     report_rooms(r)
