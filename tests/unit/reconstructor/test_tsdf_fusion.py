@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 
 from services.reconstructor.core import (RECONSTRUCTORS, InputError, ReconstructionConfig, Reconstructor, RegionInput,
                                          kernels)
+from services.reconstructor.core import regional
 from services.reconstructor.core.frames import PosedImage, region_from_frames
 from services.reconstructor.core.registration import se2, transform_cloud, transform_region
 from shared.cloud import view_dirs_unit
@@ -179,11 +180,12 @@ def test_a_frame_of_one_strided_pixel_is_counted_and_adds_nothing(kernel):
     assert vol.points == 1 and vol.n == 0
 
 
-def _build(regions: list[RegionInput], scope: str, stages: bool = True):
+def _build(regions: list[RegionInput], scope: str, stages: bool = True, **backend):
     """The map the pipeline builds of ``regions`` with the TSDF over ``scope`` (without the stands' and drives'
-    registration when not ``stages``)."""
+    registration when not ``stages``; ``backend``: more of RgbdConfig)."""
     off = {} if stages else {"registration": {"stands": {"enabled": False}, "moves": {"enabled": False}}}
-    with Reconstructor(ReconstructionConfig(backend="rgbd", backend_config={**TSDF, "tsdf_scope": scope}, **off)) as r:
+    config = ReconstructionConfig(backend="rgbd", backend_config={**TSDF, "tsdf_scope": scope, **backend}, **off)
+    with Reconstructor(config) as r:
         return r.build(regions)
 
 
@@ -229,3 +231,37 @@ def test_a_region_moved_by_its_correction_fuses_where_its_cloud_went():
     assert abs(len(moved) - len(want)) <= 0.01 * len(want) and len(want) > 3000
     dist, _ = cKDTree(want.xyz).query(moved.xyz)
     assert np.quantile(dist, 0.99) < 1e-3  # the same wall: the grid turned with it
+
+
+@pytest.mark.parametrize("store_mb", [256, 1])
+def test_the_maps_volume_takes_the_depth_its_regions_denoised(monkeypatch, store_mb):
+    # The map's volume takes every noisy frame again: each frame's depth is denoised once, for its region's
+    # volume, and kept for the map's (within map_depth_store_mb; 1 MB holds nine of these 192 x 144 frames,
+    # the others are denoised again). The map is the one built without keeping anything, bit for bit.
+    near = wall_frames(REL, WALL_X, 1.0, PinholeCamera(192, 144, 90.0))
+    far = wall_frames(REL, WALL_X, 4.2, PinholeCamera(192, 144, 90.0))
+    regions = [near, replace(far, region=1, images=[replace(im, index=100 + im.index) for im in far.images])]
+    frames = sum(len(r.images) for r in regions)
+    calls = []
+    real = regional.denoise_depth
+    monkeypatch.setattr(regional, "denoise_depth", lambda *a, **k: calls.append(1) or real(*a, **k))
+    fresh = _build(regions, "map", stages=False, map_depth_store_mb=0)
+    assert len(calls) == 2 * frames
+    calls.clear()
+    kept = _build(regions, "map", stages=False, map_depth_store_mb=store_mb)
+    assert len(calls) == (frames if store_mb == 256 else 2 * frames - 9)
+    for got, want in ((kept.cloud.xyz, fresh.cloud.xyz), (kept.cloud.rgb, fresh.cloud.rgb),
+                      (kept.cloud.view_dirs, fresh.cloud.view_dirs)):
+        assert got.tobytes() == want.tobytes()
+
+
+def test_nothing_is_kept_after_the_map_is_fused():
+    rgbd = RECONSTRUCTORS.create("rgbd", TSDF)
+    region = _frames(REL)
+    rgbd.reconstruct(region)
+    assert len(rgbd._kept) == len(region.images) and rgbd._kept_bytes > 0
+    rgbd.fuse_map([region])
+    assert rgbd._kept == {} and rgbd._kept_bytes == 0
+    rgbd.reconstruct(region)
+    rgbd.close()  # a build that stops before the map's volume lets go of them too
+    assert rgbd._kept == {} and rgbd._kept_bytes == 0
