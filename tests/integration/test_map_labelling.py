@@ -22,11 +22,11 @@ from services.reconstructor.service import FrameBuffer, ReconstructorSettings
 from shared import keys
 from shared.bus.typed import TypedBus
 from shared.events import EventStream
-from shared.geometry import camera_pose
 from shared.jobs import JobContext
 from shared.schemas import (
     BuildMapRequest, CameraIntrinsics, Frame, JobState, NavEdge, NavGraph, NavNode, Pose, TourRecording,
 )
+from tests.raycast import box_scene, cast_view
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -36,37 +36,18 @@ CENTRES = {0: (2.0, 2.0), 1: (6.0, 2.0)}
 N_FRAMES = 9  # per region: more than the build keeps for the labeller (LABELLER_FRAMES)
 
 
-def _box(lo, hi) -> o3d.geometry.TriangleMesh:
-    b = o3d.geometry.TriangleMesh.create_box(*(np.subtract(hi, lo)))
-    return b.translate(lo)
-
-
 def _scene() -> o3d.t.geometry.RaycastingScene:
-    parts = [_box((0, 0, -0.1), (8, 4, 0)), _box((0, 0, 2.5), (8, 4, 2.6)),  # floor, ceiling
-             _box((-0.1, 0, 0), (0, 4, 2.5)), _box((8, 0, 0), (8.1, 4, 2.5)),  # end walls
-             _box((0, -0.1, 0), (8, 0, 2.5)), _box((0, 4, 0), (8, 4.1, 2.5)),  # side walls
-             _box((4.0, 0, 0), (4.2, 1.5, 2.5)), _box((4.0, 2.5, 0), (4.2, 4, 2.5))]  # the wall with its door
-    mesh = parts[0]
-    for p in parts[1:]:
-        mesh += p
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    return scene
+    return box_scene([((0, 0, -0.1), (8, 4, 0)), ((0, 0, 2.5), (8, 4, 2.6)),  # floor, ceiling
+                      ((-0.1, 0, 0), (0, 4, 2.5)), ((8, 0, 0), (8.1, 4, 2.5)),  # end walls
+                      ((0, -0.1, 0), (8, 0, 2.5)), ((0, 4, 0), (8, 4.1, 2.5)),  # side walls
+                      ((4.0, 0, 0), (4.2, 1.5, 2.5)), ((4.0, 2.5, 0), (4.2, 4, 2.5))])  # the wall with its door
 
 
 def _frame(scene, index: int, region: int, heading: float) -> Frame:
     cx, cy = CENTRES[region]
     pos = (cx + 0.3 * np.cos(heading), cy + 0.3 * np.sin(heading), 0.0)
-    cam = CAM.pinhole()
-    world_from_cam = camera_pose(pos, heading)
-    u, v = np.meshgrid(np.arange(cam.width_px), np.arange(cam.height_px))
-    d_cam = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u, float)], axis=-1)
-    d_world = d_cam.reshape(-1, 3) @ world_from_cam[:3, :3].T  # z-depth 1 along the optical axis
-    origin = np.broadcast_to(world_from_cam[:3, 3], d_world.shape)
-    t = scene.cast_rays(o3d.core.Tensor(np.c_[origin, d_world].astype(np.float32)))["t_hit"].numpy()
-    depth = np.where(np.isfinite(t), t, 0.0).reshape(cam.height_px, cam.width_px).astype(np.float32)
-    hit_x = (origin[:, 0] + d_world[:, 0] * np.where(np.isfinite(t), t, 0)).reshape(depth.shape)
-    rgb = np.where((hit_x < 4.1)[..., None], COLOURS[0], COLOURS[1]).astype(np.uint8)
+    depth, hits = cast_view(scene, CAM, pos, heading)
+    rgb = np.where((hits[..., 0] < 4.1)[..., None], COLOURS[0], COLOURS[1]).astype(np.uint8)
     return Frame(index=index, timestamp_s=float(index), pose=Pose(position_m=pos, heading_rad=heading),
                  imu_heading_rad=heading, camera=CAM, rgb=rgb, depth_m=depth)
 

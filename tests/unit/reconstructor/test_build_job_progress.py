@@ -17,10 +17,9 @@ import pytest
 from services.reconstructor.core import MapStore, ReconstructionConfig
 from services.reconstructor.core.build_job import build_map
 from services.reconstructor.service import FrameBuffer
-from shared.geometry import camera_pose
 from shared.jobs import Cancelled, JobContext
-from shared.o3d import o3d
 from shared.schemas import BuildMapRequest, CameraIntrinsics, Frame, MapBuildProgress, Pose, TourRecording
+from tests.raycast import box_scene, cast_view
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -30,29 +29,17 @@ STANDS = {0: (1.2, 1.5), 1: (2.8, 2.5)}  # region -> where it stands
 VIEWS = 8
 
 
-def _room() -> o3d.t.geometry.RaycastingScene:
-    mesh = o3d.geometry.TriangleMesh()
-    for lo, hi in [((0, 0, -0.1), (4, 4, 0)), ((0, 0, 2.5), (4, 4, 2.6)), ((-0.1, 0, 0), (0, 4, 2.5)),
-                   ((4, 0, 0), (4.1, 4, 2.5)), ((0, -0.1, 0), (4, 0, 2.5)), ((0, 4, 0), (4, 4.1, 2.5)),
-                   ((1.8, 0.6, 0), (2.2, 1.0, 0.8))]:  # floor, ceiling, walls and a box
-        mesh += o3d.geometry.TriangleMesh.create_box(*np.subtract(hi, lo)).translate(lo)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    return scene
+def _room():
+    return box_scene([((0, 0, -0.1), (4, 4, 0)), ((0, 0, 2.5), (4, 4, 2.6)), ((-0.1, 0, 0), (0, 4, 2.5)),
+                      ((4, 0, 0), (4.1, 4, 2.5)), ((0, -0.1, 0), (4, 0, 2.5)), ((0, 4, 0), (4, 4.1, 2.5)),
+                      ((1.8, 0.6, 0), (2.2, 1.0, 0.8))])  # floor, ceiling, walls and a box
 
 
 def _frame(scene, rng, index: int, region: int, heading: float) -> Frame:
     pos = (*STANDS[region], 0.0)
-    cam = CAM.pinhole()
-    world_from_cam = camera_pose(pos, heading)
-    u, v = np.meshgrid(np.arange(cam.width_px), np.arange(cam.height_px))
-    rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u, float)], axis=-1)
-    d_world = rays.reshape(-1, 3) @ world_from_cam[:3, :3].T  # z-depth 1 along the optical axis
-    origin = np.broadcast_to(world_from_cam[:3, 3], d_world.shape)
-    t = scene.cast_rays(o3d.core.Tensor(np.c_[origin, d_world].astype(np.float32)))["t_hit"].numpy()
-    depth = np.where(np.isfinite(t), t, 0.0).reshape(cam.height_px, cam.width_px)
+    depth, _ = cast_view(scene, CAM, pos, heading)
     depth = np.maximum(depth + rng.normal(0.0, 1.0, depth.shape) * REL * depth**2, 0.0).astype(np.float32)
-    rgb = np.full((cam.height_px, cam.width_px, 3), (90 + 20 * region, 120, 150), np.uint8)
+    rgb = np.full((CAM.height_px, CAM.width_px, 3), (90 + 20 * region, 120, 150), np.uint8)
     return Frame(index=index, timestamp_s=float(index), pose=Pose(position_m=pos, heading_rad=heading),
                  imu_heading_rad=heading, camera=CAM, rgb=rgb, depth_m=depth, depth_noise_rel=REL)
 
