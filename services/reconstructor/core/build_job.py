@@ -78,7 +78,7 @@ def build_map(ctx: JobContext, req: BuildMapRequest, *, frames: FrameSource, sto
 
         def on_map(k: int, total: int) -> None:
             # The map's one volume (RgbdConfig.tsdf_scope "map") takes the frames of every region once
-            # more after the last one: 16 s of a 36 s build on the two-floor house, so it reports too.
+            # more after the last one: 15-17 s of a 47-52 s build on the two-floor house, so it reports too.
             ctx.check_cancelled()
             ctx.progress(MapBuildProgress(stage="fusing", progress=0.9 + 0.04 * (k + 1) / total, regions=n,
                                           message=f"map volume: {k + 1} of {total} regions fused"))

@@ -1,7 +1,7 @@
 """The map-build job's progress while the map's one TSDF volume is fused (RgbdConfig.tsdf_scope "map").
 
-That volume takes every noisy region's frames once more after the last region is reconstructed (16 s of a
-36 s build on the two-floor house): the job reports each region it takes in as a "fusing" stage, and a
+That volume takes every noisy region's frames once more after the last region is reconstructed (15-17 s of a
+47-52 s build on the two-floor house): the job reports each region it takes in as a "fusing" stage, and a
 cancel asked for meanwhile stops the build at the next region, before anything is stored.
 
 The tours are ray-cast in one 4 x 4 m room by two stands (one region each) with the noisy robot's declared
