@@ -446,8 +446,8 @@ def main() -> None:
     ap.add_argument("--graph-set", nargs="+", default=[], metavar="FIELD=JSON",
                     help="PoseGraphConfig fields, e.g. weak_edges=true min_fitness=0.25")
     args = ap.parse_args()
-    print(f"## {args.scene}, drift x{args.drift_scale:g} (noise seed {args.noise_seed}), frame registration {args.frames}, band by {args.band}, "
-          f"pose graph {args.graph} {' '.join(args.graph_set)}")
+    print(f"## {args.scene}, drift x{args.drift_scale:g} (noise seed {args.noise_seed}), frame registration "
+          f"{args.frames}, band by {args.band}, pose graph {args.graph} {' '.join(args.graph_set)}")
     r = run(args.scene, args.drift_scale, args.frames == "on", band_from_median=args.band == "median",
             graph=args.graph == "on", graph_set={k: _value(v) for k, v in (a.split("=", 1) for a in args.graph_set)},
             noise_seed=args.noise_seed)

@@ -539,9 +539,9 @@ class RgbdReconstructor(RegionalReconstructor):
         kept for it (``keep``, within ``map_depth_store_mb``) where it was computed. Runs on the threads."""
         with self._kept_lock:
             got = self._kept.pop(id(im.depth_m), None)
-        if got is not None and got[0] is im.depth_m:
-            with self._kept_lock:
+            if got is not None:
                 self._kept_bytes -= got[1].nbytes
+        if got is not None:  # the recorded array is held with it, so its id cannot name another array
             return got[1]
         d = self.frame_depth(im)
         cfg = self.config
