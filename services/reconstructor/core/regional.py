@@ -777,7 +777,12 @@ class MonoSimReconstructor(RegionalReconstructor):
 
     def __init__(self, config: MonoSimConfig | None = None):
         self.config = config or MonoSimConfig()
-        self._fusion = RgbdReconstructor(self.config.fusion)
+        # Each region's cloud gets a scale of its own, so no volume can span the map: the fusion is the
+        # regions' own (tsdf_scope "region"), and keeps no denoised depth for a map volume that never comes.
+        self._fusion = RgbdReconstructor(self.config.fusion.model_copy(update={"tsdf_scope": "region"}))
+
+    def close(self) -> None:
+        self._fusion.close()
 
     def reconstruct(self, region: RegionInput, label_names: dict[int, str] | None = None) -> RegionalCloud:
         cfg = self.config

@@ -265,3 +265,12 @@ def test_nothing_is_kept_after_the_map_is_fused():
     rgbd.reconstruct(region)
     rgbd.close()  # a build that stops before the map's volume lets go of them too
     assert rgbd._kept == {} and rgbd._kept_bytes == 0
+
+
+def test_a_backend_that_fuses_no_map_volume_keeps_no_depth_for_one():
+    # mono-sim fuses each region with its own RGB-D fusion and scales it on its own: no map volume ever
+    # takes the frames again, so nothing may stay held for one (256 MB at most, until the backend goes).
+    mono = RECONSTRUCTORS.create("mono-sim", {"fusion": TSDF})
+    mono.reconstruct(_frames(REL))
+    assert mono._fusion._kept == {} and mono._fusion._kept_bytes == 0
+    assert mono.fuse_map([_frames(REL)]) is None
