@@ -3,6 +3,7 @@
     python -m bench.ablation --preset views --houses 15 --per-house 20       # 300 episodes
     python -m bench.ablation --preset hfov --limit 100
     python -m bench.ablation --preset cloud --map rgbd,noisy --limit 100     # curated / rgbd / noisy
+    python -m bench.ablation --preset cloud --map rgbd,noisy --variants reconstructed --seeds 0 1 2   # 900
     python -m bench.ablation --preset anticipation --map noisy --policy-config '{"anticipation_use": "replace"}'
 
 The variants are ``evaluation.presets`` (one table of ablations for both paths); the episodes are the
@@ -24,9 +25,12 @@ noise-free robot.
 
 Every episode runs every variant before the next episode starts, so a stopped run leaves complete pairs,
 and a rerun resumes (each variant's ``results.jsonl`` is the evaluation runner's format: compare folders
-with ``python -m evaluation.compare``). Output: ``runs/ablations-local/<preset>/<map>/<variant>/`` and
-``table.md``; the last line is ``ablation <preset> (<map>, n=<paired>): <variant> SR <diff> [lo, hi]``
-for the last variant against the first.
+with ``python -m evaluation.compare``). Output: ``runs/ablations-local/<preset>/<maps>/<set>/<variant>/``
+and ``table.md`` per set (``<maps>`` joined by "+", ``<set>`` e.g. ``seed0-15x20-floors12``: episode ids
+repeat from set to set, and a log of another set is refused, not resumed). ``--seeds 0 1 2`` runs three
+sets and pools their pairs (``<maps>/table.md``; the interval of 900 episodes instead of 300); the last
+line is ``ablation <preset> (<maps>[, <k> sets], n=<paired>): <variant> SR <diff> [lo, hi]`` for the
+last variant against the first.
 """
 
 from __future__ import annotations
@@ -42,8 +46,9 @@ from typing import Any
 import numpy as np
 
 from bench.agent_maps import ROWS, build_map
-from evaluation.compare import compare_runs, comparison_markdown
+from evaluation.compare import RESULTS_FILE, compare_runs, comparison_markdown
 from evaluation.dataset import SetSpec, generate_set, parse_floors
+from evaluation.errors import ConfigError
 from evaluation.presets import Variant, presets
 from evaluation.results import EpisodeResult, ResultsLog
 from evaluation.runner import MapSource, RunConfig, episode_seed
@@ -146,7 +151,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--houses", type=int, default=15)
     ap.add_argument("--per-house", type=int, default=20)
     ap.add_argument("--floors", default="1,2")
-    ap.add_argument("--seed", type=int, default=0, help="the generated set's seed")
+    ap.add_argument("--seed", "--seeds", dest="seeds", type=int, nargs="+", default=[0],
+                    help="the generated set's seed; several: one set each, in its own folder, their pairs pooled")
     ap.add_argument("--area-m2", type=float, default=None, help="house area (default: the generator's)")
     ap.add_argument("--map", default="rgbd", type=_map_kinds,
                     help=f"map kind(s) of the reconstructed variants, comma-separated: {', '.join(sorted(MAP_KINDS))}")
@@ -177,20 +183,97 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     # A policy config is part of the experiment (RunConfig.experiment_key): its own folder, never mixed.
     tag = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in json.dumps(base.policy_config,
                                                                                   sort_keys=True))
-    maps = ",".join(args.map)
+    # "+", not ",": evaluation.compare joins the folders of several episode sets with commas.
+    maps = "+".join(args.map)
     root = args.out / preset.name / (maps if not base.policy_config else f"{maps}__{tag}")
-    logs = [ResultsLog(root / v.slug / "results.jsonl") for v in variants]
-    done = [lg.load() for lg in logs]
-
-    dataset, _ = generate_set(SetSpec(houses=args.houses, per_house=args.per_house, area_m2=args.area_m2,
-                                      floors=parse_floors(args.floors), seed=args.seed), with_gt=False)
-    episodes = dataset.episodes[: args.limit] if args.limit else dataset.episodes
-    if args.scenes:
-        known = {e.scene_id for e in dataset.episodes}
-        if unknown := [x for x in args.scenes if x not in known]:
-            ap.error(f"the set has no scene {', '.join(map(repr, unknown))}; it has {sorted(known)}")
-        episodes = [e for e in episodes if e.scene_id in args.scenes]
+    if len(set(args.seeds)) != len(args.seeds) or min(args.seeds) < 0:
+        ap.error(f"--seeds: non-negative and each once, got {args.seeds}")
+    try:
+        specs = [SetSpec(houses=args.houses, per_house=args.per_house, area_m2=args.area_m2,
+                         floors=parse_floors(args.floors), seed=seed) for seed in args.seeds]
+    except ConfigError as exc:
+        ap.error(str(exc))
+    sets = []
+    for spec in specs:
+        dataset, _ = generate_set(spec, with_gt=False)
+        folder = root / set_folder(spec)
+        logs = [ResultsLog(folder / v.slug / RESULTS_FILE) for v in variants]
+        done = [lg.load() for lg in logs]
+        try:
+            for lg, d in zip(logs, done):
+                check_resumable(d, dataset.episodes, lg.path)
+        except ConfigError as exc:
+            ap.error(str(exc))
+        episodes = dataset.episodes[: args.limit] if args.limit else dataset.episodes
+        if args.scenes:
+            known = {e.scene_id for e in dataset.episodes}
+            if unknown := [x for x in args.scenes if x not in known]:
+                ap.error(f"set {folder.name} has no scene {', '.join(map(repr, unknown))}; it has {sorted(known)}")
+            episodes = [e for e in episodes if e.scene_id in args.scenes]
+        sets.append((folder, episodes, logs, done))
     t0, ran = time.perf_counter(), 0
+    for folder, episodes, logs, done in sets:
+        ran = _run_set(episodes, variants, configs, kinds, modes, logs, done, t0, ran)
+        runs = [(v.label, d) for v, d in zip(variants, done)]
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "table.md").write_text(f"# {preset.title} ({maps} maps, set {folder.name}, in-process)\n\n"
+                                         f"{preset.paper}\n{table2_markdown(runs) + comparison_markdown(runs)}",
+                                         encoding="utf-8")
+
+    # Several sets: their pairs pooled (ids repeat from set to set, so each is prefixed by its set's
+    # position, as evaluation.compare pools comma-joined folders).
+    runs = [(v.label, pool_sets([s[3][i] for s in sets])) for i, v in enumerate(variants)]
+    what = maps if len(sets) == 1 else f"{maps}, {len(sets)} sets"
+    md = table2_markdown(runs) + comparison_markdown(runs)
+    root.mkdir(parents=True, exist_ok=True)
+    names = ", ".join(s[0].name for s in sets)
+    (root / "table.md").write_text(f"# {preset.title} ({maps} maps, sets {names}, in-process)\n\n"
+                                   f"{preset.paper}\n{md}", encoding="utf-8")
+    print(md)
+    if len(runs) == 1:  # nothing to pair here: its folder pairs with other runs' (evaluation.compare)
+        label, d = runs[0]
+        ok = [r for r in d.values() if r.status == "done" and r.metrics is not None]
+        sr = 100.0 * sum(bool(r.metrics.get("success")) for r in ok) / max(len(ok), 1)
+        folders = ",".join(str(s[0] / variants[0].slug) for s in sets)
+        print(f"ablation {preset.name} ({what}, n={len(ok)}): {label} SR {sr:.1f} (one variant: "
+              f"python -m evaluation.compare <base folder(s)> {folders})")
+        return {"n": len(ok), "sr": sr, "sets": len(sets)}
+    first, last = runs[0], runs[-1]
+    sr = next(p for p in compare_runs(first[1], last[1]) if p.metric == "SR")
+    print(f"ablation {preset.name} ({what}, n={sr.n}): {last[0]} SR {sr.diff:+.1f} [{sr.lo:+.1f}, {sr.hi:+.1f}] "
+          f"vs {first[0]}")
+    return {"n": sr.n, "sr_diff": sr.diff, "lo": sr.lo, "hi": sr.hi, "sets": len(sets)}
+
+
+def set_folder(spec: SetSpec) -> str:
+    """The folder of one episode set's results: episode ids repeat from set to set ("1", "2", ...), so a
+    second seed's run resumed from the first one's results would skip its episodes as done."""
+    area = "" if spec.area_m2 is None else f"-area{spec.area_m2:g}"
+    return f"seed{spec.seed}-{spec.houses}x{spec.per_house}-floors{''.join(map(str, spec.floors))}{area}"
+
+
+def check_resumable(done: dict[str, EpisodeResult], episodes, path: Path) -> None:
+    """Every result already in ``path`` is an episode of this set (its id, scene and instruction): a log of
+    another set, or of a set the generator now draws differently, is refused instead of resumed."""
+    by_id = {str(e.episode_id): e for e in episodes}
+    for eid, r in done.items():
+        e = by_id.get(eid)
+        if e is None or r.scene_id != e.scene_id or r.instruction != e.instruction:
+            where = "no such episode" if e is None else f"the set's episode {eid} is in {e.scene_id}"
+            raise ConfigError(f"{path}: episode {eid} of {r.scene_id} is not this set's ({where}); "
+                              "it holds another set's results: give another --out")
+
+
+def pool_sets(done: list[dict[str, EpisodeResult]]) -> dict[str, EpisodeResult]:
+    """One run's results over its sets, each id prefixed by its set's position when there are several."""
+    if len(done) == 1:
+        return done[0]
+    return {f"{k}:{eid}": r for k, d in enumerate(done) for eid, r in d.items()}
+
+
+def _run_set(episodes, variants, configs, kinds, modes, logs, done, t0: float, ran: int) -> int:
+    """Every variant on ``episodes`` (an episode's variants before the next episode), appending to ``logs``
+    and ``done``; skips what is done. Returns the running count of episodes run."""
     scenes = list(dict.fromkeys(e.scene_id for e in episodes))
     for scene in scenes:
         todo = [e for e in episodes if e.scene_id == scene
@@ -232,24 +315,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     el = time.perf_counter() - t0
                     print(f"   {ran} episodes x {len(configs)} variants in {el:.0f} s ({scene})", flush=True)
 
-    runs = [(v.label, d) for v, d in zip(variants, done)]
-    md = table2_markdown(runs) + comparison_markdown(runs)
-    root.mkdir(parents=True, exist_ok=True)
-    (root / "table.md").write_text(f"# {preset.title} ({maps} maps, in-process)\n\n{preset.paper}\n{md}",
-                                   encoding="utf-8")
-    print(md)
-    if len(runs) == 1:  # nothing to pair here: its folder pairs with other runs' (evaluation.compare)
-        label, d = runs[0]
-        ok = [r for r in d.values() if r.status == "done" and r.metrics is not None]
-        sr = 100.0 * sum(bool(r.metrics.get("success")) for r in ok) / max(len(ok), 1)
-        print(f"ablation {preset.name} ({maps}, n={len(ok)}): {label} SR {sr:.1f} (one variant: "
-              f"python -m evaluation.compare <base folder> {root / variants[0].slug})")
-        return {"n": len(ok), "sr": sr}
-    first, last = runs[0], runs[-1]
-    sr = next(p for p in compare_runs(first[1], last[1]) if p.metric == "SR")
-    print(f"ablation {preset.name} ({maps}, n={sr.n}): {last[0]} SR {sr.diff:+.1f} [{sr.lo:+.1f}, {sr.hi:+.1f}] "
-          f"vs {first[0]}")
-    return {"n": sr.n, "sr_diff": sr.diff, "lo": sr.lo, "hi": sr.hi}
+    return ran
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
             "--out", str(tmp_path / "out")]
     first = ablation.main(argv)
     assert first["n"] == 2
-    root = tmp_path / "out" / "views" / "rgbd"
+    root = tmp_path / "out" / "views" / "rgbd" / "seed0-1x2-floors12-area40"
     runs = {d.name: [json.loads(line) for line in (d / "results.jsonl").read_text().splitlines()]
             for d in root.iterdir() if d.is_dir()}
     assert set(runs) == {"without_anticipation", "map_views_visibility_splat", "map_views_paper_splat",
@@ -61,6 +61,30 @@ def test_views_preset_pairs_every_variant_and_resumes(tmp_path, monkeypatch):
     assert ablation.main(argv + ["--scenes", scene])["n"] == 2
     with pytest.raises(SystemExit):
         ablation.main(argv + ["--scenes", "generated:99"])
+    # A second set (its ids repeat the first's): its own folder, and both sets' pairs pooled.
+    both = ablation.main(argv + ["--variants", "true-scene views", "--seeds", "0", "1"])
+    assert both["sets"] == 2 and both["n"] == 4
+    second = tmp_path / "out" / "views" / "rgbd" / "seed1-1x2-floors12-area40" / "true-scene_views"
+    rows = [json.loads(line) for line in (second / "results.jsonl").read_text().splitlines()]
+    assert sorted(r["episode_id"] for r in rows) == ["1", "2"]
+    assert {r["scene_id"] for r in rows}.isdisjoint({r["scene_id"] for r in runs["true-scene_views"]})
+    with pytest.raises(SystemExit):
+        ablation.main(argv + ["--seeds", "1", "1"])
+
+
+def test_a_log_of_another_set_is_refused_not_resumed(tmp_path, capsys):
+    """Episode ids repeat from set to set: results of another set found in a set's folder (moved there, or
+    the generator drawing the set differently) stop the run with the folder named, and stay as they were."""
+    argv = ["--preset", "views", "--houses", "1", "--per-house", "2", "--area-m2", "40", "--max-steps", "4",
+            "--out", str(tmp_path / "out"), "--variants", "without anticipation"]
+    log = tmp_path / "out" / "views" / "rgbd" / "seed0-1x2-floors12-area40" / "without_anticipation" / "results.jsonl"
+    log.parent.mkdir(parents=True)
+    other = {"episode_id": "1", "scene_id": "generated:1000", "status": "done", "instruction": "Go to the sofa."}
+    log.write_text(json.dumps(other) + "\n")
+    with pytest.raises(SystemExit):
+        ablation.main(argv)
+    assert "is not this set's" in capsys.readouterr().err
+    assert log.read_text() == json.dumps(other) + "\n"
 
 
 def _a_map_of_other_code_is_rebuilt(maps, monkeypatch):
