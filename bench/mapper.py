@@ -6,6 +6,7 @@
     python -m bench.mapper --ladder [--full] [--jobs 2] [--size 64] [--json OUT]
     python -m bench.mapper --ladder --rungs 200x3 1000x1 --seeds 2 --rows ROWS.jsonl
     python -m bench.mapper --scenes generated:0:area=1000 --save-exploration DIR
+    python -m bench.mapper --scenes generated:2013:floors=2 --size 128 --noise noisy --noise-seeds 0 1 2
     python -m bench.mapper --replan DIR/*.pkl [--repeat 3]
 
 Reports per scene: explored-node coverage of the simulator's reachable area (target >= 95 %),
@@ -20,6 +21,10 @@ mapper's own), analyse and plan, and set cover + 2-opt; then a least-squares fit
 against the reachable area, ``cost ~ area^k``, and the issue's targets met or not:
 coverage >= 95 % on every rung; explore + plan <= 30 s wall at 1,000 m2 (simulator included); set cover
 + 2-opt <= 2 s at 1,000 m2; tours no longer than a nearest-neighbour tour over the same hubs.
+
+``--noise noisy`` explores each scene again with the robot's sensor noise (bench.agent_maps' rows: depth noise
+and holes, odometry drift), once per ``--noise-seeds``, and prints the noisy explorations against the
+noise-free one (floors reached, coverage), since a noisy robot that misses a floor still ends "finished".
 
 ``--save-exploration`` keeps each scene's exploration (a pickle, local files only); ``--replan``
 runs analyse and plan again on saved explorations, so planning can be timed and profiled without
@@ -40,6 +45,7 @@ from shared.schemas import CameraIntrinsics
 
 from services.mapper.core import DiscoveryConfig, NodeStatus, discover
 from services.mapper.core.discovery import WIDE_EXPLORATION
+from bench.agent_maps import NOISE
 
 
 def coverage_of(reachable_m: np.ndarray, nodes_m: np.ndarray, radius_m: float) -> float:
@@ -62,6 +68,10 @@ class TimedRobot:
     def __init__(self, robot):
         self.robot = robot
         self.robot_s = self.robot_cpu_s = self.observe_s = self.observe_cpu_s = 0.0
+
+    def __getattr__(self, name):
+        # The rest of the robot as it is (a drifting robot's localiser reads its pose and odometry).
+        return getattr(self.robot, name)
 
     def observe(self):
         t, c = time.perf_counter(), time.process_time()
@@ -127,11 +137,17 @@ def replan(path: str, repeat: int) -> dict:
 
 
 def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide",
-              save_dir: str | None = None, ray_caster: str = "auto") -> dict:
+              save_dir: str | None = None, ray_caster: str = "auto", noise: str | None = None,
+              noise_seed: int = 0) -> dict:
     from services.robot_io.core.robot import ROBOTS
 
     cam = CameraIntrinsics(width_px=size_px, height_px=size_px, hfov_deg=90.0)
-    robot = ROBOTS.create("sim", {"scene": scene, "camera": cam, "ray_caster": ray_caster})
+    robot_cfg = {"scene": scene, "camera": cam, "ray_caster": ray_caster}
+    if noise:
+        from bench.agent_maps import noise_config
+
+        robot_cfg["noise"] = noise_config(noise, 1.0, noise_seed)
+    robot = ROBOTS.create("sim", robot_cfg)
     timed = TimedRobot(robot)
     cfg = DiscoveryConfig(predictor_config=PREDICTOR_KNOBS[predictor])
     t0, c0 = time.perf_counter(), time.process_time()
@@ -142,11 +158,14 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
         from pathlib import Path
 
         Path(save_dir).mkdir(parents=True, exist_ok=True)
-        with open(Path(save_dir) / (scene.replace(":", "_").replace("/", "_") + ".pkl"), "wb") as f:
+        name = scene.replace(":", "_").replace("/", "_") + (f"_{noise}_seed{noise_seed}" if noise else "")
+        with open(Path(save_dir) / (name + ".pkl"), "wb") as f:
             pickle.dump(d.result, f)
     nav = robot.nav
     reach = nav.nodes_m[nav.component == nav.main_component]
     g = d.result.graph
+    # A drifting robot's nodes sit where it believed it stood: centimetres off after the pose graph,
+    # against the 1.5 m coverage radius.
     visited = g.positions(g.nodes_with(NodeStatus.VISITED))
     explored = g.positions(g.nodes_with(NodeStatus.VISITED, NodeStatus.COVERED))
     regions = []
@@ -169,6 +188,8 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
     return {
         "scene": scene,
         "predictor": predictor,
+        "noise": noise or "none",
+        "noise_seed": noise_seed if noise else None,
         "reachable_area_m2": round(nav.reachable_area_m2, 1),
         "floors": len(d.scene.floors),
         "scene_floors": robot.scene.floors,
@@ -203,6 +224,27 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
         "cpu_s": round(cpu, 1),
         "per_region": regions,
     }
+
+
+def print_noise_table(rows: list[dict], radius_m: float) -> None:
+    """Per scene, the noise-free exploration against each noisy one: floors reached, coverage (per floor)
+    and the explored free area. A noisy robot whose depth closes a doorway or hides a flight explores less
+    and still reports itself finished (its own map has no frontier left): only the simulator's
+    reachable area shows what it missed."""
+    key = f"coverage_visited_{radius_m:g}m"
+    print(f"\n{'scene':<26} {'noise':<12} {'floors':>6} {'coverage':>8}  {'per floor':<16} {'steps':>5} "
+          f"{'regions':>7} {'finished':>8}")
+    for r in rows:
+        tag = "none" if r["noise"] == "none" else f"{r['noise']} s{r['noise_seed']}"
+        print(f"{r['scene']:<26} {tag:<12} {r['floors_reached']:>3}/{r['scene_floors']:<2} {100 * r[key]:>7.1f}%  "
+              f"{str([round(100 * c, 1) for c in r['coverage_per_floor']]):<16} {r['steps']:>5} {r['regions']:>7} "
+              f"{str(r['finished']):>8}")
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        base = next(r for r in rows if r["scene"] == scene and r["noise"] == "none")
+        noisy = [r for r in rows if r["scene"] == scene and r["noise"] != "none"]
+        lost = [r["noise_seed"] for r in noisy if r["floors_reached"] < base["floors_reached"]]
+        print(f"mapper noise {scene}: coverage {100 * base[key]:.1f}% noise-free, "
+              f"{' / '.join(f'{100 * r[key]:.1f}' for r in noisy)}% noisy; seeds short of a floor: {lost or 'none'}")
 
 
 LADDER_AREAS = (100, 200, 500, 1000)
@@ -344,6 +386,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=None, help="ladder: seeds per rung (5 with --full, else 1)")
     ap.add_argument("--rows", default=None, help="ladder: append one JSON line per exploration here")
     ap.add_argument("--table", default=None, help="ladder: print the table of a --rows file and exit")
+    ap.add_argument("--noise", choices=sorted(NOISE), default=None,
+                    help="--scenes: also explore with this sensor noise (bench.agent_maps' rows), once per seed")
+    ap.add_argument("--noise-seeds", type=int, nargs="+", default=[0], help="--noise: the simulator's noise seeds")
     ap.add_argument("--json", default=None)
     ap.add_argument("--save-exploration", default=None, help="--scenes: pickle each exploration into this folder")
     ap.add_argument("--replan", nargs="+", default=None, help="analyse + plan again on saved explorations")
@@ -352,6 +397,10 @@ def main() -> None:
                     help="--scenes: what renders the simulator's panoramas (SimConfig.ray_caster)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
+    if args.noise and (args.ladder or args.replan or args.table):
+        ap.error("--noise explores --scenes")
+    if args.noise and (len(set(args.noise_seeds)) != len(args.noise_seeds) or min(args.noise_seeds) < 0):
+        ap.error(f"--noise-seeds: non-negative and each once, got {args.noise_seeds}")
     if args.replan:
         for path in args.replan:
             print(json.dumps(replan(path, args.repeat)), flush=True)
@@ -371,12 +420,15 @@ def main() -> None:
                 ap.error("--rungs takes AREAxFLOORS with 1 to 3 floors, e.g. 200x3")
         run_ladder(args.full, args.jobs, args.size or 64, args.radius, args.json, args.rows, rungs, args.seeds)
         return
-    rows = [run_scene(s, args.size or 96, args.radius, args.predictor, args.save_exploration, args.ray_caster)
-            for s in args.scenes]
+    runs = [(None, 0)] + [(args.noise, seed) for seed in args.noise_seeds] if args.noise else [(None, 0)]
+    rows = [run_scene(s, args.size or 96, args.radius, args.predictor, args.save_exploration, args.ray_caster,
+                      noise, seed) for s in args.scenes for noise, seed in runs]
     for r in rows:
         print(json.dumps({k: v for k, v in r.items() if k != "per_region"}))
         for reg in r["per_region"]:
             print("   ", json.dumps(reg))
+    if args.noise:
+        print_noise_table(rows, args.radius)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)
