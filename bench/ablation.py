@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from bench.agent_maps import ROWS, build_map
-from evaluation.compare import RESULTS_FILE, compare_runs, comparison_markdown
+from evaluation.compare import RESULTS_FILE, compare_runs, comparison_markdown, pool_sets
 from evaluation.dataset import SetSpec, generate_set, parse_floors
 from evaluation.errors import ConfigError
 from evaluation.presets import Variant, presets
@@ -212,24 +212,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             episodes = [e for e in episodes if e.scene_id in args.scenes]
         sets.append((folder, episodes, logs, done))
     t0, ran = time.perf_counter(), 0
+    def write_table(folder: Path, sets_named: str, runs) -> str:
+        md = table2_markdown(runs) + comparison_markdown(runs)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "table.md").write_text(f"# {preset.title} ({maps} maps, {sets_named}, in-process)\n\n"
+                                         f"{preset.paper}\n{md}", encoding="utf-8")
+        return md
+
     for folder, episodes, logs, done in sets:
         ran = _run_set(episodes, variants, configs, kinds, modes, logs, done, t0, ran)
-        runs = [(v.label, d) for v, d in zip(variants, done)]
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / "table.md").write_text(f"# {preset.title} ({maps} maps, set {folder.name}, in-process)\n\n"
-                                         f"{preset.paper}\n{table2_markdown(runs) + comparison_markdown(runs)}",
-                                         encoding="utf-8")
-
-    # Several sets: their pairs pooled (ids repeat from set to set, so each is prefixed by its set's
-    # position, as evaluation.compare pools comma-joined folders).
+        write_table(folder, f"set {folder.name}", [(v.label, d) for v, d in zip(variants, done)])
+    # Several sets: their pairs pooled, as evaluation.compare pools comma-joined folders.
     runs = [(v.label, pool_sets([s[3][i] for s in sets])) for i, v in enumerate(variants)]
     what = maps if len(sets) == 1 else f"{maps}, {len(sets)} sets"
-    md = table2_markdown(runs) + comparison_markdown(runs)
-    root.mkdir(parents=True, exist_ok=True)
-    names = ", ".join(s[0].name for s in sets)
-    (root / "table.md").write_text(f"# {preset.title} ({maps} maps, sets {names}, in-process)\n\n"
-                                   f"{preset.paper}\n{md}", encoding="utf-8")
-    print(md)
+    print(write_table(root, "sets " + ", ".join(s[0].name for s in sets), runs))
     if len(runs) == 1:  # nothing to pair here: its folder pairs with other runs' (evaluation.compare)
         label, d = runs[0]
         ok = [r for r in d.values() if r.status == "done" and r.metrics is not None]
@@ -262,13 +258,6 @@ def check_resumable(done: dict[str, EpisodeResult], episodes, path: Path) -> Non
             where = "no such episode" if e is None else f"the set's episode {eid} is in {e.scene_id}"
             raise ConfigError(f"{path}: episode {eid} of {r.scene_id} is not this set's ({where}); "
                               "it holds another set's results: give another --out")
-
-
-def pool_sets(done: list[dict[str, EpisodeResult]]) -> dict[str, EpisodeResult]:
-    """One run's results over its sets, each id prefixed by its set's position when there are several."""
-    if len(done) == 1:
-        return done[0]
-    return {f"{k}:{eid}": r for k, d in enumerate(done) for eid, r in d.items()}
 
 
 def _run_set(episodes, variants, configs, kinds, modes, logs, done, t0: float, ran: int) -> int:

@@ -45,7 +45,6 @@ from shared.schemas import CameraIntrinsics
 
 from services.mapper.core import DiscoveryConfig, NodeStatus, discover
 from services.mapper.core.discovery import WIDE_EXPLORATION
-from bench.agent_maps import NOISE
 
 
 def coverage_of(reachable_m: np.ndarray, nodes_m: np.ndarray, radius_m: float) -> float:
@@ -371,6 +370,8 @@ def _progress(row: dict, t0: float, radius_m: float, total: int, done: int) -> N
 
 
 def main() -> None:
+    from bench.agent_maps import NOISE  # here, not at the top: the ladder's job processes never parse arguments
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["generated:0", "generated:1:floors=2"])
     ap.add_argument("--size", type=int, default=None,

@@ -112,17 +112,24 @@ def comparison_markdown(runs: Sequence[tuple[str, dict[str, EpisodeResult]]], *,
     return "\n".join(lines) + "\n"
 
 
+def pool_sets(per_set: Sequence[dict[str, EpisodeResult]]) -> dict[str, EpisodeResult]:
+    """One run's results over its episode sets: with several sets each episode id is prefixed by its
+    set's position (``"1:17"``), since ids repeat from set to set; one set is returned as it is."""
+    if len(per_set) == 1:
+        return per_set[0]
+    return {f"{k}:{eid}": r for k, res in enumerate(per_set) for eid, r in res.items()}
+
+
 def pooled_run(folders: Sequence[Path]) -> tuple[str, dict[str, EpisodeResult]]:
-    """(label, results) of one run over one or more episode sets: with several sets each episode id
-    is prefixed by its set's position (``"1:17"``), since ids repeat from set to set."""
-    pooled: dict[str, EpisodeResult] = {}
-    for k, folder in enumerate(folders):
+    """(label, results) of one run over one or more episode sets (their folders), pooled by ``pool_sets``."""
+    per_set = []
+    for folder in folders:
         res = ResultsLog(folder / RESULTS_FILE).load()
         if not res:
             raise ConfigError(f"{folder}: no {RESULTS_FILE}")
-        pooled.update(res if len(folders) == 1 else {f"{k}:{eid}": r for eid, r in res.items()})
+        per_set.append(res)
     label = folders[0].name if len(folders) == 1 else f"{folders[0].name} ({len(folders)} sets)"
-    return label, pooled
+    return label, pool_sets(per_set)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
