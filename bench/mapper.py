@@ -70,6 +70,8 @@ class TimedRobot:
 
     def __getattr__(self, name):
         # The rest of the robot as it is (a drifting robot's localiser reads its pose and odometry).
+        if name == "robot":  # not set yet (a copy being built): no recursion through ourselves
+            raise AttributeError(name)
         return getattr(self.robot, name)
 
     def observe(self):
@@ -226,8 +228,8 @@ def run_scene(scene: str, size_px: int, radius_m: float, predictor: str = "wide"
 
 
 def print_noise_table(rows: list[dict], radius_m: float) -> None:
-    """Per scene, the noise-free exploration against each noisy one: floors reached, coverage (per floor)
-    and the explored free area. A noisy robot whose depth closes a doorway or hides a flight explores less
+    """Per scene, the noise-free exploration against each noisy one: floors reached, coverage (per floor),
+    panoramas and regions. A noisy robot whose depth closes a doorway or hides a flight explores less
     and still reports itself finished (its own map has no frontier left): only the simulator's
     reachable area shows what it missed."""
     key = f"coverage_visited_{radius_m:g}m"
@@ -421,7 +423,7 @@ def main() -> None:
                 ap.error("--rungs takes AREAxFLOORS with 1 to 3 floors, e.g. 200x3")
         run_ladder(args.full, args.jobs, args.size or 64, args.radius, args.json, args.rows, rungs, args.seeds)
         return
-    runs = [(None, 0)] + [(args.noise, seed) for seed in args.noise_seeds] if args.noise else [(None, 0)]
+    runs = [(None, 0)] + ([(args.noise, seed) for seed in args.noise_seeds] if args.noise else [])
     rows = [run_scene(s, args.size or 96, args.radius, args.predictor, args.save_exploration, args.ray_caster,
                       noise, seed) for s in args.scenes for noise, seed in runs]
     for r in rows:
