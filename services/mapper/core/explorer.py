@@ -164,6 +164,9 @@ class ExplorationResult:
     open_frontiers: int = 0
     open_stairs: int = 0  # flights seen climbing or descending whose continuation failed
     step_budget: int = 0
+    # The largest depth noise the robot's panoramas declared (``Panorama.depth_noise_rel``; 0: exact
+    # or not known): the tours look from nearer where it is not 0 (TourConfig.max_depth_sigma_m).
+    depth_noise_rel: float = 0.0
 
     def summary(self) -> dict:
         """What events and map metadata say about how the exploration ended."""
@@ -261,6 +264,7 @@ class Explorer:
             open_frontiers=left_open,
             open_stairs=open_stairs,
             step_budget=run.step_budget(),
+            depth_noise_rel=run.depth_noise_rel,
         )
 
 
@@ -288,6 +292,7 @@ class _Run:
         self.map_frontiers = 0
         self.narrow_frontiers = 0
         self.map_targets: list[str] = []  # the nodes the map's frontiers added
+        self.depth_noise_rel = 0.0
 
     # --- budget and bookkeeping -------------------------------------------------------------------
 
@@ -365,6 +370,7 @@ class _Run:
         """Take the panorama at the robot's pose: a visited node, new candidates, a scan."""
         self.steps += 1
         self.pose = pano.pose
+        self.depth_noise_rel = max(self.depth_noise_rel, float(pano.depth_noise_rel))
         pos = pano.pose.xyz
         at = len(self.trajectory)
         self.trajectory.append(pos.copy())

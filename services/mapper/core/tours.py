@@ -40,6 +40,10 @@ class TourConfig(BaseModel):
 
     hub_grid_m: float = Field(1.0, gt=0.0)
     vis_radius_m: float = Field(3.0, gt=0.0)
+    # A robot that declares depth noise (``Panorama.depth_noise_rel``: sigma = rel * depth^2) records
+    # well only what it looks at from near: a hub sees a cell only as far as that sigma stays within
+    # this (0.01 * depth^2, the noisy row's sensor: 2.5 m for 0.0625 m). Noise-free, ``vis_radius_m``.
+    max_depth_sigma_m: float = Field(0.0625, gt=0.0, le=1.0)
     tau: float = Field(0.9, gt=0.0, le=1.0)
     lambda_overlap: float = Field(1.0, ge=0.0)  # metres of path one unit of (1 - IoU) is worth
     body_radius_m: float = Field(0.2, ge=0.0)
@@ -82,6 +86,12 @@ class TourConfig(BaseModel):
     @property
     def clearance_m(self) -> float:
         return self.body_radius_m + self.clearance_margin_m
+
+    def vis_radius_for(self, depth_noise_rel: float) -> float:
+        """How far a hub sees for a sensor of this declared depth noise (0: exact)."""
+        if depth_noise_rel <= 0.0:
+            return self.vis_radius_m
+        return min(self.vis_radius_m, math.sqrt(self.max_depth_sigma_m / depth_noise_rel))
 
 
 @dataclass
@@ -519,7 +529,8 @@ class TourPlanner:
         hubs_c, hub_nodes = _voxel_downsample(occ, cand_idx, cand_nodes, clear, cfg.hub_grid_m)
 
         t0 = time.perf_counter()
-        vis = visibility_sparse(occ, hubs_c, targets, cfg.vis_radius_m, cfg.vis_rays).tocsc()
+        vis_radius_m = cfg.vis_radius_for(scene.result.depth_noise_rel)
+        vis = visibility_sparse(occ, hubs_c, targets, vis_radius_m, cfg.vis_rays).tocsc()
         # Cells that no reachable standpoint sees (behind furniture, beyond a gap in a wall) cannot
         # be recorded by any tour: tau applies to the coverable cells, the coverage reported is of
         # all the region's cells.

@@ -94,6 +94,19 @@ def test_safety_budget_scales_with_the_discovered_area_and_still_builds_the_map(
     assert full.result.steps < full.result.step_budget
 
 
+def test_the_exploration_keeps_the_depth_noise_its_robot_declared(world, run):
+    """The tours plan on it (TourConfig.vis_radius_for): the largest any panorama declared."""
+
+    class Noisy(BoxWorldRobot):
+        def observe(self):
+            pano = super().observe()
+            return pano.model_copy(update={"depth_noise_rel": 0.02 if self.observations == 2 else 0.01})
+
+    d = discover(Noisy(world, PinholeCamera(32, 32, 90.0)), DiscoveryConfig(exploration=ExplorationConfig(max_steps=3)))
+    assert d.result.depth_noise_rel == 0.02
+    assert run[2].result.depth_noise_rel == 0.0
+
+
 def test_unreachable_candidates_are_not_retried(world):
     class Stubborn(BoxWorldRobot):
         """Refuses every move east of x = 3 m."""

@@ -433,6 +433,46 @@ def test_a_region_the_map_covers_keeps_its_map_tour():
     assert np.array_equal(pt.tour.path_m, on_map.tour.path_m)
 
 
+def _corridor_scene(depth_noise_rel: float):
+    """One region: a 12 m x 1 m corridor with a node at each end, seen by a sensor of that declared
+    depth noise."""
+    from services.mapper.core.explorer import ExplorationResult
+    from services.mapper.core.navgraph import GridGraph
+    from services.mapper.core.regions import Floor, SceneMap
+    from shared.schemas import Pose
+
+    cells = np.full((122, 12), OCCUPIED, np.uint8)  # 0.1 m cells
+    cells[1:121, 1:11] = FREE
+    occ = OccupancyGrid(cells, np.zeros(2), 0.1, 0.0)
+    g = GridGraph()
+    a, b = g.add_visited((0.6, 0.6, 0.0), order=1), g.add_visited((11.6, 0.6, 0.0), order=2)
+    g.connect(a, b, 11.0)
+    result = ExplorationResult(graph=g, scans=[], trajectory_m=np.zeros((0, 3)), visit_order=[a, b], steps=2,
+                               moves=1, unreachable=0, blocked_moves=0, finished=True, duration_s=0.0,
+                               start_pose=Pose(position_m=(0.6, 0.6, 0.0), heading_rad=0.0),
+                               depth_noise_rel=depth_noise_rel)
+    return SceneMap(result, [Floor(0, 0.0, occ, [a, b])], set(), {0: [a, b]}, {0: 0}, {a: 0, b: 0})
+
+
+def test_a_robot_that_declares_depth_noise_is_toured_from_nearer():
+    """Noisy depth maps well only from near (sigma = rel * depth^2): with the noisy row's sensor (0.01)
+    a hub sees 2.5 m, not 3 m, so tau of the corridor takes three hubs, not two, and what each covers lies
+    within 2.5 m of it. An exact sensor keeps the configured 3 m."""
+    from services.mapper.core.tours import TourConfig, TourPlanner
+
+    cfg = TourConfig()
+    assert cfg.vis_radius_for(0.0) == cfg.vis_radius_m == 3.0
+    assert cfg.vis_radius_for(0.01) == pytest.approx(2.5)
+    assert cfg.vis_radius_for(1e-4) == 3.0  # a near-exact sensor: never farther than configured
+    (exact,) = TourPlanner(cfg).plan(_corridor_scene(0.0))
+    (noisy,) = TourPlanner(cfg).plan(_corridor_scene(0.01))
+    assert len(exact.tour.hubs_m) == 2 and len(noisy.tour.hubs_m) == 3
+    assert exact.tour.coverage >= 0.9 and noisy.tour.coverage >= 0.9
+    xs = np.arange(0.15, 12.05, 0.1)
+    gap = np.abs(xs[:, None] - np.asarray(noisy.tour.hubs_m)[None, :, 0]).min(axis=1)
+    assert (gap <= 2.5).mean() >= 0.9
+
+
 class _RelocalisingBoxRobot(_BoxRobot):
     """The box robot with a localiser's re-localisation: it notes why and where each fix was asked for."""
 
