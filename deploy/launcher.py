@@ -227,7 +227,12 @@ class StandIn:
         """robot-io's backend config; ``zenoh``: how its ROS 2 session joins (robot-io's credentials)."""
         transport = (zenoh or ZenohSettings(connect=[endpoint])).model_dump(mode="json", exclude_none=True,
                                                                             exclude={"config_file"})
-        config = {"profile": "generic", "profile_overrides": {**STANDIN_PROFILE_OVERRIDES, "motion": self.motion},
+        # The backend declares the depth noise the stand-in's camera adds, as a user's profile declares
+        # their camera's (Ros2Profile.depth_noise_rel): the reconstructor denoises and fuses by it, the
+        # tours look from nearer. The generic profile's own is 0 (not known).
+        depth_noise_rel = float((self.standin_config.get("noise") or {}).get("depth_noise_rel", 0.0))
+        overrides = {**STANDIN_PROFILE_OVERRIDES, "motion": self.motion, "depth_noise_rel": depth_noise_rel}
+        config = {"profile": "generic", "profile_overrides": overrides,
                   "keys": self.keys,
                   "transport_config": {"zenoh": transport}, "connect_timeout_s": 120,
                   # 0.5 s of wall time, in robot time (the stand-in runs time_scale times faster).

@@ -21,6 +21,24 @@ def test_drift_makes_the_stand_ins_odometry_drift_under_its_own_config():
     assert ros2_standin_config('{"camera_rate_hz": 4}', False, 3) == {"camera_rate_hz": 4}
 
 
+def test_the_backend_declares_the_depth_noise_the_stand_in_adds():
+    """A stand-in whose camera is noisy is driven through a profile that says so (the generic one says 0),
+    so the frames and panoramas carry it (the reconstructor's denoising, the tours' nearer looks)."""
+    import json
+
+    from deploy.launcher import StandIn
+    from libs.ros2.profiles import profile
+
+    def declared(standin: StandIn) -> float:
+        cfg = json.loads(standin.robot_env("tcp/127.0.0.1:7447")["ANT_ROBOT_CONFIG"])
+        return profile(cfg["profile"], cfg["profile_overrides"]).depth_noise_rel
+
+    noisy = StandIn(standin_config={"noise": {"seed": 1, "depth_noise_rel": 0.01, **ROS2_DRIFT}})
+    assert declared(noisy) == 0.01
+    assert declared(StandIn(standin_config=ros2_standin_config("{}", True, 3))) == 0.0  # drift alone: exact depth
+    assert declared(StandIn()) == 0.0
+
+
 def test_drift_is_refused_without_the_ros2_stand_in():
     with pytest.raises(SystemExit):
         main(["--drift"])
