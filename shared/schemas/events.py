@@ -184,6 +184,9 @@ class ExplorationOutcome(BaseModel):
     map_frontiers: Count = 0  # targets the map's frontiers added where the predictor proposed none
     narrow_frontiers: Count = 0  # ... of them behind passages only a narrower body than the planned one passes
     open_frontiers: Count = 0  # frontiers no visited node came near and none was tried when it ended
+    # The largest depth noise the robot's panoramas declared (sigma = rel * depth^2; 0: exact or not known):
+    # the tours then look from nearer (the mapper's TourConfig.max_depth_sigma_m).
+    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)
 
 
 class StageProgress(EventPayload):

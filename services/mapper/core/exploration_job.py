@@ -32,6 +32,7 @@ from shared.schemas import (
 from .discovery import DiscoveryConfig, discover, discovery_config
 from .explorer import ExplorationStep
 from .execute import RegionRecording, TourRobot, execute_tours
+from .tours import TourConfig
 
 log = logging.getLogger(__name__)
 
@@ -89,9 +90,10 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
     n_tours = max(1, len(disc.tours))
     outcome = ExplorationOutcome(**disc.result.summary())
     ended = describe_outcome(outcome)
+    touring = f"recording {len(disc.tours)} region tours{tour_range_phrase(outcome, cfg.tours)}"
     ctx.progress(ExplorationProgress(stage="touring", progress=_TOURS_AT, nodes=nodes, regions=len(disc.tours),
                                      timings_s=timings_s, outcome=outcome,
-                                     message=f"explored {nodes} nodes ({ended}); recording {len(disc.tours)} region tours"))
+                                     message=f"explored {nodes} nodes ({ended}); {touring}"))
 
     recordings: list[TourRecording] = []
     skipped: list[int] = []
@@ -196,6 +198,14 @@ class StepReporter:
             message=(f"step {st.step}/{st.step_budget}: {st.visited} visited, {st.seen} seen, "
                      f"{st.open_frontiers} open frontiers, {st.floors} floor{'s' if st.floors != 1 else ''}, "
                      f"{cover}{st.elapsed_s:.0f} s elapsed, {left}")), step=st.step)
+
+
+def tour_range_phrase(outcome: ExplorationOutcome, tours: TourConfig) -> str:
+    """Why the tours stand closer than configured, where they do: the robot declared depth noise."""
+    range_m = tours.vis_radius_for(outcome.depth_noise_rel)
+    if range_m >= tours.vis_radius_m:
+        return ""
+    return f" (hubs count what lies within {range_m:.1f} m: the robot declares depth noise {outcome.depth_noise_rel:g})"
 
 
 def describe_outcome(outcome: ExplorationOutcome) -> str:

@@ -175,7 +175,8 @@ class ExplorationResult:
                 "discovered_m2": round(self.discovered_m2, 1),
                 "coverage_estimate": round(self.coverage_estimate, 3), "mapped_free_m2": round(self.mapped_free_m2, 1),
                 "map_frontiers": self.map_frontiers, "narrow_frontiers": self.narrow_frontiers,
-                "open_frontiers": self.open_frontiers, "open_stairs": self.open_stairs}
+                "open_frontiers": self.open_frontiers, "open_stairs": self.open_stairs,
+                "depth_noise_rel": self.depth_noise_rel}
 
 
 class Explorer:

@@ -105,6 +105,15 @@ def test_the_exploration_keeps_the_depth_noise_its_robot_declared(world, run):
     d = discover(Noisy(world, PinholeCamera(32, 32, 90.0)), DiscoveryConfig(exploration=ExplorationConfig(max_steps=3)))
     assert d.result.depth_noise_rel == 0.02
     assert run[2].result.depth_noise_rel == 0.0
+    # The exploration's event carries it, and the touring progress says why the hubs stand closer.
+    from services.mapper.core.exploration_job import tour_range_phrase
+    from services.mapper.core.tours import TourConfig
+
+    outcome = ExplorationOutcome(**d.result.summary())
+    assert outcome.depth_noise_rel == 0.02
+    assert tour_range_phrase(outcome, TourConfig()) == (
+        " (hubs count what lies within 1.8 m: the robot declares depth noise 0.02)")
+    assert tour_range_phrase(ExplorationOutcome(**run[2].result.summary()), TourConfig()) == ""
 
 
 def test_unreachable_candidates_are_not_retried(world):
