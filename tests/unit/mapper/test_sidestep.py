@@ -66,3 +66,23 @@ def test_a_move_blocked_late_or_a_config_without_offsets_is_left_to_the_caller()
     assert far.pose.xyz[1] > 0.5  # it stays where it stopped: the caller takes a panorama there
     off = robot_at(world, 1.22, 0.85)
     assert move_sidestepping(off, 0.0, 1.5, SidestepConfig(offsets_m=())).status == MoveStatus.BLOCKED
+
+
+def test_a_tour_transit_walks_an_edge_the_exploration_got_through_aside():
+    """The exploration walked the lane with a sidestep and joined its two nodes, 7 cm off the lane's
+    middle, by a straight edge. A tour's transit walks that edge the same way; without the sidestep it
+    is stopped at the lane's mouth, stays on the south side, and the region beyond goes untoured."""
+    from types import SimpleNamespace
+
+    from services.mapper.core.execute import _transit
+    from services.mapper.core.navgraph import GridGraph
+
+    g = GridGraph()
+    south, north = (g.add_visited(np.array([1.08, y, 0.0]), order=k) for k, y in enumerate((0.85, 3.35)))
+    g.connect(south, north)
+    scene = SimpleNamespace(result=SimpleNamespace(graph=g))
+    world = lane_world()
+    for sidestep, arrives in ((None, False), (SidestepConfig(), True)):
+        robot = robot_at(world, 1.08, 0.85)
+        _transit(robot, scene, np.array([1.08, 3.35, 0.0]), sidestep=sidestep)
+        assert (robot.pose.xyz[1] > 3.0) == arrives, sidestep
