@@ -26,7 +26,6 @@ from services.mapper.core.localise import Correction, LocalisedRobot
 from services.mapper.core.navgraph import NodeStatus
 from services.mapper.core.occupancy import line_of_sight
 from services.mapper.core.regions import SceneMap
-from services.mapper.core.sidestep import SidestepConfig, move_sidestepping
 from services.mapper.core.tours import PlannedTour
 
 log = logging.getLogger(__name__)
@@ -75,7 +74,6 @@ def execute_tours(
     on_recording: Callable[[RegionRecording], None] | None = None,
     on_skip: Callable[[PlannedTour, TourExecutionError], None] | None = None,
     checkpoint: Callable[[], None] | None = None,
-    sidestep: SidestepConfig | None = None,
 ) -> list[RegionRecording]:
     """Drive every tour in order; returns one recording per tour that could be driven.
 
@@ -83,15 +81,13 @@ def execute_tours(
     and reported through ``on_skip``: one region short is a smaller map, not a failed exploration.
     Only when no tour at all can be driven is that an error. ``checkpoint`` is called before every
     move; it raises to abandon the tours (a cancelled job), a recording under way being stopped.
-    ``sidestep`` (the exploration's, by default its defaults) retries the moves to a tour's start
-    that a jamb stops early a few centimetres aside: the exploration walked such a passage so.
     """
     out = []
     if scene is not None and scene.localiser is not None and not isinstance(robot, LocalisedRobot):
         robot = LocalisedRobot(robot, scene.localiser)
     for pt in tours:
         try:
-            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint, sidestep=sidestep)
+            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint)
         except TourExecutionError as exc:
             log.warning("skipping region %d: %s", pt.tour.region, exc)
             if on_skip is not None:
@@ -144,22 +140,20 @@ def replace_recordings(recs: list[RegionRecording], localiser: Any) -> None:
 
 
 def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = None, rate_hz: float = 5.0,
-                 checkpoint: Callable[[], None] | None = None,
-                 sidestep: SidestepConfig | None = None) -> RegionRecording:
+                 checkpoint: Callable[[], None] | None = None) -> RegionRecording:
     check = checkpoint or _no_checkpoint
-    side = SidestepConfig() if sidestep is None else sidestep
     tour = pt.tour
     start = np.asarray(tour.start_pose.position_m)
     path = np.asarray(tour.path_m)
     check()
     if scene is not None:
-        _transit(robot, scene, start, check, sidestep=side)
+        _transit(robot, scene, start, check)
     relocalise = getattr(robot, "relocalise", None)
     if relocalise is not None:
         # Re-localised where the transit ended, the tour's start reached by the map, not by odometry:
         # a drifted robot missed one-hub regions by more than the 0.75 m it may start short.
         relocalise()
-    first = _reach_tour_start(robot, tour.region, path if len(path) else start[None], scene, check, sidestep=side)
+    first = _reach_tour_start(robot, tour.region, path if len(path) else start[None], scene, check)
     turn = float(wrap_angle(tour.start_pose.heading_rad - robot.pose.heading_rad))
     if abs(turn) > 1e-3:
         robot.turn(turn)
@@ -233,7 +227,7 @@ def _no_checkpoint() -> None:
 
 def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: SceneMap | None,
                       check: Callable[[], None], samples: tuple[int, ...] = (0, 1, 2, 3, 4, 6, 8, 12),
-                      short_m: float = 0.75, sidestep: SidestepConfig | None = None) -> int:
+                      short_m: float = 0.75) -> int:
     """Move straight to the tour's start, or, where the simulator (or the world) has no room for
     the robot there, to the first of the later path ``samples`` it can reach, each approached over
     the exploration's walked edges from the node nearest it: the index of the sample reached. A
@@ -246,12 +240,12 @@ def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: Sc
     travelled = 0.0
     for n, k in enumerate(tried):
         if n and scene is not None:
-            _transit(robot, scene, path[k], check, sidestep=sidestep)
+            _transit(robot, scene, path[k], check)
         d = path[k, :2] - robot.pose.xyz[:2]
         if np.hypot(*d) <= 0.05:
             return k
         check()
-        res = _move(robot, d, sidestep)
+        res = robot.move_to(float(d[0]), float(d[1]))
         travelled += res.travelled_m
         if res.status == MoveStatus.REACHED:
             if k:
@@ -270,15 +264,8 @@ def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: Sc
     )
 
 
-def _move(robot: TourRobot, d: np.ndarray, sidestep: SidestepConfig | None) -> MoveResult:
-    """A straight move by ``d`` (x, y), tried again aside where blocked early when ``sidestep`` is given."""
-    if sidestep is None:
-        return robot.move_to(float(d[0]), float(d[1]))
-    return move_sidestepping(robot, float(d[0]), float(d[1]), sidestep)
-
-
 def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Callable[[], None] = _no_checkpoint,
-             replan_attempts: int = 5, sidestep: SidestepConfig | None = None) -> None:
+             replan_attempts: int = 5) -> None:
     """Walk over traversed edges from the node nearest the robot to the node nearest the goal.
 
     An edge walked one way during exploration may not be walkable back the same straight way (the
@@ -288,8 +275,7 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Calla
     re-localises where the move stopped and tries the edge once more (:func:`_relocalised`). When
     dropping an edge cuts the robot's part of the graph off from the goal's, it rejoins it by a
     direct move from where it stands (:func:`_rejoin`), else where the two parts meet
-    (:func:`_cross_where_parts_meet`). With ``sidestep``, an edge that a jamb stops early is first
-    tried a few centimetres aside (sidestep.py), as the exploration walked it.
+    (:func:`_cross_where_parts_meet`).
     ``check`` is called before every move (a cancelled exploration stops here).
     """
     g = scene.result.graph
@@ -324,7 +310,7 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Calla
             d = g.pos(n)[:2] - cur[:2]
             if math.hypot(*d) >= 0.05:
                 check()
-                res = _move(robot, d, sidestep)
+                res = robot.move_to(float(d[0]), float(d[1]))
                 if res.status != MoveStatus.REACHED and _relocalised(robot):
                     d = g.pos(n)[:2] - robot.pose.xyz[:2]
                     check()

@@ -37,7 +37,6 @@ from shared.schemas import Candidate, MoveResult, MoveStatus, Panorama, Pose
 
 from services.mapper.core.errors import ExplorationError
 from services.mapper.core.frontier import FreeSpaceMap, FrontierConfig
-from services.mapper.core.sidestep import SidestepConfig, move_sidestepping
 from services.mapper.core.navgraph import GridGraph, NodeStatus
 from services.mapper.core.predictor import (
     GeometricPredictor,
@@ -88,9 +87,6 @@ class ExplorationConfig(BaseModel):
     # The scans' own free-space map: when the predictor's candidates run out, reachable frontiers
     # of the map (free space beside unseen space) become candidates too (see frontier.py).
     frontier: FrontierConfig = Field(default_factory=FrontierConfig)
-    # A move towards a candidate that a jamb stops in its first decimetres is tried again a few
-    # centimetres aside (sidestep.py): the map places a narrow passage's middle to within a cell.
-    sidestep: SidestepConfig = Field(default_factory=SidestepConfig)
 
 
 @dataclass(frozen=True)
@@ -543,7 +539,7 @@ class _Run:
         base = self.here
         goal = g.pos(target)
         start = self.pose.xyz
-        res = self._move(goal[0] - start[0], goal[1] - start[1], sidestep=True)
+        res = self._move(goal[0] - start[0], goal[1] - start[1])
         end = res.pose.xyz
         travelled = walked + res.travelled_m
         if res.status == MoveStatus.REACHED:
@@ -575,7 +571,7 @@ class _Run:
         walked = 0.0  # since the last node
         for wp in corners:
             cur = self.pose.xyz
-            res = self._move(wp[0] - cur[0], wp[1] - cur[1], sidestep=True)
+            res = self._move(wp[0] - cur[0], wp[1] - cur[1])
             walked += res.travelled_m
             if res.status == MoveStatus.REACHED and walked < self.cfg.min_progress_m:
                 continue
@@ -729,7 +725,7 @@ class _Run:
         walked = 0.0  # since the last node
         for k, wp in enumerate(waypoints):
             cur = self.pose.xyz
-            res = self._move(wp[0] - cur[0], wp[1] - cur[1], sidestep=True)
+            res = self._move(wp[0] - cur[0], wp[1] - cur[1])
             walked += res.travelled_m
             if res.status == MoveStatus.REACHED and k == len(waypoints) - 1:
                 g.connect(self.here, others[goal], walked)
@@ -750,16 +746,12 @@ class _Run:
                 return False
         return False
 
-    def _move(self, dx: float, dy: float, sidestep: bool = False) -> MoveResult:
-        """One straight move; ``sidestep``: towards a candidate, tried again aside where blocked early."""
+    def _move(self, dx: float, dy: float) -> MoveResult:
         self.moves += 1
         d = math.hypot(dx, dy)
         if d > 19.0:
             raise ExplorationError(f"refusing a {d:.1f} m single move; graph edges are short")
-        if sidestep:
-            res = move_sidestepping(self.robot, float(dx), float(dy), self.cfg.sidestep)
-        else:
-            res = self.robot.move_to(float(dx), float(dy))
+        res = self.robot.move_to(float(dx), float(dy))
         self.pose = res.pose
         self.trajectory.append(res.pose.xyz.copy())
         return res
