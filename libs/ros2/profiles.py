@@ -13,6 +13,7 @@ from typing import Any
 from pydantic import Field, field_validator, model_validator
 
 from shared.registry import BackendConfig
+from shared.schemas import DepthNoiseRel
 
 from .errors import Ros2ProtocolError
 
@@ -85,7 +86,7 @@ class Ros2Profile(BackendConfig):
     # frame, so that the reconstructor fuses depth only as far as it is good (``Frame.depth_noise_rel``).
     # A stereo camera's is subpixel / (focal_px * baseline_m): a D435 at 848 px (~420 px focal, 50 mm,
     # 0.08 px) ~0.004, i.e. 4 cm at 3.2 m.
-    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)
+    depth_noise_rel: DepthNoiseRel = 0.0
     max_linear_mps: float = Field(0.3, gt=0.0, le=2.0)
     max_angular_dps: float = Field(45.0, gt=0.0, le=360.0)
     linear_accel_mps2: float = Field(0.5, gt=0.0, le=10.0)

@@ -27,6 +27,7 @@ from .base import (  # noqa: F401
     LabelId,
     Count,
     Cost_usd,
+    DepthNoiseRel,
     _ID_PATTERN,
     SegmentId,
     Duration_s,

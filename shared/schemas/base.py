@@ -33,6 +33,10 @@ Xyz_m = tuple[Metres, Metres, Metres]
 LabelId = Annotated[int, Field(ge=-1, le=LABEL_LIMIT)]
 Count = Annotated[int, Field(ge=0, le=SEQ_LIMIT)]
 Cost_usd = Annotated[float, Field(ge=0.0, le=1e6)]
+# A depth sensor's declared noise, sigma = rel * depth^2 (0: exact or not known): the same quantity on a
+# frame, a panorama, a ROS 2 profile and the exploration's outcome. 0.5 gives 2 m of sigma at 2 m: no
+# camera that noisy is worth mapping with.
+DepthNoiseRel = Annotated[float, Field(ge=0.0, le=0.5)]
 _ID_PATTERN = SEGMENT_PATTERN  # kept for older imports: use SegmentId
 # An id that names a key segment (map, mission, exploration, build, upload, job): refused on decode
 # unless it is one valid segment, so no handler validates ids by hand.

@@ -13,6 +13,7 @@ from .base import (
     _finite,
     Cost_usd,
     Count,
+    DepthNoiseRel,
     Distance_m,
     Duration_s,
     Message,
@@ -186,7 +187,7 @@ class ExplorationOutcome(BaseModel):
     open_frontiers: Count = 0  # frontiers no visited node came near and none was tried when it ended
     # The largest depth noise the robot's panoramas declared (sigma = rel * depth^2; 0: exact or not known):
     # the tours then look from nearer (the mapper's TourConfig.max_depth_sigma_m).
-    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)
+    depth_noise_rel: DepthNoiseRel = 0.0
 
 
 class StageProgress(EventPayload):

@@ -12,6 +12,7 @@ from shared.arrays import Array
 
 from .base import (
     SegmentId,
+    DepthNoiseRel,
     _finite_array,
     BudgetExceeded,
     Message,
@@ -42,7 +43,7 @@ class Panorama(Message):
     timestamp_s: Seconds = Field(default_factory=time.time)
     # The depth sensor's noise as its robot declares it, as on a Frame: sigma = depth_noise_rel *
     # depth^2. 0: exact, or not known. The waypoint predictor smooths depth only within that noise.
-    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)
+    depth_noise_rel: DepthNoiseRel = 0.0
 
     @model_validator(mode="after")
     def _shapes(self):
@@ -80,7 +81,7 @@ class Frame(Message):
     # The depth sensor's noise as its robot declares it: sigma = depth_noise_rel * depth^2 (a stereo
     # or structured-light camera's error grows with the square of the range). 0: exact, or not known.
     # The reconstructor fuses a frame's depth only as far as that noise stays near a voxel.
-    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)
+    depth_noise_rel: DepthNoiseRel = 0.0
 
     @model_validator(mode="after")
     def _finite_values(self):

@@ -9,14 +9,14 @@ from pydantic import Field
 
 from shared.geometry import wrap_angle
 from shared.registry import BackendConfig
-from shared.schemas import Pose
+from shared.schemas import DepthNoiseRel, Pose
 
 
 class SensorNoiseConfig(BackendConfig):
     """Noise model parameters (all zero = a perfect sensor)."""
 
     seed: int = 0
-    depth_noise_rel: float = Field(0.0, ge=0.0, le=0.5)  # sigma = rel * z^2 (structured-light-like)
+    depth_noise_rel: DepthNoiseRel = 0.0  # sigma = rel * z^2 (structured-light-like)
     depth_hole_fraction: float = Field(0.0, ge=0.0, le=0.9)  # pixels dropped at random
     depth_max_m: float | None = Field(None, gt=0.0)  # beyond: no measurement (0)
     odometry_drift_per_m: float = Field(0.0, ge=0.0, le=0.5)  # position random walk, m per sqrt(m)
