@@ -26,6 +26,7 @@ from services.mapper.core.localise import Correction, LocalisedRobot
 from services.mapper.core.navgraph import NodeStatus
 from services.mapper.core.occupancy import line_of_sight
 from services.mapper.core.regions import SceneMap
+from services.mapper.core.sidestep import SidestepConfig, move_sidestepping
 from services.mapper.core.tours import PlannedTour
 
 log = logging.getLogger(__name__)
@@ -74,6 +75,7 @@ def execute_tours(
     on_recording: Callable[[RegionRecording], None] | None = None,
     on_skip: Callable[[PlannedTour, TourExecutionError], None] | None = None,
     checkpoint: Callable[[], None] | None = None,
+    sidestep: SidestepConfig | None = None,
 ) -> list[RegionRecording]:
     """Drive every tour in order; returns one recording per tour that could be driven.
 
@@ -81,13 +83,16 @@ def execute_tours(
     and reported through ``on_skip``: one region short is a smaller map, not a failed exploration.
     Only when no tour at all can be driven is that an error. ``checkpoint`` is called before every
     move; it raises to abandon the tours (a cancelled job), a recording under way being stopped.
+    ``sidestep`` (the exploration's; its defaults when None) retries a transit along an edge laid
+    through a narrow passage a few centimetres aside where a jamb stops it early, as the exploration
+    walked it (sidestep.py).
     """
     out = []
     if scene is not None and scene.localiser is not None and not isinstance(robot, LocalisedRobot):
         robot = LocalisedRobot(robot, scene.localiser)
     for pt in tours:
         try:
-            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint)
+            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint, sidestep=sidestep)
         except TourExecutionError as exc:
             log.warning("skipping region %d: %s", pt.tour.region, exc)
             if on_skip is not None:
@@ -140,20 +145,22 @@ def replace_recordings(recs: list[RegionRecording], localiser: Any) -> None:
 
 
 def execute_tour(robot: TourRobot, pt: PlannedTour, scene: SceneMap | None = None, rate_hz: float = 5.0,
-                 checkpoint: Callable[[], None] | None = None) -> RegionRecording:
+                 checkpoint: Callable[[], None] | None = None,
+                 sidestep: SidestepConfig | None = None) -> RegionRecording:
     check = checkpoint or _no_checkpoint
+    side = SidestepConfig() if sidestep is None else sidestep
     tour = pt.tour
     start = np.asarray(tour.start_pose.position_m)
     path = np.asarray(tour.path_m)
     check()
     if scene is not None:
-        _transit(robot, scene, start, check)
+        _transit(robot, scene, start, check, sidestep=side)
     relocalise = getattr(robot, "relocalise", None)
     if relocalise is not None:
         # Re-localised where the transit ended, the tour's start reached by the map, not by odometry:
         # a drifted robot missed one-hub regions by more than the 0.75 m it may start short.
         relocalise()
-    first = _reach_tour_start(robot, tour.region, path if len(path) else start[None], scene, check)
+    first = _reach_tour_start(robot, tour.region, path if len(path) else start[None], scene, check, sidestep=side)
     turn = float(wrap_angle(tour.start_pose.heading_rad - robot.pose.heading_rad))
     if abs(turn) > 1e-3:
         robot.turn(turn)
@@ -227,7 +234,7 @@ def _no_checkpoint() -> None:
 
 def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: SceneMap | None,
                       check: Callable[[], None], samples: tuple[int, ...] = (0, 1, 2, 3, 4, 6, 8, 12),
-                      short_m: float = 0.75) -> int:
+                      short_m: float = 0.75, sidestep: SidestepConfig | None = None) -> int:
     """Move straight to the tour's start, or, where the simulator (or the world) has no room for
     the robot there, to the first of the later path ``samples`` it can reach, each approached over
     the exploration's walked edges from the node nearest it: the index of the sample reached. A
@@ -235,12 +242,13 @@ def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: Sc
     1,000 m2 building lost 2 of its 40 regions to a start inside a piece of furniture, the whole
     region unrecorded for one unreachable pose. When no sample can be reached (a region of one
     hub has a path of one sample), the tour starts where the robot stopped if that is within
-    ``short_m`` of a sample: a look-around a few decimetres off the hub sees the same room."""
+    ``short_m`` of a sample: a look-around a few decimetres off the hub sees the same room.
+    ``sidestep`` goes to every transit (:func:`_transit`)."""
     tried = [k for k in samples if k < len(path)]
     travelled = 0.0
     for n, k in enumerate(tried):
         if n and scene is not None:
-            _transit(robot, scene, path[k], check)
+            _transit(robot, scene, path[k], check, sidestep=sidestep)
         d = path[k, :2] - robot.pose.xyz[:2]
         if np.hypot(*d) <= 0.05:
             return k
@@ -256,7 +264,7 @@ def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: Sc
         k = tried[int(np.argmin(gap))]
         log.info("region %d: tour start out of reach; starting %.2f m short of path sample %d", region, gap.min(), k)
         return k
-    if scene is not None and _from_a_node_that_sees_it(robot, region, path[0], scene, check):
+    if scene is not None and _from_a_node_that_sees_it(robot, region, path[0], scene, check, sidestep):
         log.info("region %d: tour start reached from the nearest node that sees it", region)
         return 0
     raise TourExecutionError(
@@ -265,7 +273,7 @@ def _reach_tour_start(robot: TourRobot, region: int, path: np.ndarray, scene: Sc
 
 
 def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Callable[[], None] = _no_checkpoint,
-             replan_attempts: int = 5) -> None:
+             replan_attempts: int = 5, sidestep: SidestepConfig | None = None) -> None:
     """Walk over traversed edges from the node nearest the robot to the node nearest the goal.
 
     An edge walked one way during exploration may not be walkable back the same straight way (the
@@ -275,7 +283,9 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Calla
     re-localises where the move stopped and tries the edge once more (:func:`_relocalised`). When
     dropping an edge cuts the robot's part of the graph off from the goal's, it rejoins it by a
     direct move from where it stands (:func:`_rejoin`), else where the two parts meet
-    (:func:`_cross_where_parts_meet`).
+    (:func:`_cross_where_parts_meet`). With ``sidestep``, an edge the exploration laid through a
+    narrow passage (``GridGraph.narrow``) that a jamb stops early is first tried a few centimetres
+    aside, as the exploration may have walked it (sidestep.py); every other edge is walked as before.
     ``check`` is called before every move (a cancelled exploration stops here).
     """
     g = scene.result.graph
@@ -310,7 +320,10 @@ def _transit(robot: TourRobot, scene: SceneMap, goal_m: np.ndarray, check: Calla
             d = g.pos(n)[:2] - cur[:2]
             if math.hypot(*d) >= 0.05:
                 check()
-                res = robot.move_to(float(d[0]), float(d[1]))
+                if sidestep is not None and prev is not None and g.narrow(prev, n):
+                    res = move_sidestepping(robot, float(d[0]), float(d[1]), sidestep)
+                else:
+                    res = robot.move_to(float(d[0]), float(d[1]))
                 if res.status != MoveStatus.REACHED and _relocalised(robot):
                     d = g.pos(n)[:2] - robot.pose.xyz[:2]
                     check()
@@ -353,7 +366,7 @@ def _relocalised(robot: TourRobot, min_shift_m: float = 0.03) -> bool:
 
 
 def _from_a_node_that_sees_it(robot: TourRobot, region: int, goal_m: np.ndarray, scene: SceneMap,
-                              check: Callable[[], None]) -> bool:
+                              check: Callable[[], None], sidestep: SidestepConfig | None = None) -> bool:
     """The tour's start approached from the visited node of its floor nearest it that sees it on the
     floor's map (unknown cells hide), when the straight move from where the transit ended failed:
     the transit ends at the nearest node, and a wall may stand between it and the start
@@ -373,7 +386,7 @@ def _from_a_node_that_sees_it(robot: TourRobot, region: int, goal_m: np.ndarray,
     if not len(seen):
         return False
     k = seen[int(np.argmin(np.hypot(*(pos[seen, :2] - goal_m[:2]).T)))]
-    _transit(robot, scene, pos[k], check)
+    _transit(robot, scene, pos[k], check, sidestep=sidestep)
     d = goal_m[:2] - robot.pose.xyz[:2]
     if np.hypot(*d) <= 0.05:
         return True

@@ -130,7 +130,7 @@ def explore(ctx: JobContext, req: ExplorationRequest, *, robot: RecordingRobot, 
                                          message=f"region {pt.tour.region} skipped: {exc}"))
 
     execute_tours(robot, disc.tours, disc.scene, rate_hz=tour_rate_hz, on_recording=on_recording, on_skip=on_skip,
-                  checkpoint=ctx.check_cancelled)
+                  checkpoint=ctx.check_cancelled, sidestep=cfg.exploration.sidestep)
     # The pose graph re-placed the recordings once all tours were in (execute.replace_recordings):
     # their corrections are the final ones.
     recordings[:] = [tour_recording(rec, last) for rec, last in recorded]

@@ -37,6 +37,7 @@ from shared.schemas import Candidate, MoveResult, MoveStatus, Panorama, Pose
 
 from services.mapper.core.errors import ExplorationError
 from services.mapper.core.frontier import FreeSpaceMap, FrontierConfig
+from services.mapper.core.sidestep import SidestepConfig, move_sidestepping
 from services.mapper.core.navgraph import GridGraph, NodeStatus
 from services.mapper.core.predictor import (
     GeometricPredictor,
@@ -87,6 +88,10 @@ class ExplorationConfig(BaseModel):
     # The scans' own free-space map: when the predictor's candidates run out, reachable frontiers
     # of the map (free space beside unseen space) become candidates too (see frontier.py).
     frontier: FrontierConfig = Field(default_factory=FrontierConfig)
+    # On the way to a frontier only the narrow body reaches, a move that a jamb stops in its first
+    # decimetres is tried again a few centimetres aside (sidestep.py): the map places such a
+    # passage's middle to within a cell.
+    sidestep: SidestepConfig = Field(default_factory=SidestepConfig)
 
 
 @dataclass(frozen=True)
@@ -294,6 +299,9 @@ class _Run:
         self.narrow_frontiers = 0
         self.map_targets: list[str] = []  # the nodes the map's frontiers added
         self.depth_noise_rel = 0.0
+        # On the way to a frontier behind a passage only the narrow body passes: its moves may take
+        # a sidestep and the edges laid on it are marked narrow (navgraph.connect).
+        self.narrow_way = False
 
     # --- budget and bookkeeping -------------------------------------------------------------------
 
@@ -379,7 +387,7 @@ class _Run:
         self.cells.add(self._cell(pos))
         self.visit_order.append(nid)
         if previous is not None:
-            self.graph.connect(previous, nid, max(travelled_m, 1e-3))
+            self.graph.connect(previous, nid, max(travelled_m, 1e-3), narrow=self.narrow_way)
         self.here = nid
         obstacle = self.ex.scanner.obstacle_distance(pano)
         scan = Scan(pos.copy(), pano.pose.heading_rad, obstacle, nid, float(pano.timestamp_s), at)
@@ -502,6 +510,8 @@ class _Run:
                                                  body_radius_m=body_radius_m):
                 nid = self.graph.add_observed(t.position_m, t.parent, 0.5)
                 if nid is not None:
+                    if body_radius_m is not None:
+                        self.graph.g.nodes[nid]["narrow"] = True  # its way may need a sidestep
                     if t.way_m:
                         self.graph.g.nodes[nid]["way"] = [np.array([w[0], w[1], z]) for w in t.way_m]
                     out.append(nid)
@@ -522,6 +532,15 @@ class _Run:
             log.info("frontier %s given up: its parent %s is out of reach from %s", target, parent, self.here)
             g.set_status(target, NodeStatus.UNREACHABLE)
             return
+        self.narrow_way = bool(g.g.nodes[target].get("narrow", False))
+        try:
+            self._approach(target)
+        finally:
+            self.narrow_way = False
+
+    def _approach(self, target: str) -> None:
+        """From the frontier's parent, along its way if it has one, to the frontier."""
+        g = self.graph
         walked = 0.0  # on the way's legs since the last node
         way = g.g.nodes[target].get("way") or []
         if way:
@@ -539,7 +558,7 @@ class _Run:
         base = self.here
         goal = g.pos(target)
         start = self.pose.xyz
-        res = self._move(goal[0] - start[0], goal[1] - start[1])
+        res = self._move(goal[0] - start[0], goal[1] - start[1], sidestep=self.narrow_way)
         end = res.pose.xyz
         travelled = walked + res.travelled_m
         if res.status == MoveStatus.REACHED:
@@ -571,7 +590,7 @@ class _Run:
         walked = 0.0  # since the last node
         for wp in corners:
             cur = self.pose.xyz
-            res = self._move(wp[0] - cur[0], wp[1] - cur[1])
+            res = self._move(wp[0] - cur[0], wp[1] - cur[1], sidestep=self.narrow_way)
             walked += res.travelled_m
             if res.status == MoveStatus.REACHED and walked < self.cfg.min_progress_m:
                 continue
@@ -611,7 +630,7 @@ class _Run:
         for nxt in path[1:]:
             p = g.pos(nxt)
             cur = self.pose.xyz
-            res = self._move(p[0] - cur[0], p[1] - cur[1])
+            res = self._move(p[0] - cur[0], p[1] - cur[1], sidestep=g.narrow(self.here, nxt))
             if res.status != MoveStatus.REACHED:
                 self.blocked += 1
                 log.info("blocked on a traversed edge %s -> %s after %.2f m", self.here, nxt, res.travelled_m)
@@ -746,12 +765,17 @@ class _Run:
                 return False
         return False
 
-    def _move(self, dx: float, dy: float) -> MoveResult:
+    def _move(self, dx: float, dy: float, sidestep: bool = False) -> MoveResult:
+        """One straight move; ``sidestep``: through a passage the map holds as narrow, tried again
+        aside where blocked early (sidestep.py)."""
         self.moves += 1
         d = math.hypot(dx, dy)
         if d > 19.0:
             raise ExplorationError(f"refusing a {d:.1f} m single move; graph edges are short")
-        res = self.robot.move_to(float(dx), float(dy))
+        if sidestep:
+            res = move_sidestepping(self.robot, float(dx), float(dy), self.cfg.sidestep)
+        else:
+            res = self.robot.move_to(float(dx), float(dy))
         self.pose = res.pose
         self.trajectory.append(res.pose.xyz.copy())
         return res

@@ -152,16 +152,23 @@ class GridGraph:
         self._index(nid)
         return nid
 
-    def connect(self, a: str, b: str, length_m: float | None = None) -> None:
+    def connect(self, a: str, b: str, length_m: float | None = None, narrow: bool = False) -> None:
+        """Join ``a`` and ``b`` by a walked edge. ``narrow``: laid on the way through a passage only
+        the narrow body passes, so walking it again may take a sidestep (sidestep.py); kept once set."""
         if a == b:
             return
         if length_m is None:
             length_m = float(np.linalg.norm(self.pos(a) - self.pos(b)))
         if self.g.has_edge(a, b):
             length_m = min(length_m, self.g.edges[a, b]["length"])
-        self.g.add_edge(a, b, length=float(length_m))
+            narrow = narrow or bool(self.g.edges[a, b].get("narrow", False))
+        self.g.add_edge(a, b, length=float(length_m), narrow=narrow)
         if a in self._walked and b in self._walked:
-            self._walked.add_edge(a, b, length=float(length_m))
+            self._walked.add_edge(a, b, length=float(length_m), narrow=narrow)
+
+    def narrow(self, a: str, b: str) -> bool:
+        """Was the edge ``a``-``b`` laid through a narrow passage (see :meth:`connect`)?"""
+        return bool(self.g.has_edge(a, b) and self.g.edges[a, b].get("narrow", False))
 
     def remove_edge(self, a: str, b: str) -> None:
         """Forget an edge (one that could not be walked again), if there is one."""

@@ -114,7 +114,7 @@ def test_a_tour_that_cannot_start_is_skipped_not_fatal(monkeypatch):
 
     calls = []
 
-    def fake_execute(robot, pt, scene, rate_hz, checkpoint=None):
+    def fake_execute(robot, pt, scene, rate_hz, checkpoint=None, sidestep=None):
         if pt.tour.region == 1:
             raise TourExecutionError("region 1: could not reach the tour start (0.68 m)")
         calls.append(pt.tour.region)
