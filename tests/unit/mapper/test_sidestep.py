@@ -101,3 +101,43 @@ def test_a_narrow_mark_is_kept_when_the_edge_is_walked_again_plainly():
     g.connect(a, b, 1.0)
     assert g.narrow(a, b) and g.narrow(b, a)
     assert not _lane_graph(False).result.graph.narrow(a, b)
+
+
+def _explore_bed_room(gap_m: float, monkeypatch):
+    """The exploration of test_narrow_passages' bed room, every call of the sidestep recorded."""
+    import services.mapper.core.explorer as explorer_mod
+    from services.mapper.core import DiscoveryConfig, Explorer, PREDICTORS
+    from tests.unit.mapper.test_narrow_passages import bed_room
+
+    calls = []
+
+    def spy(robot, dx_m, dy_m, cfg):
+        calls.append((dx_m, dy_m))
+        return move_sidestepping(robot, dx_m, dy_m, cfg)
+
+    monkeypatch.setattr(explorer_mod, "move_sidestepping", spy)
+    cfg = DiscoveryConfig()
+    robot = BoxWorldRobot(bed_room(gap_m), PinholeCamera(48, 48, 90.0), body_radius_m=0.1)
+    r = Explorer(PREDICTORS.create(cfg.predictor, cfg.predictor_config), cfg.exploration).explore(robot)
+    return r, calls
+
+
+def test_the_explorer_sidesteps_only_on_its_way_through_a_passage_the_map_holds_as_narrow(monkeypatch):
+    """Through the bed room's 0.35 m gap (only the narrow body passes it on the map) the moves may sidestep,
+    and the edges across the gap are marked narrow for the tours; with a 0.6 m gap (the map's own body
+    passes) the same exploration blocks moves on furniture and walls, yet never tries one aside."""
+    from services.mapper.core import NodeStatus
+
+    r, calls = _explore_bed_room(0.35, monkeypatch)
+    assert r.narrow_frontiers >= 1 and calls
+    g = r.graph
+    across = [(a, b) for a, b in g.walked().edges if min(g.pos(a)[1], g.pos(b)[1]) < 3.0 < 3.6 < max(
+        g.pos(a)[1], g.pos(b)[1])]
+    assert across and all(g.narrow(a, b) for a, b in across), across
+    north = g.positions(g.nodes_with(NodeStatus.VISITED))[:, 1] > 3.6
+    assert north.sum() >= 3
+
+    wide, calls = _explore_bed_room(0.6, monkeypatch)
+    assert wide.narrow_frontiers == 0 and wide.blocked_moves >= 1
+    assert calls == []
+    assert not any(wide.graph.narrow(a, b) for a, b in wide.graph.walked().edges)
