@@ -79,8 +79,12 @@ def execute_tours(
 ) -> list[RegionRecording]:
     """Drive every tour in order; returns one recording per tour that could be driven.
 
-    A tour whose start cannot be reached (a doorway the planner thought wider, say) is skipped
-    and reported through ``on_skip``: one region short is a smaller map, not a failed exploration.
+    A tour whose start cannot be reached (a doorway the planner thought wider, say) is tried once
+    more after all the others, from wherever they left the robot; only then is it skipped and
+    reported through ``on_skip``: one region short is a smaller map, not a failed exploration.
+    (generated:2012, noisy: the exploration ended beyond a narrow passage that the transits could
+    not walk back through, and the first three tours were skipped; the robot got out on the way to
+    the fourth.)
     Only when no tour at all can be driven is that an error. ``checkpoint`` is called before every
     move; it raises to abandon the tours (a cancelled job), a recording under way being stopped.
     ``sidestep`` (the exploration's; its defaults when None) retries a transit along an edge laid
@@ -90,17 +94,23 @@ def execute_tours(
     out = []
     if scene is not None and scene.localiser is not None and not isinstance(robot, LocalisedRobot):
         robot = LocalisedRobot(robot, scene.localiser)
-    for pt in tours:
-        try:
-            rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint, sidestep=sidestep)
-        except TourExecutionError as exc:
-            log.warning("skipping region %d: %s", pt.tour.region, exc)
-            if on_skip is not None:
-                on_skip(pt, exc)
-            continue
-        out.append(rec)
-        if on_recording is not None:
-            on_recording(rec)
+    later: list[PlannedTour] = []
+    for last_try, todo in ((False, tours), (True, later)):
+        for pt in list(todo):
+            try:
+                rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint, sidestep=sidestep)
+            except TourExecutionError as exc:
+                if not last_try:
+                    log.info("region %d out of reach (%s): trying it again after the other tours", pt.tour.region, exc)
+                    later.append(pt)
+                    continue
+                log.warning("skipping region %d: %s", pt.tour.region, exc)
+                if on_skip is not None:
+                    on_skip(pt, exc)
+                continue
+            out.append(rec)
+            if on_recording is not None:
+                on_recording(rec)
     if tours and not out:
         raise TourExecutionError(f"none of the {len(tours)} tours could be driven")
     localiser = getattr(robot, "localiser", None)
