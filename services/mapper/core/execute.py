@@ -96,7 +96,7 @@ def execute_tours(
         robot = LocalisedRobot(robot, scene.localiser)
     later: list[PlannedTour] = []
     for last_try, todo in ((False, tours), (True, later)):
-        for pt in list(todo):
+        for pt in todo:
             try:
                 rec = execute_tour(robot, pt, scene, rate_hz, checkpoint=checkpoint, sidestep=sidestep)
             except TourExecutionError as exc:

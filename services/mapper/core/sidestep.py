@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -42,13 +42,14 @@ class SidestepConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     # Sideways shifts tried, each to the left and then to the right of the move; () turns it off.
-    # Half a map cell and one: the free-space map places a passage's sides to within a cell.
-    offsets_m: tuple[float, ...] = (0.05, 0.1)
+    # Half a map cell and one: the free-space map places a passage's sides to within a cell. A
+    # shift of half a metre is no longer the same passage.
+    offsets_m: tuple[Annotated[float, Field(gt=0.0, le=0.5)], ...] = Field((0.05, 0.1), max_length=8)
     # Only a move blocked before this many metres is tried again (the explorer's min_progress_m: a
     # blocked move that got no further adds no node, so the caller has nothing to lose).
-    early_m: float = Field(0.3, ge=0.0)
+    early_m: float = Field(0.3, ge=0.0, le=2.0)
     # A move shorter than this is not tried again (the caller's own small corrections).
-    min_move_m: float = Field(0.3, ge=0.0)
+    min_move_m: float = Field(0.3, ge=0.0, le=2.0)
 
 
 def move_sidestepping(robot: Any, dx_m: float, dy_m: float, cfg: SidestepConfig) -> MoveResult:

@@ -58,6 +58,15 @@ def test_a_wall_is_not_walked_through_and_the_robot_ends_where_it_started():
     assert np.allclose(robot.pose.xyz[:2], [0.5, 0.8], atol=0.02)
 
 
+@pytest.mark.parametrize("bad", [{"offsets_m": (float("nan"),)}, {"offsets_m": (0.0,)}, {"offsets_m": (0.6,)},
+                                 {"offsets_m": (-0.05,)}, {"early_m": float("inf")}, {"min_move_m": -1.0}])
+def test_a_config_out_of_range_is_refused(bad):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError):
+        SidestepConfig(**bad)
+
+
 def test_a_move_blocked_late_or_a_config_without_offsets_is_left_to_the_caller():
     world = lane_world()
     far = robot_at(world, 0.5, 0.2)  # 0.7 m to the cabinet: blocked past early_m
